@@ -1,0 +1,3 @@
+from hdrmerge_cli.cli import main
+
+main()

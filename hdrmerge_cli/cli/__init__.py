@@ -1,0 +1,52 @@
+"""The ``hdrmerge-cli`` command group; one module per subcommand."""
+from __future__ import annotations
+
+import errno
+
+import click
+
+from hdrmerge_cli import __version__
+from hdrmerge_cli.core.errors import HdrMergeError
+
+
+class _Group(click.Group):
+    """Turns data errors into one-line messages with exit code 1 (never a traceback)."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except HdrMergeError as exc:
+            raise click.ClickException(str(exc)) from None
+        except MemoryError:
+            raise click.ClickException("out of memory: merge fewer or smaller frames") from None
+        except OSError as exc:
+            if exc.errno == errno.EPIPE:  # e.g. `hdrmerge-cli ... --json | head`
+                ctx.exit(0)
+            where = f"{exc.filename}: " if exc.filename else ""
+            raise click.ClickException(f"{where}{exc.strerror or exc}") from None
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="hdrmerge-cli")
+def cli():
+    """Merge exposure brackets into scene-linear HDR images (OpenEXR) with the camera
+    noise model of Goossens et al. (2012).
+
+    Outputs are written to a temporary name and renamed; nothing is overwritten without
+    --overwrite; logs go to stderr, --json summaries to stdout.  Exit codes: 0 success,
+    1 a data error (explained in one line), 2 a usage error.
+    """
+
+
+def _register():
+    from hdrmerge_cli.cli import calibrate_noise, estimate_crf, merge, simulate, weights_lut
+
+    for mod in (calibrate_noise, estimate_crf, merge, weights_lut, simulate):
+        cli.add_command(mod.command)
+
+
+_register()
+
+
+def main():
+    cli(prog_name="hdrmerge-cli")

@@ -1,0 +1,4 @@
+import click
+@click.command('calibrate-noise')
+def command():
+    pass

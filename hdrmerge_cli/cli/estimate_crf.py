@@ -1,0 +1,4 @@
+import click
+@click.command('estimate-crf')
+def command():
+    pass

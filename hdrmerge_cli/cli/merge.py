@@ -1,0 +1,53 @@
+"""hdrmerge-cli merge"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from hdrmerge_cli.cli.options import common_options, emit, output_options, parse_csv_list, times_option_callback
+from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+from hdrmerge_cli.pipeline.merge import EXTRA_CHANNELS, MergeOptions, merge
+
+
+@click.command("merge")
+@click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The EXR to write.")
+@click.option("--profile-out", type=click.Path(dir_okay=False, path_type=Path),
+              help="Where to write the camera profile JSON used [default: OUTPUT with .profile.json].")
+@click.option("--weights", type=click.Choice(sorted(WEIGHTING_FUNCTIONS)), default="triangle", show_default=True,
+              help="Weighting function of the reconstruction (7).")
+@click.option("--crf", metavar="CRF",
+              help="Camera response of JPEG/TIFF/PNG input: linear, srgb, gamma:G, a CSV table (z, linear) "
+                   "or a profile JSON [default: srgb, with a warning].  RAW input is linear.")
+@click.option("--times", callback=times_option_callback, metavar="T1,T2,...",
+              help="Exposure times in seconds, in the order of IMAGES (e.g. 1/100,1/25,0.5); overrides EXIF.")
+@click.option("--times-file", type=click.Path(exists=True, dir_okay=False),
+              help="File of lines 'name seconds' giving each image's exposure time.")
+@click.option("--reference", default="geomean", show_default=True, metavar="REF",
+              help="Exposure (s) whose full-scale signal is 1.0 in the output: geomean, shortest, longest or seconds.")
+@click.option("--cfa", is_flag=True, help="RAW: write the merged mosaic (channel Y, camera-native, no demosaic).")
+@click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats.")
+@click.option("--extra-channels", callback=parse_csv_list, metavar="NAMES",
+              help=f"Extra EXR channels, comma-separated: {', '.join(EXTRA_CHANNELS)}.")
+@output_options
+@common_options
+def command(images, output, profile_out, weights, crf, times, times_file, reference, cfa, half, extra_channels,
+            overwrite, as_json):
+    """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
+
+    Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
+    --times or --times-file is given.  Output values are scene-linear: 1.0 is the
+    clipping level of an exposure of --reference seconds (stated in the EXR header).
+    Pixels clipped or dark in every frame get a finite bound (flagged in the 'clipped'
+    channel: 1 saturated, -1 dark).  The camera profile used is written beside the EXR.
+    """
+    if times is not None and times_file:
+        raise click.UsageError("give either --times or --times-file, not both")
+    opts = MergeOptions(
+        output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
+        times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
+    )
+    summary = merge(list(images), opts)
+    emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")

@@ -1,0 +1,108 @@
+"""Option decorators shared by the subcommands."""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import tomllib
+
+import click
+
+from hdrmerge_cli.core.errors import HdrMergeError
+
+
+class _StderrFormatter(logging.Formatter):
+    def format(self, record):
+        level = "" if record.levelno == logging.INFO else f"{record.levelname.lower()}: "
+        return f"hdrmerge-cli: {level}{record.getMessage()}"
+
+
+def _set_verbosity(ctx, param, value):
+    state = ctx.ensure_object(dict)
+    state[param.name] = value
+    verbose, quiet = state.get("verbose", 0), state.get("quiet", False)
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    logger = logging.getLogger("hdrmerge_cli")
+    logger.handlers[:] = []
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_StderrFormatter())
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    logger.propagate = False
+    return value
+
+
+def _load_config(ctx, param, value):
+    """Read a TOML file into the command's defaults: the command line still wins.
+
+    Keys are option names (``weights`` or ``times-file``), at the top level or in a table
+    named after the subcommand (``[merge]``)."""
+    if value is None:
+        return None
+    try:
+        with open(value, "rb") as fh:
+            data = tomllib.load(fh)
+    except OSError as exc:
+        raise click.BadParameter(f"{value}: {exc.strerror}", ctx, param) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise click.BadParameter(f"{value}: not valid TOML ({exc})", ctx, param) from None
+    section = data.get(ctx.info_name, {}) if isinstance(data.get(ctx.info_name), dict) else {}
+    top = {k: v for k, v in data.items() if not isinstance(v, dict)}
+    merged = top | section
+    names = {p.name for p in ctx.command.params if isinstance(p, click.Option)} - {"config"}
+    defaults = {}
+    for key, val in merged.items():
+        name = key.replace("-", "_")
+        if name not in names:
+            raise click.BadParameter(f"{value}: unknown key {key!r} for '{ctx.info_name}'", ctx, param)
+        defaults[name] = val
+    ctx.default_map = (ctx.default_map or {}) | defaults
+    return value
+
+
+def common_options(f):
+    """--config, -v/--verbose, -q/--quiet."""
+    f = click.option("-q", "--quiet", is_flag=True, expose_value=False, is_eager=True, callback=_set_verbosity,
+                     help="Only print errors on stderr.")(f)
+    f = click.option("-v", "--verbose", count=True, expose_value=False, is_eager=True, callback=_set_verbosity,
+                     help="More detail on stderr (-vv for debug).")(f)
+    f = click.option("--config", type=click.Path(dir_okay=False), is_eager=True, expose_value=False,
+                     callback=_load_config, help="TOML file of option defaults (the command line wins).")(f)
+    return f
+
+
+def output_options(f):
+    """--overwrite and --json."""
+    f = click.option("--json", "as_json", is_flag=True, help="Print a JSON summary on stdout.")(f)
+    f = click.option("--overwrite", is_flag=True, help="Replace existing output files.")(f)
+    return f
+
+
+def emit(summary: dict, as_json: bool, text: str) -> None:
+    """The JSON summary on stdout (``--json``); otherwise one line on stderr saying what
+    was written (silenced by -q)."""
+    if as_json:
+        click.echo(json.dumps(summary, indent=1))
+    elif logging.getLogger("hdrmerge_cli").level <= logging.WARNING:
+        click.echo(f"hdrmerge-cli: {text}", err=True)
+
+
+def parse_csv_list(ctx, param, value):
+    if value is None:
+        return ()
+    if isinstance(value, (list, tuple)):
+        return tuple(str(v) for v in value)
+    return tuple(v.strip() for v in value.split(",") if v.strip())
+
+
+def times_option_callback(ctx, param, value):
+    from hdrmerge_cli.io.times import parse_times
+
+    if value is None:
+        return None
+    if isinstance(value, (list, tuple)):
+        value = ",".join(str(v) for v in value)
+    try:
+        return parse_times(str(value))
+    except HdrMergeError as exc:
+        raise click.BadParameter(str(exc), ctx, param) from None

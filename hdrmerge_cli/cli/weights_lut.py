@@ -1,0 +1,4 @@
+import click
+@click.command('weights-lut')
+def command():
+    pass

@@ -1,0 +1,41 @@
+"""Colour filter arrays, white balance and camera -> Rec.709 conversion (array code)."""
+from __future__ import annotations
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+
+#: CIE xy of the Rec.709 / sRGB primaries (R, G, B) and the D65 white point, in the
+#: order of the OpenEXR ``chromaticities`` attribute.
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
+def bayer_channels(pattern: str, shape: tuple[int, int]) -> np.ndarray:
+    """Colour index (0 = R, 1 = G, 2 = B) of every site of a Bayer mosaic, ``(H, W)`` uint8."""
+    if pattern not in BAYER_PATTERNS:
+        raise HdrMergeError(f"unsupported colour filter pattern {pattern!r} (Bayer only: {', '.join(BAYER_PATTERNS)})")
+    cell = np.array(["RGB".index(ch) for ch in pattern], np.uint8).reshape(2, 2)
+    h, w = shape
+    return np.tile(cell, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+
+
+def mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
+    """Sample an ``(H, W, 3)`` image through a Bayer filter: ``(H, W)``."""
+    idx = bayer_channels(pattern, rgb.shape[:2])
+    return np.take_along_axis(rgb, idx[..., None].astype(np.intp), axis=-1)[..., 0]
+
+
+def demosaic(cfa: np.ndarray, pattern: str) -> np.ndarray:
+    """Bayer mosaic ``(H, W)`` -> ``(H, W, 3)`` float32 by Malvar, He and Cutler (2004)
+    (colour-demosaicing): linear, edge-aware, and fast enough for large frames."""
+    from colour_demosaicing import demosaicing_CFA_Bayer_Malvar2004
+
+    return np.asarray(demosaicing_CFA_Bayer_Malvar2004(cfa, pattern), dtype=np.float32)
+
+
+def camera_to_rec709(rgb: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Apply a 3 x 3 camera-RGB -> linear Rec.709 matrix to ``(H, W, 3)`` in place-free form."""
+    out = rgb @ np.asarray(matrix, dtype=np.float32).T
+    return out.astype(np.float32, copy=False)

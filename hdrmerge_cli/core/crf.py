@@ -1,0 +1,126 @@
+"""Camera response functions (CRF) and their inverse tables.
+
+The paper's (1) writes a code value as ``z = gamma(sqrt(alpha) t E)`` and (2) recovers
+the log-irradiance through ``g(z) = log gamma^-1(z)``.  Here a CRF maps the *normalised*
+linear sensor signal ``x in [0, 1]`` (1 = full scale, the clipping level ``y_max``) to the
+normalised code value ``v = z / z_max in [0, 1]``; its inverse gives back ``x``.
+
+Parametric CRFs are picked by name from :data:`CRF_MODELS`; measured CRFs are tables
+``(C, N)`` of ``gamma^-1`` sampled at the ``N`` code values of each of ``C`` channels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+
+
+def _srgb_decode(v):
+    from colour.models import eotf_sRGB  # lazy: colour takes ~1 s to import
+
+    return np.asarray(eotf_sRGB(v), dtype=np.float64)
+
+
+def _srgb_encode(x):
+    from colour.models import eotf_inverse_sRGB
+
+    return np.asarray(eotf_inverse_sRGB(x), dtype=np.float64)
+
+
+#: name -> (forward gamma: x -> v, inverse gamma^-1: v -> x, takes a parameter)
+CRF_MODELS = {
+    "linear": (lambda x, p: np.asarray(x, np.float64), lambda v, p: np.asarray(v, np.float64), False),
+    "srgb": (lambda x, p: _srgb_encode(x), lambda v, p: _srgb_decode(v), False),
+    "gamma": (
+        lambda x, p: np.power(np.clip(x, 0, None), 1.0 / p),
+        lambda v, p: np.power(np.clip(v, 0, None), p),
+        True,
+    ),
+}
+
+
+@dataclass(frozen=True)
+class CRF:
+    """A camera response: a named model (``linear``, ``srgb``, ``gamma`` with
+    ``param`` = G so that ``v = x^(1/G)``) or a measured inverse table.
+
+    table : (C, N) float64 or None
+        ``gamma^-1`` at each of the ``N`` code values, per channel, monotone, in [0, 1].
+    """
+
+    name: str
+    param: float | None = None
+    table: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def is_linear(self) -> bool:
+        return self.name == "linear"
+
+    def describe(self) -> str:
+        if self.name == "gamma":
+            return f"gamma:{self.param:g}"
+        return self.name
+
+    def inverse(self, v: np.ndarray, channel: int = 0) -> np.ndarray:
+        """``gamma^-1``: normalised code values ``v`` (any shape) -> linear ``x``."""
+        if self.table is not None:
+            tab = self.table[min(channel, self.table.shape[0] - 1)]
+            grid = np.linspace(0.0, 1.0, tab.size)
+            return np.interp(v, grid, tab)
+        return CRF_MODELS[self.name][1](v, self.param)
+
+    def forward(self, x: np.ndarray, channel: int = 0) -> np.ndarray:
+        """``gamma``: linear ``x`` in [0, 1] -> normalised code value ``v``."""
+        if self.table is not None:
+            tab = self.table[min(channel, self.table.shape[0] - 1)]
+            grid = np.linspace(0.0, 1.0, tab.size)
+            return np.interp(x, tab, grid)
+        return CRF_MODELS[self.name][0](x, self.param)
+
+
+def parse_crf(text: str) -> CRF:
+    """Parse ``linear``, ``srgb`` or ``gamma:G`` (G > 0) into a :class:`CRF`."""
+    name, _, arg = text.strip().lower().partition(":")
+    if name not in CRF_MODELS:
+        raise HdrMergeError(f"unknown CRF {text!r}: use one of {', '.join(crf_names())}, a CSV table or a profile JSON")
+    takes = CRF_MODELS[name][2]
+    if takes != bool(arg):
+        raise HdrMergeError(f"CRF {text!r}: " + ("gamma needs a value, e.g. gamma:2.2" if takes else f"{name} takes no value"))
+    if not takes:
+        return CRF(name)
+    try:
+        p = float(arg)
+    except ValueError:
+        raise HdrMergeError(f"CRF {text!r}: {arg!r} is not a number") from None
+    if not np.isfinite(p) or p <= 0:
+        raise HdrMergeError(f"CRF {text!r}: the gamma must be a positive number")
+    return CRF("gamma", p)
+
+
+def crf_names() -> list[str]:
+    return ["linear", "srgb", "gamma:G"]
+
+
+def table_crf(table: np.ndarray, name: str = "table") -> CRF:
+    """A measured inverse CRF from a ``(C, N)`` or ``(N,)`` table of ``gamma^-1`` values.
+
+    The table is rescaled so that its last entry is 1 (full scale) and must be
+    non-decreasing (the paper assumes a monotone, invertible CRF)."""
+    tab = np.atleast_2d(np.asarray(table, dtype=np.float64))
+    if tab.shape[1] < 2 or not np.all(np.isfinite(tab)):
+        raise HdrMergeError("the CRF table needs at least two finite entries per channel")
+    if np.any(np.diff(tab, axis=1) < 0):
+        raise HdrMergeError("the CRF table is not monotone (gamma^-1 must not decrease with z)")
+    top = tab[:, -1:]
+    if np.any(top <= 0):
+        raise HdrMergeError("the CRF table must end at a positive value")
+    return CRF(name, table=tab / top)
+
+
+def inverse_crf_codes(crf: CRF, z: np.ndarray, z_max: float, channel: int = 0) -> np.ndarray:
+    """Linear signal ``gamma^-1(z / z_max)`` in [0, 1] for code values ``z`` (eq. (2)
+    without the log); codes outside ``[0, z_max]`` are clamped."""
+    v = np.clip(np.asarray(z, dtype=np.float64) / float(z_max), 0.0, 1.0)
+    return crf.inverse(v, channel)

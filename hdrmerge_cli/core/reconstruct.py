@@ -1,0 +1,151 @@
+"""HDR reconstruction by the paper's main formula (7), streamed frame by frame.
+
+(7):  log E_i = sum_j w_ij s_ij (g(z_ij) - log h_j) / sum_j w_ij s_ij
+
+with ``g = log gamma^-1`` (2), ``h_j`` the exposure of frame j (exposure time times the
+gain ratio ``sqrt(alpha_j)``, see (1)), ``w_ij = w(z_ij)`` a weighting function and
+``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` (1 here: the classical weights).
+
+Because ``w`` and ``g`` depend on the code value ``z`` and the frame ``j`` only, each
+frame is reduced to lookup tables over all code values (:func:`exposure_tables`), and
+merging a frame is two gathers and two additions per sample (:class:`LogMerge`).
+
+Tables are indexed by the *stored* code value ``r`` (for RAW: before black-level
+subtraction), ``z = r - black``, full scale ``z_max = white - black``.  A table has one
+row per channel ``c``; a sample of channel ``c`` with stored code ``r`` reads entry
+``c * N + r`` of the flattened table.
+
+Pixels that no frame measures (weight 0 in every frame) get a finite, documented value
+and a flag (see :meth:`LogMerge.finish`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+
+#: flag values of :meth:`LogMerge.finish`
+FLAG_OK, FLAG_SATURATED, FLAG_DARK = 0, 1, -1
+
+
+@dataclass(frozen=True)
+class ExposureTables:
+    """Lookup tables of one exposure, each flattened ``(C * N,)`` float32.
+
+    weight : ``w(z)``
+    weighted_log : ``w(z) * (g(z) - log h)``, the numerator term of (7)
+    fallback_log : ``log(max(gamma^-1(z), half a code) / h)``, used where no frame has weight
+    above_mid : bool, ``z > z_max / 2``: a pixel above mid-scale in the shortest frame and
+        unmeasured everywhere is taken as saturated, otherwise as dark
+    """
+
+    weight: np.ndarray
+    weighted_log: np.ndarray
+    fallback_log: np.ndarray
+    above_mid: np.ndarray
+    n_codes: int
+
+
+def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
+    """Normalised code values ``v = (r - black) / (white - black)`` for ``r = 0..N-1``."""
+    return (np.arange(n_codes, dtype=np.float64) - black) / float(white - black)
+
+
+def exposure_tables(
+    n_codes: int,
+    black: np.ndarray,
+    white: np.ndarray,
+    crf: CRF,
+    weighting: str,
+    exposure: float,
+) -> ExposureTables:
+    """Build the per-channel tables of one exposure for (7).
+
+    n_codes : number of stored code values (256 for 8-bit, 65536 for 16-bit containers)
+    black, white : (C,) black and white (clipping) level of each channel, in stored codes
+    crf : the camera response; ``crf.inverse`` gives ``gamma^-1`` per channel
+    weighting : a name in :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`
+    exposure : ``h_j`` in seconds (times the gain ratio where frames differ in ISO)
+    """
+    wfun = WEIGHTING_FUNCTIONS[weighting]
+    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
+    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
+    log_h = np.log(exposure)
+    rows = []
+    for c, (b, wl) in enumerate(zip(black, white)):
+        v = code_grid(n_codes, b, wl)
+        lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
+        w = wfun(v, lin)
+        half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
+        with np.errstate(divide="ignore"):
+            g = np.log(lin)
+        g_rel = np.where(w > 0, g - log_h, 0.0)  # finite wherever it is used
+        fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
+        rows.append((w, w * g_rel, fallback, v > 0.5))
+    w, wg, fb, hi = (np.concatenate(col) for col in zip(*rows))
+    return ExposureTables(
+        w.astype(np.float32), wg.astype(np.float32), fb.astype(np.float32), hi, n_codes
+    )
+
+
+def flat_index(codes: np.ndarray, channel_offset: np.ndarray | None) -> np.ndarray:
+    """Index of each sample into flattened ``(C * N,)`` tables.
+
+    codes : (H, W) or (H, W, C) integer stored code values
+    channel_offset : ``c * N`` for each sample's channel, broadcastable to ``codes``
+        (``(C,)`` for interleaved RGB, ``(H, W)`` for a CFA mosaic), or None when all
+        channels share one table.
+    """
+    if channel_offset is None:
+        return codes
+    return codes.astype(np.int32) + channel_offset
+
+
+class LogMerge:
+    """Accumulate (7) over frames given in increasing exposure order.
+
+    shape : the sample array shape, ``(H, W)`` (mosaic) or ``(H, W, C)``.
+    Memory: three float32 and one bool array of that shape.
+    """
+
+    def __init__(self, shape: tuple[int, ...]):
+        self.num = np.zeros(shape, np.float32)
+        self.den = np.zeros(shape, np.float32)
+        self.fallback = np.empty(shape, np.float32)
+        self.saturated = None  # set by the first (shortest) frame
+        self.frames = 0
+
+    def add(self, index: np.ndarray, tables: ExposureTables, last: bool = False) -> None:
+        """Add one frame; ``index`` from :func:`flat_index`; ``last`` for the longest."""
+        w = tables.weight.take(index)
+        self.den += w
+        self.num += tables.weighted_log.take(index)
+        if self.saturated is None:
+            self.saturated = tables.above_mid.take(index)
+            np.copyto(self.fallback, tables.fallback_log.take(index))
+        elif last:
+            np.copyto(self.fallback, tables.fallback_log.take(index), where=~self.saturated)
+        self.frames += 1
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``(log_E, flag)``: the log-exposure-normalised irradiance (float32, finite)
+        and an int8 flag per sample.
+
+        Where some frame has weight: (7).  Where none has (flag != 0):
+        ``FLAG_SATURATED`` (above mid-scale in the shortest frame): the clipping level of
+        the shortest frame, ``log(gamma^-1(z_max) / h_min)``, a lower bound;
+        ``FLAG_DARK``: the longest frame's value with a floor of half a code value,
+        ``log(max(gamma^-1(z), gamma^-1(1/2)) / h_max)``, an upper bound.
+        """
+        if self.frames == 0:
+            raise ValueError("no frame was added")
+        measured = self.den > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_e = np.where(measured, self.num / self.den, self.fallback)
+        flag = np.zeros(self.num.shape, np.int8)
+        flag[~measured & self.saturated] = FLAG_SATURATED
+        flag[~measured & ~self.saturated] = FLAG_DARK
+        return log_e, flag

@@ -1,0 +1,66 @@
+"""Write-then-rename outputs: an interrupted run never leaves a half-written file."""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+from hdrmerge_cli.core.errors import HdrMergeError
+
+
+def check_writable(path: str | os.PathLike, overwrite: bool) -> Path:
+    """Refuse an existing output without ``overwrite`` and a missing parent folder."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise HdrMergeError(f"{path}: already exists (use --overwrite to replace it)")
+    if path.is_dir():
+        raise HdrMergeError(f"{path}: is a folder, not a file name")
+    if not path.parent.is_dir():
+        raise HdrMergeError(f"{path}: the folder {path.parent} does not exist")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, overwrite: bool):
+    """Yield a temporary path beside ``path`` (same extension, so writers pick the same
+    format); rename it onto ``path`` when the block succeeds, delete it otherwise."""
+    path = check_writable(path, overwrite)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_paths(paths: list, overwrite: bool):
+    """Several outputs that appear together or not at all: yields temporary paths, renames
+    them all on success (each check done before anything is written)."""
+    for p in paths:
+        check_writable(p, overwrite)
+    with contextlib.ExitStack() as stack:
+        tmps = [stack.enter_context(atomic_path(p, True)) for p in paths]
+        yield tmps
+
+
+def atomic_text(path: str | os.PathLike, text: str, overwrite: bool) -> None:
+    with atomic_path(path, overwrite) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
+
+
+def ensure_folder(path: str | os.PathLike, overwrite: bool) -> Path:
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise HdrMergeError(f"{path}: exists and is not a folder")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise HdrMergeError(f"{path}: folder is not empty (use --overwrite to write into it)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HdrMergeError(f"{path}: cannot create the folder ({exc.strerror})") from None
+    return path

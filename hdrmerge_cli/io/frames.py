@@ -1,0 +1,267 @@
+"""Reading frames: RAW files through rawpy (LibRaw), JPEG/TIFF/PNG through OpenImageIO.
+
+:func:`read_frame` reads a frame's metadata (cheap); :func:`load_codes` decodes its code
+values.  Every failure is an :class:`~hdrmerge_cli.core.errors.HdrMergeError` whose
+message starts with the file's path.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+
+#: extensions read through OpenImageIO; anything else is tried as RAW with LibRaw
+IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".tif", ".tiff", ".png"}
+
+
+@dataclass
+class Frame:
+    """One frame of a bracket (metadata; pixels via :func:`load_codes`).
+
+    kind : "raw" (CFA mosaic, linear) or "image" (camera-processed, interleaved channels)
+    black, white : (C,) per table channel, in stored code values; C = 4 raw colours for
+        RAW (LibRaw's order, see ``channel_colors``), the image channels otherwise
+    n_codes : size of the stored code range (2^8 or 2^16)
+    bits : significant bits of the stored values
+    """
+
+    path: str
+    kind: str
+    width: int
+    height: int
+    exposure_time: float | None
+    iso: float | None
+    aperture: float | None
+    make: str
+    model: str
+    timestamp: str | None
+    bits: int
+    n_codes: int
+    black: np.ndarray
+    white: np.ndarray
+    channels: int
+    cfa_pattern: str | None = None
+    channel_colors: str = "RGB"
+    white_balance: np.ndarray = field(default_factory=lambda: np.ones(3))
+    color_matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    @property
+    def name(self) -> str:
+        return Path(self.path).name
+
+    @property
+    def camera(self) -> str:
+        return f"{self.make} {self.model}".strip()
+
+    def summary(self) -> dict:
+        return {
+            "path": self.path,
+            "exposure_time": self.exposure_time,
+            "iso": self.iso,
+            "aperture": self.aperture,
+            "camera": self.camera,
+            "kind": self.kind,
+            "bits": self.bits,
+            "black": [float(b) for b in self.black],
+            "white": [float(w) for w in self.white],
+        }
+
+
+@contextlib.contextmanager
+def _quiet_c_stderr():
+    """Silence what LibRaw prints on C-level stderr (we report its errors ourselves)."""
+    try:
+        fd = os.dup(2)
+    except OSError:  # no stderr to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(fd, 2)
+        os.close(fd)
+
+
+def _positive(value) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) and v > 0 else None
+
+
+def is_raw_path(path: str | os.PathLike) -> bool:
+    return Path(path).suffix.lower() not in IMAGE_EXTENSIONS
+
+
+def read_frame(path: str | os.PathLike) -> Frame:
+    """Metadata of one frame (RAW or image), validated; raises HdrMergeError."""
+    path = str(path)
+    if not os.path.isfile(path):
+        raise HdrMergeError(f"{path}: no such file")
+    if not os.access(path, os.R_OK):
+        raise HdrMergeError(f"{path}: not readable (permission denied)")
+    return _read_raw(path) if is_raw_path(path) else _read_image(path)
+
+
+def _oiio_meta(path: str) -> dict:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        oiio.geterror()
+        return {}
+    spec = inp.spec()
+    meta = {k: spec.getattribute(k) for k in ("Make", "Model", "Exif:DateTimeOriginal", "DateTime")}
+    inp.close()
+    return meta
+
+
+def _read_raw(path: str) -> Frame:
+    import rawpy
+
+    try:
+        with _quiet_c_stderr(), rawpy.imread(path) as raw:
+            sizes = raw.sizes
+            black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
+            white = float(raw.white_level)
+            pattern = np.asarray(raw.raw_pattern)
+            colors = raw.color_desc.decode("ascii", "replace")
+            wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)
+            daylight = np.asarray(raw.daylight_whitebalance, dtype=np.float64)
+            matrix = np.asarray(raw.color_matrix, dtype=np.float64)[:, :3]
+            other = raw.other
+            num_colors = raw.num_colors
+    except rawpy.LibRawError as exc:
+        raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
+    if pattern is None or pattern.shape != (2, 2) or num_colors != 3:
+        raise HdrMergeError(f"{path}: only Bayer RAW files are supported (this sensor's pattern is not 2 x 2 RGB)")
+    cfa = "".join(colors[i] for i in pattern.ravel())
+    if white <= black.max():
+        raise HdrMergeError(f"{path}: white level {white:g} is not above the black level {black.max():g}")
+    meta = _oiio_meta(path)
+    ts = other.timestamp
+    stamp = ts.isoformat() if isinstance(ts, _dt.datetime) and ts.year > 1970 else None
+    bits = int(np.ceil(np.log2(white + 1)))
+    return Frame(
+        path=path, kind="raw", width=sizes.width, height=sizes.height,
+        exposure_time=_positive(other.shutter_speed), iso=_positive(other.iso_speed),
+        aperture=_positive(other.aperture), make=str(meta.get("Make") or ""),
+        model=str(meta.get("Model") or ""), timestamp=stamp, bits=bits, n_codes=65536,
+        black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors,
+        white_balance=_white_balance(wb, daylight), color_matrix=_matrix_or_identity(matrix),
+    )
+
+
+def _libraw_reason(exc) -> str:
+    name = type(exc).__name__
+    return {
+        "LibRawIOError": "unreadable or truncated data",
+        "LibRawFileUnsupportedError": "unsupported file format",
+        "LibRawDataError": "corrupt data",
+        "LibRawTooBigError": "image too large",
+    }.get(name, name)
+
+
+def _white_balance(wb: np.ndarray, daylight: np.ndarray) -> np.ndarray:
+    """As-shot RGB multipliers with green = 1 (daylight or unity when absent)."""
+    for cand in (wb, daylight):
+        if cand.size >= 3 and np.all(np.isfinite(cand[:3])) and np.all(cand[:3] > 0):
+            return cand[:3] / cand[1]
+    return np.ones(3)
+
+
+def _matrix_or_identity(m: np.ndarray) -> np.ndarray:
+    if m.shape == (3, 3) and np.all(np.isfinite(m)) and np.abs(m).sum() > 0:
+        return m
+    return np.eye(3)
+
+
+def _read_image(path: str) -> Frame:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise HdrMergeError(f"{path}: not a readable image ({_oiio_reason(oiio.geterror())})")
+    spec = inp.spec()
+    inp.close()
+    base = spec.format.basetype
+    if base not in (oiio.UINT8, oiio.UINT16):
+        raise HdrMergeError(f"{path}: {spec.format} pixels are not supported; give 8- or 16-bit integer images")
+    container = 8 if base == oiio.UINT8 else 16
+    bits = spec.get_int_attribute("oiio:BitsPerSample", container) or container
+    channels = min(spec.nchannels, 3)  # drop alpha
+    if spec.nchannels == 2:
+        channels = 1
+    white = 2.0**container - 1
+    iso = _positive(spec.getattribute("Exif:PhotographicSensitivity")) or _first_positive(
+        spec.getattribute("Exif:ISOSpeedRatings")
+    )
+    stamp = spec.getattribute("Exif:DateTimeOriginal") or spec.getattribute("DateTime")
+    return Frame(
+        path=path, kind="image", width=spec.width, height=spec.height,
+        exposure_time=_positive(spec.getattribute("ExposureTime")), iso=iso,
+        aperture=_positive(spec.getattribute("FNumber")), make=str(spec.getattribute("Make") or ""),
+        model=str(spec.getattribute("Model") or ""), timestamp=str(stamp) if stamp else None,
+        bits=bits, n_codes=2**container, black=np.zeros(channels), white=np.full(channels, white),
+        channels=channels, channel_colors="RGB"[:channels] if channels == 3 else "Y",
+    )
+
+
+def _first_positive(value) -> float | None:
+    if isinstance(value, (tuple, list)):
+        value = value[0] if value else None
+    return _positive(value)
+
+
+def _oiio_reason(message: str) -> str:
+    line = (message or "unknown error").strip().splitlines()[-1]
+    return line.replace("\n", " ")[:200]
+
+
+def load_codes(frame: Frame) -> np.ndarray:
+    """Decode the stored code values: ``(H, W)`` uint16 for RAW (visible area, before
+    black-level subtraction), ``(H, W, C)`` uint8/uint16 for images."""
+    if frame.kind == "raw":
+        import rawpy
+
+        try:
+            with _quiet_c_stderr(), rawpy.imread(frame.path) as raw:
+                codes = raw.raw_image_visible.copy()
+        except rawpy.LibRawError as exc:
+            raise HdrMergeError(f"{frame.path}: not a readable RAW file ({_libraw_reason(exc)})") from None
+        return codes
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(frame.path)
+    if inp is None:
+        raise HdrMergeError(f"{frame.path}: not a readable image ({_oiio_reason(oiio.geterror())})")
+    try:
+        pixels = inp.read_image(0, 0, 0, frame.channels, format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if pixels is None or (err and "error" in err.lower()):
+        raise HdrMergeError(f"{frame.path}: could not decode the pixels ({_oiio_reason(err)})")
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    return pixels
+
+
+def raw_channel_map(path: str) -> np.ndarray:
+    """LibRaw's raw colour index (0..3) of every visible site, ``(H, W)`` uint8."""
+    import rawpy
+
+    try:
+        with _quiet_c_stderr(), rawpy.imread(path) as raw:
+            return raw.raw_colors_visible.astype(np.uint8)
+    except rawpy.LibRawError as exc:
+        raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None

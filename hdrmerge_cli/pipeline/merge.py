@@ -1,0 +1,307 @@
+"""merge: read a bracket, reconstruct (7) frame by frame, write the EXR and its profile."""
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hdrmerge_cli import __version__
+from hdrmerge_cli.core.color import REC709_CHROMATICITIES, bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, LogMerge, exposure_tables, flat_index
+from hdrmerge_cli.io.atomic import atomic_paths, check_writable
+from hdrmerge_cli.io.crfspec import resolve_crf
+from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
+from hdrmerge_cli.io.images import write_exr
+from hdrmerge_cli.io.profile import dumps, new_profile
+from hdrmerge_cli.io.times import read_times_file
+
+log = logging.getLogger("hdrmerge_cli")
+
+#: extra EXR channels a user may ask for
+EXTRA_CHANNELS = ("clipped", "weight")
+
+#: relative difference under which two exposures count as equal
+EQUAL_EXPOSURE_RTOL = 1e-3
+
+
+@dataclass
+class MergeOptions:
+    output: Path
+    profile_out: Path | None = None
+    overwrite: bool = False
+    weights: str = "triangle"
+    crf: str | None = None
+    times: list[float] | None = None
+    times_file: str | None = None
+    reference: str = "geomean"
+    cfa: bool = False
+    half: bool = False
+    extra_channels: tuple[str, ...] = field(default_factory=tuple)
+
+
+def default_profile_path(output: Path) -> Path:
+    return output.with_name(output.stem + ".profile.json")
+
+
+# ---------------------------------------------------------------- bracket checks
+def read_bracket(paths: list[str], times: list[float] | None = None, times_file: str | None = None) -> list[Frame]:
+    """Read and check the frames' metadata; apply user exposure times; sort by exposure."""
+    if not paths:
+        raise HdrMergeError("no input frames given")
+    frames = [read_frame(p) for p in paths]
+    if times is not None:
+        if len(times) != len(frames):
+            raise HdrMergeError(f"--times gives {len(times)} values for {len(frames)} frames")
+        for f, t in zip(frames, times):
+            f.exposure_time = t
+    if times_file is not None:
+        table = read_times_file(times_file)
+        for f in frames:
+            if f.name not in table:
+                raise HdrMergeError(f"{f.path}: not listed in the times file {times_file}")
+            f.exposure_time = table[f.name]
+    for f in frames:
+        if f.exposure_time is None:
+            raise HdrMergeError(f"{f.path}: no exposure time in the file's metadata (give them with --times or --times-file)")
+    first = frames[0]
+    for f in frames[1:]:
+        for what, a, b in (
+            ("file type", first.kind, f.kind),
+            ("size", (first.width, first.height), (f.width, f.height)),
+            ("bit depth", first.bits, f.bits),
+            ("channel count", first.channels, f.channels),
+            ("colour filter", first.cfa_pattern, f.cfa_pattern),
+        ):
+            if a != b:
+                raise HdrMergeError(f"{f.path}: {what} {_fmt(b)} differs from {_fmt(a)} of {first.path}")
+        if first.camera and f.camera and first.camera != f.camera:
+            raise HdrMergeError(f"{f.path}: taken with {f.camera!r}, but {first.path} with {first.camera!r}")
+    exposures = exposure_values(frames)
+    order = np.argsort(exposures, kind="stable")
+    frames = [frames[i] for i in order]
+    exposures = exposures[order]
+    for k in range(1, len(frames)):
+        if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
+            raise HdrMergeError(
+                f"{frames[k].path}: same exposure ({_fmt_time(frames[k].exposure_time)}) as {frames[k - 1].path}; "
+                "a bracket needs different exposures (check --times)"
+            )
+    return frames
+
+
+def exposure_values(frames: list[Frame]) -> np.ndarray:
+    """``h_j``: exposure time times ISO / ISO of the first frame when every frame has an
+    ISO and they differ (the gain ``sqrt(alpha_j)`` of (1)); else the exposure time."""
+    t = np.array([f.exposure_time for f in frames], dtype=np.float64)
+    isos = [f.iso for f in frames]
+    if all(isos) and len(set(isos)) > 1:
+        return t * np.array(isos, dtype=np.float64) / isos[0]
+    return t
+
+
+def _fmt(v) -> str:
+    if isinstance(v, tuple):
+        return "x".join(str(x) for x in v)
+    return str(v)
+
+
+def _fmt_time(t: float) -> str:
+    return f"1/{1 / t:.4g} s" if t < 1 else f"{t:.4g} s"
+
+
+def reference_exposure(spec: str, exposures: np.ndarray) -> float:
+    """``geomean`` (default), ``shortest``, ``longest`` or a number of seconds."""
+    if spec == "geomean":
+        return float(np.exp(np.mean(np.log(exposures))))
+    if spec == "shortest":
+        return float(exposures[0])
+    if spec == "longest":
+        return float(exposures[-1])
+    from hdrmerge_cli.io.times import parse_seconds
+
+    return parse_seconds(spec)
+
+
+def choose_crf(frames: list[Frame], spec: str | None) -> CRF:
+    """RAW is linear; images use ``spec`` or sRGB with a warning."""
+    if frames[0].kind == "raw":
+        if spec and spec != "linear":
+            log.warning("RAW data is linear: --crf %s is ignored", spec)
+        return CRF("linear")
+    if spec:
+        return resolve_crf(spec)
+    log.warning(
+        "%s: no camera response given; assuming sRGB. For better accuracy run "
+        "'hdrmerge-cli estimate-crf' on this bracket and pass --crf PROFILE.json",
+        frames[0].path,
+    )
+    return CRF("srgb")
+
+
+# ---------------------------------------------------------------- the merge
+def merge(paths: list[str], opts: MergeOptions) -> dict:
+    """Merge a bracket; returns the JSON summary.  Writes nothing if anything fails."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    for extra in opts.extra_channels:
+        if extra not in EXTRA_CHANNELS:
+            raise HdrMergeError(f"unknown extra channel {extra!r} (choose from {', '.join(EXTRA_CHANNELS)})")
+    output = Path(opts.output)
+    profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(output)
+    check_writable(output, opts.overwrite)
+    check_writable(profile_out, opts.overwrite)
+    frames = read_bracket(paths, opts.times, opts.times_file)
+    if len(frames) == 1:
+        log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
+    crf = choose_crf(frames, opts.crf)
+    exposures = exposure_values(frames)
+    h_ref = reference_exposure(opts.reference, exposures)
+    timings["read_metadata"] = time.perf_counter() - t0
+
+    first = frames[0]
+    t0 = time.perf_counter()
+    tables, offsets = _tables(frames, exposures, crf, opts.weights)
+    timings["tables"] = time.perf_counter() - t0
+
+    log_e, flags, den, timings_stream = _stream(frames, tables, offsets)
+    timings.update(timings_stream)
+
+    t0 = time.perf_counter()
+    linear = np.exp(log_e, dtype=np.float32) * np.float32(h_ref)
+    del log_e
+    if first.kind == "raw" and not opts.cfa:
+        rgb = _raw_to_rec709(linear, first)
+        channels, flag_img = ["R", "G", "B"], flags
+    elif first.kind == "raw":
+        rgb, channels, flag_img = linear[..., None], ["Y"], flags
+    else:
+        rgb = linear
+        channels = ["R", "G", "B"] if first.channels == 3 else ["Y"]
+        flag_img = np.where((flags == FLAG_SATURATED).any(-1), FLAG_SATURATED, np.where((flags == FLAG_DARK).any(-1), FLAG_DARK, 0))
+    timings["color"] = time.perf_counter() - t0
+
+    planes, names = [rgb], list(channels)
+    if "clipped" in opts.extra_channels:
+        planes.append(flag_img.astype(np.float32)[..., None])
+        names.append("clipped")
+    if "weight" in opts.extra_channels:
+        wsum = den if den.ndim == 2 else den.mean(axis=-1)
+        planes.append(wsum.astype(np.float32)[..., None])
+        names.append("weight")
+    pixels = np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
+
+    profile = new_profile(
+        {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
+    )
+    profile["weights"] = opts.weights
+    profile_text = dumps(profile)
+    import hashlib
+
+    attrs = {
+        "Software": f"hdrmerge-cli {__version__}",
+        "hdrmerge:version": __version__,
+        "hdrmerge:exposureTimes": [f.exposure_time for f in frames],
+        "hdrmerge:exposures": list(exposures),
+        "hdrmerge:referenceExposure": h_ref,
+        "hdrmerge:units": (
+            "scene-linear; 1.0 = the full-scale (clipping) signal of an exposure of "
+            "hdrmerge:referenceExposure seconds" + ("" if first.kind != "raw" or opts.cfa else ", after white balance (green = 1)")
+        ),
+        "hdrmerge:weights": opts.weights,
+        "hdrmerge:crf": crf.describe(),
+        "hdrmerge:profile": profile_out.name,
+        "hdrmerge:profileSHA256": hashlib.sha256(profile_text.encode()).hexdigest(),
+        "hdrmerge:inputs": "; ".join(f.name for f in frames),
+        "ExposureTime": h_ref,
+    }
+    if first.camera:
+        attrs["Make"], attrs["Model"] = first.make, first.model
+    if channels == ["R", "G", "B"]:
+        attrs["chromaticities"] = list(REC709_CHROMATICITIES)
+    if first.kind == "raw" and opts.cfa:
+        attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
+
+    t0 = time.perf_counter()
+    with atomic_paths([output, profile_out], opts.overwrite) as (tmp_exr, tmp_json):
+        write_exr(tmp_exr, pixels, names, attrs, half=opts.half)
+        Path(tmp_json).write_text(profile_text, encoding="utf-8")
+    timings["write"] = time.perf_counter() - t0
+
+    n = flags.size
+    return {
+        "output": str(output),
+        "profile": str(profile_out),
+        "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(frames, exposures)],
+        "reference_exposure": h_ref,
+        "weights": opts.weights,
+        "crf": crf.describe(),
+        "width": first.width,
+        "height": first.height,
+        "channels": names,
+        "saturated_fraction": float(np.count_nonzero(flags == FLAG_SATURATED) / n),
+        "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
+        "timing_seconds": {k: round(v, 4) for k, v in timings.items()},
+    }
+
+
+def _tables(frames, exposures, crf, weights):
+    """Per-frame lookup tables and the per-sample channel offsets into them."""
+    first = frames[0]
+    black, white = first.black, first.white
+    shared = np.all(black == black[0]) and (crf.table is None or crf.table.shape[0] == 1)
+    rows = 1 if shared else len(black)
+    tables = [exposure_tables(first.n_codes, black[:rows], white[:rows], crf, weights, h) for h in exposures]
+    if shared:
+        return tables, None
+    if first.kind == "raw":
+        return tables, raw_channel_map(first.path).astype(np.int32) * first.n_codes
+    return tables, np.arange(first.channels, dtype=np.int32) * first.n_codes
+
+
+def _stream(frames, tables, offsets):
+    """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
+    decoded frames in memory."""
+    shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
+    acc = LogMerge(shape)
+    decode_time = 0.0
+    merge_time = 0.0
+
+    def decode(frame):
+        t = time.perf_counter()
+        codes = load_codes(frame)
+        if codes.shape != shape:
+            raise HdrMergeError(f"{frame.path}: decoded size {codes.shape} differs from the metadata {shape}")
+        return codes, time.perf_counter() - t
+
+    t_start = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = pool.submit(decode, frames[0])
+        for k, frame in enumerate(frames):
+            codes, dt = pending.result()
+            decode_time += dt
+            if k + 1 < len(frames):
+                pending = pool.submit(decode, frames[k + 1])
+            t = time.perf_counter()
+            acc.add(flat_index(codes, offsets), tables[k], last=k == len(frames) - 1)
+            del codes
+            merge_time += time.perf_counter() - t
+    t = time.perf_counter()
+    log_e, flags = acc.finish()
+    merge_time += time.perf_counter() - t
+    total = time.perf_counter() - t_start
+    return log_e, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
+
+
+def _raw_to_rec709(mosaic: np.ndarray, frame: Frame) -> np.ndarray:
+    """White balance (green = 1) per CFA colour, demosaic, camera matrix -> Rec.709."""
+    colors = bayer_channels(frame.cfa_pattern, mosaic.shape)
+    wb = frame.white_balance.astype(np.float32)
+    balanced = mosaic * wb[colors]
+    rgb = demosaic(balanced, frame.cfa_pattern)
+    return camera_to_rec709(rgb, frame.color_matrix)
