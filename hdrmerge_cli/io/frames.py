@@ -120,7 +120,7 @@ def _oiio_meta(path: str) -> dict:
         oiio.geterror()
         return {}
     spec = inp.spec()
-    meta = {k: spec.getattribute(k) for k in ("Make", "Model", "Exif:DateTimeOriginal", "DateTime")}
+    meta = {k: spec.getattribute(k) for k in ("Make", "Model", "Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings")}
     inp.close()
     return meta
 
@@ -153,7 +153,8 @@ def _read_raw(path: str) -> Frame:
     bits = int(np.ceil(np.log2(white + 1)))
     return Frame(
         path=path, kind="raw", width=sizes.width, height=sizes.height,
-        exposure_time=_positive(other.shutter_speed), iso=_positive(other.iso_speed),
+        exposure_time=_positive(other.shutter_speed),
+        iso=_positive(other.iso_speed) or _image_iso(meta),
         aperture=_positive(other.aperture), make=str(meta.get("Make") or ""),
         model=str(meta.get("Model") or ""), timestamp=stamp, bits=bits, n_codes=65536,
         black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors,
@@ -202,9 +203,7 @@ def _read_image(path: str) -> Frame:
     if spec.nchannels == 2:
         channels = 1
     white = 2.0**container - 1
-    iso = _positive(spec.getattribute("Exif:PhotographicSensitivity")) or _first_positive(
-        spec.getattribute("Exif:ISOSpeedRatings")
-    )
+    iso = _image_iso({k: spec.getattribute(k) for k in ("Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings")})
     stamp = spec.getattribute("Exif:DateTimeOriginal") or spec.getattribute("DateTime")
     return Frame(
         path=path, kind="image", width=spec.width, height=spec.height,
@@ -216,10 +215,15 @@ def _read_image(path: str) -> Frame:
     )
 
 
-def _first_positive(value) -> float | None:
-    if isinstance(value, (tuple, list)):
-        value = value[0] if value else None
-    return _positive(value)
+def _image_iso(meta: dict) -> float | None:
+    """ISO from EXIF PhotographicSensitivity or the older ISOSpeedRatings (maybe a tuple)."""
+    for key in ("Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings"):
+        value = meta.get(key)
+        if isinstance(value, (tuple, list)):
+            value = value[0] if value else None
+        if _positive(value):
+            return _positive(value)
+    return None
 
 
 def _oiio_reason(message: str) -> str:

@@ -1,0 +1,132 @@
+"""Bad input: one line naming the file and the problem, exit 1 (data) or 2 (usage),
+no traceback, nothing written."""
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from conftest import frames_of
+from hdrmerge_cli.io.images import write_ldr
+
+
+def _fails(run, tmp_path, *args, code=1, expect=()):
+    out = tmp_path / "out.exr"
+    proc = run("merge", *args, "-o", out, check=False)
+    assert proc.returncode == code, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.strip().splitlines() if not ln.startswith("hdrmerge-cli: warning")]
+    if code == 1:
+        assert len(lines) == 1, proc.stderr
+    for word in expect:
+        assert word in proc.stderr, proc.stderr
+    assert not out.exists() and not (tmp_path / "out.profile.json").exists()
+    assert not [p for p in tmp_path.iterdir() if ".part" in p.name]
+    return proc
+
+
+def _jpeg(path, value=100, size=(8, 10), **exif):
+    write_ldr(str(path), np.full(size + (3,), value, np.uint8), {"ExposureTime": 0.01} | exif)
+    return path
+
+
+def test_missing_file_is_a_usage_error(run, tmp_path):
+    _fails(run, tmp_path, tmp_path / "nope.jpg", code=2, expect=["nope.jpg"])
+
+
+def test_not_an_image(run, tmp_path):
+    bad = tmp_path / "text.jpg"
+    bad.write_text("hello")
+    _fails(run, tmp_path, bad, expect=["text.jpg", "not a readable image"])
+
+
+def test_truncated_raw(run, tmp_path, dng_bracket):
+    folder, meta = dng_bracket
+    cut = tmp_path / "cut.dng"
+    cut.write_bytes((folder / meta["frames"][0]).read_bytes()[:20000])
+    _fails(run, tmp_path, cut, folder / meta["frames"][1], expect=["cut.dng", "RAW"])
+
+
+def test_frames_of_different_sizes(run, tmp_path):
+    a = _jpeg(tmp_path / "a.jpg")
+    b = _jpeg(tmp_path / "b.jpg", size=(9, 10), ExposureTime=0.1)
+    _fails(run, tmp_path, a, b, expect=["b.jpg", "size"])
+
+
+def test_frames_of_different_cameras(run, tmp_path):
+    a = _jpeg(tmp_path / "a.jpg", Make="Canon", Model="A")
+    b = _jpeg(tmp_path / "b.jpg", Make="Nikon", Model="B", ExposureTime=0.1)
+    _fails(run, tmp_path, a, b, expect=["b.jpg", "Nikon"])
+
+
+def test_frames_of_different_bit_depths(run, tmp_path):
+    a = tmp_path / "a.tif"
+    write_ldr(str(a), np.full((8, 10, 3), 100, np.uint8), {"ExposureTime": 0.01})
+    b = tmp_path / "b.tif"
+    write_ldr(str(b), np.full((8, 10, 3), 100, np.uint16), {"ExposureTime": 0.1})
+    _fails(run, tmp_path, a, b, expect=["b.tif", "bit depth"])
+
+
+def test_missing_exposure_time_suggests_times(run, tmp_path):
+    a = tmp_path / "a.png"
+    write_ldr(str(a), np.full((8, 10, 3), 100, np.uint8), {})
+    _fails(run, tmp_path, a, _jpeg(tmp_path / "b.jpg"), expect=["a.png", "--times"])
+
+
+def test_equal_exposure_times(run, tmp_path):
+    a, b = _jpeg(tmp_path / "a.jpg"), _jpeg(tmp_path / "b.jpg", value=120)
+    _fails(run, tmp_path, a, b, expect=["same exposure"])
+
+
+def test_wrong_number_of_times(run, tmp_path):
+    a, b = _jpeg(tmp_path / "a.jpg"), _jpeg(tmp_path / "b.jpg", ExposureTime=0.1)
+    _fails(run, tmp_path, a, b, "--times", "1/100", expect=["--times"])
+
+
+def test_bad_times_value_is_a_usage_error(run, tmp_path):
+    a = _jpeg(tmp_path / "a.jpg")
+    _fails(run, tmp_path, a, "--times", "fast", code=2, expect=["fast"])
+
+
+def test_unknown_weighting_is_a_usage_error(run, tmp_path):
+    _fails(run, tmp_path, _jpeg(tmp_path / "a.jpg"), "--weights", "magic", code=2)
+
+
+def test_unknown_crf(run, tmp_path):
+    _fails(run, tmp_path, _jpeg(tmp_path / "a.jpg"), "--crf", "banana", expect=["banana"])
+
+
+def test_one_frame_merges_with_a_warning(run, tmp_path):
+    a = _jpeg(tmp_path / "a.jpg")
+    proc = run("merge", a, "-o", tmp_path / "one.exr", "--crf", "srgb")
+    assert "only one frame" in proc.stderr and (tmp_path / "one.exr").exists()
+
+
+def test_refuses_to_overwrite_without_flag(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    out = tmp_path / "out.exr"
+    out.write_bytes(b"precious")
+    proc = run("merge", *frames_of(folder, meta), "-o", out, "--crf", "srgb", check=False)
+    assert proc.returncode == 1 and "--overwrite" in proc.stderr and out.read_bytes() == b"precious"
+    run("merge", *frames_of(folder, meta), "-o", out, "--crf", "srgb", "--overwrite")
+    assert out.read_bytes()[:4] == b"v/1\x01"  # OpenEXR magic
+
+
+def test_output_folder_missing(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "no" / "x.exr", check=False)
+    assert proc.returncode == 1 and "does not exist" in proc.stderr
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads any file")
+def test_unreadable_file(run, tmp_path):
+    a = _jpeg(tmp_path / "a.jpg")
+    a.chmod(0)
+    _fails(run, tmp_path, a, expect=["a.jpg"])
+
+
+def test_simulate_refuses_to_overwrite(run, tmp_path):
+    run("simulate", "-o", tmp_path / "s", "--size", "16x16", "--frames", "2", "-q")
+    proc = run("simulate", "-o", tmp_path / "s", "--size", "16x16", "--frames", "2", check=False)
+    assert proc.returncode == 1 and "--overwrite" in proc.stderr and "Traceback" not in proc.stderr
+    shutil.rmtree(tmp_path / "s")
