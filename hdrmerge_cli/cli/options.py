@@ -35,8 +35,8 @@ def _set_verbosity(ctx, param, value):
 def _load_config(ctx, param, value):
     """Read a TOML file into the command's defaults: the command line still wins.
 
-    Keys are option names (``weights`` or ``times-file``), at the top level or in a table
-    named after the subcommand (``[merge]``)."""
+    Keys are long option names (``weights``, ``times-file``, ``lambda``), at the top
+    level or in a table named after the subcommand (``[merge]``)."""
     if value is None:
         return None
     try:
@@ -49,11 +49,17 @@ def _load_config(ctx, param, value):
     section = data.get(ctx.info_name, {}) if isinstance(data.get(ctx.info_name), dict) else {}
     top = {k: v for k, v in data.items() if not isinstance(v, dict)}
     merged = top | section
-    names = {p.name for p in ctx.command.params if isinstance(p, click.Option)} - {"config"}
+    names = {}
+    for opt in ctx.command.params:
+        if isinstance(opt, click.Option) and opt.name != "config":
+            names[opt.name] = opt.name
+            for flag in opt.opts:
+                if flag.startswith("--"):
+                    names[flag[2:].replace("-", "_")] = opt.name
     defaults = {}
     for key, val in merged.items():
-        name = key.replace("-", "_")
-        if name not in names:
+        name = names.get(key.replace("-", "_"))
+        if name is None:
             raise click.BadParameter(f"{value}: unknown key {key!r} for '{ctx.info_name}'", ctx, param)
         defaults[name] = val
     ctx.default_map = (ctx.default_map or {}) | defaults

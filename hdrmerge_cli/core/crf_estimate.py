@@ -55,7 +55,7 @@ def crf_debevec1997(
     a_fix = sp.csr_matrix(([1.0], ([0], [mid])), shape=(1, levels + n_pix))
     # smoothness: lambda w(z) (g(z-1) - 2 g(z) + g(z+1)) = 0
     inner = np.arange(1, levels - 1)
-    scale = smoothing * w[inner] * (levels / 256.0) ** 2
+    scale = smoothing * w[inner]
     r = np.repeat(np.arange(inner.size), 3)
     c = (inner[:, None] + np.array([-1, 0, 1])).ravel()
     vals = (scale[:, None] * np.array([1.0, -2.0, 1.0])).ravel()
@@ -71,10 +71,12 @@ def crf_debevec1997(
 
 def inverse_from_log(g: np.ndarray) -> tuple[np.ndarray, bool]:
     """``gamma^-1 = exp(g)`` scaled to end at 1, made non-decreasing where the fit was not
-    (returns whether that was needed)."""
+    (returns whether that was needed).  Monotonicity is imposed from the top down
+    (``min`` over higher codes), so a kink in the poorly constrained dark end lowers only
+    itself instead of flattening everything above it."""
     lin = np.exp(g - g[-1])
-    mono = np.maximum.accumulate(lin)
-    return mono, bool(np.any(mono > lin * (1 + 1e-12)))
+    mono = np.minimum.accumulate(lin[::-1])[::-1]
+    return mono, bool(np.any(mono < lin * (1 - 1e-12)))
 
 
 #: name -> estimator(codes (N, P), log_exposures (P,), n_codes, smoothing) -> g (n_codes,)

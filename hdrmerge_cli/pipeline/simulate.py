@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, gain_pattern, quantise_crf, quantise_raw
 from hdrmerge_cli.io.atomic import atomic_paths
 from hdrmerge_cli.io.crfspec import resolve_crf
+from hdrmerge_cli.io.frames import read_frame
 from hdrmerge_cli.io.images import read_exr, write_exr, write_ldr
 from hdrmerge_cli.io.raw import write_dng
 
@@ -43,6 +45,31 @@ class SimulateOptions:
     aperture: float = 8.0
     seed: int = 0
     overwrite: bool = False
+
+
+def photographic_time(t: float) -> float:
+    """Round as cameras do: 1/n s below 0.1 s, four significant digits above."""
+    return 1.0 / round(1.0 / t) if t < 0.1 else float(f"{t:.4g}")
+
+
+def stored_time(folder: Path, fmt: str, t: float) -> float:
+    """The exposure time a ``fmt`` file actually stores for ``t`` (EXIF writers round
+    some rationals): for JPEG/TIFF/PNG written to a 2 x 2 probe file and read back, so that the frames
+    are rendered with exactly the time their metadata states."""
+    import tempfile
+
+    if fmt == "dng":  # written as a 32-bit rational by us: exact
+        from hdrmerge_cli.io.raw import rational
+
+        num, den = rational(t)
+        return num / den
+    fd, probe = tempfile.mkstemp(prefix=".probe.", suffix=f".{fmt}", dir=folder)
+    os.close(fd)
+    try:
+        write_ldr(probe, np.zeros((2, 2, 3), np.uint8), {"ExposureTime": float(t)})
+        return read_frame(probe).exposure_time or t
+    finally:
+        os.unlink(probe)
 
 
 def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
@@ -81,12 +108,7 @@ def simulate(opts: SimulateOptions) -> dict:
     rng = np.random.default_rng(opts.seed)
     signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
     times = np.asarray(opts.times if opts.times else auto_exposure_times(signal, sensor, opts.frames), float)
-    if opts.fmt == "dng":  # DNG stores rational times: simulate exactly what is stored
-        from hdrmerge_cli.io.raw import rational
-
-        times = np.array([n / d for n, d in map(rational, times)])
-    times = np.sort(times)
-    t_ref = float(np.exp(np.mean(np.log(times))))
+    times = np.sort([photographic_time(t) for t in times])
     pattern = gain_pattern(signal.shape, sensor, rng)
 
     out = Path(opts.output_dir)
@@ -95,6 +117,8 @@ def simulate(opts: SimulateOptions) -> dict:
     names = [f"frame_{k:02d}.{opts.fmt}" for k in range(len(times))]
     paths = [out / n for n in names] + [out / "truth.exr", out / "simulation.json"]
     out.mkdir(parents=True, exist_ok=True)
+    times = np.array([stored_time(out, opts.fmt, t) for t in times])
+    t_ref = float(np.exp(np.mean(np.log(times))))
 
     truth = (np.sqrt(sensor.alpha) * t_ref / sensor.full_scale) * irradiance
     meta = {
@@ -131,6 +155,9 @@ def simulate(opts: SimulateOptions) -> dict:
                     "Exif:PhotographicSensitivity": int(opts.iso), "Exif:ISOSpeedRatings": int(opts.iso),
                     "Make": "hdrmerge-cli", "Model": "simulated sensor",
                 })
+            stored = read_frame(tmps[k]).exposure_time
+            if stored is None or abs(stored - t) > 1e-5 * t:
+                raise HdrMergeError(f"{names[k]}: the file stores exposure time {stored}, not {t} (internal error)")
             log.info("rendered %s (t = %.6g s, %.1f %% saturated)", names[k], t, 100 * saturated[-1])
         write_exr(tmps[-2], truth.astype(np.float32), ["R", "G", "B"], {
             "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,

@@ -1,0 +1,179 @@
+"""The command as a shell tool: help, version, configs, man pages, the other commands."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+import pytest
+
+from conftest import SHARED, frames_of, log_rmse, needs_shared
+from hdrmerge_cli.io.images import read_exr
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMANDS = ["calibrate-noise", "estimate-crf", "merge", "simulate", "weights-lut"]
+
+
+def test_help_lists_every_command(run):
+    out = run("--help").stdout
+    for name in COMMANDS:
+        assert name in out
+    assert run("--version").stdout.startswith("hdrmerge-cli, version")
+
+
+def test_python_dash_m_works():
+    proc = subprocess.run([sys.executable, "-m", "hdrmerge_cli", "--help"], capture_output=True, text=True)
+    assert proc.returncode == 0 and "merge" in proc.stdout
+
+
+def _options_in_help(run, command):
+    """Every long option the command's --help lists (read from the click definition,
+    checked against the help text itself)."""
+    from hdrmerge_cli.cli import cli
+
+    text = run(command, "--help").stdout
+    opts = {o for p in cli.commands[command].params if isinstance(p, click.Option) for o in p.opts if o.startswith("--")}
+    opts.discard("--help")
+    assert all(o in text for o in opts)
+    return opts
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_man_pages_match_help(run, command, tmp_path):
+    page = (ROOT / "man" / f"hdrmerge-cli-{command}.1").read_text()
+    for opt in _options_in_help(run, command):
+        assert opt.replace("-", "\\-") in page, f"{opt} missing from man/hdrmerge-cli-{command}.1 (run make man)"
+    from hdrmerge_cli.manpages import write
+
+    write(str(tmp_path))
+    assert (tmp_path / f"hdrmerge-cli-{command}.1").read_text() == page, "man page out of date: run make man"
+
+
+def test_config_file_sets_defaults_and_command_line_wins(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[merge]\nweights = "gaussian"\ncrf = "srgb"\nhalf = true\nextra-channels = "clipped"\n')
+    s = json.loads(run("merge", *frames_of(folder, meta), "-o", tmp_path / "a.exr", "--config", cfg, "--json").stdout)
+    assert s["weights"] == "gaussian" and s["channels"] == ["R", "G", "B", "clipped"]
+    s = json.loads(run("merge", *frames_of(folder, meta), "-o", tmp_path / "b.exr", "--config", cfg,
+                       "--weights", "mann", "--json").stdout)
+    assert s["weights"] == "mann"
+    cfg.write_text('[merge]\nwieghts = "x"\n')
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "c.exr", "--config", cfg, check=False)
+    assert proc.returncode == 2 and "wieghts" in proc.stderr
+
+
+@pytest.mark.parametrize("name", ["raw-camera.toml", "phone-jpeg.toml"])
+def test_sample_configs_work(run, tmp_path, name, dng_bracket, jpeg_bracket):
+    folder, meta = dng_bracket if name.startswith("raw") else jpeg_bracket
+    cfg = ROOT / "sample_configs" / name
+    s = json.loads(run("merge", "--config", cfg, *frames_of(folder, meta), "-o", tmp_path / "o.exr", "--json").stdout)
+    assert "clipped" in s["channels"]
+    if name.startswith("phone"):
+        run("estimate-crf", "--config", cfg, *frames_of(folder, meta), "-o", tmp_path / "crf.json")
+    else:
+        run("calibrate-noise", "--config", cfg, *frames_of(folder, meta), "-o", tmp_path / "noise.json")
+
+
+def test_json_goes_to_stdout_and_logs_to_stderr(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "a.exr", "--json", "-v")
+    json.loads(proc.stdout)
+    assert "wrote" not in proc.stdout
+    quiet = run("merge", *frames_of(folder, meta), "-o", tmp_path / "b.exr", "-q")
+    assert quiet.stdout == "" and quiet.stderr == ""
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npy", ".json"])
+def test_weights_lut_formats(run, tmp_path, suffix):
+    out = tmp_path / f"lut{suffix}"
+    run("weights-lut", "--times", "1/100,1/10,1", "--weights", "triangle", "--crf", "srgb", "-o", out)
+    if suffix == ".csv":
+        table = np.loadtxt(out, delimiter=",", skiprows=1)
+        assert table.shape == (256, 4) and table[:, 0].tolist() == list(range(256))
+        w = table[:, 1:]
+    elif suffix == ".npy":
+        w = np.load(out)
+    else:
+        w = np.array(json.loads(out.read_text())["weights"]).T
+    assert w.shape == (256, 3) and w.min() >= 0 and w.max() == pytest.approx(1)
+
+
+def test_weights_lut_from_a_bracket(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    run("weights-lut", *frames_of(folder, meta), "--crf", "srgb", "-o", tmp_path / "l.npy")
+    assert np.load(tmp_path / "l.npy").shape == (256, 3)
+
+
+def test_estimate_crf_then_merge_with_the_profile(run, tmp_path, tiff_bracket):
+    folder, meta = tiff_bracket
+    prof = tmp_path / "crf.json"
+    run("estimate-crf", *frames_of(folder, meta), "-o", prof, "--samples", "2000")
+    data = json.loads(prof.read_text())
+    assert data["crf"]["model"] == "table" and len(data["crf"]["inverse"]) == 3
+    run("merge", *frames_of(folder, meta), "--crf", prof, "-o", tmp_path / "m.exr")
+    est, _ = read_exr(tmp_path / "m.exr")
+    truth, _ = read_exr(folder / "truth.exr")
+    # the estimated CRF's scale is free: compare after removing the median log offset.
+    # Measured 0.20 for the Debevec-Malik baseline on this 4-frame, 5.4-stop-spaced
+    # 16-bit bracket (its g is off by 0.17 RMS); a wrong CRF gives > 0.5.
+    ok = (est > 0) & (truth > 0)
+    d = np.log(est[ok]) - np.log(truth[ok])
+    assert np.median(np.abs(d - np.median(d))) < 0.3
+
+
+def test_estimate_crf_raw_is_identity_and_single_frame_fails(run, tmp_path, dng_bracket, jpeg_bracket):
+    folder, meta = dng_bracket
+    run("estimate-crf", *frames_of(folder, meta), "-o", tmp_path / "raw.json")
+    assert json.loads((tmp_path / "raw.json").read_text())["crf"] == {"model": "linear", "method": "debevec", "lambda": 30.0, "samples": 1000, "channels": "linear"}
+    folder, meta = jpeg_bracket
+    proc = run("estimate-crf", frames_of(folder, meta)[0], "-o", tmp_path / "x.json", check=False)
+    assert proc.returncode == 1 and "two exposures" in proc.stderr and not (tmp_path / "x.json").exists()
+
+
+def test_calibrate_noise_on_a_simulated_dng_bracket(run, tmp_path):
+    """At the default 768 x 512 the scene's texture is coarse enough for local statistics
+    (at 256 x 192 it inflates alpha by ~45 %: issue 5 makes the fit robust to that)."""
+    folder = tmp_path / "cal"
+    run("simulate", "-o", folder, "--frames", "3", "-q")
+    meta = json.loads((folder / "simulation.json").read_text())
+    s = json.loads(run("calibrate-noise", *frames_of(folder, meta), "-o", tmp_path / "n.json", "--json").stdout)
+    fits = s["noise"]["ISO100"]
+    sensor = meta["sensor"]
+    for ch in ("R", "G", "B", "G2"):
+        assert fits[ch]["alpha"] == pytest.approx(sensor["alpha"], rel=0.08)  # measured <= 5.2 %
+        assert fits[ch]["sigma_o2"] == pytest.approx(sensor["sigma_o2_total"], rel=0.1)
+        assert fits[ch]["model"] == "affine"
+
+
+@needs_shared
+def test_calibrate_noise_on_the_real_dng_is_plausible(run, tmp_path):
+    s = json.loads(run("calibrate-noise", SHARED / "raw" / "colorchart.dng", "-o", tmp_path / "n.json", "--json").stdout)
+    for fit in next(iter(s["noise"].values())).values():
+        assert fit["sigma_o2"] > 0 and fit["alpha"] > 0 and fit["beta"] >= 0 and fit["points"] > 10
+
+
+def test_simulate_jpeg_has_exif_and_truth(run, tmp_path, jpeg_bracket):
+    from hdrmerge_cli.io.frames import read_frame
+
+    folder, meta = jpeg_bracket
+    for name, t in zip(meta["frames"], meta["exposure_times"]):
+        f = read_frame(folder / name)
+        assert f.exposure_time == pytest.approx(t, rel=1e-5) and f.iso == 100
+    truth, attrs = read_exr(folder / "truth.exr")
+    assert truth.shape == (128, 192, 3) and attrs["hdrmerge:referenceExposure"] == pytest.approx(meta["reference_exposure"])
+
+
+@needs_shared
+def test_simulate_from_a_shared_hdr_scene(run, tmp_path):
+    out = tmp_path / "s"
+    run("simulate", "--scene", SHARED / "hdr" / "ScanLines_Desk.exr", "--downscale", "4", "--scale", "1e5",
+        "--frames", "3", "-o", out, "-q")
+    meta = json.loads((out / "simulation.json").read_text())
+    run("merge", *frames_of(out, meta), "--cfa", "--reference", str(meta["reference_exposure"]), "-o", tmp_path / "m.exr")
+    est, _ = read_exr(tmp_path / "m.exr")
+    from hdrmerge_cli.core.color import mosaic
+
+    truth, _ = read_exr(out / "truth.exr")
+    assert log_rmse(est[..., 0], mosaic(truth, "RGGB")) < 0.1
