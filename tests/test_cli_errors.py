@@ -126,7 +126,9 @@ def test_unreadable_file(run, tmp_path):
 
 
 def test_simulate_refuses_to_overwrite(run, tmp_path):
-    run("simulate", "-o", tmp_path / "s", "--size", "16x16", "--frames", "2", "-q")
-    proc = run("simulate", "-o", tmp_path / "s", "--size", "16x16", "--frames", "2", check=False)
+    run("simulate", "-o", tmp_path / "s", "--size", "32x32", "--frames", "2", "-q")
+    proc = run("simulate", "-o", tmp_path / "s", "--size", "32x32", "--frames", "2", check=False)
     assert proc.returncode == 1 and "--overwrite" in proc.stderr and "Traceback" not in proc.stderr
     shutil.rmtree(tmp_path / "s")
+    proc = run("simulate", "-o", tmp_path / "t", "--size", "16x16", check=False)
+    assert proc.returncode == 1 and "32 x 32" in proc.stderr and not list((tmp_path / "t").glob("*.dng"))

@@ -25,6 +25,7 @@ log = logging.getLogger("hdrmerge_cli")
 
 FORMATS = ("dng", "jpg", "tif", "png")
 CFA_PATTERN = "RGGB"
+MIN_DNG_SIZE = 32  # LibRaw refuses very small DNGs (16 x 16 fails, 24 x 24 reads)
 
 
 @dataclass
@@ -105,6 +106,9 @@ def simulate(opts: SimulateOptions) -> dict:
     crf = CRF("linear") if opts.fmt == "dng" else resolve_crf(opts.crf)
     out_bits = 8 if opts.fmt == "jpg" else opts.out_bits
     irradiance, scene_name = load_scene(opts)
+    if opts.fmt == "dng" and min(irradiance.shape[:2]) < MIN_DNG_SIZE:
+        raise HdrMergeError(f"{scene_name}: LibRaw reads DNGs of at least {MIN_DNG_SIZE} x {MIN_DNG_SIZE} pixels; "
+                            "use a larger --size or less --downscale")
     rng = np.random.default_rng(opts.seed)
     signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
     times = np.asarray(opts.times if opts.times else auto_exposure_times(signal, sensor, opts.frames), float)
