@@ -1,9 +1,20 @@
 """Colour filter arrays, white balance and camera -> Rec.709 conversion (array code)."""
 from __future__ import annotations
 
+import importlib
+import warnings
+
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
+
+
+def quiet_import(name: str):
+    """Import colour-science modules lazily (~1 s) without their optional-dependency
+    warnings (e.g. about matplotlib) reaching the user's stderr."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return importlib.import_module(name)
 
 #: CIE xy of the Rec.709 / sRGB primaries (R, G, B) and the D65 white point, in the
 #: order of the OpenEXR ``chromaticities`` attribute.
@@ -30,9 +41,8 @@ def mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
 def demosaic(cfa: np.ndarray, pattern: str) -> np.ndarray:
     """Bayer mosaic ``(H, W)`` -> ``(H, W, 3)`` float32 by Malvar, He and Cutler (2004)
     (colour-demosaicing): linear, edge-aware, and fast enough for large frames."""
-    from colour_demosaicing import demosaicing_CFA_Bayer_Malvar2004
-
-    return np.asarray(demosaicing_CFA_Bayer_Malvar2004(cfa, pattern), dtype=np.float32)
+    malvar = quiet_import("colour_demosaicing").demosaicing_CFA_Bayer_Malvar2004
+    return np.asarray(malvar(cfa, pattern), dtype=np.float32)
 
 
 def camera_to_rec709(rgb: np.ndarray, matrix: np.ndarray) -> np.ndarray:

@@ -14,19 +14,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hdrmerge_cli.core.color import quiet_import
 from hdrmerge_cli.core.errors import HdrMergeError
 
 
 def _srgb_decode(v):
-    from colour.models import eotf_sRGB  # lazy: colour takes ~1 s to import
-
-    return np.asarray(eotf_sRGB(v), dtype=np.float64)
+    return np.asarray(quiet_import("colour.models").eotf_sRGB(v), dtype=np.float64)
 
 
 def _srgb_encode(x):
-    from colour.models import eotf_inverse_sRGB
-
-    return np.asarray(eotf_inverse_sRGB(x), dtype=np.float64)
+    return np.asarray(quiet_import("colour.models").eotf_inverse_sRGB(x), dtype=np.float64)
 
 
 #: name -> (forward gamma: x -> v, inverse gamma^-1: v -> x, takes a parameter)

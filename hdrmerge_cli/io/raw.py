@@ -37,9 +37,9 @@ def write_dng(
     from pidng.defs import CalibrationIlluminant, CFAPattern, DNGVersion, Orientation, PhotometricInterpretation
 
     if xyz_to_camera is None:
-        from colour import RGB_COLOURSPACES
+        from hdrmerge_cli.core.color import quiet_import
 
-        xyz_to_camera = RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB
+        xyz_to_camera = quiet_import("colour").RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB
     h, w = mosaic.shape
     tags = DNGTags()
     tags.set(Tag.ImageWidth, w)
