@@ -78,3 +78,28 @@ def test_per_channel_tables_use_each_channels_black_level():
     acc.add(flat_index(z, cmap.astype(np.int32) * 65536), tab, last=True)
     log_e, _ = acc.finish()
     np.testing.assert_allclose(np.exp(log_e), np.full((2, 2), 100 / 1000), rtol=1e-6)
+
+
+def test_frames_with_different_black_levels_use_their_own():
+    """Two RAW-like frames of one scene whose black levels differ (as some cameras' do per
+    shot): each frame's own table must be used."""
+    from hdrmerge_cli.io.frames import Frame
+    from hdrmerge_cli.pipeline.merge import _tables
+
+    def frame(black):
+        return Frame(path="x", kind="raw", width=2, height=1, exposure_time=1.0, iso=None, aperture=None, make="",
+                     model="", timestamp=None, bits=12, n_codes=65536, black=np.full(4, black),
+                     white=np.full(4, 4095.0), channels=4, cfa_pattern="RGGB")
+
+    frames = [frame(100.0), frame(200.0)]
+    tables, offsets = _tables(frames, np.array([1.0, 2.0]), CRF("linear"), "uniform")
+    assert offsets is None
+    acc = LogMerge((1, 2))
+    signal = np.array([[500.0, 1000.0]])  # code values above black at exposure 1
+    for k, (f, t, h) in enumerate(zip(frames, tables, (1.0, 2.0))):
+        acc.add(np.rint(signal * h + f.black[0]).astype(np.uint16), t, last=k == 1)
+    log_e, _ = acc.finish()
+    # frame 0 reads signal / (4095 - 100) at h = 1, frame 1 reads 2 signal / (4095 - 200) at h = 2;
+    # uniform weights average the two in log
+    expected = np.exp(0.5 * (np.log(signal / 3995.0) + np.log(2 * signal / 3895.0 / 2)))
+    np.testing.assert_allclose(np.exp(log_e), expected, rtol=1e-5)

@@ -51,16 +51,3 @@ def atomic_paths(paths: list, overwrite: bool):
 def atomic_text(path: str | os.PathLike, text: str, overwrite: bool) -> None:
     with atomic_path(path, overwrite) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
-
-
-def ensure_folder(path: str | os.PathLike, overwrite: bool) -> Path:
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise HdrMergeError(f"{path}: exists and is not a folder")
-    if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise HdrMergeError(f"{path}: folder is not empty (use --overwrite to write into it)")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise HdrMergeError(f"{path}: cannot create the folder ({exc.strerror})") from None
-    return path

@@ -1,6 +1,7 @@
 """merge: read a bracket, reconstruct (7) frame by frame, write the EXR and its profile."""
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -201,8 +202,6 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     )
     profile["weights"] = opts.weights
     profile_text = dumps(profile)
-    import hashlib
-
     attrs = {
         "Software": f"hdrmerge-cli {__version__}",
         "hdrmerge:version": __version__,
@@ -251,12 +250,14 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
 
 
 def _tables(frames, exposures, crf, weights):
-    """Per-frame lookup tables and the per-sample channel offsets into them."""
+    """Per-frame lookup tables (each frame with its own black and white levels) and the
+    per-sample channel offsets into them (None when one row serves every channel)."""
     first = frames[0]
-    black, white = first.black, first.white
-    shared = np.all(black == black[0]) and (crf.table is None or crf.table.shape[0] == 1)
-    rows = 1 if shared else len(black)
-    tables = [exposure_tables(first.n_codes, black[:rows], white[:rows], crf, weights, h) for h in exposures]
+    shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
+    shared &= crf.table is None or crf.table.shape[0] == 1
+    rows = 1 if shared else len(first.black)
+    tables = [exposure_tables(f.n_codes, f.black[:rows], f.white[:rows], crf, weights, h)
+              for f, h in zip(frames, exposures)]
     if shared:
         return tables, None
     if first.kind == "raw":
