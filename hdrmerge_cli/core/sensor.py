@@ -21,6 +21,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.noise import noise_variance  # noqa: F401  (s(x) of (17), re-exported)
 
 
 @dataclass(frozen=True)
@@ -62,12 +63,6 @@ class SensorModel:
 
     def as_dict(self) -> dict:
         return asdict(self) | {"white": self.white, "sigma_o2_total": self.sigma_o2_total}
-
-
-def noise_variance(x: np.ndarray, sigma_o2: float, alpha: float, beta: float) -> np.ndarray:
-    """``s(x) = sigma_o^2 + alpha x + beta x^2`` of (17), x in photo-electrons."""
-    x = np.asarray(x, dtype=np.float64)
-    return sigma_o2 + alpha * x + beta * x * x
 
 
 def gain_pattern(shape: tuple[int, ...], sensor: SensorModel, rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,165 @@
+"""The paper's camera noise model in the log domain: bias, variance, clipping-safe range, SNR.
+
+Units (the same as :mod:`hdrmerge_cli.core.sensor`): ``x = t E`` in photo-electrons, the
+linear signal ``y`` in code values (RAW: above the black level; JPEG/TIFF: ``gamma^-1(z)``
+times the full scale), so that (17) reads
+
+    y ~ N(mu, s(x)),   mu = sqrt(alpha) x,   s(x) = sigma_o^2 + alpha x + beta x^2,
+
+or, as a function of the mean code value, ``v(mu) = sigma_o^2 + sqrt(alpha) mu +
+(beta / alpha) mu^2`` (:func:`code_variance`).  Clipping ``f`` keeps ``y`` in
+``[y_min, y_max]``; ``y_min > 0`` (default half a code value) keeps ``log f(y)`` finite,
+like a dark pixel read as half a code.  The CRF cancels in ``g(z) = log gamma^-1(z) =
+log f(y)``, so these moments hold for any CRF (quantisation aside).
+
+A note on direction: with ``sigma_o^2`` fixed in code units, a larger gain ``alpha`` puts
+more photon-noise variance on each code value (``sqrt(alpha) mu``), so the clipping-safe
+range of (47)-(48) *narrows* as alpha grows.  The paper's text says it narrows as alpha
+falls; its own formula (48), evaluated as printed, narrows as alpha grows, as here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+#: Gauss-Legendre nodes for the moment integrals of (19)
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(160)
+
+#: default number of standard deviations between the mean and a clipping point, ``k``
+#: of (47); erfc(k / sqrt 2) / 2 = 0.13 % of the mass may be clipped at k = 3
+DEFAULT_K = 3.0
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """Parameters of (17) for one channel and ISO: read noise ``sigma_o2`` (code
+    values^2), squared gain ``alpha`` (code values^2 per electron), gain FPN ``beta``."""
+
+    sigma_o2: float
+    alpha: float
+    beta: float = 0.0
+
+    def __post_init__(self):
+        if not (self.alpha > 0 and np.isfinite(self.alpha)) or self.sigma_o2 < 0 or self.beta < 0:
+            raise ValueError("noise parameters need alpha > 0, sigma_o2 >= 0, beta >= 0")
+
+
+def noise_variance(x, sigma_o2: float, alpha: float, beta: float):
+    """``s(x) = sigma_o^2 + alpha x + beta x^2`` of (17), x in photo-electrons."""
+    x = np.asarray(x, dtype=np.float64)
+    return sigma_o2 + alpha * x + beta * x * x
+
+
+def code_variance(mu, p: NoiseParams):
+    """Variance of ``y`` as a function of its mean ``mu = sqrt(alpha) x`` (code values):
+    ``sigma_o^2 + sqrt(alpha) mu + (beta / alpha) mu^2``, (17) rewritten."""
+    mu = np.asarray(mu, dtype=np.float64)
+    return p.sigma_o2 + np.sqrt(p.alpha) * mu + (p.beta / p.alpha) * mu * mu
+
+
+def log_moments_exact(x, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
+    """Bias ``nu`` and variance ``sigma^2`` of ``log f(y)`` given ``x = t E``, by numerical
+    integration of (19) with clipping, written as the moment function (45)-(46):
+    ``M_n = int_{y_min}^{y_max} (log u)^n phi(u) du + (log y_min)^n P(y < y_min)
+    + (log y_max)^n P(y > y_max)``.  The interior integral uses 160-point Gauss-Legendre
+    on the part of ``[y_min, y_max]`` within 12 standard deviations of the mean.
+
+    x : array of photo-electron counts (any shape).  Returns ``(nu, var)`` arrays, with
+    ``nu = M_1 - log f(mu)`` (the paper's definition)."""
+    x = np.asarray(x, dtype=np.float64)
+    mu = np.sqrt(p.alpha) * x
+    sd = np.sqrt(np.maximum(noise_variance(x, p.sigma_o2, p.alpha, p.beta), 1e-300))
+    lo_mass = ndtr((y_min - mu) / sd)
+    hi_mass = ndtr((mu - y_max) / sd)
+    a = np.clip(mu - 12 * sd, y_min, y_max)
+    b = np.clip(mu + 12 * sd, y_min, y_max)
+    half = (b - a)[..., None] / 2
+    u = (a + b)[..., None] / 2 + half * _GL_X
+    pdf = np.exp(-0.5 * ((u - mu[..., None]) / sd[..., None]) ** 2) / (np.sqrt(2 * np.pi) * sd[..., None])
+    lu = np.log(u)
+    m1 = np.sum(_GL_W * lu * pdf, axis=-1) * half[..., 0]
+    m2 = np.sum(_GL_W * lu * lu * pdf, axis=-1) * half[..., 0]
+    l_lo, l_hi = np.log(y_min), np.log(y_max)
+    m1 = m1 + l_lo * lo_mass + l_hi * hi_mass
+    m2 = m2 + l_lo**2 * lo_mass + l_hi**2 * hi_mass
+    var = np.maximum(m2 - m1 * m1, 0.0)
+    nu = m1 - np.log(np.clip(mu, y_min, y_max))
+    return nu, var
+
+
+def log_moments_approx(x, p: NoiseParams):
+    """The clipping-free approximations (20)-(21) (from (43)-(44) of Appendix 1):
+    ``nu ~ -s(x) / (2 alpha x^2)``, ``sigma^2 ~ s(x) / (alpha x^2)``, i.e.
+    ``sigma^2 ~ sigma_o^2 / (alpha x^2) + 1 / x + beta / alpha``."""
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        rel = noise_variance(x, p.sigma_o2, p.alpha, p.beta) / (p.alpha * x * x)
+    return -0.5 * rel, rel
+
+
+def clipping_safe_range_exact(p: NoiseParams, y_min: float, y_max: float, k: float = DEFAULT_K):
+    """``[y'_min, y'_max]``: the means ``mu`` with ``y_min + k sd(mu) <= mu <= y_max - k sd(mu)``,
+    (47) solved exactly (each side is a quadratic in mu).  Returns ``(lo, hi)``; ``lo >= hi``
+    means no clipping-safe region exists."""
+    c = 1.0 - k * k * p.beta / p.alpha
+    sa = np.sqrt(p.alpha)
+
+    def roots(y0, sign):
+        # (mu - y0)^2 = k^2 v(mu)  ->  c mu^2 - (2 y0 + k^2 sa) mu + y0^2 - k^2 s0 = 0
+        bq = -(2 * y0 + k * k * sa)
+        cq = y0 * y0 - k * k * p.sigma_o2
+        disc = bq * bq - 4 * c * cq
+        if disc < 0 or c <= 0:
+            return None
+        r = np.sqrt(disc)
+        return (-bq + sign * r) / (2 * c)
+
+    lo = roots(y_min, +1.0)
+    hi = roots(y_max, -1.0)
+    if lo is None or hi is None:
+        return y_max, y_min  # empty
+    return float(lo), float(hi)
+
+
+def clipping_safe_range_taylor(p: NoiseParams, y_min: float, y_max: float, k: float = DEFAULT_K):
+    """``[y'_min, y'_max]`` of (48): (47) with ``sqrt(v(mu))`` linearised at the clipping
+    points, ``y' = y_0 +- k v_0 / (sqrt(v_0) -+ k v'_0 / 2)``, ``v_0 = v(y_0)``,
+    ``v'_0 = sqrt(alpha) + 2 beta y_0 / alpha``.  Where the linearisation has no solution
+    (denominator <= 0: almost no noise at the clipping point, ``v_0 < (k v'_0 / 2)^2``)
+    the exact root of (47) is used.  Returns ``(lo, hi)``."""
+    exact = clipping_safe_range_exact(p, y_min, y_max, k)
+
+    def bound(y0, sign, fallback):
+        v0 = float(code_variance(y0, p))
+        dv0 = np.sqrt(p.alpha) + 2 * p.beta * y0 / p.alpha
+        den = np.sqrt(v0) - sign * k * dv0 / 2
+        return y0 + sign * k * v0 / den if den > 0 else fallback
+
+    return float(bound(y_min, +1.0, exact[0])), float(bound(y_max, -1.0, exact[1]))
+
+
+def snr_frame_db(e, t: float, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
+    """SNR of one frame's log-irradiance estimate, ``20 log10 |log(sqrt(alpha) t E)| /
+    sigma(E, t)`` (below (22)), with the exact variance of (19)."""
+    e = np.asarray(e, dtype=np.float64)
+    _, var = log_moments_exact(e * t, p, y_min, y_max)
+    with np.errstate(divide="ignore"):
+        return 20 * np.log10(np.abs(np.log(np.sqrt(p.alpha) * t * e)) / np.sqrt(var))
+
+
+def snr_hdr_db(e, times, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
+    """(13): ``SNR_HDR = 20 log10 |log E| + 10 log10 sum_j sigma^-2(E, t_j)`` [dB], the
+    variance of (7) with constant weights being (12).  Below 0 dB the Wyckoff criterion
+    fails: the bracket cannot recover E."""
+    e = np.asarray(e, dtype=np.float64)
+    info = sum(1.0 / np.maximum(log_moments_exact(e * t, p, y_min, y_max)[1], 1e-300) for t in times)
+    with np.errstate(divide="ignore"):
+        return 20 * np.log10(np.abs(np.log(e))) + 10 * np.log10(info)
+
+
+def snr_breaking_point(t: float, p: NoiseParams) -> float:
+    """Irradiance where photon and offset noise are equal, ``E = sigma_o^2 / (alpha t)``
+    (below (22)): under it a frame is offset-noise limited, above photon-noise limited."""
+    return p.sigma_o2 / (p.alpha * t)
