@@ -55,12 +55,12 @@ def test_approximations_hold_inside_the_safe_range_and_fail_outside():
     np.testing.assert_allclose(var_a[small], var_e[small], rtol=0.06)
     np.testing.assert_allclose(nu_a[small], nu_e[small], atol=0.004)
     # beyond y'_max clipping takes over: > 20 % off two standard deviations out (measured
-    # 23 %), > 90 % from y_max on
+    # 23 %), > 60 % from y_max on, growing to ~100 %
     out = np.linspace(hi + 2 * np.sqrt(code_variance(hi, P)), 300, 20)
     nu_e, var_e = log_moments_exact(out, P, 0.5, 255.0)
     nu_a, var_a = log_moments_approx(out, P)
     rel = np.abs(var_a - var_e) / var_a
-    assert np.all(rel > 0.2) and np.all(rel[out >= 255] > 0.9)
+    assert np.all(rel > 0.2) and np.all(rel[out >= 255] > 0.6) and rel[-1] > 0.99 and np.all(np.diff(rel) > 0)
 
 
 @settings(max_examples=40, deadline=None)
