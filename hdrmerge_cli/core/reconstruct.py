@@ -4,7 +4,8 @@
 
 with ``g = log gamma^-1`` (2), ``h_j`` the exposure of frame j (exposure time times the
 gain ratio ``sqrt(alpha_j)``, see (1)), ``w_ij = w(z_ij)`` a weighting function and
-``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` (1 here: the classical weights).
+``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` evaluated at each frame's own
+estimate (:func:`inverse_variance`).
 
 Because ``w`` and ``g`` depend on the code value ``z`` and the frame ``j`` only, each
 frame is reduced to lookup tables over all code values (:func:`exposure_tables`), and
@@ -25,7 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
+from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
+from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
 
 #: flag values of :meth:`LogMerge.finish`
 FLAG_OK, FLAG_SATURATED, FLAG_DARK = 0, 1, -1
@@ -54,6 +58,65 @@ def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
     return (np.arange(n_codes, dtype=np.float64) - black) / float(white - black)
 
 
+#: choices for the variance factor ``sigma^-2(E, t_j)`` of (7)
+VARIANCE_FACTORS = ("none", "photon", "model")
+
+
+def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k):
+    if weighting not in NOISE_MODEL_WEIGHTS:
+        return None
+    if noise is None:
+        if weighting != "bounded":
+            raise HdrMergeError(f"--weights {weighting} needs noise parameters (--noise or a profile); "
+                                "use --weights bounded when they are unknown")
+        noise = bounded_noise(y_full)
+    if not prior_rate or prior_rate <= 0:
+        raise HdrMergeError("the irradiance prior needs a positive mean (the bracket looks black)")
+    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k)
+    if weighting != "bounded":
+        lo, hi = ctx.safe_range()
+        if lo >= hi:
+            raise HdrMergeError(
+                f"no clipping-safe range for noise {noise} at k = {k:g} (the noise fills the code range); "
+                "check the noise parameters or lower k"
+            )
+    return ctx
+
+
+def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None, prior_rate=None, exposures=(),
+                    k=DEFAULT_K) -> np.ndarray:
+    """The weighting function ``w(z)`` of one exposure per channel, ``(C, N)`` float64 in
+    [0, 1], zero at clipped codes.  ``noise`` is a list of per-channel
+    :class:`~hdrmerge_cli.core.noise.NoiseParams` (code units), needed by the
+    noise-model weights; ``prior_rate`` is the mean of the exponential irradiance prior in
+    code values per second."""
+    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
+    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
+    rows = []
+    for c, (b, wl) in enumerate(zip(black, white)):
+        v = code_grid(n_codes, b, wl)
+        lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
+        ctx = _context(weighting, wl - b, exposure, None if noise is None else noise[min(c, len(noise) - 1)],
+                       prior_rate, exposures, k)
+        rows.append(WEIGHTING_FUNCTIONS[weighting](v, lin, ctx))
+    return np.stack(rows)
+
+
+def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: NoiseParams | None) -> np.ndarray:
+    """The factor ``sigma^-2(E, t_j)`` of (7) at each frame's own estimate ``mu = y``:
+    ``none`` 1; ``photon`` ``t E`` up to the common gain (the photon-limited case of (22),
+    which needs no parameters); ``model`` ``mu^2 / v(mu)``, the clipping-free variance (21)
+    with the noise parameters (clipping is the weights' business)."""
+    y = np.clip(lin, 0.0, 1.0) * y_full
+    if variance == "none":
+        return np.ones_like(y)
+    if variance == "photon":
+        return y
+    if noise is None:
+        raise HdrMergeError("--variance model needs noise parameters (--noise or a profile)")
+    return y * y / code_variance(y, noise)
+
+
 def exposure_tables(
     n_codes: int,
     black: np.ndarray,
@@ -61,24 +124,34 @@ def exposure_tables(
     crf: CRF,
     weighting: str,
     exposure: float,
+    noise: list[NoiseParams] | None = None,
+    variance: str = "none",
+    prior_rate: float | None = None,
+    exposures=(),
+    k: float = DEFAULT_K,
+    certainty: np.ndarray | None = None,
 ) -> ExposureTables:
-    """Build the per-channel tables of one exposure for (7).
+    """Build the per-channel tables of one exposure for (7): the weight ``w(z)`` times the
+    variance factor ``sigma^-2`` of :func:`inverse_variance`.
 
     n_codes : number of stored code values (256 for 8-bit, 65536 for 16-bit containers)
     black, white : (C,) black and white (clipping) level of each channel, in stored codes
     crf : the camera response; ``crf.inverse`` gives ``gamma^-1`` per channel
     weighting : a name in :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`
     exposure : ``h_j`` in seconds (times the gain ratio where frames differ in ISO)
+    certainty : a precomputed ``(C, N)`` weight table (``merge --lut``) instead of ``weighting``
     """
-    wfun = WEIGHTING_FUNCTIONS[weighting]
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
+    if certainty is None:
+        certainty = certainty_table(n_codes, black, white, crf, weighting, exposure, noise, prior_rate, exposures, k)
     log_h = np.log(exposure)
     rows = []
     for c, (b, wl) in enumerate(zip(black, white)):
         v = code_grid(n_codes, b, wl)
         lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
-        w = wfun(v, lin)
+        chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
+        w = certainty[min(c, certainty.shape[0] - 1)] * inverse_variance(variance, lin, wl - b, chan_noise)
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
         with np.errstate(divide="ignore"):
             g = np.log(lin)

@@ -1,0 +1,176 @@
+"""The paper's noise-model weighting functions (section "Probabilistic formulation of the
+weighting function", Appendices 3-4), as tables over code values.
+
+All work in the linear code domain of :mod:`hdrmerge_cli.core.noise`: a code ``z`` of a
+frame with exposure ``h`` is the observation ``y = gamma^-1(z) * y_full``; its mean is
+``mu = sqrt(alpha) h E``.  The irradiance prior is exponential (maximum entropy) with mean
+``prior_rate`` code values per second, so ``mu`` has prior mean ``prior_rate * h``.
+
+- :func:`weights_goossens2012_probabilistic`, (32): ``Pr[E_min < E < E_max | z]``, the
+  posterior probability that the pixel lies in the clipping-safe range (47);
+- :func:`weights_goossens2012_direct`, (33): the same with ``s`` evaluated at the
+  observation (Appendix 4), a closed form of normal CDFs;
+- :func:`weights_goossens2012_optimal`, (28)-(29): the posterior expectation of
+  ``A sigma^2 / (sigma^2 + P nu^2)`` with the exact moments (19).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import log_ndtr
+
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, clipping_safe_range_exact, code_variance, log_moments_exact
+
+#: code levels on which the posterior weights are computed (then interpolated)
+LEVELS = 1024
+#: points of the posterior integration grid over the mean signal
+GRID = 2400
+
+
+@dataclass(frozen=True)
+class WeightContext:
+    """What noise-model weights need beyond the code values.
+
+    y_full : full scale of the linear signal in code values (RAW: white - black)
+    exposure : this frame's exposure ``h`` (s)
+    noise : the (17) parameters of this channel, in code values of ``y``
+    prior_rate : mean of the exponential irradiance prior, code values per second
+    exposures : every exposure of the bracket (``P`` and the normalisation ``A`` of (28))
+    k : clipping margin of (47) in standard deviations
+    y_min : the lowest positive reading (half a code value)
+    """
+
+    y_full: float
+    exposure: float
+    noise: NoiseParams
+    prior_rate: float
+    exposures: tuple = field(default_factory=tuple)
+    k: float = DEFAULT_K
+    y_min: float = 0.5
+
+    @property
+    def frames(self) -> int:
+        return max(len(self.exposures), 1)
+
+    def safe_range(self) -> tuple[float, float]:
+        """``[y'_min, y'_max]`` of (47) in code values of this frame."""
+        return clipping_safe_range_exact(self.noise, self.y_min, self.y_full, self.k)
+
+
+def log_normal_interval(a, b):
+    """``log(Phi(b) - Phi(a))`` for ``a <= b`` without cancellation: computed on the side
+    of the tails that is small (``log_ndtr``), as DESIGN.md asks for erf differences."""
+    a, b = np.broadcast_arrays(np.asarray(a, np.float64), np.asarray(b, np.float64))
+    upper = a > 0  # both in the upper tail: use Phi(-a) - Phi(-b)
+    hi = np.where(upper, log_ndtr(-a), log_ndtr(b))
+    lo = np.where(upper, log_ndtr(-b), log_ndtr(a))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = hi + np.log1p(-np.exp(lo - hi))
+    return np.where(b > a, out, -np.inf)
+
+
+def _levels(v: np.ndarray) -> np.ndarray:
+    return np.linspace(0.0, 1.0, LEVELS) if v.size > LEVELS else np.clip(v, 0.0, 1.0)
+
+
+def _to_table(v, lin, vals_at, levels):
+    """Interpolate weights computed at ``levels`` onto the table's codes ``v``."""
+    w = np.interp(np.clip(v, 0, 1), levels, vals_at) if levels.size != v.size else vals_at
+    return np.where((v > 0) & (v < 1), np.clip(np.nan_to_num(w), 0.0, 1.0), 0.0)
+
+
+def _posterior_expectation(y_obs: np.ndarray, ctx: WeightContext, func_of_mu) -> np.ndarray:
+    """``E[func(mu) | y]`` under ``y ~ N(mu, v(mu))`` and ``mu ~ Exp(mean prior_rate * h)``,
+    by trapezoid integration on a log-spaced grid of ``mu``.  y_obs : (L,) -> (L,)."""
+    m_prior = ctx.prior_rate * ctx.exposure
+    mu = np.geomspace(1e-4, 50.0 * max(ctx.y_full, m_prior), GRID)
+    var = code_variance(mu, ctx.noise)
+    loglik = -0.5 * (y_obs[:, None] - mu[None, :]) ** 2 / var[None, :] - 0.5 * np.log(var)[None, :]
+    logpost = loglik - mu[None, :] / m_prior + np.log(mu)[None, :]  # d mu = mu d log mu
+    logpost -= logpost.max(axis=1, keepdims=True)
+    post = np.exp(logpost)
+    f = func_of_mu(mu)
+    return np.sum(post * f[None, :], axis=1) / np.sum(post, axis=1)
+
+
+def weights_goossens2012_probabilistic(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """(32): ``w = Pr[E_min < E < E_max | z]`` with ``[E_min, E_max]`` the clipping-safe
+    range (47) of this frame; the posterior is integrated numerically (Bayes' rule (53))."""
+    levels = _levels(v)
+    lo, hi = ctx.safe_range()
+    if lo >= hi:
+        return np.zeros_like(v)
+    y_obs = np.interp(levels, np.clip(v, 0, 1), lin) * ctx.y_full if levels.size != v.size else lin * ctx.y_full
+    w = _posterior_expectation(y_obs, ctx, lambda mu: ((mu >= lo) & (mu <= hi)).astype(float))
+    return _to_table(v, lin, w, levels)
+
+
+def weights_goossens2012_direct(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """(33) of Appendix 4: with ``s`` taken at the observation ``y = gamma^-1(z)`` (52), the
+    posterior of ``mu`` is a normal ``N(y - s(y) / (prior_rate h), s(y))`` truncated to
+    ``mu >= 0``, and ``w = [Phi((y'_max - m) / sd) - Phi((y'_min - m) / sd)] /
+    [1 - Phi(-m / sd)]``, evaluated in logs on the small side of the tails."""
+    lo, hi = ctx.safe_range()
+    if lo >= hi:
+        return np.zeros_like(v)
+    y = lin * ctx.y_full
+    s = code_variance(np.maximum(y, 0.0), ctx.noise)
+    sd = np.sqrt(np.maximum(s, 1e-300))
+    m = y - s / (ctx.prior_rate * ctx.exposure)
+    logw = log_normal_interval((lo - m) / sd, (hi - m) / sd) - log_ndtr(m / sd)
+    return _to_table(v, lin, np.exp(np.minimum(logw, 0.0)), v)
+
+
+def _optimal_ratio(mu: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """``A sigma^2 / (sigma^2 + P nu^2)`` of (28) at the means ``mu`` of this frame, with
+    ``A`` normalising the maximum over the bracket's exposures at the same E to 1."""
+    p, a = ctx.noise, np.sqrt(ctx.noise.alpha)
+
+    def ratio(m):
+        nu, var = log_moments_exact(m / a, p, ctx.y_min, ctx.y_full)
+        den = var + ctx.frames * nu * nu
+        return np.where(den > 0, var / np.maximum(den, 1e-300), 1.0)
+
+    own = ratio(mu)
+    others = [ratio(mu * h / ctx.exposure) for h in ctx.exposures] or [own]
+    return own / np.maximum(np.max(others, axis=0), 1e-300)
+
+
+def weights_goossens2012_optimal(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """(29): the posterior expectation of the optimal weight (28), ``E[A sigma^2 /
+    (sigma^2 + P nu^2) | z]``, with the exact bias and variance (19)."""
+    levels = _levels(v)
+    y_obs = np.interp(levels, np.clip(v, 0, 1), lin) * ctx.y_full if levels.size != v.size else lin * ctx.y_full
+    w = _posterior_expectation(y_obs, ctx, lambda mu: _optimal_ratio(mu, ctx))
+    return _to_table(v, lin, w, levels)
+
+
+#: the paper's upper bounds for JPEG input ("HDR reconstruction from JPEG compressed LDR
+#: digital photographs"): max(1/alpha) = 0.005, max(sigma_o^2) = 0.02, beta = 0, read on
+#: the normalised signal scale [0, 1] (where they give the bell-shaped weights of Fig. 16:
+#: sigma_o = 0.14 of full scale, i.e. 36 codes of 255).  Here "1/alpha" is the
+#: photon-noise variance per unit signal, ``sqrt(alpha)`` in this module's code units.
+BOUNDED_INV_ALPHA = 0.005
+BOUNDED_SIGMA_O2 = 0.02
+
+
+def bounded_noise(y_full: float, inv_alpha: float = BOUNDED_INV_ALPHA, sigma_o2: float = BOUNDED_SIGMA_O2,
+                  beta: float = 0.0) -> NoiseParams:
+    """Noise parameters (code units of a signal with full scale ``y_full``) from upper
+    bounds given on the normalised scale, for "Dealing with unknown camera model
+    parameters": variance ``sigma_o2 + inv_alpha * y`` on [0, 1] becomes
+    ``sigma_o2 y_full^2 + (inv_alpha y_full) mu`` in code values."""
+    gain = inv_alpha * y_full  # sqrt(alpha) in code units
+    return NoiseParams(sigma_o2 * y_full**2, gain**2, beta * gain**2)
+
+
+def weights_goossens2012_bounded(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """Unknown camera parameters: the direct formula (33) evaluated with upper bounds on
+    ``1/alpha``, ``sigma_o^2`` and ``beta`` (:func:`bounded_noise`), which shrink the
+    clipping-safe range and make the weights conservative (Fig. 16).  Scaled to max 1."""
+    bctx = WeightContext(ctx.y_full, ctx.exposure, bounded_noise(ctx.y_full), ctx.prior_rate, ctx.exposures, ctx.k,
+                         ctx.y_min)
+    w = weights_goossens2012_direct(v, lin, bctx)
+    top = w.max(initial=0.0)
+    return w / top if top > 0 else w
