@@ -94,7 +94,7 @@ def test_frames_with_different_black_levels_use_their_own():
                      white=np.full(4, 4095.0), channels=4, cfa_pattern="RGGB")
 
     frames = [frame(100.0), frame(200.0)]
-    tables, offsets = _tables(frames, np.array([1.0, 2.0]), CRF("linear"), "uniform")
+    tables, offsets, _ = _tables(frames, np.array([1.0, 2.0]), CRF("linear"), "uniform")
     assert offsets is None
     acc = LogMerge((1, 2))
     signal = np.array([[500.0, 1000.0]])  # code values above black at exposure 1

@@ -7,7 +7,8 @@ import click
 
 from hdrmerge_cli.cli.options import common_options, emit, output_options, parse_csv_list, times_option_callback
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
-from hdrmerge_cli.pipeline.merge import EXTRA_CHANNELS, MergeOptions, merge
+from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
+from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
 
 
 @click.command("merge")
@@ -17,7 +18,8 @@ from hdrmerge_cli.pipeline.merge import EXTRA_CHANNELS, MergeOptions, merge
 @click.option("--profile-out", type=click.Path(dir_okay=False, path_type=Path),
               help="Where to write the camera profile JSON used [default: OUTPUT with .profile.json].")
 @click.option("--weights", type=click.Choice(sorted(WEIGHTING_FUNCTIONS)), default="triangle", show_default=True,
-              help="Weighting function of the reconstruction (7).")
+              help="Weighting function of (7): classical triangle, mann, deneve, gaussian, uniform; the paper's "
+                   "probabilistic (32), direct (33), optimal (29), bounded (unknown noise parameters).")
 @click.option("--crf", metavar="CRF",
               help="Camera response of JPEG/TIFF/PNG input: linear, srgb, gamma:G, a CSV table (z, linear) "
                    "or a profile JSON [default: srgb, with a warning].  RAW input is linear.")
@@ -31,10 +33,25 @@ from hdrmerge_cli.pipeline.merge import EXTRA_CHANNELS, MergeOptions, merge
 @click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats.")
 @click.option("--extra-channels", callback=parse_csv_list, metavar="NAMES",
               help=f"Extra EXR channels, comma-separated: {', '.join(EXTRA_CHANNELS)}.")
+@click.option("--noise", metavar="PARAMS",
+              help="Noise parameters of (17): sigma_o2=4,alpha=1,beta=0, or per channel 'R:... G:... B:...' "
+                   "(code values of the linear signal; electrons for x).")
+@click.option("--profile", type=click.Path(exists=True, dir_okay=False),
+              help="Camera profile JSON (from calibrate-noise / estimate-crf): noise parameters and CRF.")
+@click.option("--variance", type=click.Choice(("auto",) + VARIANCE_FACTORS), default="auto", show_default=True,
+              help="Variance factor sigma^-2 of (7): model (noise parameters), photon, none; auto = model when "
+                   "noise parameters are known, else photon.")
+@click.option("--estimator", type=click.Choice(ESTIMATORS), default="auto", show_default=True,
+              help="log = the paper's (7); ml = linear-domain inverse-variance with saturation censored; "
+                   "auto = ml for RAW, log otherwise.")
+@click.option("--irls", default=0, show_default=True, type=click.IntRange(0, 50),
+              help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing).")
+@click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
+              help="Clipping margin of (47) in standard deviations (noise-model weights).")
 @output_options
 @common_options
 def command(images, output, profile_out, weights, crf, times, times_file, reference, cfa, half, extra_channels,
-            overwrite, as_json):
+            noise, profile, variance, estimator, irls, k, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
@@ -48,6 +65,7 @@ def command(images, output, profile_out, weights, crf, times, times_file, refere
     opts = MergeOptions(
         output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
+        noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k,
     )
     summary = merge(list(images), opts)
     emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")

@@ -39,8 +39,10 @@ FLAG_OK, FLAG_SATURATED, FLAG_DARK = 0, 1, -1
 class ExposureTables:
     """Lookup tables of one exposure, each flattened ``(C * N,)`` float32.
 
-    weight : ``w(z)``
-    weighted_log : ``w(z) * (g(z) - log h)``, the numerator term of (7)
+    weight : ``w(z)`` (times the variance factor)
+    weighted_log : ``w(z) * (g(z) - log h)``, the numerator term of (7); for the linear
+        (maximum-likelihood) estimator ``w(z) * gamma^-1(z) / h`` instead
+    value : ``g(z) - log h`` (or ``gamma^-1(z) / h``), the frame's own estimate, for IRLS
     fallback_log : ``log(max(gamma^-1(z), half a code) / h)``, used where no frame has weight
     above_mid : bool, ``z > z_max / 2``: a pixel above mid-scale in the shortest frame and
         unmeasured everywhere is taken as saturated, otherwise as dark
@@ -51,6 +53,9 @@ class ExposureTables:
     fallback_log: np.ndarray
     above_mid: np.ndarray
     n_codes: int
+    value: np.ndarray | None = None
+    linear: bool = False
+    certainty: np.ndarray | None = None
 
 
 def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
@@ -130,6 +135,7 @@ def exposure_tables(
     exposures=(),
     k: float = DEFAULT_K,
     certainty: np.ndarray | None = None,
+    estimator: str = "log",
 ) -> ExposureTables:
     """Build the per-channel tables of one exposure for (7): the weight ``w(z)`` times the
     variance factor ``sigma^-2`` of :func:`inverse_variance`.
@@ -140,6 +146,10 @@ def exposure_tables(
     weighting : a name in :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`
     exposure : ``h_j`` in seconds (times the gain ratio where frames differ in ISO)
     certainty : a precomputed ``(C, N)`` weight table (``merge --lut``) instead of ``weighting``
+    estimator : ``log`` for (7); ``ml`` for the linear-domain inverse-variance estimate
+        (Granados et al. 2010): value ``gamma^-1(z) / h``, weight ``w(z) h^2 / v(y)`` (the
+        variance of ``y / h``; ``variance`` is then ignored), saturated codes censored
+        (weight 0) as every weight is there
     """
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
@@ -151,16 +161,24 @@ def exposure_tables(
         v = code_grid(n_codes, b, wl)
         lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
         chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
-        w = certainty[min(c, certainty.shape[0] - 1)] * inverse_variance(variance, lin, wl - b, chan_noise)
+        cert = certainty[min(c, certainty.shape[0] - 1)]
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
-        with np.errstate(divide="ignore"):
-            g = np.log(lin)
-        g_rel = np.where(w > 0, g - log_h, 0.0)  # finite wherever it is used
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
-        rows.append((w, w * g_rel, fallback, v > 0.5))
-    w, wg, fb, hi = (np.concatenate(col) for col in zip(*rows))
+        if estimator == "ml":
+            y = lin * (wl - b)
+            var_y = code_variance(y, chan_noise) if chan_noise is not None else np.maximum(y, 1.0)
+            w = cert * (exposure * (wl - b)) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
+            value = lin / exposure
+        else:
+            w = cert * inverse_variance(variance, lin, wl - b, chan_noise)
+            with np.errstate(divide="ignore"):
+                value = np.where(cert > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
+        rows.append((w, w * value, fallback, v > 0.5, value))
+    w, wv, fb, hi, val = (np.concatenate(col) for col in zip(*rows))
     return ExposureTables(
-        w.astype(np.float32), wg.astype(np.float32), fb.astype(np.float32), hi, n_codes
+        w.astype(np.float32), wv.astype(np.float32), fb.astype(np.float32), hi, n_codes,
+        val.astype(np.float32), estimator == "ml", np.concatenate([certainty[min(c, certainty.shape[0] - 1)]
+                                                                   for c in range(len(black))]).astype(np.float32),
     )
 
 
@@ -177,6 +195,20 @@ def flat_index(codes: np.ndarray, channel_offset: np.ndarray | None) -> np.ndarr
     return codes.astype(np.int32) + channel_offset
 
 
+def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_full: float, noise_maps,
+                 linear: bool) -> np.ndarray:
+    """Per-sample weights of one frame at the current estimate (iteratively re-weighted
+    (7)): ``w(z) sigma^-2(E_i, t_j)`` with ``mu_j = E_i h_j y_full`` and the clipping-free
+    variance (21), ``mu^2 / v(mu)`` (log estimator) or ``(h y_full)^2 / v(mu)`` (ML).
+
+    noise_maps : (sigma_o2, sqrt_alpha, beta / alpha), each broadcastable to the samples."""
+    s_o2, sqrt_a, b_a = noise_maps
+    mu = np.exp(log_e) * np.float32(exposure * y_full)
+    var = s_o2 + sqrt_a * mu + b_a * mu * mu
+    num = mu * mu if not linear else np.float32((exposure * y_full) ** 2)
+    return certainty * (num / np.maximum(var, np.float32(1e-12)))
+
+
 class LogMerge:
     """Accumulate (7) over frames given in increasing exposure order.
 
@@ -191,11 +223,15 @@ class LogMerge:
         self.saturated = None  # set by the first (shortest) frame
         self.frames = 0
 
-    def add(self, index: np.ndarray, tables: ExposureTables, last: bool = False) -> None:
-        """Add one frame; ``index`` from :func:`flat_index`; ``last`` for the longest."""
-        w = tables.weight.take(index)
-        self.den += w
-        self.num += tables.weighted_log.take(index)
+    def add(self, index: np.ndarray, tables: ExposureTables, last: bool = False, weight: np.ndarray | None = None) -> None:
+        """Add one frame; ``index`` from :func:`flat_index`; ``last`` for the longest;
+        ``weight`` per-sample weights (IRLS) instead of the table's."""
+        if weight is None:
+            self.den += tables.weight.take(index)
+            self.num += tables.weighted_log.take(index)
+        else:
+            self.den += weight
+            self.num += weight * tables.value.take(index)
         if self.saturated is None:
             self.saturated = tables.above_mid.take(index)
             np.copyto(self.fallback, tables.fallback_log.take(index))
@@ -203,7 +239,7 @@ class LogMerge:
             np.copyto(self.fallback, tables.fallback_log.take(index), where=~self.saturated)
         self.frames += 1
 
-    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+    def finish(self, linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Return ``(log_E, flag)``: the log-exposure-normalised irradiance (float32, finite)
         and an int8 flag per sample.
 
@@ -212,12 +248,17 @@ class LogMerge:
         the shortest frame, ``log(gamma^-1(z_max) / h_min)``, a lower bound;
         ``FLAG_DARK``: the longest frame's value with a floor of half a code value,
         ``log(max(gamma^-1(z), gamma^-1(1/2)) / h_max)``, an upper bound.
+        ``linear``: the sums hold linear values (the ML estimator); their ratio is logged.
         """
         if self.frames == 0:
             raise ValueError("no frame was added")
         measured = self.den > 0
         with np.errstate(divide="ignore", invalid="ignore"):
-            log_e = np.where(measured, self.num / self.den, self.fallback)
+            est = self.num / self.den
+            if linear:
+                measured &= est > 0
+                est = np.log(est)
+            log_e = np.where(measured, est, self.fallback)
         flag = np.zeros(self.num.shape, np.int8)
         flag[~measured & self.saturated] = FLAG_SATURATED
         flag[~measured & ~self.saturated] = FLAG_DARK

@@ -106,6 +106,16 @@ def weights_goossens2012_probabilistic(v: np.ndarray, lin: np.ndarray, ctx: Weig
     return _to_table(v, lin, w, levels)
 
 
+def _log_direct(lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """``log w`` of (33) (see :func:`weights_goossens2012_direct`)."""
+    lo, hi = ctx.safe_range()
+    y = lin * ctx.y_full
+    s = code_variance(np.maximum(y, 0.0), ctx.noise)
+    sd = np.sqrt(np.maximum(s, 1e-300))
+    m = y - s / (ctx.prior_rate * ctx.exposure)
+    return np.minimum(log_normal_interval((lo - m) / sd, (hi - m) / sd) - log_ndtr(m / sd), 0.0)
+
+
 def weights_goossens2012_direct(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
     """(33) of Appendix 4: with ``s`` taken at the observation ``y = gamma^-1(z)`` (52), the
     posterior of ``mu`` is a normal ``N(y - s(y) / (prior_rate h), s(y))`` truncated to
@@ -114,12 +124,7 @@ def weights_goossens2012_direct(v: np.ndarray, lin: np.ndarray, ctx: WeightConte
     lo, hi = ctx.safe_range()
     if lo >= hi:
         return np.zeros_like(v)
-    y = lin * ctx.y_full
-    s = code_variance(np.maximum(y, 0.0), ctx.noise)
-    sd = np.sqrt(np.maximum(s, 1e-300))
-    m = y - s / (ctx.prior_rate * ctx.exposure)
-    logw = log_normal_interval((lo - m) / sd, (hi - m) / sd) - log_ndtr(m / sd)
-    return _to_table(v, lin, np.exp(np.minimum(logw, 0.0)), v)
+    return _to_table(v, lin, np.exp(_log_direct(lin, ctx)), v)
 
 
 def _optimal_ratio(mu: np.ndarray, ctx: WeightContext) -> np.ndarray:
@@ -168,9 +173,15 @@ def bounded_noise(y_full: float, inv_alpha: float = BOUNDED_INV_ALPHA, sigma_o2:
 def weights_goossens2012_bounded(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
     """Unknown camera parameters: the direct formula (33) evaluated with upper bounds on
     ``1/alpha``, ``sigma_o^2`` and ``beta`` (:func:`bounded_noise`), which shrink the
-    clipping-safe range and make the weights conservative (Fig. 16).  Scaled to max 1."""
+    clipping-safe range and make the weights conservative (Fig. 16).
+
+    Scaled to max 1 per exposure, in the log domain: with such large noise bounds the
+    exponential prior pulls a short exposure's posterior to E ~ 0, and (33) underflows for
+    every code; the frame then keeps the shape of its weights instead of none at all."""
     bctx = WeightContext(ctx.y_full, ctx.exposure, bounded_noise(ctx.y_full), ctx.prior_rate, ctx.exposures, ctx.k,
                          ctx.y_min)
-    w = weights_goossens2012_direct(v, lin, bctx)
-    top = w.max(initial=0.0)
-    return w / top if top > 0 else w
+    logw = np.where((v > 0) & (v < 1), _log_direct(lin, bctx), -np.inf)
+    top = logw.max(initial=-np.inf)
+    if not np.isfinite(top):
+        return np.zeros_like(v)
+    return _to_table(v, lin, np.exp(logw - top), v)

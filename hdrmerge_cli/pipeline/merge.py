@@ -14,7 +14,13 @@ from hdrmerge_cli import __version__
 from hdrmerge_cli.core.color import REC709_CHROMATICITIES, bayer_channels, camera_to_rec709, demosaic
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, LogMerge, exposure_tables, flat_index
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
+from hdrmerge_cli.core.reconstruct import (
+    FLAG_DARK, FLAG_SATURATED, LogMerge, certainty_table, exposure_tables, flat_index, irls_weights,
+)
+from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
+from hdrmerge_cli.io.noisespec import noise_from_profile, parse_noise, per_channel
+from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.io.atomic import atomic_paths, check_writable
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
@@ -26,6 +32,11 @@ log = logging.getLogger("hdrmerge_cli")
 
 #: extra EXR channels a user may ask for
 EXTRA_CHANNELS = ("clipped", "weight")
+
+#: estimator choices: log = the paper's (7), ml = linear inverse-variance (censored)
+ESTIMATORS = ("auto", "log", "ml")
+#: IRLS stops when no measured sample's log-irradiance moves more than this
+IRLS_TOLERANCE = 1e-3
 
 #: relative difference under which two exposures count as equal
 EQUAL_EXPOSURE_RTOL = 1e-3
@@ -44,6 +55,12 @@ class MergeOptions:
     cfa: bool = False
     half: bool = False
     extra_channels: tuple[str, ...] = field(default_factory=tuple)
+    noise: str | None = None
+    profile: str | None = None
+    variance: str = "auto"
+    estimator: str = "auto"
+    irls: int = 0
+    k: float = DEFAULT_K
 
 
 def default_profile_path(output: Path) -> Path:
@@ -160,18 +177,36 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     frames = read_bracket(paths, opts.times, opts.times_file)
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
-    crf = choose_crf(frames, opts.crf)
+    crf = choose_crf(frames, opts.crf or opts.profile)
     exposures = exposure_values(frames)
     h_ref = reference_exposure(opts.reference, exposures)
+    first = frames[0]
+    noise = resolve_noise(opts, frames)
+    variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
+    estimator = opts.estimator if opts.estimator != "auto" else ("ml" if first.kind == "raw" else "log")
+    if opts.irls and not noise:
+        raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
     timings["read_metadata"] = time.perf_counter() - t0
 
-    first = frames[0]
     t0 = time.perf_counter()
-    tables, offsets = _tables(frames, exposures, crf, opts.weights)
+    prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS else None
+    tables, offsets, names = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k, estimator)
     timings["tables"] = time.perf_counter() - t0
 
-    log_e, flags, den, timings_stream = _stream(frames, tables, offsets)
+    log_e, flags, den, timings_stream = _stream(frames, tables, offsets, estimator == "ml")
     timings.update(timings_stream)
+    iterations = 0
+    if opts.irls:
+        t0 = time.perf_counter()
+        maps = _noise_maps(first, noise, names, offsets)
+        for iterations in range(1, opts.irls + 1):
+            new, flags, den = _irls_pass(frames, tables, offsets, log_e, exposures, maps, estimator == "ml")
+            change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
+            log_e = new
+            log.info("IRLS iteration %d: largest change %.2e", iterations, change)
+            if change < IRLS_TOLERANCE:
+                break
+        timings["irls"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     linear = np.exp(log_e, dtype=np.float32) * np.float32(h_ref)
@@ -201,6 +236,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
     )
     profile["weights"] = opts.weights
+    if noise:
+        profile["noise"] = {"used": {ch: vars(p) for ch, p in zip(names, per_channel(noise, names))}}
     profile_text = dumps(profile)
     attrs = {
         "Software": f"hdrmerge-cli {__version__}",
@@ -213,6 +250,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
             "hdrmerge:referenceExposure seconds" + ("" if first.kind != "raw" or opts.cfa else ", after white balance (green = 1)")
         ),
         "hdrmerge:weights": opts.weights,
+        "hdrmerge:estimator": estimator,
+        "hdrmerge:variance": variance,
         "hdrmerge:crf": crf.describe(),
         "hdrmerge:profile": profile_out.name,
         "hdrmerge:profileSHA256": hashlib.sha256(profile_text.encode()).hexdigest(),
@@ -239,6 +278,11 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(frames, exposures)],
         "reference_exposure": h_ref,
         "weights": opts.weights,
+        "estimator": estimator,
+        "variance": variance,
+        "irls_iterations": iterations,
+        "noise": {ch: vars(p) for ch, p in zip(names, per_channel(noise, names))} if noise else None,
+        "prior_rate": prior,
         "crf": crf.describe(),
         "width": first.width,
         "height": first.height,
@@ -249,23 +293,92 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     }
 
 
-def _tables(frames, exposures, crf, weights):
-    """Per-frame lookup tables (each frame with its own black and white levels) and the
-    per-sample channel offsets into them (None when one row serves every channel)."""
+def resolve_noise(opts: MergeOptions, frames: list[Frame]) -> dict[str, NoiseParams] | None:
+    """Noise parameters from ``--noise``, else from the profile (``--profile``, or a
+    profile given as ``--crf``), else None."""
+    if opts.noise:
+        return parse_noise(opts.noise)
+    source = opts.profile or (opts.crf if opts.crf and opts.crf.lower().endswith(".json") else None)
+    if source:
+        prof = load_profile(source)
+        if prof.get("noise") and any(k.startswith("ISO") for k in prof["noise"]):
+            isos = {f.iso for f in frames}
+            return noise_from_profile(prof, isos.pop() if len(isos) == 1 else None, source)
+        if opts.profile:
+            raise HdrMergeError(f"{source}: the profile has no noise parameters (run calibrate-noise)")
+    return None
+
+
+def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF) -> float:
+    """Mean of the exponential irradiance prior (code values per second), estimated from
+    the middle frame's unclipped samples (the paper assumes it known)."""
+    k = len(frames) // 2
+    f = frames[k]
+    codes = load_codes(f).astype(np.float64)
+    full = float(f.white[0] - f.black[0])
+    lin = crf.inverse(np.clip((codes - f.black[0]) / full, 0, 1)) if f.kind == "raw" else np.stack(
+        [crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])], axis=-1)
+    ok = (lin > 0) & (lin < 1)
+    if not np.any(ok):
+        raise HdrMergeError(f"{f.path}: every sample is clipped; cannot estimate the irradiance prior")
+    return float(np.mean(lin[ok]) * full / exposures[k])
+
+
+def _channel_names(frame: Frame) -> list[str]:
+    if frame.kind == "raw":
+        return [c + "2" if frame.channel_colors[:i].count(c) else c for i, c in enumerate(frame.channel_colors)]
+    return list(frame.channel_colors)
+
+
+def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log"):
+    """Per-frame lookup tables (each frame with its own black and white levels), the
+    per-sample channel offsets into them (None when one row serves every channel) and the
+    table rows' channel names."""
     first = frames[0]
+    names = _channel_names(first)
+    chan_noise = per_channel(noise, names) if noise else None
     shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
     shared &= crf.table is None or crf.table.shape[0] == 1
+    shared &= chan_noise is None or all(p == chan_noise[0] for p in chan_noise)
     rows = 1 if shared else len(first.black)
-    tables = [exposure_tables(f.n_codes, f.black[:rows], f.white[:rows], crf, weights, h)
+    names = names[:rows]
+    row_noise = chan_noise[:rows] if chan_noise else None
+    tables = [exposure_tables(f.n_codes, f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
+                              tuple(exposures), k, estimator=estimator)
               for f, h in zip(frames, exposures)]
     if shared:
-        return tables, None
+        return tables, None, names
     if first.kind == "raw":
-        return tables, raw_channel_map(first.path).astype(np.int32) * first.n_codes
-    return tables, np.arange(first.channels, dtype=np.int32) * first.n_codes
+        return tables, raw_channel_map(first.path).astype(np.int32) * first.n_codes, names
+    return tables, np.arange(first.channels, dtype=np.int32) * first.n_codes, names
 
 
-def _stream(frames, tables, offsets):
+def _noise_maps(frame: Frame, noise, names, offsets):
+    """(sigma_o2, sqrt_alpha, beta / alpha) per sample, broadcastable to its shape."""
+    params = per_channel(noise, names)
+    cols = [np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
+            for i in range(3)]
+    if len(params) == 1:
+        return tuple(c[0] for c in cols)
+    if frame.kind == "raw":
+        idx = (offsets // frame.n_codes).astype(np.intp)
+        return tuple(c[idx] for c in cols)
+    return tuple(cols)
+
+
+def _irls_pass(frames, tables, offsets, log_e, exposures, maps, linear):
+    """One re-weighted pass: every frame's weight at the current estimate."""
+    acc = LogMerge(log_e.shape)
+    for k, (frame, tab, h) in enumerate(zip(frames, tables, exposures)):
+        idx = flat_index(load_codes(frame), offsets)
+        y_full = float(frame.white[0] - frame.black[0])
+        w = irls_weights(tab.certainty.take(idx), log_e, h, y_full, maps, linear)
+        acc.add(idx, tab, last=k == len(frames) - 1, weight=w)
+    new, flags = acc.finish(linear)
+    return new, flags, acc.den
+
+
+def _stream(frames, tables, offsets, linear=False):
     """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
     decoded frames in memory."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
@@ -293,7 +406,7 @@ def _stream(frames, tables, offsets):
             del codes
             merge_time += time.perf_counter() - t
     t = time.perf_counter()
-    log_e, flags = acc.finish()
+    log_e, flags = acc.finish(linear)
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
     return log_e, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
