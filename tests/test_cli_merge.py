@@ -129,3 +129,56 @@ def test_real_dng_decodes_with_its_black_and_white_levels(run, tmp_path):
     out, summary = _merge(run, tmp_path, [SHARED / "raw" / "colorchart.dng"])
     pixels, _ = read_exr(out)
     assert pixels.shape == (1156, 1734, 3) and np.all(np.isfinite(pixels))
+
+
+NOISE_DNG = "sigma_o2=9.083,alpha=0.25"  # the simulated sensor's (quantisation included)
+
+
+@pytest.mark.parametrize("args", [
+    ("--weights", "probabilistic", "--noise", NOISE_DNG, "--estimator", "log"),
+    ("--weights", "direct", "--noise", NOISE_DNG, "--estimator", "ml"),
+    ("--weights", "optimal", "--noise", NOISE_DNG),
+    ("--weights", "direct", "--noise", NOISE_DNG, "--irls", "5"),
+    ("--weights", "triangle", "--variance", "model", "--noise", "R:" + NOISE_DNG + " G:" + NOISE_DNG + " B:" + NOISE_DNG),
+])
+def test_noise_model_merges_of_the_dng_bracket(run, tmp_path, dng_bracket, args):
+    folder, meta = dng_bracket
+    truth_cfa = mosaic(read_exr(folder / "truth.exr")[0], meta["cfa_pattern"])
+    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--cfa", "--reference", str(meta["reference_exposure"]),
+                    *args)
+    pixels, attrs = read_exr(out)
+    assert log_rmse(pixels[..., 0], truth_cfa) < 0.03
+    assert s["noise"]["R"]["alpha"] == 0.25 and attrs["hdrmerge:variance"] == s["variance"]
+    if "--irls" in args:
+        assert 1 <= s["irls_iterations"] <= 5  # stops early once the estimate settles
+    profile = json.loads((tmp_path / "out.profile.json").read_text())
+    assert profile["noise"]["used"]["G"]["sigma_o2"] == pytest.approx(9.083)
+
+
+def test_merge_takes_noise_from_a_calibrated_profile(run, tmp_path, dng_bracket):
+    folder, meta = dng_bracket
+    prof = tmp_path / "cam.json"
+    run("calibrate-noise", *frames_of(folder, meta), "-o", prof)
+    _, s = _merge(run, tmp_path, frames_of(folder, meta), "--profile", prof, "--weights", "direct")
+    assert s["variance"] == "model" and s["estimator"] == "ml" and s["noise"]["G2"]["alpha"] > 0
+
+
+def test_bounded_needs_no_noise_parameters(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--weights", "bounded")
+    assert s["variance"] == "photon" and np.all(np.isfinite(read_exr(out)[0]))
+
+
+@pytest.mark.parametrize("args,message", [
+    (("--noise", "sigma_o2=4"), "alpha"),
+    (("--noise", "sigma_o2=4,alpha=-1"), "alpha"),
+    (("--noise", "gain=2"), "sigma_o2"),
+    (("--irls", "3"), "--irls needs noise"),
+    (("--variance", "model"), "noise parameters"),
+    (("--weights", "direct", "--noise", "sigma_o2=1e9,alpha=1"), "clipping-safe"),
+])
+def test_noise_option_errors(run, tmp_path, jpeg_bracket, args, message):
+    folder, meta = jpeg_bracket
+    proc = run("merge", *frames_of(folder, meta), "--crf", "srgb", "-o", tmp_path / "e.exr", *args, check=False)
+    assert proc.returncode == 1 and message in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "e.exr").exists()

@@ -190,7 +190,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
 
     t0 = time.perf_counter()
     prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS else None
-    tables, offsets, names = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k, estimator)
+    tables, offsets, table_channels = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k,
+                                             estimator)
     timings["tables"] = time.perf_counter() - t0
 
     log_e, flags, den, timings_stream = _stream(frames, tables, offsets, estimator == "ml")
@@ -198,7 +199,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     iterations = 0
     if opts.irls:
         t0 = time.perf_counter()
-        maps = _noise_maps(first, noise, names, offsets)
+        maps = _noise_maps(first, noise, table_channels, offsets)
         for iterations in range(1, opts.irls + 1):
             new, flags, den = _irls_pass(frames, tables, offsets, log_e, exposures, maps, estimator == "ml")
             change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
@@ -236,8 +237,10 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
     )
     profile["weights"] = opts.weights
+    noise_used = ({ch: vars(p) for ch, p in zip(_channel_names(first), per_channel(noise, _channel_names(first)))}
+                  if noise else None)
     if noise:
-        profile["noise"] = {"used": {ch: vars(p) for ch, p in zip(names, per_channel(noise, names))}}
+        profile["noise"] = {"used": noise_used}
     profile_text = dumps(profile)
     attrs = {
         "Software": f"hdrmerge-cli {__version__}",
@@ -281,7 +284,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "estimator": estimator,
         "variance": variance,
         "irls_iterations": iterations,
-        "noise": {ch: vars(p) for ch, p in zip(names, per_channel(noise, names))} if noise else None,
+        "noise": noise_used,
         "prior_rate": prior,
         "crf": crf.describe(),
         "width": first.width,
