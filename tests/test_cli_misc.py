@@ -177,3 +177,36 @@ def test_simulate_from_a_shared_hdr_scene(run, tmp_path):
 
     truth, _ = read_exr(out / "truth.exr")
     assert log_rmse(est[..., 0], mosaic(truth, "RGGB")) < 0.1
+
+
+JPEG_NOISE = "sigma_o2=0.1185,alpha=0.00097"  # the simulated sensor in 8-bit linear units
+
+
+def test_weights_lut_noise_model_with_plot(run, tmp_path):
+    out, png = tmp_path / "w.npy", tmp_path / "w.png"
+    run("weights-lut", "--times", "0.1,0.25,1,2", "--weights", "probabilistic", "--noise", "sigma_o2=4,alpha=1",
+        "-o", out, "--plot", png)
+    w = np.load(out)
+    assert w.shape == (256, 4) and np.all(np.isfinite(w)) and w.max() <= 1 and w[0].max() == 0
+    # Fig. 13: shorter exposures keep more weight at the top codes
+    assert w[230, 0] > w[230, 3]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_merge_with_a_saved_lut_equals_rebuilding_it(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    files = frames_of(folder, meta)
+    lut = tmp_path / "w.csv"
+    run("weights-lut", *files, "--crf", "srgb", "--weights", "direct", "--noise", JPEG_NOISE, "-o", lut)
+    run("merge", *files, "--crf", "srgb", "--lut", lut, "--noise", JPEG_NOISE, "-o", tmp_path / "a.exr")
+    run("merge", *files, "--crf", "srgb", "--weights", "direct", "--noise", JPEG_NOISE, "-o", tmp_path / "b.exr")
+    a, b = read_exr(tmp_path / "a.exr")[0], read_exr(tmp_path / "b.exr")[0]
+    np.testing.assert_allclose(a, b, rtol=1e-6)
+
+
+def test_merge_rejects_a_lut_of_the_wrong_shape(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.ones((256, 5)))
+    proc = run("merge", *frames_of(folder, meta), "--crf", "srgb", "--lut", bad, "-o", tmp_path / "x.exr", check=False)
+    assert proc.returncode == 1 and "columns" in proc.stderr and not (tmp_path / "x.exr").exists()

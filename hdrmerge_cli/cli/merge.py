@@ -48,10 +48,12 @@ from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
               help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing).")
 @click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations (noise-model weights).")
+@click.option("--lut", type=click.Path(exists=True, dir_okay=False),
+              help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
 @output_options
 @common_options
 def command(images, output, profile_out, weights, crf, times, times_file, reference, cfa, half, extra_channels,
-            noise, profile, variance, estimator, irls, k, overwrite, as_json):
+            noise, profile, variance, estimator, irls, k, lut, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
@@ -65,7 +67,7 @@ def command(images, output, profile_out, weights, crf, times, times_file, refere
     opts = MergeOptions(
         output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
-        noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k,
+        noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut,
     )
     summary = merge(list(images), opts)
     emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")

@@ -9,8 +9,14 @@ from hdrmerge_cli.cli.options import common_options, emit, output_options, times
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.crfspec import resolve_crf
-from hdrmerge_cli.pipeline.lut import weight_luts, write_luts
-from hdrmerge_cli.pipeline.merge import choose_crf, exposure_values, read_bracket
+import numpy as np
+
+from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
+from hdrmerge_cli.io.noisespec import per_channel
+from hdrmerge_cli.pipeline.lut import plot_luts, weight_luts, write_luts
+from hdrmerge_cli.pipeline.merge import (
+    MergeOptions, choose_crf, exposure_values, prior_rate as prior_rate_of, read_bracket, resolve_noise,
+)
 
 
 @click.command("weights-lut")
@@ -23,28 +29,49 @@ from hdrmerge_cli.pipeline.merge import choose_crf, exposure_values, read_bracke
               help="Weighting function.")
 @click.option("--crf", metavar="CRF", help="linear, srgb, gamma:G, a CSV table or a profile JSON [default: linear].")
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False), help="Profile JSON (its CRF is used).")
-@click.option("--bits", default=8, show_default=True, type=click.IntRange(1, 16),
+@click.option("--bits", default=8, show_default=True, type=click.IntRange(2, 16),
               help="Code values 0..2^bits-1 (with --times; a bracket gives its own).")
+@click.option("--noise", metavar="PARAMS", help="Noise parameters of (17), as in merge (for the paper's weights).")
+@click.option("--prior-rate", type=click.FloatRange(min=0, min_open=True),
+              help="Mean of the exponential irradiance prior, code values per second [default: from the bracket, "
+                   "or mid-grey at the middle exposure].")
+@click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
+              help="Clipping margin of (47) in standard deviations.")
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Also draw the curves to a PNG.")
 @output_options
 @common_options
-def command(images, output, times, weights, crf, profile, bits, overwrite, as_json):
+def command(images, output, times, weights, crf, profile, bits, noise, prior_rate, k, plot, overwrite, as_json):
     """Tabulate a weighting function per exposure: one row per code value z, one column
-    per exposure (and channel, for a per-channel CRF), with values in [0, 1]."""
+    per exposure (and channel, for a per-channel CRF or noise), values in [0, 1].
+    'merge --lut' reuses the table so batch runs skip rebuilding it."""
     if bool(images) == (times is not None):
         raise click.UsageError("give either a bracket IMAGES... or --times")
     if crf and profile:
         raise click.UsageError("give either --crf or --profile, not both")
-    spec = profile or crf
+    spec = crf or profile
+    opts = MergeOptions(output=output, noise=noise, profile=profile, crf=crf)
     if images:
         frames = read_bracket(list(images))
-        exposures, n_codes = list(exposure_values(frames)), frames[0].n_codes
-        curve = choose_crf(frames, spec)
         if frames[0].kind == "raw":
             raise HdrMergeError(f"{frames[0].path}: RAW brackets have per-file black levels; give --times and --bits")
+        exposures, n_codes = list(exposure_values(frames)), frames[0].n_codes
+        curve = choose_crf(frames, spec)
+        params = resolve_noise(opts, frames)
+        prior = prior_rate or (prior_rate_of(frames, np.array(exposures), curve) if weights in NOISE_MODEL_WEIGHTS
+                               else None)
+        names = list(frames[0].channel_colors)
     else:
         exposures, n_codes = sorted(times), 2**bits
         curve = resolve_crf(spec or "linear")
-    table, labels = weight_luts(curve, n_codes, exposures, weights)
-    meta = {"weights": weights, "crf": curve.describe(), "exposures": exposures, "n_codes": n_codes}
+        params = resolve_noise(opts, [])
+        prior = prior_rate
+        per_rgb = (params and set(params) != {"*"}) or (curve.table is not None and curve.table.shape[0] == 3)
+        names = ["R", "G", "B"] if per_rgb else ["*"]
+    noise_list = per_channel(params, names) if params else None
+    table, labels = weight_luts(curve, n_codes, exposures, weights, noise_list, prior, k)
+    meta = {"weights": weights, "crf": curve.describe(), "exposures": exposures, "n_codes": n_codes, "k": k}
     write_luts(output, table, labels, meta, overwrite)
-    emit(meta | {"output": str(output), "columns": labels}, as_json, f"wrote {output}")
+    if plot:
+        plot_luts(plot, table, labels, f"{weights} weights, CRF {curve.describe()}", overwrite)
+    emit(meta | {"output": str(output), "columns": labels, "plot": str(plot) if plot else None}, as_json,
+         f"wrote {output}" + (f" and {plot}" if plot else ""))

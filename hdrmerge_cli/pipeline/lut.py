@@ -1,4 +1,5 @@
-"""weights-lut: the weighting functions as per-exposure tables over all code values."""
+"""weights-lut: the weighting functions as per-exposure tables over all code values,
+and reading them back for ``merge --lut``."""
 from __future__ import annotations
 
 import json
@@ -8,21 +9,32 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.reconstruct import exposure_tables
+from hdrmerge_cli.core.noise import DEFAULT_K
+from hdrmerge_cli.core.reconstruct import certainty_table
 from hdrmerge_cli.io.atomic import atomic_path
 
 LUT_FORMATS = (".csv", ".npy", ".json")
 
+#: without a bracket, the prior mean puts mid-grey (18 % of full scale) at the middle exposure
+MID_GREY = 0.18
 
-def weight_luts(crf: CRF, n_codes: int, exposures: list[float], weights: str) -> tuple[np.ndarray, list[str]]:
-    """``(n_codes, P * C)`` weights: one column per exposure (and channel when the CRF
-    differs per channel), with their labels."""
-    channels = 1 if crf.table is None else crf.table.shape[0]
+
+def default_prior_rate(n_codes: int, exposures) -> float:
+    return MID_GREY * (n_codes - 1) / float(np.exp(np.mean(np.log(exposures))))
+
+
+def weight_luts(crf: CRF, n_codes: int, exposures: list[float], weights: str, noise=None, prior_rate=None,
+                k: float = DEFAULT_K) -> tuple[np.ndarray, list[str]]:
+    """``(n_codes, P * C)`` weights ``w(z)`` in [0, 1]: one column per exposure (and per
+    channel when the CRF or the noise differs per channel), with their labels."""
+    channels = max(1 if crf.table is None else crf.table.shape[0], len(noise) if noise else 1)
+    prior = prior_rate or default_prior_rate(n_codes, exposures)
     cols, labels = [], []
     for h in exposures:
-        tab = exposure_tables(n_codes, np.zeros(channels), np.full(channels, n_codes - 1.0), crf, weights, h)
+        tab = certainty_table(n_codes, np.zeros(channels), np.full(channels, n_codes - 1.0), crf, weights, h, noise,
+                              prior, tuple(exposures), k)
         for c in range(channels):
-            cols.append(tab.weight[c * n_codes:(c + 1) * n_codes].astype(np.float64))
+            cols.append(tab[c])
             labels.append(f"t={h:.6g}" + (f":{'RGB'[c] if channels == 3 else c}" if channels > 1 else ""))
     return np.stack(cols, axis=1), labels
 
@@ -40,3 +52,46 @@ def write_luts(path: Path, table: np.ndarray, labels: list[str], meta: dict, ove
             z = np.arange(table.shape[0])[:, None]
             np.savetxt(tmp, np.hstack([z, table]), delimiter=",", header="z," + ",".join(labels),
                        comments="", fmt=["%d"] + ["%.9g"] * table.shape[1])
+
+
+def read_luts(path: str) -> np.ndarray:
+    """A table written by :func:`write_luts`: ``(n_codes, columns)`` float64 in [0, 1]."""
+    suffix = Path(path).suffix.lower()
+    try:
+        if suffix == ".npy":
+            table = np.load(path, allow_pickle=False)
+        elif suffix == ".json":
+            table = np.asarray(json.loads(Path(path).read_text())["weights"], dtype=np.float64).T
+        elif suffix == ".csv":
+            table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)[:, 1:]
+        else:
+            raise HdrMergeError(f"{path}: unknown table format (use {', '.join(LUT_FORMATS)})")
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise HdrMergeError(f"{path}: not a weights table ({exc})") from None
+    table = np.asarray(table, dtype=np.float64)
+    if table.ndim != 2 or not np.all(np.isfinite(table)) or table.min() < 0 or table.max() > 1:
+        raise HdrMergeError(f"{path}: a weights table holds values in [0, 1], one row per code value")
+    return table
+
+
+def plot_luts(path: Path, table: np.ndarray, labels: list[str], title: str, overwrite: bool) -> None:
+    """The weight curves against the code value, like the paper's Figs. 13 and 16."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
+    z = np.arange(table.shape[0])
+    for col, label in zip(table.T, labels):
+        ax.plot(z, col, label=label, lw=1.4)
+    ax.set_xlabel("code value z")
+    ax.set_ylabel("weight w(z)")
+    ax.set_ylim(-0.02, 1.05)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path, overwrite) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)

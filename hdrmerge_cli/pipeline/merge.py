@@ -61,6 +61,7 @@ class MergeOptions:
     estimator: str = "auto"
     irls: int = 0
     k: float = DEFAULT_K
+    lut: str | None = None
 
 
 def default_profile_path(output: Path) -> Path:
@@ -189,9 +190,10 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     timings["read_metadata"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS else None
+    prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
+    luts = _lut_columns(opts.lut, frames) if opts.lut else None
     tables, offsets, table_channels = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k,
-                                             estimator)
+                                             estimator, luts)
     timings["tables"] = time.perf_counter() - t0
 
     log_e, flags, den, timings_stream = _stream(frames, tables, offsets, estimator == "ml")
@@ -236,7 +238,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     profile = new_profile(
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
     )
-    profile["weights"] = opts.weights
+    profile["weights"] = f"lut:{Path(opts.lut).name}" if opts.lut else opts.weights
     noise_used = ({ch: vars(p) for ch, p in zip(_channel_names(first), per_channel(noise, _channel_names(first)))}
                   if noise else None)
     if noise:
@@ -333,7 +335,25 @@ def _channel_names(frame: Frame) -> list[str]:
     return list(frame.channel_colors)
 
 
-def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log"):
+def _lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
+    """``merge --lut``: each frame's ``(C, N)`` weights from a ``weights-lut`` table whose
+    columns follow the exposures in increasing order (one per frame, or per frame and channel)."""
+    from hdrmerge_cli.pipeline.lut import read_luts
+
+    first = frames[0]
+    if first.kind == "raw":
+        raise HdrMergeError(f"{path}: weight tables apply to JPEG/TIFF/PNG brackets (RAW black levels vary)")
+    table = read_luts(path)
+    if table.shape[0] != first.n_codes:
+        raise HdrMergeError(f"{path}: {table.shape[0]} rows, but the frames have {first.n_codes} code values")
+    per = table.shape[1] // len(frames)
+    if per * len(frames) != table.shape[1] or per not in (1, first.channels):
+        raise HdrMergeError(f"{path}: {table.shape[1]} columns do not fit {len(frames)} frames of {first.channels} channels")
+    return [table[:, j * per:(j + 1) * per].T for j in range(len(frames))]
+
+
+def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
+            luts=None):
     """Per-frame lookup tables (each frame with its own black and white levels), the
     per-sample channel offsets into them (None when one row serves every channel) and the
     table rows' channel names."""
@@ -343,12 +363,13 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
     shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
     shared &= crf.table is None or crf.table.shape[0] == 1
     shared &= chan_noise is None or all(p == chan_noise[0] for p in chan_noise)
+    shared &= luts is None or luts[0].shape[0] == 1
     rows = 1 if shared else len(first.black)
     names = names[:rows]
     row_noise = chan_noise[:rows] if chan_noise else None
     tables = [exposure_tables(f.n_codes, f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
-                              tuple(exposures), k, estimator=estimator)
-              for f, h in zip(frames, exposures)]
+                              tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator)
+              for j, (f, h) in enumerate(zip(frames, exposures))]
     if shared:
         return tables, None, names
     if first.kind == "raw":
