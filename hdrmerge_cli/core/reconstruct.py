@@ -63,6 +63,11 @@ def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
     return (np.arange(n_codes, dtype=np.float64) - black) / float(white - black)
 
 
+#: smallest weight of an unclipped code: noise-model weights of codes far outside the
+#: clipping-safe range underflow, and where every frame of a pixel is such a code (gaps
+#: in a bracket) the frames' own codes must still decide, not the no-information fallback
+WEIGHT_FLOOR = 1e-30
+
 #: choices for the variance factor ``sigma^-2(E, t_j)`` of (7)
 VARIANCE_FACTORS = ("none", "photon", "model")
 
@@ -172,7 +177,8 @@ def exposure_tables(
         else:
             w = cert * inverse_variance(variance, lin, wl - b, chan_noise)
             with np.errstate(divide="ignore"):
-                value = np.where(cert > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
+                value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
+        w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
         rows.append((w, w * value, fallback, v > 0.5, value))
     w, wv, fb, hi, val = (np.concatenate(col) for col in zip(*rows))
     return ExposureTables(
