@@ -182,3 +182,43 @@ def test_noise_option_errors(run, tmp_path, jpeg_bracket, args, message):
     proc = run("merge", *frames_of(folder, meta), "--crf", "srgb", "-o", tmp_path / "e.exr", *args, check=False)
     assert proc.returncode == 1 and message in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "e.exr").exists()
+
+
+def test_bounded_with_user_bounds_and_bad_bounds(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--weights", "bounded",
+                    "--bounds", "delta=0.3,inv_alpha=0.002")
+    assert s["bounds"][0] == 0.002 and 0 < s["bounds"][1] < 0.02
+    proc = run("merge", *frames_of(folder, meta), "--crf", "srgb", "--weights", "bounded", "--bounds", "delta=0.5",
+               "-o", tmp_path / "x.exr", check=False)
+    assert proc.returncode == 1 and "--bounds" in proc.stderr and not (tmp_path / "x.exr").exists()
+
+
+def test_a_20_stop_bracket(run, tmp_path):
+    """Six 14-bit frames 4 stops apart (2^-10 .. 2^10 s): finite output, measured pixels
+    accurate, the unmeasured ones flagged."""
+    folder = tmp_path / "b20"
+    times = ",".join(f"{2.0 ** e:.10g}" for e in range(-10, 11, 4))
+    run("simulate", "-o", folder, "--size", "128x96", "--times", times, "--scale", "1e-3", "-q")
+    meta = json.loads((folder / "simulation.json").read_text())
+    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--cfa", "--weights", "direct", "--noise", NOISE_DNG,
+                    "--reference", str(meta["reference_exposure"]), "--extra-channels", "clipped")
+    pixels, _ = read_exr(out)
+    assert np.all(np.isfinite(pixels)) and len(s["frames"]) == 6
+    truth = mosaic(read_exr(folder / "truth.exr")[0], "RGGB")
+    ok = pixels[..., 1] == 0
+    assert ok.mean() > 0.95 and log_rmse(pixels[..., 0][ok], truth[ok]) < 0.05
+
+
+def test_float_images_are_refused_in_one_line(run, tmp_path):
+    import OpenImageIO as oiio
+
+    f = tmp_path / "float.tif"
+    spec = oiio.ImageSpec(8, 6, 3, "float")
+    spec.attribute("ExposureTime", 0.01)
+    o = oiio.ImageOutput.create(str(f))
+    o.open(str(f), spec)
+    o.write_image(np.ones((6, 8, 3), np.float32))
+    o.close()
+    proc = run("merge", f, "-o", tmp_path / "x.exr", check=False)
+    assert proc.returncode == 1 and "float.tif" in proc.stderr and "8- or 16-bit" in proc.stderr

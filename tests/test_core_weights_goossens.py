@@ -88,8 +88,10 @@ def test_hard_cases_give_finite_tables_or_a_clear_error(bits, sigma_o2, alpha, t
 def test_no_safe_range_is_a_clear_error():
     with pytest.raises(HdrMergeError, match="clipping-safe"):
         certainty_table(256, [0.0], [255.0], CRF("linear"), "probabilistic", 0.1, [NoiseParams(1e5, 1.0)], 500.0)
-    with pytest.raises(HdrMergeError, match="noise parameters"):
-        certainty_table(256, [0.0], [255.0], CRF("linear"), "direct", 0.1, None, 500.0)
+    # without noise parameters: the bounded scheme's conservative upper bounds
+    unknown = certainty_table(256, [0.0], [255.0], CRF("linear"), "direct", 0.1, None, 500.0)
+    bounds = certainty_table(256, [0.0], [255.0], CRF("linear"), "direct", 0.1, [bounded_noise(255.0)], 500.0)
+    np.testing.assert_array_equal(unknown, bounds)
 
 
 def test_bounded_uses_the_papers_jpeg_bounds_and_is_bell_shaped():
@@ -130,3 +132,16 @@ def test_unclipped_codes_never_get_zero_weight_in_the_merge_tables():
                               500.0, (0.1,))
         assert np.all(tab.weight[1:255] > 0) and tab.weight[0] == 0 and tab.weight[255] == 0
         assert np.all(np.isfinite(tab.value[1:255])) and np.all(np.diff(tab.value[1:255]) > 0)
+
+
+def test_bounds_for_width_recovers_the_papers_jpeg_pair():
+    """The paper's JPEG bounds (1/alpha <= 0.005, sigma_o^2 <= 0.02) are one pair of a
+    clipping-safe range 10 % of full scale wide: fixing either and the width gives the other."""
+    from hdrmerge_cli.core.weights_goossens2012 import bounds_for_width
+
+    assert bounds_for_width(0.1, inv_alpha=0.005)[1] == pytest.approx(0.02, rel=0.01)
+    assert bounds_for_width(0.1, sigma_o2=0.02)[0] == pytest.approx(0.005, rel=0.01)
+    # a wider range leaves room for less noise
+    assert bounds_for_width(0.3, inv_alpha=0.005)[1] < bounds_for_width(0.1, inv_alpha=0.005)[1]
+    with pytest.raises(ValueError):
+        bounds_for_width(0.1)

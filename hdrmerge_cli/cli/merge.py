@@ -8,6 +8,10 @@ import click
 from hdrmerge_cli.cli.options import common_options, emit, output_options, parse_csv_list, times_option_callback
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
+
+BOUNDS_HELP = ("Upper bounds for --weights bounded on the normalised signal: inv_alpha=0.005,sigma_o2=0.02,beta=0 "
+               "(the paper's JPEG values, the default), or delta=W with one of them to solve the other so that the "
+               "clipping-safe range is W of full scale.")
 from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
 
 
@@ -50,10 +54,11 @@ from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
               help="Clipping margin of (47) in standard deviations (noise-model weights).")
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),
               help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
+@click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
 @output_options
 @common_options
 def command(images, output, profile_out, weights, crf, times, times_file, reference, cfa, half, extra_channels,
-            noise, profile, variance, estimator, irls, k, lut, overwrite, as_json):
+            noise, profile, variance, estimator, irls, k, lut, bounds, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
@@ -67,7 +72,7 @@ def command(images, output, profile_out, weights, crf, times, times_file, refere
     opts = MergeOptions(
         output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
-        noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut,
+        noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
     )
     summary = merge(list(images), opts)
     emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")

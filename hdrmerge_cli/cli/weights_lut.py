@@ -12,7 +12,8 @@ from hdrmerge_cli.io.crfspec import resolve_crf
 import numpy as np
 
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
-from hdrmerge_cli.io.noisespec import per_channel
+from hdrmerge_cli.cli.merge import BOUNDS_HELP
+from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.pipeline.lut import plot_luts, weight_luts, write_luts
 from hdrmerge_cli.pipeline.merge import (
     MergeOptions, choose_crf, exposure_values, prior_rate as prior_rate_of, read_bracket, resolve_noise,
@@ -37,10 +38,11 @@ from hdrmerge_cli.pipeline.merge import (
                    "or mid-grey at the middle exposure].")
 @click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations.")
+@click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Also draw the curves to a PNG.")
 @output_options
 @common_options
-def command(images, output, times, weights, crf, profile, bits, noise, prior_rate, k, plot, overwrite, as_json):
+def command(images, output, times, weights, crf, profile, bits, noise, prior_rate, k, bounds, plot, overwrite, as_json):
     """Tabulate a weighting function per exposure: one row per code value z, one column
     per exposure (and channel, for a per-channel CRF or noise), values in [0, 1].
     'merge --lut' reuses the table so batch runs skip rebuilding it."""
@@ -68,7 +70,8 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
         per_rgb = (params and set(params) != {"*"}) or (curve.table is not None and curve.table.shape[0] == 3)
         names = ["R", "G", "B"] if per_rgb else ["*"]
     noise_list = per_channel(params, names) if params else None
-    table, labels = weight_luts(curve, n_codes, exposures, weights, noise_list, prior, k)
+    table, labels = weight_luts(curve, n_codes, exposures, weights, noise_list, prior, k,
+                                parse_bounds(bounds) if bounds else None)
     meta = {"weights": weights, "crf": curve.describe(), "exposures": exposures, "n_codes": n_codes, "k": k}
     write_luts(output, table, labels, meta, overwrite)
     if plot:

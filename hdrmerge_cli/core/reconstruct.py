@@ -29,7 +29,9 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
-from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
+from hdrmerge_cli.core.weights_goossens2012 import (
+    BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, WeightContext, bounded_noise,
+)
 
 #: flag values of :meth:`LogMerge.finish`
 FLAG_OK, FLAG_SATURATED, FLAG_DARK = 0, 1, -1
@@ -72,17 +74,15 @@ WEIGHT_FLOOR = 1e-30
 VARIANCE_FACTORS = ("none", "photon", "model")
 
 
-def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k):
+def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k, bounds=None):
     if weighting not in NOISE_MODEL_WEIGHTS:
         return None
-    if noise is None:
-        if weighting != "bounded":
-            raise HdrMergeError(f"--weights {weighting} needs noise parameters (--noise or a profile); "
-                                "use --weights bounded when they are unknown")
-        noise = bounded_noise(y_full)
+    if noise is None:  # unknown camera: the conservative upper bounds of the bounded scheme
+        noise = bounded_noise(y_full, *(bounds or (BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, 0.0)))
     if not prior_rate or prior_rate <= 0:
         raise HdrMergeError("the irradiance prior needs a positive mean (the bracket looks black)")
-    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k)
+    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k,
+                        **({"bounds": tuple(bounds)} if bounds else {}))
     if weighting != "bounded":
         lo, hi = ctx.safe_range()
         if lo >= hi:
@@ -94,12 +94,13 @@ def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k):
 
 
 def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None, prior_rate=None, exposures=(),
-                    k=DEFAULT_K) -> np.ndarray:
+                    k=DEFAULT_K, bounds=None) -> np.ndarray:
     """The weighting function ``w(z)`` of one exposure per channel, ``(C, N)`` float64 in
     [0, 1], zero at clipped codes.  ``noise`` is a list of per-channel
-    :class:`~hdrmerge_cli.core.noise.NoiseParams` (code units), needed by the
-    noise-model weights; ``prior_rate`` is the mean of the exponential irradiance prior in
-    code values per second."""
+    :class:`~hdrmerge_cli.core.noise.NoiseParams` (code units) for the noise-model
+    weights; without it they use the bounded scheme's conservative upper bounds; ``prior_rate`` is the mean of the exponential irradiance prior in
+    code values per second; ``bounds`` the ``(1/alpha, sigma_o^2, beta)`` upper bounds of
+    ``bounded`` on the normalised scale (default: the paper's JPEG values)."""
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
     rows = []
@@ -107,7 +108,7 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
         v = code_grid(n_codes, b, wl)
         lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
         ctx = _context(weighting, wl - b, exposure, None if noise is None else noise[min(c, len(noise) - 1)],
-                       prior_rate, exposures, k)
+                       prior_rate, exposures, k, bounds)
         rows.append(WEIGHTING_FUNCTIONS[weighting](v, lin, ctx))
     return np.stack(rows)
 
@@ -141,6 +142,7 @@ def exposure_tables(
     k: float = DEFAULT_K,
     certainty: np.ndarray | None = None,
     estimator: str = "log",
+    bounds=None,
 ) -> ExposureTables:
     """Build the per-channel tables of one exposure for (7): the weight ``w(z)`` times the
     variance factor ``sigma^-2`` of :func:`inverse_variance`.
@@ -159,7 +161,8 @@ def exposure_tables(
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
     if certainty is None:
-        certainty = certainty_table(n_codes, black, white, crf, weighting, exposure, noise, prior_rate, exposures, k)
+        certainty = certainty_table(n_codes, black, white, crf, weighting, exposure, noise, prior_rate, exposures, k,
+                                    bounds)
     log_h = np.log(exposure)
     rows = []
     for c, (b, wl) in enumerate(zip(black, white)):

@@ -39,6 +39,8 @@ class WeightContext:
     exposures : every exposure of the bracket (``P`` and the normalisation ``A`` of (28))
     k : clipping margin of (47) in standard deviations
     y_min : the lowest positive reading (half a code value)
+    bounds : upper bounds ``(1/alpha, sigma_o^2, beta)`` on the normalised scale, used by
+        ``bounded`` (default: the paper's JPEG values)
     """
 
     y_full: float
@@ -48,6 +50,7 @@ class WeightContext:
     exposures: tuple = field(default_factory=tuple)
     k: float = DEFAULT_K
     y_min: float = 0.5
+    bounds: tuple = (0.005, 0.02, 0.0)  # (max 1/alpha, max sigma_o^2, max beta), the paper's JPEG values
 
     @property
     def frames(self) -> int:
@@ -170,6 +173,34 @@ def bounded_noise(y_full: float, inv_alpha: float = BOUNDED_INV_ALPHA, sigma_o2:
     return NoiseParams(sigma_o2 * y_full**2, gain**2, beta * gain**2)
 
 
+def bounds_for_width(delta: float, inv_alpha: float | None = None, sigma_o2: float | None = None, beta: float = 0.0,
+                     k: float = DEFAULT_K) -> tuple[float, float, float]:
+    """"Dealing with unknown camera model parameters": fix the width of the clipping-safe
+    range, ``Delta = (y'_max - y'_min)`` as a fraction of full scale, and one upper bound
+    (``inv_alpha`` or ``sigma_o2``, normalised scale); solve for the other (the range
+    narrows monotonically as either grows).  Returns ``(inv_alpha, sigma_o2, beta)``."""
+    from scipy.optimize import brentq
+
+    if (inv_alpha is None) == (sigma_o2 is None):
+        raise ValueError("give exactly one of inv_alpha and sigma_o2 with delta")
+    if not 0 < delta < 1:
+        raise ValueError("delta is a fraction of full scale, between 0 and 1")
+    y_full = 1000.0  # any scale: the width is scale-free on the normalised signal
+
+    def width(free):
+        ia, so2 = (inv_alpha, free) if sigma_o2 is None else (free, sigma_o2)
+        lo, hi = clipping_safe_range_exact(bounded_noise(y_full, ia, so2, beta), 0.5, y_full, k)
+        return (hi - lo) / y_full - delta
+
+    top = 1.0
+    if width(1e-12) < 0:
+        raise ValueError(f"the fixed bound alone leaves a range narrower than delta = {delta:g}")
+    while width(top) > 0:
+        top *= 4
+    free = brentq(width, 1e-12, top, xtol=1e-14, rtol=1e-10)
+    return (inv_alpha, free, beta) if sigma_o2 is None else (free, sigma_o2, beta)
+
+
 def weights_goossens2012_bounded(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
     """Unknown camera parameters: the direct formula (33) evaluated with upper bounds on
     ``1/alpha``, ``sigma_o^2`` and ``beta`` (:func:`bounded_noise`), which shrink the
@@ -178,8 +209,8 @@ def weights_goossens2012_bounded(v: np.ndarray, lin: np.ndarray, ctx: WeightCont
     Scaled to max 1 per exposure, in the log domain: with such large noise bounds the
     exponential prior pulls a short exposure's posterior to E ~ 0, and (33) underflows for
     every code; the frame then keeps the shape of its weights instead of none at all."""
-    bctx = WeightContext(ctx.y_full, ctx.exposure, bounded_noise(ctx.y_full), ctx.prior_rate, ctx.exposures, ctx.k,
-                         ctx.y_min)
+    bctx = WeightContext(ctx.y_full, ctx.exposure, bounded_noise(ctx.y_full, *ctx.bounds), ctx.prior_rate,
+                         ctx.exposures, ctx.k, ctx.y_min)
     logw = np.where((v > 0) & (v < 1), _log_direct(lin, bctx), -np.inf)
     top = logw.max(initial=-np.inf)
     if not np.isfinite(top):

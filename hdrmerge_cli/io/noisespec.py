@@ -63,3 +63,31 @@ def per_channel(noise: dict[str, NoiseParams], names: list[str]) -> list[NoisePa
         else:
             raise HdrMergeError(f"no noise parameters for channel {name} (give {name}:sigma_o2=...,alpha=...)")
     return out
+
+
+def parse_bounds(text: str) -> tuple[float, float, float]:
+    """``--bounds`` for the ``bounded`` weights, on the normalised signal scale:
+    ``inv_alpha=0.005,sigma_o2=0.02,beta=0`` (missing ones keep the paper's JPEG values),
+    or ``delta=0.1,inv_alpha=0.005`` (fix the clipping-safe width and one bound; the other
+    is solved for)."""
+    from hdrmerge_cli.core.weights_goossens2012 import BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, bounds_for_width
+
+    values = {}
+    for item in text.split(","):
+        key, eq, val = item.strip().partition("=")
+        if key not in ("inv_alpha", "sigma_o2", "beta", "delta") or not eq:
+            raise HdrMergeError(f"--bounds: {item!r} is not one of inv_alpha=, sigma_o2=, beta=, delta=")
+        try:
+            values[key] = float(val)
+        except ValueError:
+            raise HdrMergeError(f"--bounds: {val!r} is not a number") from None
+        if not values[key] >= 0:
+            raise HdrMergeError(f"--bounds: {key} must not be negative")
+    if "delta" in values:
+        try:
+            return bounds_for_width(values["delta"], values.get("inv_alpha"), values.get("sigma_o2"),
+                                    values.get("beta", 0.0))
+        except ValueError as exc:
+            raise HdrMergeError(f"--bounds: {exc}") from None
+    return (values.get("inv_alpha", BOUNDED_INV_ALPHA), values.get("sigma_o2", BOUNDED_SIGMA_O2),
+            values.get("beta", 0.0))

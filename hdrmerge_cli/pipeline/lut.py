@@ -24,7 +24,7 @@ def default_prior_rate(n_codes: int, exposures) -> float:
 
 
 def weight_luts(crf: CRF, n_codes: int, exposures: list[float], weights: str, noise=None, prior_rate=None,
-                k: float = DEFAULT_K) -> tuple[np.ndarray, list[str]]:
+                k: float = DEFAULT_K, bounds=None) -> tuple[np.ndarray, list[str]]:
     """``(n_codes, P * C)`` weights ``w(z)`` in [0, 1]: one column per exposure (and per
     channel when the CRF or the noise differs per channel), with their labels."""
     channels = max(1 if crf.table is None else crf.table.shape[0], len(noise) if noise else 1)
@@ -32,7 +32,7 @@ def weight_luts(crf: CRF, n_codes: int, exposures: list[float], weights: str, no
     cols, labels = [], []
     for h in exposures:
         tab = certainty_table(n_codes, np.zeros(channels), np.full(channels, n_codes - 1.0), crf, weights, h, noise,
-                              prior, tuple(exposures), k)
+                              prior, tuple(exposures), k, bounds)
         for c in range(channels):
             cols.append(tab[c])
             labels.append(f"t={h:.6g}" + (f":{'RGB'[c] if channels == 3 else c}" if channels > 1 else ""))

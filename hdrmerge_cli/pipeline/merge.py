@@ -19,7 +19,7 @@ from hdrmerge_cli.core.reconstruct import (
     FLAG_DARK, FLAG_SATURATED, LogMerge, certainty_table, exposure_tables, flat_index, irls_weights,
 )
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
-from hdrmerge_cli.io.noisespec import noise_from_profile, parse_noise, per_channel
+from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
 from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.io.atomic import atomic_paths, check_writable
 from hdrmerge_cli.io.crfspec import resolve_crf
@@ -62,6 +62,7 @@ class MergeOptions:
     irls: int = 0
     k: float = DEFAULT_K
     lut: str | None = None
+    bounds: str | None = None
 
 
 def default_profile_path(output: Path) -> Path:
@@ -185,6 +186,9 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     noise = resolve_noise(opts, frames)
     variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
     estimator = opts.estimator if opts.estimator != "auto" else ("ml" if first.kind == "raw" else "log")
+    if opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded" and not noise and not opts.lut:
+        log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
+                    "conservative upper bounds", opts.weights)
     if opts.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
     timings["read_metadata"] = time.perf_counter() - t0
@@ -192,8 +196,9 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     t0 = time.perf_counter()
     prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
     luts = _lut_columns(opts.lut, frames) if opts.lut else None
+    bounds = parse_bounds(opts.bounds) if opts.bounds else None
     tables, offsets, table_channels = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k,
-                                             estimator, luts)
+                                             estimator, luts, bounds)
     timings["tables"] = time.perf_counter() - t0
 
     log_e, flags, den, timings_stream = _stream(frames, tables, offsets, estimator == "ml")
@@ -288,6 +293,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "irls_iterations": iterations,
         "noise": noise_used,
         "prior_rate": prior,
+        "bounds": list(bounds) if bounds else None,
         "crf": crf.describe(),
         "width": first.width,
         "height": first.height,
@@ -353,7 +359,7 @@ def _lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
 
 
 def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-            luts=None):
+            luts=None, bounds=None):
     """Per-frame lookup tables (each frame with its own black and white levels), the
     per-sample channel offsets into them (None when one row serves every channel) and the
     table rows' channel names."""
@@ -368,7 +374,8 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
     names = names[:rows]
     row_noise = chan_noise[:rows] if chan_noise else None
     tables = [exposure_tables(f.n_codes, f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
-                              tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator)
+                              tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
+                              bounds=bounds)
               for j, (f, h) in enumerate(zip(frames, exposures))]
     if shared:
         return tables, None, names
