@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import write_result
+
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams, log_moments_approx, log_moments_exact
 from hdrmerge_cli.core.reconstruct import certainty_table, exposure_tables
@@ -116,10 +118,7 @@ def main(out: Path = Path(__file__).parent / "results" / "fig17.md") -> str:
         overall = 10 * np.log10(np.nanmean(mc["triangle"]) / np.nanmean(mc[w]))
         lines.append(f"| {w} | {overall:+.2f} | " + " | ".join(f"{v:+.2f}" for v in per_sigma) + " |")
     lines += ["", f"Total time {time.perf_counter() - t0:.1f} s."]
-    text = "\n".join(lines) + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    return text
+    return write_result(out, lines)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks import write_result
 from scipy.stats import norm
 
 norm_pdf = norm.pdf
@@ -127,10 +129,7 @@ def main(quick: bool = False, out: Path = Path(__file__).parent / "results" / "f
     lines.append(f"| Cramer-Rao bound | | {crb.mean():.2f} | 0 | {(crb - base).mean():+.2f} | |")
     cov = np.array([r["coverage"][0] for r in results.values()])
     lines += ["", f"Pixels compared: those the bracket measures (CRB of log E below 1), {cov.mean():.1%} on average."]
-    text = "\n".join(lines) + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    return text
+    return write_result(out, lines)
 
 
 if __name__ == "__main__":
