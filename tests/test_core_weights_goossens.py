@@ -131,7 +131,14 @@ def test_unclipped_codes_never_get_zero_weight_in_the_merge_tables():
         tab = exposure_tables(256, [0.0], [255.0], CRF("gamma", 2.5), weights, 0.1, [NoiseParams(64.0, 1.0)], "model",
                               500.0, (0.1,))
         assert np.all(tab.weight[1:255] > 0) and tab.weight[0] == 0 and tab.weight[255] == 0
+        assert np.all(tab.certainty[1:255] > 0) and tab.certainty[0] == 0  # what IRLS re-weights
         assert np.all(np.isfinite(tab.value[1:255])) and np.all(np.diff(tab.value[1:255]) > 0)
+        # and on IRLS passes: a far-tail code at the current estimate keeps a weight
+        from hdrmerge_cli.core.reconstruct import irls_weights
+
+        w = irls_weights(tab.certainty[[1, 254]], np.log(np.array([1e-6, 1e3], np.float32)), 0.1, 255.0,
+                         (np.float32(64.0), np.float32(1.0), np.float32(0.0)), False)
+        assert np.all(w > 0)
 
 
 def test_bounds_for_width_recovers_the_papers_jpeg_pair():

@@ -45,6 +45,7 @@ class ExposureTables:
     weighted_log : ``w(z) * (g(z) - log h)``, the numerator term of (7); for the linear
         (maximum-likelihood) estimator ``w(z) * gamma^-1(z) / h`` instead
     value : ``g(z) - log h`` (or ``gamma^-1(z) / h``), the frame's own estimate, for IRLS
+    certainty : ``w(z)`` alone (without the variance factor), for IRLS
     fallback_log : ``log(max(gamma^-1(z), half a code) / h)``, used where no frame has weight
     above_mid : bool, ``z > z_max / 2``: a pixel above mid-scale in the shortest frame and
         unmeasured everywhere is taken as saturated, otherwise as dark
@@ -56,7 +57,6 @@ class ExposureTables:
     above_mid: np.ndarray
     n_codes: int
     value: np.ndarray | None = None
-    linear: bool = False
     certainty: np.ndarray | None = None
 
 
@@ -170,6 +170,8 @@ def exposure_tables(
         lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
         chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
         cert = certainty[min(c, certainty.shape[0] - 1)]
+        if weighting in NOISE_MODEL_WEIGHTS:  # underflowed weights of unclipped codes still count
+            cert = np.where((v > 0) & (v < 1), np.maximum(cert, WEIGHT_FLOOR), 0.0)
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
         if estimator == "ml":
@@ -182,12 +184,11 @@ def exposure_tables(
             with np.errstate(divide="ignore"):
                 value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
-        rows.append((w, w * value, fallback, v > 0.5, value))
-    w, wv, fb, hi, val = (np.concatenate(col) for col in zip(*rows))
+        rows.append((w, w * value, fallback, v > 0.5, value, cert))
+    w, wv, fb, hi, val, cert = (np.concatenate(col) for col in zip(*rows))
     return ExposureTables(
         w.astype(np.float32), wv.astype(np.float32), fb.astype(np.float32), hi, n_codes,
-        val.astype(np.float32), estimator == "ml", np.concatenate([certainty[min(c, certainty.shape[0] - 1)]
-                                                                   for c in range(len(black))]).astype(np.float32),
+        val.astype(np.float32), cert.astype(np.float32),
     )
 
 
@@ -208,14 +209,16 @@ def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_fu
                  linear: bool) -> np.ndarray:
     """Per-sample weights of one frame at the current estimate (iteratively re-weighted
     (7)): ``w(z) sigma^-2(E_i, t_j)`` with ``mu_j = E_i h_j y_full`` and the clipping-free
-    variance (21), ``mu^2 / v(mu)`` (log estimator) or ``(h y_full)^2 / v(mu)`` (ML).
+    variance (21), ``mu^2 / v(mu)`` (log estimator) or ``(h y_full)^2 / v(mu)`` (ML);
+    a sample with any certainty keeps at least :data:`WEIGHT_FLOOR`, as in the tables.
 
     noise_maps : (sigma_o2, sqrt_alpha, beta / alpha), each broadcastable to the samples."""
     s_o2, sqrt_a, b_a = noise_maps
     mu = np.exp(log_e) * np.float32(exposure * y_full)
     var = s_o2 + sqrt_a * mu + b_a * mu * mu
     num = mu * mu if not linear else np.float32((exposure * y_full) ** 2)
-    return certainty * (num / np.maximum(var, np.float32(1e-12)))
+    w = certainty * (num / np.maximum(var, np.float32(1e-12)))
+    return np.where(certainty > 0, np.maximum(w, np.float32(WEIGHT_FLOOR)), np.float32(0.0))
 
 
 class LogMerge:
