@@ -5,14 +5,13 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import common_options, emit, output_options, times_option_callback
-from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
-from hdrmerge_cli.io.crfspec import resolve_crf
 import numpy as np
 
-from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.cli.merge import BOUNDS_HELP
+from hdrmerge_cli.cli.options import common_options, emit, output_options, times_option_callback
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
+from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.pipeline.lut import plot_luts, weight_luts, write_luts
 from hdrmerge_cli.pipeline.merge import (
@@ -61,7 +60,7 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
         params = resolve_noise(opts, frames)
         prior = prior_rate or (prior_rate_of(frames, np.array(exposures), curve) if weights in NOISE_MODEL_WEIGHTS
                                else None)
-        names = list(frames[0].channel_colors)
+        names = frames[0].channel_names
     else:
         exposures, n_codes = sorted(times), 2**bits
         curve = resolve_crf(spec or "linear")

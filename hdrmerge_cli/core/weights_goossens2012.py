@@ -77,7 +77,12 @@ def _levels(v: np.ndarray) -> np.ndarray:
     return np.linspace(0.0, 1.0, LEVELS) if v.size > LEVELS else np.clip(v, 0.0, 1.0)
 
 
-def _to_table(v, lin, vals_at, levels):
+def _observations(v: np.ndarray, lin: np.ndarray, levels: np.ndarray, ctx: WeightContext) -> np.ndarray:
+    """The observation ``y = gamma^-1(z) y_full`` at each of ``levels``."""
+    return (np.interp(levels, np.clip(v, 0, 1), lin) if levels.size != v.size else lin) * ctx.y_full
+
+
+def _to_table(v, vals_at, levels):
     """Interpolate weights computed at ``levels`` onto the table's codes ``v``."""
     w = np.interp(np.clip(v, 0, 1), levels, vals_at) if levels.size != v.size else vals_at
     return np.where((v > 0) & (v < 1), np.clip(np.nan_to_num(w), 0.0, 1.0), 0.0)
@@ -104,9 +109,9 @@ def weights_goossens2012_probabilistic(v: np.ndarray, lin: np.ndarray, ctx: Weig
     lo, hi = ctx.safe_range()
     if lo >= hi:
         return np.zeros_like(v)
-    y_obs = np.interp(levels, np.clip(v, 0, 1), lin) * ctx.y_full if levels.size != v.size else lin * ctx.y_full
-    w = _posterior_expectation(y_obs, ctx, lambda mu: ((mu >= lo) & (mu <= hi)).astype(float))
-    return _to_table(v, lin, w, levels)
+    w = _posterior_expectation(_observations(v, lin, levels, ctx), ctx,
+                               lambda mu: ((mu >= lo) & (mu <= hi)).astype(float))
+    return _to_table(v, w, levels)
 
 
 def _log_direct(lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
@@ -127,7 +132,7 @@ def weights_goossens2012_direct(v: np.ndarray, lin: np.ndarray, ctx: WeightConte
     lo, hi = ctx.safe_range()
     if lo >= hi:
         return np.zeros_like(v)
-    return _to_table(v, lin, np.exp(_log_direct(lin, ctx)), v)
+    return _to_table(v, np.exp(_log_direct(lin, ctx)), v)
 
 
 def _optimal_ratio(mu: np.ndarray, ctx: WeightContext) -> np.ndarray:
@@ -149,9 +154,8 @@ def weights_goossens2012_optimal(v: np.ndarray, lin: np.ndarray, ctx: WeightCont
     """(29): the posterior expectation of the optimal weight (28), ``E[A sigma^2 /
     (sigma^2 + P nu^2) | z]``, with the exact bias and variance (19)."""
     levels = _levels(v)
-    y_obs = np.interp(levels, np.clip(v, 0, 1), lin) * ctx.y_full if levels.size != v.size else lin * ctx.y_full
-    w = _posterior_expectation(y_obs, ctx, lambda mu: _optimal_ratio(mu, ctx))
-    return _to_table(v, lin, w, levels)
+    w = _posterior_expectation(_observations(v, lin, levels, ctx), ctx, lambda mu: _optimal_ratio(mu, ctx))
+    return _to_table(v, w, levels)
 
 
 #: the paper's upper bounds for JPEG input ("HDR reconstruction from JPEG compressed LDR
@@ -215,4 +219,4 @@ def weights_goossens2012_bounded(v: np.ndarray, lin: np.ndarray, ctx: WeightCont
     top = logw.max(initial=-np.inf)
     if not np.isfinite(top):
         return np.zeros_like(v)
-    return _to_table(v, lin, np.exp(logw - top), v)
+    return _to_table(v, np.exp(logw - top), v)

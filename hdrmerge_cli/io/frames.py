@@ -56,6 +56,11 @@ class Frame:
         return Path(self.path).name
 
     @property
+    def channel_names(self) -> list[str]:
+        """One name per table channel; a colour's second site is suffixed 2 (``G2``)."""
+        return [c + "2" if self.channel_colors[:i].count(c) else c for i, c in enumerate(self.channel_colors)]
+
+    @property
     def camera(self) -> str:
         return f"{self.make} {self.model}".strip()
 

@@ -10,7 +10,7 @@ import numpy as np
 from hdrmerge_cli.core.calibrate import binned_variance, fit_noise_model, window_statistics, WindowStats
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import check_writable
-from hdrmerge_cli.io.frames import load_codes, read_frame
+from hdrmerge_cli.io.frames import load_codes, raw_channel_map, read_frame
 from hdrmerge_cli.io.profile import new_profile, save_profile
 from hdrmerge_cli.pipeline.merge import choose_crf
 
@@ -20,10 +20,7 @@ log = logging.getLogger("hdrmerge_cli")
 def _planes(frame, codes, crf):
     """(name, plane in code values above black, lo, hi) per channel."""
     if frame.kind == "raw":
-        names = [c if frame.channel_colors.count(c) == 1 or i == frame.channel_colors.index(c) else c + "2"
-                 for i, c in enumerate(frame.channel_colors)]
-        from hdrmerge_cli.io.frames import raw_channel_map
-
+        names = frame.channel_names
         cmap = raw_channel_map(frame.path)
         for k in range(4):
             ys, xs = np.nonzero(cmap[:2, :2] == k)

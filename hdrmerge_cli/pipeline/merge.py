@@ -16,7 +16,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import (
-    FLAG_DARK, FLAG_SATURATED, LogMerge, certainty_table, exposure_tables, flat_index, irls_weights,
+    FLAG_DARK, FLAG_SATURATED, LogMerge, exposure_tables, flat_index, irls_weights,
 )
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
@@ -244,7 +244,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
     )
     profile["weights"] = f"lut:{Path(opts.lut).name}" if opts.lut else opts.weights
-    noise_used = ({ch: vars(p) for ch, p in zip(_channel_names(first), per_channel(noise, _channel_names(first)))}
+    noise_used = ({ch: vars(p) for ch, p in zip(first.channel_names, per_channel(noise, first.channel_names))}
                   if noise else None)
     if noise:
         profile["noise"] = {"used": noise_used}
@@ -335,12 +335,6 @@ def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF) -> float:
     return float(np.mean(lin[ok]) * full / exposures[k])
 
 
-def _channel_names(frame: Frame) -> list[str]:
-    if frame.kind == "raw":
-        return [c + "2" if frame.channel_colors[:i].count(c) else c for i, c in enumerate(frame.channel_colors)]
-    return list(frame.channel_colors)
-
-
 def _lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
     """``merge --lut``: each frame's ``(C, N)`` weights from a ``weights-lut`` table whose
     columns follow the exposures in increasing order (one per frame, or per frame and channel)."""
@@ -364,7 +358,7 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
     per-sample channel offsets into them (None when one row serves every channel) and the
     table rows' channel names."""
     first = frames[0]
-    names = _channel_names(first)
+    names = first.channel_names
     chan_noise = per_channel(noise, names) if noise else None
     shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
     shared &= crf.table is None or crf.table.shape[0] == 1
