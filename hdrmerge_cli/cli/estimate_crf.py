@@ -5,21 +5,37 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import common_options, emit, output_options, times_option_callback
+from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, times_option_callback
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
-from hdrmerge_cli.pipeline.crf import estimate_crf
+from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS
+from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
 
 
 @click.command("estimate-crf")
 @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="The profile JSON to write.")
-@click.option("--method", type=click.Choice(sorted(CRF_ESTIMATORS)), default="debevec", show_default=True,
-              help="Estimation method.")
-@click.option("--lambda", "smoothing", default=30.0, show_default=True, type=click.FloatRange(min=0),
-              help="Smoothness weight of g''(z).")
-@click.option("--samples", default=1000, show_default=True, type=click.IntRange(min=10),
-              help="Pixels sampled per channel.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+              help="The profile JSON to write (default with --profile: that profile, updated in place).")
+@click.option("--method", type=click.Choice(list(CRF_ESTIMATORS)), default="goossens", show_default=True,
+              help="goossens: the paper's monotone QP (37) on comparagrams; debevec: Debevec-Malik 1997 least "
+                   "squares; robertson: Robertson et al. 2003 iterations.")
+@click.option("--lambda", "smoothing", type=click.FloatRange(min=0),
+              help=f"Smoothness weight of g''. Default per method: goossens {DEFAULT_LAMBDA:g} (normalised: "
+                   f"independent of pixel count and bit depth), debevec "
+                   f"{CRF_ESTIMATORS['debevec'].smoothing:g} (Debevec-Malik's per-sample scale); robertson has none.")
+@click.option("--samples", type=click.IntRange(min=0),
+              help="Pixels used per channel, 0 for all. Default: all for goossens and robertson "
+                   f"(their cost hardly grows with it), {CRF_ESTIMATORS['debevec'].samples} for debevec.")
+@click.option("--weighting", type=click.Choice(sorted(WEIGHTING_FUNCTIONS)),
+              help=f"goossens: the weights w_j(z) of (36) [default: {DEFAULT_WEIGHTING}]; noise-model weights are "
+                   "re-evaluated with each new CRF until g settles.")
+@click.option("--pair-weight", type=click.Choice(PAIR_WEIGHTS), default="photon", show_default=True,
+              help="goossens: the frame-pair factor of (37), for photon- or offset-noise-dominated cameras.")
+@click.option("--bounds", metavar="BOUNDS", help="goossens with --weighting bounded: " + BOUNDS_HELP)
+@click.option("--profile", type=click.Path(exists=True, dir_okay=False),
+              help="An existing profile JSON whose CRF to replace (its noise model and other entries are kept).")
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also draw g(z) per channel with each frame's data points (PNG/PDF/SVG).")
 @click.option("--times", callback=times_option_callback, metavar="T1,T2,...",
               help="Exposure times in seconds, in the order of IMAGES; overrides EXIF.")
 @click.option("--times-file", type=click.Path(exists=True, dir_okay=False), help="Lines 'name seconds'.")
@@ -27,13 +43,21 @@ from hdrmerge_cli.pipeline.crf import estimate_crf
 @click.option("--force", is_flag=True, help="Fit a CRF even for RAW (linear) input.")
 @output_options
 @common_options
-def command(images, output, method, smoothing, samples, times, times_file, seed, force, overwrite, as_json):
+def command(images, output, method, smoothing, samples, weighting, pair_weight, bounds, profile, plot, times,
+            times_file, seed, force, overwrite, as_json):
     """Estimate the inverse camera response g(z) = log gamma^-1(z) of a bracket of
-    JPEG/TIFF/PNG frames and write it to a profile JSON for 'merge --crf'.
+    JPEG/TIFF/PNG frames and write it to a profile JSON for 'merge --crf' or
+    'merge --profile'.
 
-    RAW input is linear and gets an identity CRF.
+    RAW input is linear and gets an identity CRF unless --force.
     """
     if times is not None and times_file:
         raise click.UsageError("give either --times or --times-file, not both")
-    summary = estimate_crf(images, output, method, smoothing, samples, times, times_file, seed, force, overwrite)
+    if output is None and profile is None:
+        raise click.UsageError("give -o/--output, or --profile to update a profile in place")
+    if method != "goossens" and (weighting or bounds or pair_weight != "photon"):
+        raise click.UsageError("--weighting, --pair-weight and --bounds apply to --method goossens only")
+    opts = CRFOptions(method, smoothing, samples, weighting, pair_weight, bounds, times, times_file, seed, force,
+                      profile, plot, overwrite)
+    summary = estimate_crf(images, output, opts)
     emit(summary, as_json, f"wrote {summary['output']}")

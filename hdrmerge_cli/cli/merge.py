@@ -5,13 +5,10 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import common_options, emit, output_options, parse_csv_list, times_option_callback
+from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, parse_csv_list, times_option_callback
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
-BOUNDS_HELP = ("Upper bounds for --weights bounded on the normalised signal: inv_alpha=0.005,sigma_o2=0.02,beta=0 "
-               "(the paper's JPEG values, the default), or delta=W with one of them to solve the other so that the "
-               "clipping-safe range is W of full scale.")
 from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
 
 

@@ -101,6 +101,11 @@ def parse_csv_list(ctx, param, value):
     return tuple(v.strip() for v in value.split(",") if v.strip())
 
 
+BOUNDS_HELP = ("Upper bounds for the bounded weights on the normalised signal: inv_alpha=0.005,sigma_o2=0.02,beta=0 "
+               "(the paper's JPEG values, the default), or delta=W with one of them to solve the other so that the "
+               "clipping-safe range is W of full scale.")
+
+
 def times_option_callback(ctx, param, value):
     from hdrmerge_cli.io.times import parse_times
 

@@ -1,19 +1,27 @@
 """Estimating the inverse camera response ``g(z) = log gamma^-1(z)`` from a bracket.
 
 The relation is (3): ``g(z_ij) - log t_j = log E_i`` for every pixel i and frame j.
-Methods are picked by name from :data:`CRF_ESTIMATORS`.
+Methods are picked by name from :data:`CRF_ESTIMATORS`: the paper's monotone QP
+(:mod:`~hdrmerge_cli.core.crf_goossens2012`) and two baselines, Debevec & Malik (1997) and
+Robertson, Borman & Stevenson (2003).  Every method returns a
+:class:`~hdrmerge_cli.core.crf_goossens2012.CRFFit`.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import lsqr
 
+from hdrmerge_cli.core.crf_goossens2012 import (
+    DEFAULT_LAMBDA, CRFFit, crf_goossens2012, knot_levels, to_knots,
+)
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 
-#: largest number of unknown code levels solved for; finer codes are interpolated
-MAX_LEVELS = 1024
+#: Debevec & Malik's lambda (their scale: per sampled pixel, unnormalised)
+DEBEVEC_LAMBDA = 30.0
 
 
 def sample_pixels(middle: np.ndarray, samples: int, rng: np.random.Generator) -> np.ndarray:
@@ -27,8 +35,8 @@ def sample_pixels(middle: np.ndarray, samples: int, rng: np.random.Generator) ->
 
 
 def crf_debevec1997(
-    codes: np.ndarray, log_exposures: np.ndarray, n_codes: int, smoothing: float = 30.0
-) -> np.ndarray:
+    codes: np.ndarray, log_exposures: np.ndarray, n_codes: int, smoothing: float = DEBEVEC_LAMBDA
+) -> CRFFit:
     """Debevec and Malik (1997): least squares for ``g`` and ``log E_i`` with hat weights,
     a second-difference smoothness term ``lambda`` and ``g(mid-scale) = 0``
     (no monotonicity constraint: the baseline the paper's (37) improves on).
@@ -36,12 +44,11 @@ def crf_debevec1997(
     codes : (N, P) integer code values of N sampled pixels in P frames
     log_exposures : (P,) ``log t_j``
     n_codes : number of code values 2^B
-    Returns ``g`` : (n_codes,) float64.
     """
     codes = np.asarray(codes)
     n_pix, n_frames = codes.shape
-    levels = min(n_codes, MAX_LEVELS)
-    z = (codes.astype(np.int64) * (levels - 1)) // (n_codes - 1)
+    levels = knot_levels(n_codes)
+    z = to_knots(codes, n_codes, levels)
     v = np.arange(levels) / (levels - 1)
     w = weights_debevec1997_triangle(v, v)
     wz = w[z]
@@ -66,7 +73,50 @@ def crf_debevec1997(
     g = sol[:levels]
     if not np.all(np.isfinite(g)):
         raise HdrMergeError("the CRF fit failed (no finite solution)")
-    return np.interp(np.arange(n_codes) * (levels - 1) / (n_codes - 1), np.arange(levels), g)
+    return CRFFit(np.interp(np.arange(n_codes) * (levels - 1) / (n_codes - 1), np.arange(levels), g), 1, True,
+                  n_pix * n_frames)
+
+
+def crf_robertson2003(
+    codes: np.ndarray, log_exposures: np.ndarray, n_codes: int, smoothing: float = 0.0, max_iterations: int = 30,
+    tol: float = 1e-3,
+) -> CRFFit:
+    """Robertson, Borman & Stevenson (2003): alternate the maximum-likelihood irradiance
+    ``E_i = sum_j w t_j I(z_ij) / sum_j w t_j^2`` and the response
+    ``I(m) = mean over {(i, j): z_ij = m} of t_j E_i`` with Gaussian-like weights
+    ``w(v) = exp(-16 (v - 1/2)^2)``, normalised to ``I(mid-scale) = 1``, until ``I``
+    settles (no smoothness, no monotonicity; ``smoothing`` is unused).
+
+    codes : (N, P) integer code values; log_exposures : (P,) ``log t_j``
+    """
+    levels = knot_levels(n_codes)
+    k = to_knots(np.asarray(codes), n_codes, levels)
+    v = np.arange(levels) / (levels - 1)
+    w = np.exp(-16.0 * (v - 0.5) ** 2)
+    w[[0, -1]] = 0.0
+    t = np.exp(np.asarray(log_exposures, dtype=np.float64))
+    mid = levels // 2
+    resp = np.maximum(v / v[mid], 1e-6)  # linear start
+    count = np.bincount(k.ravel(), minlength=levels)
+    seen = count > 0
+    wz = w[k]
+    denom = wz @ (t * t)
+    ok = denom > 0
+    converged, it = False, 0
+    for it in range(1, max_iterations + 1):
+        e = (wz[ok] * resp[k[ok]]) @ t / denom[ok]
+        tot = np.bincount(k[ok].ravel(), weights=(e[:, None] * t[None, :]).ravel(), minlength=levels)
+        cnt = np.bincount(k[ok].ravel(), minlength=levels)
+        new = np.interp(v, v[cnt > 0], tot[cnt > 0] / cnt[cnt > 0])
+        new = np.maximum(new / new[mid], 1e-12)
+        change = np.max(np.abs(np.log(new[seen]) - np.log(resp[seen])))
+        resp = new
+        if change < tol:
+            converged = True
+            break
+    g = np.log(resp)
+    return CRFFit(np.interp(np.arange(n_codes) * (levels - 1) / (n_codes - 1), np.arange(levels), g), it, converged,
+                  int(k.size))
 
 
 def inverse_from_log(g: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -79,5 +129,25 @@ def inverse_from_log(g: np.ndarray) -> tuple[np.ndarray, bool]:
     return mono, bool(np.any(mono < lin * (1 - 1e-12)))
 
 
-#: name -> estimator(codes (N, P), log_exposures (P,), n_codes, smoothing) -> g (n_codes,)
-CRF_ESTIMATORS = {"debevec": crf_debevec1997}
+@dataclass(frozen=True)
+class CRFMethod:
+    """An entry of :data:`CRF_ESTIMATORS`.
+
+    estimate : ``f(codes (N, P), log_exposures (P,), n_codes, smoothing, **options) -> CRFFit``
+    smoothing : default lambda (None: the method has none)
+    samples : default number of pixels per channel (None: all of them)
+    noise_weighted : whether it takes ``weighting``, ``noise``, ``bounds``, ``pair_weight``
+    """
+
+    estimate: object
+    smoothing: float | None
+    samples: int | None
+    noise_weighted: bool = False
+
+
+#: name -> method; the paper's (37) first
+CRF_ESTIMATORS = {
+    "goossens": CRFMethod(crf_goossens2012, DEFAULT_LAMBDA, None, True),
+    "debevec": CRFMethod(crf_debevec1997, DEBEVEC_LAMBDA, 1000),
+    "robertson": CRFMethod(crf_robertson2003, None, None),
+}

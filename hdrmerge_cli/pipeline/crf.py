@@ -3,19 +3,43 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sample_pixels
+from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_WEIGHTING
+from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.io.atomic import atomic_path, check_writable
 from hdrmerge_cli.io.frames import load_codes
-from hdrmerge_cli.io.profile import new_profile, save_profile
-from hdrmerge_cli.io.atomic import check_writable
+from hdrmerge_cli.io.noisespec import parse_bounds
+from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
 from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
+
+#: fewest pixels that two consecutive frames must both expose (neither code clipped)
+MIN_OVERLAP = 50
+
+
+@dataclass
+class CRFOptions:
+    method: str = "goossens"
+    smoothing: float | None = None  # None: the method's default
+    samples: int | None = None  # None: the method's default; 0: every pixel
+    weighting: str | None = None  # goossens only; None: its default
+    pair_weight: str = "photon"
+    bounds: str | None = None  # upper bounds of the bounded weights (noisespec syntax)
+    times: list | None = None
+    times_file: str | None = None
+    seed: int = 0
+    force: bool = False
+    profile: str | None = None
+    plot: Path | None = None
+    overwrite: bool = False
 
 
 def check_brightness_order(frames, codes) -> None:
@@ -29,15 +53,49 @@ def check_brightness_order(frames, codes) -> None:
             )
 
 
-def estimate_crf(paths, output: Path, method: str = "debevec", smoothing: float = 30.0, samples: int = 1000,
-                 times=None, times_file=None, seed: int = 0, force: bool = False, overwrite: bool = False) -> dict:
+def check_overlap(frames, codes, n_codes: int) -> None:
+    """Consecutive frames must share pixels that neither clips, or g cannot be chained."""
+    for k in range(1, len(frames)):
+        a, b = codes[k - 1], codes[k]
+        both = np.count_nonzero((a > 0) & (a < n_codes - 1) & (b > 0) & (b < n_codes - 1))
+        if both < MIN_OVERLAP:
+            raise HdrMergeError(
+                f"{frames[k].path}: only {both} pixels are unclipped both here and in {frames[k - 1].path} "
+                f"(need {MIN_OVERLAP}); the exposures are too far apart to estimate a CRF"
+            )
+
+
+def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, method: str, rng) -> np.ndarray:
+    """(N, P) codes of channel ``c``: every pixel, or ``samples`` of them (Debevec-Malik's
+    stratified choice over the middle frame's codes, else uniformly at random)."""
+    n = codes[0][..., c].size
+    if not samples or samples >= n:
+        return np.stack([fr[..., c].ravel() for fr in codes], axis=1)
+    idx = (sample_pixels(codes[len(codes) // 2][..., c], samples, rng) if method == "debevec"
+           else rng.choice(n, samples, replace=False))
+    return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
+
+
+def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     t0 = time.perf_counter()
-    check_writable(output, overwrite)
-    frames = read_bracket(list(paths), times, times_file)
+    method = CRF_ESTIMATORS[opts.method]
+    if output is None:
+        if not opts.profile:
+            raise HdrMergeError("give -o/--output (or --profile to update a profile in place)")
+        output = Path(opts.profile)
+    updating = opts.profile is not None and Path(opts.profile).resolve() == Path(output).resolve()
+    check_writable(output, opts.overwrite or updating)
+    if opts.plot is not None:
+        check_writable(opts.plot, opts.overwrite)
+    base = load_profile(opts.profile) if opts.profile else None
+    frames = read_bracket(list(paths), opts.times, opts.times_file)
     first = frames[0]
-    if first.kind == "raw" and not force:
+    smoothing = method.smoothing if opts.smoothing is None else opts.smoothing
+    samples = method.samples if opts.samples is None else opts.samples
+    fits, changed, points = [], False, None
+    if first.kind == "raw" and not opts.force:
         log.info("RAW data is linear: no CRF to estimate; writing an identity (linear) CRF (use --force to fit one)")
-        crf, changed = CRF("linear"), False
+        crf = CRF("linear")
     else:
         if len(frames) < 2:
             raise HdrMergeError(f"{first.path}: estimating a CRF needs at least two exposures")
@@ -45,29 +103,90 @@ def estimate_crf(paths, output: Path, method: str = "debevec", smoothing: float 
         if first.kind == "raw":
             codes = [c[..., None] for c in codes]
         check_brightness_order(frames, codes)
+        check_overlap(frames, codes, first.n_codes)
         log_h = np.log(exposure_values(frames))
-        rng = np.random.default_rng(seed)
-        mid = len(frames) // 2
-        tables, changed = [], False
+        rng = np.random.default_rng(opts.seed)
+        options = {}
+        if method.smoothing is not None:
+            options["smoothing"] = smoothing
+        if method.noise_weighted:
+            options.update(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
+                           **({"weighting": opts.weighting} if opts.weighting else {}))
+        tables = []
         for c in range(codes[0].shape[-1]):
-            idx = sample_pixels(codes[mid][..., c], samples, rng)
-            z = np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
-            usable = np.count_nonzero(np.all((z > 0) & (z < first.n_codes - 1), axis=1))
-            if usable < 10:
-                raise HdrMergeError(f"{first.path}: too few pixels unclipped in every frame ({usable}) to fit a CRF")
-            g = CRF_ESTIMATORS[method](z, log_h, first.n_codes, smoothing)
-            inv, fixed = inverse_from_log(g)
+            z = _channel_samples(codes, c, samples, opts.method, rng)
+            fit = method.estimate(z, log_h, first.n_codes, **options)
+            log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, opts.method, fit.iterations,
+                     "" if fit.converged else " (not converged)", fit.rows)
+            inv, fixed = inverse_from_log(fit.g)
             changed |= fixed
+            fits.append(fit)
             tables.append(inv)
         if changed:
-            log.warning("the %s fit was not monotone; it was made non-decreasing", method)
-        crf = table_crf(np.stack(tables), f"estimate-crf:{method}")
-    profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
-                          [f.path for f in frames], f"estimate-crf --method {method}")
-    profile["crf"].update({"method": method, "lambda": smoothing, "samples": samples,
-                           "channels": first.channel_colors if first.kind != "raw" else "linear"})
-    save_profile(output, profile, overwrite)
+            log.warning("the %s fit was not monotone; it was made non-decreasing", opts.method)
+        crf = table_crf(np.stack(tables), f"estimate-crf:{opts.method}")
+        points = (codes, log_h)
+    details = {"method": opts.method, "channels": first.channel_colors if first.kind != "raw" else "linear"}
+    if fits:
+        details |= {"lambda": smoothing, "samples": samples or "all",
+                    "iterations": [f.iterations for f in fits], "converged": all(f.converged for f in fits)}
+        if method.noise_weighted:
+            details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
+                        "pair_weight": opts.pair_weight}
+    command = f"estimate-crf --method {opts.method}"
+    if base is not None:
+        profile = base
+        profile["crf"] = crf_to_json(crf)
+        profile.setdefault("provenance", {})["crf_command"] = command
+    else:
+        profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
+                              [f.path for f in frames], command)
+    profile["crf"].update(details)
+    if opts.plot is not None and points is not None:
+        plot_crf(opts.plot, np.log(np.maximum(crf.table, 1e-300)), *points, frames, opts.overwrite, opts.seed)
+    save_profile(output, profile, opts.overwrite or updating)
     return {
-        "output": str(output), "method": method, "frames": [f.summary() for f in frames],
-        "crf": crf.describe(), "made_monotone": changed, "seconds": round(time.perf_counter() - t0, 4),
+        "output": str(output), "method": opts.method, "frames": [f.summary() for f in frames],
+        "crf": crf.describe(), "made_monotone": changed, **{k: v for k, v in details.items() if k != "method"},
+        "seconds": round(time.perf_counter() - t0, 4),
     }
+
+
+def plot_crf(path: Path, g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarray, frames, overwrite: bool,
+             seed: int = 0, points: int = 200) -> None:
+    """Like Debevec & Malik's Fig. 3: per channel the recovered ``g(z)`` (log exposure
+    against code value) and, for a few pixels, each frame's sample placed at
+    ``log E_i + log h_j`` (``log E_i`` merged from its frames with triangle weights).
+
+    g : (C, N) ``log gamma^-1``; codes : P arrays (H, W, C); log_h : (P,)
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n_codes = g.shape[1]
+    rng = np.random.default_rng(seed)
+    v = np.arange(n_codes) / (n_codes - 1)
+    w = weights_debevec1997_triangle(v, v)
+    fig, axes = plt.subplots(1, g.shape[0], figsize=(4.2 * g.shape[0], 4), dpi=110, squeeze=False)
+    names = frames[0].channel_names
+    for c, ax in enumerate(axes[0]):
+        z = np.stack([fr[..., c].ravel() for fr in codes], axis=1)
+        z = z[rng.choice(len(z), min(points, len(z)), replace=False)].astype(np.int64)
+        wz = w[z]
+        ok = wz.sum(axis=1) > 0
+        log_e = np.sum(wz * (g[c][z] - log_h), axis=1)[ok] / wz.sum(axis=1)[ok]
+        for j in range(z.shape[1]):
+            seen = (z[ok, j] > 0) & (z[ok, j] < n_codes - 1)  # clipped codes say nothing about g
+            ax.plot((log_e + log_h[j])[seen], z[ok, j][seen], ".", ms=2.5, alpha=0.6, label=frames[j].name)
+        ax.plot(g[c], np.arange(n_codes), "k-", lw=1.2, label="g(z)")
+        ax.set_xlabel("log exposure  g(z) = log E + log h")
+        ax.set_ylabel("code value z")
+        ax.set_title(f"channel {names[c] if c < len(names) else c}")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, markerscale=3)
+    fig.tight_layout()
+    with atomic_path(path, overwrite) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)

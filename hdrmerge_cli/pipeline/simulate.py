@@ -121,6 +121,7 @@ def simulate(opts: SimulateOptions) -> dict:
     names = [f"frame_{k:02d}.{opts.fmt}" for k in range(len(times))]
     paths = [out / n for n in names] + [out / "truth.exr", out / "simulation.json"]
     out.mkdir(parents=True, exist_ok=True)
+    requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
     times = np.array([stored_time(out, opts.fmt, t) for t in times])
     t_ref = float(np.exp(np.mean(np.log(times))))
 
@@ -151,11 +152,11 @@ def simulate(opts: SimulateOptions) -> dict:
             if opts.fmt == "dng":
                 write_dng(
                     tmps[k], quantise_raw(y, sensor), pattern=CFA_PATTERN, black=sensor.black,
-                    white=sensor.white, exposure_time=t, iso=opts.iso, aperture=opts.aperture,
+                    white=sensor.white, exposure_time=requested[k], iso=opts.iso, aperture=opts.aperture,
                 )
             else:
                 write_ldr(tmps[k], quantise_crf(y, sensor, crf, out_bits), {
-                    "ExposureTime": float(t), "FNumber": float(opts.aperture),
+                    "ExposureTime": float(requested[k]), "FNumber": float(opts.aperture),
                     "Exif:PhotographicSensitivity": int(opts.iso), "Exif:ISOSpeedRatings": int(opts.iso),
                     "Make": "hdrmerge-cli", "Model": "simulated sensor",
                 })

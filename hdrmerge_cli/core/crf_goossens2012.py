@@ -1,0 +1,235 @@
+"""The paper's CRF estimation (section "Estimation of the CRF", (35)-(37)): a monotone,
+noise-weighted quadratic program for ``g(z) = log gamma^-1(z)``.
+
+For two frames ``j, j'`` of one pixel, (35) gives
+``g(z_ij) - g(z_ij') ~ N(log(h_j / h_j'), sigma^2(E, h_j) + sigma^2(E, h_j'))``, so the
+maximum-likelihood ``g`` minimises (36)/(37)::
+
+    sum_{j<j'} f_jj' sum_i w_j(z_ij) w_j'(z_ij') (g(z_ij) - g(z_ij') - log(h_j / h_j'))^2
+        + lambda * integral w_smooth(v)^2 g''(v)^2 dv
+    s.t. g(z) >= g(z - 1) + epsilon,   g(mid-scale) = 0
+
+with the image-pair factor ``f_jj' = h_j h_j' / (h_j + h_j')`` (photon noise dominant) or
+``h_j^2 h_j'^2 / (h_j^2 + h_j'^2)`` (offset noise dominant), the position-dependent
+``1 / E_i`` dropped as the paper proposes.
+
+The residual depends on a pixel only through its pair of codes, so the pixels are first
+aggregated into comparagrams (joint histograms of ``(z_ij, z_ij')``, Mann & Picard): the QP
+has one row per occupied code pair, at most ``L (L - 1) / 2`` for ``L`` code levels, however
+many pixels went in.  Codes of 12/16-bit data are binned to ``L <= 1024`` knots.
+
+Weights and CRF depend on each other: the first solve uses the noise-model weights of the
+``bounded`` scheme for an identity CRF, each next one the weights for the CRF just found,
+until ``g`` stops changing.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
+
+#: largest number of code levels (knots) solved for; finer codes are binned and interpolated
+MAX_LEVELS = 1024
+#: smallest step of g between neighbouring knots (the epsilon of (37))
+EPSILON = 1e-5
+#: default smoothness weight of (37); the data term is a weighted mean and the penalty the
+#: integral of ``w_smooth^2 g''^2`` over normalised codes, so lambda does not depend on the
+#: pixel count or the bit depth
+DEFAULT_LAMBDA = 1e-5
+#: the weighting function ``w_j(z)`` of (36) unless told otherwise
+DEFAULT_WEIGHTING = "triangle"
+#: mean of the irradiance prior handed to the noise-model weights: flat (see crf_goossens2012)
+FLAT_PRIOR = 1e300
+#: the image-pair factor ``f_jj'`` of (37) for each dominant noise source
+PAIR_WEIGHTS = ("photon", "offset")
+
+
+@dataclass(frozen=True)
+class Comparagram:
+    """Occupied code pairs of all frame pairs ``j < j'`` of one channel.
+
+    a, b : (M,) knot indices of the shorter (``a``) and longer (``b``) exposure's code
+    j, jp : (M,) the frame indices
+    count : (M,) number of pixels with that pair of codes
+    levels : number of knots ``L``
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    j: np.ndarray
+    jp: np.ndarray
+    count: np.ndarray
+    levels: int
+
+
+@dataclass(frozen=True)
+class CRFFit:
+    """g : (n_codes,) float64 ``log gamma^-1(z)`` with ``g(mid-scale) = 0``;
+    iterations : solves done; converged : whether ``g`` settled before the limit;
+    rows : occupied comparagram cells (the size of the data term)"""
+
+    g: np.ndarray
+    iterations: int
+    converged: bool
+    rows: int = 0
+
+
+def knot_levels(n_codes: int) -> int:
+    return min(n_codes, MAX_LEVELS)
+
+
+def to_knots(codes: np.ndarray, n_codes: int, levels: int) -> np.ndarray:
+    """Nearest knot of each code value (identity when every code is a knot)."""
+    codes = np.asarray(codes)
+    if levels == n_codes:
+        return codes.astype(np.int32)
+    return np.rint(codes.astype(np.float64) * ((levels - 1) / (n_codes - 1))).astype(np.int32)
+
+
+def comparagram(knots: np.ndarray, levels: int) -> Comparagram:
+    """Joint histograms of every frame pair.
+
+    knots : (N, P) knot index of each pixel in each frame (frames in exposure order)
+    """
+    n_frames = knots.shape[1]
+    parts = []
+    for j in range(n_frames):
+        for jp in range(j + 1, n_frames):
+            cell = knots[:, j].astype(np.int64) * levels + knots[:, jp]
+            counts = np.bincount(cell, minlength=levels * levels)
+            occupied = np.flatnonzero(counts)
+            parts.append((occupied // levels, occupied % levels, np.full(occupied.size, j), np.full(occupied.size, jp),
+                          counts[occupied]))
+    a, b, j, jp, count = (np.concatenate(col) for col in zip(*parts))
+    return Comparagram(a, b, j, jp, count.astype(np.float64), levels)
+
+
+def pair_factor(h: np.ndarray, kind: str = "photon") -> np.ndarray:
+    """``f_jj'`` of (37) for every frame pair, (P, P): the inverse of the summed variances
+    of (22) up to a factor common to all pairs."""
+    hj, hk = h[:, None], h[None, :]
+    if kind == "photon":
+        return hj * hk / (hj + hk)
+    if kind == "offset":
+        return hj**2 * hk**2 / (hj**2 + hk**2)
+    raise ValueError(f"unknown pair weight {kind!r}; choose from {', '.join(PAIR_WEIGHTS)}")
+
+
+def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.ndarray, smoothing: float,
+             epsilon: float = EPSILON) -> np.ndarray:
+    """One solve of (37) with cvxpy.
+
+    w : (M,) weight of each comparagram cell (count times ``w_j w_j' f_jj'``)
+    w_smooth : (L,) weight of the smoothness penalty at each knot; log_h : (P,)
+    Returns g : (L,) with ``g[L // 2] = 0``.
+    """
+    import cvxpy as cp
+    import scipy.sparse as sp
+
+    L = cg.levels
+    target = log_h[cg.j] - log_h[cg.jp]
+    keep = w > 0
+    if not np.any(keep):
+        raise HdrMergeError("no pair of frames shares a pixel that both expose validly; the CRF is not identifiable")
+    # rows with the same pair of codes merge: sum_k w_k (d - y_k)^2 = W (d - ybar)^2 + const
+    cell = cg.a[keep].astype(np.int64) * L + cg.b[keep]
+    uniq, inv = np.unique(cell, return_inverse=True)
+    wsum = np.bincount(inv, weights=w[keep])
+    ybar = np.bincount(inv, weights=w[keep] * target[keep]) / wsum
+    a, b = uniq // L, uniq % L
+    r = np.sqrt(wsum / wsum.sum())
+    m = uniq.size
+    d = sp.csr_matrix((np.concatenate([r, -r]), (np.tile(np.arange(m), 2), np.concatenate([a, b]))), shape=(m, L))
+    # lambda * integral w_smooth^2 g''^2 dv on the knot spacing dv = 1 / (L - 1)
+    s = second_difference(w_smooth)
+    g = cp.Variable(L)
+    objective = cp.sum_squares(d @ g - r * ybar)
+    if smoothing > 0 and s.shape[0]:
+        objective = objective + smoothing * cp.sum_squares(s @ g)
+    constraints = [g[1:] - g[:-1] >= epsilon, g[L // 2] == 0]
+    problem = cp.Problem(cp.Minimize(objective), constraints)
+    try:
+        problem.solve(solver=cp.CLARABEL)
+    except cp.error.SolverError as exc:
+        raise HdrMergeError(f"the CRF quadratic program failed: {exc}") from None
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or g.value is None:
+        raise HdrMergeError(f"the CRF quadratic program did not solve (status: {problem.status})")
+    return np.asarray(g.value, dtype=np.float64)
+
+
+def second_difference(w_smooth: np.ndarray):
+    """Rows ``S`` with ``|S g|^2 = integral w_smooth(v)^2 g''(v)^2 dv`` (the smoothness term
+    of (37)) by central differences on the knots ``v = k / (L - 1)``.  w_smooth : (L,)"""
+    import scipy.sparse as sp
+
+    L = w_smooth.size
+    k = np.arange(1, L - 1)
+    scale = w_smooth[k] * (L - 1) ** 1.5  # g'' = (L-1)^2 * second difference, dv = 1/(L-1)
+    return sp.csr_matrix(((scale[:, None] * np.array([1.0, -2.0, 1.0])).ravel(),
+                          (np.repeat(np.arange(k.size), 3), (k[:, None] + np.array([-1, 0, 1])).ravel())),
+                         shape=(k.size, L))
+
+
+def crf_goossens2012(
+    codes: np.ndarray,
+    log_exposures: np.ndarray,
+    n_codes: int,
+    smoothing: float = DEFAULT_LAMBDA,
+    *,
+    weighting: str = DEFAULT_WEIGHTING,
+    noise=None,
+    bounds=None,
+    pair_weight: str = "photon",
+    max_iterations: int = 10,
+    tol: float = 1e-3,
+) -> CRFFit:
+    """(37) with the chicken-and-egg loop between weights and CRF.
+
+    codes : (N, P) integer code values of N pixels in P frames, frames in exposure order
+    log_exposures : (P,) ``log h_j``
+    n_codes : number of code values ``2^B``
+    smoothing : lambda of (37)
+    weighting : the ``w_j(z)`` of (36), a name in
+        :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`; noise-model weights are
+        evaluated with a flat irradiance prior (both codes of a pair see the same ``E``, so
+        no per-frame prior applies) for the current CRF estimate
+    noise, bounds : one channel's :class:`~hdrmerge_cli.core.noise.NoiseParams` (code values
+        of the linear signal) for the noise-model weights, or the ``(1/alpha, sigma_o^2,
+        beta)`` upper bounds of ``bounded`` (default: the paper's JPEG values)
+    pair_weight : ``photon`` or ``offset``, which noise dominates (the factor ``f_jj'``)
+    tol : stop when ``g`` moves less than this (natural log units) at every used knot
+    """
+    from hdrmerge_cli.core.crf import table_crf
+    from hdrmerge_cli.core.reconstruct import certainty_table
+
+    log_h = np.asarray(log_exposures, dtype=np.float64)
+    h = tuple(float(x) for x in np.exp(log_h))
+    L = knot_levels(n_codes)
+    cg = comparagram(to_knots(codes, n_codes, L), L)
+    pair = pair_factor(np.exp(log_h), pair_weight)
+    knot_codes = np.rint(np.arange(L) * ((n_codes - 1) / (L - 1))).astype(np.int64)
+    used = np.zeros(L, bool)
+    used[cg.a] = used[cg.b] = True
+    lin = np.arange(n_codes) / (n_codes - 1)  # identity CRF to start
+    g_prev, converged, it = None, False, 0
+    for it in range(1, max_iterations + 1):
+        crf = table_crf(lin[None], "estimate")
+        wk = np.stack([certainty_table(n_codes, 0.0, n_codes - 1.0, crf, weighting, hj,
+                                       None if noise is None else [noise], FLAT_PRIOR, h, bounds=bounds)[0]
+                       for hj in h])[:, knot_codes]
+        w = cg.count * wk[cg.j, cg.a] * wk[cg.jp, cg.b] * pair[cg.j, cg.jp]
+        w_smooth = np.maximum(wk.mean(axis=0), 1e-3 * max(wk.max(), 1e-300))
+        g_knots = solve_qp(cg, w, w_smooth, log_h, smoothing)
+        g = np.interp(np.arange(n_codes), knot_codes, g_knots)
+        lin = np.exp(g - g[-1])
+        if weighting not in NOISE_MODEL_WEIGHTS:  # the weights do not depend on the CRF
+            converged = True
+            break
+        if g_prev is not None and np.max(np.abs(g_knots - g_prev)[used]) < tol:
+            converged = True
+            break
+        g_prev = g_knots
+    return CRFFit(g, it, converged, cg.a.size)
