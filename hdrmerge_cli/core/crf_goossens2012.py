@@ -24,6 +24,7 @@ until ``g`` stops changing.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,8 @@ EPSILON = 1e-5
 #: integral of ``w_smooth^2 g''^2`` over normalised codes, so lambda does not depend on the
 #: pixel count or the bit depth
 DEFAULT_LAMBDA = 1e-5
+#: cvxpy solvers tried in turn
+SOLVERS = ("CLARABEL", "OSQP")
 #: the weighting function ``w_j(z)`` of (36) unless told otherwise
 DEFAULT_WEIGHTING = "triangle"
 #: mean of the irradiance prior handed to the noise-model weights: flat (see crf_goossens2012)
@@ -131,7 +134,7 @@ def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.nda
 
     L = cg.levels
     target = log_h[cg.j] - log_h[cg.jp]
-    keep = w > 0
+    keep = w > 1e-12 * w.max(initial=0.0)  # underflowed noise-model weights add nothing but ill-conditioning
     if not np.any(keep):
         raise HdrMergeError("no pair of frames shares a pixel that both expose validly; the CRF is not identifiable")
     # rows with the same pair of codes merge: sum_k w_k (d - y_k)^2 = W (d - ybar)^2 + const
@@ -151,12 +154,20 @@ def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.nda
         objective = objective + smoothing * cp.sum_squares(s @ g)
     constraints = [g[1:] - g[:-1] >= epsilon, g[L // 2] == 0]
     problem = cp.Problem(cp.Minimize(objective), constraints)
-    try:
-        problem.solve(solver=cp.CLARABEL)
-    except cp.error.SolverError as exc:
-        raise HdrMergeError(f"the CRF quadratic program failed: {exc}") from None
-    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or g.value is None:
-        raise HdrMergeError(f"the CRF quadratic program did not solve (status: {problem.status})")
+    status = "not run"
+    for solver in SOLVERS:  # an interior-point method first; OSQP if it stalls
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                problem.solve(solver=solver)
+            status = problem.status
+        except cp.error.SolverError:
+            status = f"{solver} failed"
+            continue
+        if status == cp.OPTIMAL and g.value is not None:
+            break
+    if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or g.value is None:
+        raise HdrMergeError(f"the CRF quadratic program did not solve ({status}); try another --lambda or --method")
     return np.asarray(g.value, dtype=np.float64)
 
 

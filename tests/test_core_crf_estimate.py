@@ -1,0 +1,137 @@
+"""CRF estimation (36)-(37): the comparagram QP against an independent per-pixel least
+squares, monotonicity under heavy noise, size independence, 16-bit knots, the baselines."""
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.sparse.linalg import lsqr
+
+from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, crf_debevec1997, crf_robertson2003
+from hdrmerge_cli.core.crf_goossens2012 import comparagram, crf_goossens2012, pair_factor, solve_qp, to_knots
+from hdrmerge_cli.core.errors import HdrMergeError
+
+TIMES = np.array([0.0625, 0.25, 1.0, 4.0])
+
+
+def gamma_bracket(n, sigma, rng, n_codes=256, gamma=2.2, times=TIMES):
+    """(n, P) codes of log-uniform irradiance through x^(1/gamma), with Gaussian noise of
+    std ``sigma`` (fraction of full scale) on the linear signal."""
+    e = np.exp(rng.uniform(np.log(0.002), 0.0, n))
+    y = [np.clip(e * t + rng.normal(0.0, sigma, n), 0, 1) for t in times]
+    return np.stack([np.rint((n_codes - 1) * v ** (1 / gamma)) for v in y], axis=1).astype(np.int64)
+
+
+def centred_rmse(g, gamma, codes, n_codes=256):
+    d = g[codes] - gamma * np.log(codes / (n_codes - 1))
+    return float(np.sqrt(np.mean((d - d.mean()) ** 2)))
+
+
+def test_comparagram_qp_equals_a_per_pixel_weighted_least_squares():
+    """With lambda = 0 and the monotonicity constraints inactive, (36) on comparagrams must
+    equal the least squares written out pixel by pixel and frame pair by frame pair
+    (sparse lsqr, a different solver on a different, much larger system)."""
+    rng = np.random.default_rng(0)
+    n_codes = 64
+    z = gamma_bracket(4000, 0.004, rng, n_codes)
+    log_h = np.log(TIMES)
+    v = np.arange(n_codes) / (n_codes - 1)
+    w = np.tile(np.minimum(v, 1 - v), (len(TIMES), 1))  # any fixed weights
+    pair = pair_factor(TIMES)
+    cg = comparagram(to_knots(z, n_codes, n_codes), n_codes)
+    cell_w = cg.count * w[cg.j, cg.a] * w[cg.jp, cg.b] * pair[cg.j, cg.jp]
+    g_qp = solve_qp(cg, cell_w, np.ones(n_codes), log_h, smoothing=0.0)
+    rows, cols, vals, rhs = [], [], [], []
+    r = 0
+    for j in range(len(TIMES)):
+        for k in range(j + 1, len(TIMES)):
+            s = np.sqrt(w[j, z[:, j]] * w[k, z[:, k]] * pair[j, k])
+            for i in np.flatnonzero(s):
+                rows += [r, r]
+                cols += [z[i, j], z[i, k]]
+                vals += [s[i], -s[i]]
+                rhs.append(s[i] * (log_h[j] - log_h[k]))
+                r += 1
+    mid = n_codes // 2
+    keep = [c for c in range(n_codes) if c != mid]  # g(mid) = 0: drop its column
+    a = sp.csr_matrix((vals, (rows, cols)), shape=(r, n_codes))[:, keep]
+    g_ls = np.zeros(n_codes)
+    g_ls[keep] = lsqr(a, np.array(rhs), atol=1e-14, btol=1e-14, iter_lim=100000)[0]
+    used = np.zeros(n_codes, bool)
+    used[np.unique(z[(z > 0) & (z < n_codes - 1)])] = True
+    assert np.all(np.diff(g_qp[used]) > 1e-3)  # the constraints are inactive here
+    np.testing.assert_allclose(g_qp[used], g_ls[used], atol=2e-5)
+
+
+def test_goossens_recovers_a_gamma_curve_and_beats_debevec_under_noise():
+    rng = np.random.default_rng(1)
+    z = gamma_bracket(100000, 0.01, rng)
+    fit = crf_goossens2012(z, np.log(TIMES), 256)
+    codes = np.arange(30, 250)
+    ours = centred_rmse(fit.g, 2.2, codes)
+    idx = rng.choice(len(z), 1000, replace=False)
+    theirs = centred_rmse(crf_debevec1997(z[idx], np.log(TIMES), 256).g, 2.2, codes)
+    # measured 0.045 (ours), 0.123 (Debevec-Malik, 1000 samples, lambda 30); code 30 is
+    # where the noise (1 % of full scale) equals the signal
+    assert ours < 0.06 and ours < 0.6 * theirs
+    assert np.all(np.diff(fit.g) > 0)
+
+
+@pytest.mark.parametrize("method", ["goossens", "debevec"])
+def test_heavy_noise_keeps_goossens_monotone(method):
+    """sigma = 5 % of full scale on 8 bits: the unconstrained Debevec-Malik fit oscillates
+    (the hard case the paper's constraint exists for); (37) stays increasing."""
+    rng = np.random.default_rng(2)
+    z = gamma_bracket(20000, 0.05, rng)
+    m = CRF_ESTIMATORS[method]
+    g = m.estimate(z[:2000] if m.samples else z, np.log(TIMES), 256).g
+    increasing = bool(np.all(np.diff(g) > 0))
+    assert increasing == (method == "goossens")
+
+
+def test_problem_size_does_not_grow_with_the_pixel_count():
+    rng = np.random.default_rng(3)
+    small = crf_goossens2012(gamma_bracket(20000, 0.004, rng), np.log(TIMES), 256)
+    large = crf_goossens2012(gamma_bracket(400000, 0.004, rng), np.log(TIMES), 256)
+    assert large.rows < 2.0 * small.rows  # 20x the pixels, measured 1.4x the occupied cells
+    codes = np.arange(30, 250)
+    assert centred_rmse(large.g, 2.2, codes) < centred_rmse(small.g, 2.2, codes) + 0.01
+
+
+def test_sixteen_bit_codes_solve_on_1024_knots():
+    rng = np.random.default_rng(4)
+    z = gamma_bracket(100000, 0.002, rng, n_codes=65536)
+    fit = crf_goossens2012(z, np.log(TIMES), 65536)
+    assert fit.g.shape == (65536,) and np.all(np.diff(fit.g) >= 0)
+    # measured 0.0034 above code 8000 (signal 5x the noise)
+    assert centred_rmse(fit.g, 2.2, np.arange(8000, 65000, 7), 65536) < 0.01
+
+
+def test_noise_model_weights_iterate_until_the_curve_settles():
+    rng = np.random.default_rng(5)
+    z = gamma_bracket(30000, 0.01, rng)
+    fit = crf_goossens2012(z, np.log(TIMES), 256, weighting="bounded", max_iterations=6)
+    assert 2 <= fit.iterations <= 6
+    assert np.all(np.diff(fit.g) > 0)
+    assert centred_rmse(fit.g, 2.2, np.arange(30, 250)) < 0.15
+
+
+def test_pair_factor_is_the_inverse_summed_variance_of_22():
+    h = np.array([0.5, 2.0])
+    # photon noise: var(log) ~ 1 / (h E) per frame; offset: ~ 1 / (h E)^2
+    assert pair_factor(h)[0, 1] == pytest.approx(1 / (1 / 0.5 + 1 / 2.0))
+    assert pair_factor(h, "offset")[0, 1] == pytest.approx(1 / (1 / 0.25 + 1 / 4.0))
+    with pytest.raises(ValueError):
+        pair_factor(h, "thermal")
+
+
+def test_robertson_recovers_a_gamma_curve_from_clean_data():
+    rng = np.random.default_rng(6)
+    fit = crf_robertson2003(gamma_bracket(50000, 0.0005, rng), np.log(TIMES), 256)
+    # measured 0.069 (0.063 after 300 iterations); OpenCV's implementation errs as much
+    # in benchmarks/results/crf_dorf.md
+    assert fit.converged and centred_rmse(fit.g, 2.2, np.arange(30, 250)) < 0.08
+
+
+def test_frames_that_share_no_valid_pixel_are_an_error():
+    z = np.array([[0, 255]] * 100)  # first frame black, second white: no usable pair
+    with pytest.raises(HdrMergeError, match="not identifiable"):
+        crf_goossens2012(z, np.log([1.0, 100.0]), 256)
