@@ -18,9 +18,10 @@ aggregated into comparagrams (joint histograms of ``(z_ij, z_ij')``, Mann & Pica
 has one row per occupied code pair, at most ``L (L - 1) / 2`` for ``L`` code levels, however
 many pixels went in.  Codes of 12/16-bit data are binned to ``L <= 1024`` knots.
 
-Weights and CRF depend on each other: the first solve uses the noise-model weights of the
-``bounded`` scheme for an identity CRF, each next one the weights for the CRF just found,
-until ``g`` stops changing.
+With a noise-model weighting, weights and CRF depend on each other: the first solve uses
+the weights (e.g. the ``bounded`` scheme's) for an identity CRF, each next one the weights
+for the CRF just found, until ``g`` stops changing.  The default weighting is ``triangle``
+(see :data:`DEFAULT_WEIGHTING`).
 """
 from __future__ import annotations
 
@@ -42,7 +43,10 @@ EPSILON = 1e-5
 DEFAULT_LAMBDA = 1e-5
 #: cvxpy solvers tried in turn
 SOLVERS = ("CLARABEL", "OSQP")
-#: the weighting function ``w_j(z)`` of (36) unless told otherwise
+#: the weighting function ``w_j(z)`` of (36) unless told otherwise.  Not the paper's
+#: ``bounded``: with its JPEG bounds the weights are too narrow for CRF estimation (the ends
+#: of g are left to the smoothness term and the comparametric ambiguity of +-2 EV brackets
+#: shows as waves); see benchmarks/results/crf_dorf.md
 DEFAULT_WEIGHTING = "triangle"
 #: mean of the irradiance prior handed to the noise-model weights: flat (see crf_goossens2012)
 FLAT_PRIOR = 1e300
