@@ -15,7 +15,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import lsqr
 
 from hdrmerge_cli.core.crf_goossens2012 import (
-    DEFAULT_LAMBDA, CRFFit, crf_goossens2012, knot_levels, to_knots,
+    DEFAULT_LAMBDA, CRFFit, crf_goossens2012, from_knots, knot_levels, to_knots,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
@@ -73,8 +73,7 @@ def crf_debevec1997(
     g = sol[:levels]
     if not np.all(np.isfinite(g)):
         raise HdrMergeError("the CRF fit failed (no finite solution)")
-    return CRFFit(np.interp(np.arange(n_codes) * (levels - 1) / (n_codes - 1), np.arange(levels), g), 1, True,
-                  n_pix * n_frames)
+    return CRFFit(from_knots(g, n_codes), 1, True, n_pix * n_frames)
 
 
 def crf_robertson2003(
@@ -114,9 +113,7 @@ def crf_robertson2003(
         if change < tol:
             converged = True
             break
-    g = np.log(resp)
-    return CRFFit(np.interp(np.arange(n_codes) * (levels - 1) / (n_codes - 1), np.arange(levels), g), it, converged,
-                  int(k.size))
+    return CRFFit(from_knots(np.log(resp), n_codes), it, converged, int(k.size))
 
 
 def inverse_from_log(g: np.ndarray) -> tuple[np.ndarray, bool]:

@@ -96,6 +96,13 @@ def to_knots(codes: np.ndarray, n_codes: int, levels: int) -> np.ndarray:
     return np.rint(codes.astype(np.float64) * ((levels - 1) / (n_codes - 1))).astype(np.int32)
 
 
+def from_knots(g_knots: np.ndarray, n_codes: int) -> np.ndarray:
+    """``g`` at every code value, linearly interpolated from the ``L`` knots (knot ``k``
+    sits at code ``k (n_codes - 1) / (L - 1)``, the centre of the codes binned to it)."""
+    levels = g_knots.size
+    return np.interp(np.arange(n_codes), np.arange(levels) * ((n_codes - 1) / (levels - 1)), g_knots)
+
+
 def comparagram(knots: np.ndarray, levels: int) -> Comparagram:
     """Joint histograms of every frame pair.
 
@@ -224,7 +231,7 @@ def crf_goossens2012(
     h = tuple(float(x) for x in np.exp(log_h))
     L = knot_levels(n_codes)
     cg = comparagram(to_knots(codes, n_codes, L), L)
-    pair = pair_factor(np.exp(log_h), pair_weight)
+    pair = pair_factor(np.asarray(h), pair_weight)
     knot_codes = np.rint(np.arange(L) * ((n_codes - 1) / (L - 1))).astype(np.int64)
     used = np.zeros(L, bool)
     used[cg.a] = used[cg.b] = True
@@ -238,7 +245,7 @@ def crf_goossens2012(
         w = cg.count * wk[cg.j, cg.a] * wk[cg.jp, cg.b] * pair[cg.j, cg.jp]
         w_smooth = np.maximum(wk.mean(axis=0), 1e-3 * max(wk.max(), 1e-300))
         g_knots = solve_qp(cg, w, w_smooth, log_h, smoothing)
-        g = np.interp(np.arange(n_codes), knot_codes, g_knots)
+        g = from_knots(g_knots, n_codes)
         lin = np.exp(g - g[-1])
         if weighting not in NOISE_MODEL_WEIGHTS:  # the weights do not depend on the CRF
             converged = True
