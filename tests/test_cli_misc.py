@@ -178,6 +178,15 @@ def test_estimate_crf_bad_brackets_fail_with_one_line(run, tmp_path, jpeg_bracke
     assert proc.returncode == 2 and "goossens only" in proc.stderr
 
 
+def test_plots_of_an_unknown_type_are_refused_before_anything_is_written(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    for args, out in ((("estimate-crf", *frames_of(folder, meta)), tmp_path / "p.json"),
+                      (("weights-lut", "--times", "0.1,1", "--bits", "8"), tmp_path / "l.csv")):
+        proc = run(*args, "-o", out, "--plot", tmp_path / "c.xyz", check=False)
+        assert proc.returncode == 1 and "c.xyz" in proc.stderr and "png" in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
 def test_estimate_crf_refuses_frames_too_far_apart(run, tmp_path):
     folder = tmp_path / "far"
     run("simulate", "-o", folder, "-q", "--format", "tif", "--size", "96x64", "--times", "0.0001,100")

@@ -7,12 +7,12 @@ import click
 
 import numpy as np
 
-from hdrmerge_cli.cli.merge import BOUNDS_HELP
-from hdrmerge_cli.cli.options import common_options, emit, output_options, times_option_callback
+from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, times_option_callback
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
+from hdrmerge_cli.io.plots import check_figure_path
 from hdrmerge_cli.pipeline.lut import plot_luts, weight_luts, write_luts
 from hdrmerge_cli.pipeline.merge import (
     MergeOptions, choose_crf, exposure_values, prior_rate as prior_rate_of, read_bracket, resolve_noise,
@@ -38,7 +38,7 @@ from hdrmerge_cli.pipeline.merge import (
 @click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations.")
 @click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
-@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Also draw the curves to a PNG.")
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Also draw the curves (PNG/PDF/SVG, by suffix).")
 @output_options
 @common_options
 def command(images, output, times, weights, crf, profile, bits, noise, prior_rate, k, bounds, plot, overwrite, as_json):
@@ -49,6 +49,8 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
         raise click.UsageError("give either a bracket IMAGES... or --times")
     if crf and profile:
         raise click.UsageError("give either --crf or --profile, not both")
+    if plot:
+        check_figure_path(plot, overwrite)
     spec = crf or profile
     opts = MergeOptions(output=output, noise=noise, profile=profile, crf=crf)
     if images:

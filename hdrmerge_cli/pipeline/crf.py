@@ -13,9 +13,10 @@ from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sam
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_WEIGHTING
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import atomic_path, check_writable
+from hdrmerge_cli.io.atomic import check_writable
 from hdrmerge_cli.io.frames import load_codes
 from hdrmerge_cli.io.noisespec import parse_bounds
+from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
 from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
 
@@ -86,7 +87,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     updating = opts.profile is not None and Path(opts.profile).resolve() == Path(output).resolve()
     check_writable(output, opts.overwrite or updating)
     if opts.plot is not None:
-        check_writable(opts.plot, opts.overwrite)
+        check_figure_path(opts.plot, opts.overwrite)
     base = load_profile(opts.profile) if opts.profile else None
     frames = read_bracket(list(paths), opts.times, opts.times_file)
     first = frames[0]
@@ -160,16 +161,11 @@ def plot_crf(path: Path, g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarr
 
     g : (C, N) ``log gamma^-1``; codes : P arrays (H, W, C); log_h : (P,)
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     n_codes = g.shape[1]
     rng = np.random.default_rng(seed)
     v = np.arange(n_codes) / (n_codes - 1)
     w = weights_debevec1997_triangle(v, v)
-    fig, axes = plt.subplots(1, g.shape[0], figsize=(4.2 * g.shape[0], 4), dpi=110, squeeze=False)
+    fig, axes = pyplot().subplots(1, g.shape[0], figsize=(4.2 * g.shape[0], 4), dpi=110, squeeze=False)
     names = frames[0].channel_names
     for c, ax in enumerate(axes[0]):
         z = np.stack([fr[..., c].ravel() for fr in codes], axis=1)
@@ -187,6 +183,4 @@ def plot_crf(path: Path, g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarr
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, markerscale=3)
     fig.tight_layout()
-    with atomic_path(path, overwrite) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path, overwrite)

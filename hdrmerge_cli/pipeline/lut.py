@@ -12,6 +12,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K
 from hdrmerge_cli.core.reconstruct import certainty_table
 from hdrmerge_cli.io.atomic import atomic_path
+from hdrmerge_cli.io.plots import pyplot, save_figure
 
 LUT_FORMATS = (".csv", ".npy", ".json")
 
@@ -76,12 +77,7 @@ def read_luts(path: str) -> np.ndarray:
 
 def plot_luts(path: Path, table: np.ndarray, labels: list[str], title: str, overwrite: bool) -> None:
     """The weight curves against the code value, like the paper's Figs. 13 and 16."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
+    fig, ax = pyplot().subplots(figsize=(7, 4), dpi=110)
     z = np.arange(table.shape[0])
     for col, label in zip(table.T, labels):
         ax.plot(z, col, label=label, lw=1.4)
@@ -92,6 +88,4 @@ def plot_luts(path: Path, table: np.ndarray, labels: list[str], title: str, over
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    with atomic_path(path, overwrite) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path, overwrite)
