@@ -6,7 +6,9 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import lsqr
 
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, crf_debevec1997, crf_robertson2003
-from hdrmerge_cli.core.crf_goossens2012 import comparagram, crf_goossens2012, pair_factor, solve_qp, to_knots
+from hdrmerge_cli.core.crf_goossens2012 import (
+    comparagram, crf_goossens2012, pair_factor, second_difference, solve_qp, to_knots,
+)
 from hdrmerge_cli.core.errors import HdrMergeError
 
 TIMES = np.array([0.0625, 0.25, 1.0, 4.0])
@@ -135,3 +137,12 @@ def test_frames_that_share_no_valid_pixel_are_an_error():
     z = np.array([[0, 255]] * 100)  # first frame black, second white: no usable pair
     with pytest.raises(HdrMergeError, match="not identifiable"):
         crf_goossens2012(z, np.log([1.0, 100.0]), 256)
+
+
+@pytest.mark.parametrize("levels", [256, 1024])
+def test_smoothness_rows_integrate_the_squared_second_derivative(levels):
+    """|S g|^2 of (37) against the closed form: g = sin(pi v), w_smooth = 1 gives
+    integral_0^1 pi^4 sin^2(pi v) dv = pi^4 / 2 (to the O(1/L) of the end knots)."""
+    v = np.arange(levels) / (levels - 1)
+    s = second_difference(np.ones(levels))
+    assert np.sum((s @ np.sin(np.pi * v)) ** 2) == pytest.approx(np.pi**4 / 2, rel=5 / levels)
