@@ -24,14 +24,19 @@ def _size(ctx, param, value):
 @click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the frames, truth.exr and simulation.json.")
 @click.option("--scene", default="builtin", show_default=True,
-              help="'builtin' (procedural, ~19 stops) or an EXR whose values are photo-electrons per second.")
+              help="'builtin' (procedural, ~19 stops), 'flat' (uniform, --scale electrons per second: flat-field "
+                   "frames), 'dark' (no light: dark frames) or an EXR whose values are photo-electrons per second.")
 @click.option("--size", default="768x512", show_default=True, callback=_size, help="Size of the built-in scene.")
 @click.option("--downscale", default=1, show_default=True, type=click.IntRange(1, 64),
               help="Average the scene over NxN blocks first.")
 @click.option("--scale", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
               help="Multiply the scene (electrons per second per unit).")
 @click.option("--frames", default=5, show_default=True, type=click.IntRange(1, 64),
-              help="Number of exposures when --times is not given (chosen to cover the scene).")
+              help="Number of exposures when --times is not given (chosen to cover the scene; for 'flat', "
+                   "2 % to 90 % of saturation).")
+@click.option("--repeat", default=1, show_default=True, type=click.IntRange(1, 64),
+              help="Frames per exposure time (independent noise, the same fixed pattern), e.g. 2 for "
+                   "photon-transfer pairs.")
 @click.option("--times", callback=times_option_callback, metavar="T1,T2,...", help="Exposure times in seconds.")
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default="dng", show_default=True,
               help="DNG (Bayer RAW) or camera-processed JPEG/TIFF/PNG with EXIF.")
@@ -50,7 +55,7 @@ def _size(ctx, param, value):
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed (scene texture and noise).")
 @output_options
 @common_options
-def command(output_dir, scene, size, downscale, scale, frames, times, fmt, bits, black, alpha, sigma_o2, beta, crf,
+def command(output_dir, scene, size, downscale, scale, frames, repeat, times, fmt, bits, black, alpha, sigma_o2, beta, crf,
             out_bits, iso, seed, overwrite, as_json):
     """Render a bracket from a scene through the paper's sensor model (16)-(18).
 
@@ -64,7 +69,7 @@ def command(output_dir, scene, size, downscale, scale, frames, times, fmt, bits,
     sensor = SensorModel(alpha=alpha, sigma_o2=sigma_o2, beta=beta, bits=bits, black=black)
     opts = SimulateOptions(
         output_dir=output_dir, scene=scene, width=size[0], height=size[1], downscale=downscale, scale=scale,
-        frames=frames, times=times, sensor=sensor, fmt=fmt, crf=crf, out_bits=int(out_bits), iso=iso, seed=seed,
+        frames=frames, times=times, repeat=repeat, sensor=sensor, fmt=fmt, crf=crf, out_bits=int(out_bits), iso=iso, seed=seed,
         overwrite=overwrite,
     )
     summary = simulate(opts)

@@ -1,14 +1,28 @@
-"""Noise-parameter estimation from ordinary photographs (section "HDR reconstruction of
-RAW sensor data"): local means and noise variances in 7 x 7 windows, rejection of
-textured windows by the local Laplacian magnitude, and a fit of the variance model (17),
+"""Noise-parameter estimation from ordinary photographs (the paper's section "HDR
+reconstruction of RAW sensor data"): local means and noise variances in 7 x 7 windows,
+rejection of textured windows by the local Laplacian magnitude, and a robust fit of the
+variance model (17),
 
     Var[y] = sigma_o^2 + alpha x + beta x^2,   E[y] = mu = sqrt(alpha) x,
 
 rewritten in the measured mean ``mu`` (code values above black):
 
-    Var[y] = c0 + c1 mu + c2 mu^2,  c0 = sigma_o^2, c1 = sqrt(alpha), c2 = beta / alpha.
+    Var[y] = c0 + c1 mu + c2 mu^2,   c0 = sigma_o^2,  c1 = sqrt(alpha),  c2 = beta / alpha.
 
-The affine model (beta = 0) is kept unless an F-test says the quadratic term is needed.
+Two kinds of measurement feed the same fit, as rows of a linear model in ``c``:
+
+- *local statistics* of one frame (the paper's method), rows ``[1, mu, mu^2]``: the
+  spatial variance of a flat window holds the read noise, the photon noise and the gain
+  fixed-pattern noise, but also any scene texture the Laplacian test lets through;
+- *exposure pairs* of a bracket (two frames of one static scene, exposure ratio ``r``):
+  ``d = y_long - r y_short`` cancels the scene (texture included) and the gain FPN, which
+  is the same in both frames, so ``Var[d] = c0 (1 + r^2) + c1 mu_long (1 + r)``, rows
+  ``[1 + r^2, mu (1 + r), 0]``.  This is the photon-transfer idea applied to a bracket.
+
+A single bracket cannot tell gain FPN from static scene texture (both are per-pixel,
+static and proportional to the signal); only flat fields can (:mod:`photon_transfer`).
+
+The quadratic term is kept only when an F-test of the nested models says the data need it.
 """
 from __future__ import annotations
 
@@ -19,111 +33,318 @@ from scipy import ndimage, optimize, stats
 
 from hdrmerge_cli.core.errors import HdrMergeError
 
-
-@dataclass
-class WindowStats:
-    """Per-window statistics of one channel plane (flattened, valid windows only)."""
-
-    mean: np.ndarray
-    var: np.ndarray
-    texture: np.ndarray  # max |Laplacian| in the window
-
-
 #: Immerkaer (1996) noise mask: the product of two second differences, blind to any
 #: signal that is linear in x or in y (ramps, smooth shading); white noise of variance
 #: s^2 gives an output of variance 36 s^2.
 _IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
 
+#: variance of :func:`scipy.ndimage.laplace` (4-neighbour) on white noise of variance 1
+LAPLACE_GAIN = 20.0
+
+#: a window is textured when its largest |Laplacian| exceeds this many standard deviations
+#: of the Laplacian of the predicted noise (white noise exceeds 5.5 sd in 49 samples with
+#: probability 2e-6, so flat windows are kept whatever their noise draw)
+TEXTURE_SIGMAS = 5.5
+
+
+@dataclass
+class WindowStats:
+    """Per-window statistics of one channel plane, valid windows only, each (N,):
+    ``mean`` (code values above black), ``var`` (noise variance estimate), ``texture``
+    (largest |Laplacian| in the window; 0 for exposure pairs) and ``dof``, the effective
+    degrees of freedom of one window's variance (scaled chi-square)."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    texture: np.ndarray
+    dof: float
+
+    @staticmethod
+    def concat(parts: list["WindowStats"]) -> "WindowStats":
+        return WindowStats(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("mean", "var", "texture")),
+                           parts[0].dof)
+
+
+def _valid(planes, lo: float, hi: float, window: int) -> np.ndarray:
+    """Windows (centres) whose neighbourhood touches no value <= lo or >= hi in any of
+    ``planes`` and does not reach the border."""
+    ok = np.ones(planes[0].shape, bool)
+    for x in planes:
+        ok &= (ndimage.minimum_filter(x, window + 2) > lo) & (ndimage.maximum_filter(x, window + 2) < hi)
+    r = window // 2 + 2
+    ok[:r], ok[-r:], ok[:, :r], ok[:, -r:] = False, False, False, False
+    return ok
+
+
+def immerkaer_dof(window: int) -> float:
+    """Effective degrees of freedom of the window mean of the squared Immerkaer residual of
+    Gaussian white noise: ``N^2 / sum_ij rho_ij^2`` with ``rho`` the residual's
+    autocorrelation (exact for Gaussian noise: Cov(r_i^2, r_j^2) = 2 rho_ij^2 s^4)."""
+    rho = ndimage.correlate(np.pad(_IMMERKAER, 2), _IMMERKAER, mode="constant") / 36.0
+    c = rho.shape[0] // 2
+    total = 0.0
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            pairs = max(window - abs(dy), 0) * max(window - abs(dx), 0)
+            total += pairs * rho[c + dy, c + dx] ** 2
+    return window**4 / total
+
 
 def window_statistics(plane: np.ndarray, lo: float, hi: float, window: int = 7) -> WindowStats:
-    """Local mean, noise variance and texture of ``plane`` (H, W) in ``window`` x
-    ``window`` windows.  The variance is the window mean of the squared Immerkaer
-    residual / 36 (smooth shading does not count as noise); the texture is the max
-    |Laplacian|.  Windows touching a value ``<= lo`` or ``>= hi`` (clipping) or the
-    border are dropped."""
+    """Local statistics of one frame (the paper's method).
+
+    plane : (H, W) linear values (code values above black).  Per ``window`` x ``window``
+    window: the mean; the noise variance as the window mean of the squared Immerkaer
+    residual / 36 (smooth shading does not count as noise); the texture as the largest
+    |Laplacian|.  Windows touching a value ``<= lo`` or ``>= hi`` (clipping) or the border
+    are dropped."""
     x = np.asarray(plane, dtype=np.float64)
     mean = ndimage.uniform_filter(x, window, mode="reflect")
     resid = ndimage.convolve(x, _IMMERKAER, mode="reflect")
     var = ndimage.uniform_filter(resid * resid, window, mode="reflect") / 36.0
     texture = ndimage.maximum_filter(np.abs(ndimage.laplace(x)), window)
-    ok = (ndimage.minimum_filter(x, window + 2) > lo) & (ndimage.maximum_filter(x, window + 2) < hi)
-    r = window // 2 + 2
-    ok[:r], ok[-r:], ok[:, :r], ok[:, -r:] = False, False, False, False
-    return WindowStats(mean[ok], var[ok], texture[ok])
+    ok = _valid([x], lo, hi, window)
+    return WindowStats(mean[ok], var[ok], texture[ok], immerkaer_dof(window))
 
 
-def binned_variance(ws: WindowStats, bins: int = 64, reject: float = 3.0, min_count: int = 20):
-    """Variance against mean: windows binned by mean (equal counts); in each bin, windows
-    whose texture exceeds ``reject`` times the bin's median texture (edges, strong
-    texture) are dropped and the variance is the mean over the rest.  Rejecting only
-    outliers keeps the selection from favouring windows whose noise happened to be low.
-    Returns (means, variances, counts) of the bins."""
-    if ws.mean.size < bins * min_count:
-        bins = max(ws.mean.size // min_count, 0)
-    if bins < 3:
-        raise HdrMergeError(f"too few usable flat windows ({ws.mean.size}) to measure the noise")
-    edges = np.unique(np.quantile(ws.mean, np.linspace(0, 1, bins + 1)))
-    which = np.clip(np.searchsorted(edges, ws.mean, side="right") - 1, 0, edges.size - 2)
+#: mean of a pixel's 8 neighbours
+_NEIGHBOURS = np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.0]]) / 8.0
+
+
+def exposure_ratio(short: np.ndarray, long: np.ndarray, lo: float, hi: float) -> float:
+    """Exposure ratio ``r = E[y_long] / E[y_short]`` of two frames of one static scene,
+    measured (not taken from EXIF, whose times are nominal): the ratio of sums over pixels
+    that are well exposed in both frames (short above 2 % and long below 70 % of the
+    range).  The choice is made on the mean of each pixel's 8 neighbours, whose noise is
+    independent of the pixel's own: choosing on the pixel's own noisy values biases both
+    sums (by 0.5 % at ratio 4 on a textured scene, which leaks texture into the pair
+    variances).  Raises :class:`HdrMergeError` when fewer than 1000 pixels qualify."""
+    s = np.asarray(short, np.float64)
+    g = np.asarray(long, np.float64)
+    base = max(lo, 0.0)
+    ns = ndimage.correlate(s, _NEIGHBOURS, mode="reflect")
+    ng = ndimage.correlate(g, _NEIGHBOURS, mode="reflect")
+    use = (ns > base + 0.02 * (hi - base)) & (ng < base + 0.7 * (hi - base)) & (s > lo) & (g < hi)
+    use[0], use[-1], use[:, 0], use[:, -1] = False, False, False, False
+    if np.count_nonzero(use) < 1000:
+        raise HdrMergeError("the frames share too few well-exposed pixels")
+    return float(np.sum(g[use]) / np.sum(s[use]))
+
+
+def pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo: float, hi: float,
+                    window: int = 7) -> WindowStats:
+    """Local statistics of the exposure-normalised difference ``d = long - ratio * short``
+    of two frames (H, W) of one static scene: per window the mean of ``long`` and the
+    sample variance of ``d`` (49 independent pixels, 48 degrees of freedom).  Scene texture
+    and gain FPN cancel in ``d``; ``Var[d] = sigma_o^2 (1 + r^2) + sqrt(alpha) mu (1 + r)``."""
+    s = np.asarray(short, dtype=np.float64)
+    g = np.asarray(long, dtype=np.float64)
+    d = g - ratio * s
+    n = window * window
+    mean = ndimage.uniform_filter(g, window, mode="reflect")
+    dm = ndimage.uniform_filter(d, window, mode="reflect")
+    var = (ndimage.uniform_filter(d * d, window, mode="reflect") - dm * dm) * (n / (n - 1.0))
+    ok = _valid([s, g], lo, hi, window)
+    return WindowStats(mean[ok], var[ok], np.zeros(np.count_nonzero(ok)), float(n - 1))
+
+
+def texture_limit(mean: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Largest |Laplacian| a flat window of mean ``mean`` shows under the noise model
+    ``coef = (c0, c1, c2)``: ``TEXTURE_SIGMAS`` standard deviations of the Laplacian of
+    white noise of the predicted variance."""
+    pred = np.maximum(coef[0] + coef[1] * mean + coef[2] * mean * mean, 1e-12)
+    return TEXTURE_SIGMAS * np.sqrt(LAPLACE_GAIN * pred)
+
+
+@dataclass
+class VariancePoints:
+    """Binned measurements: ``mean``, ``var``, ``count`` (N,) and the model rows
+    ``design`` (N, 3) such that ``E[var] = design @ (c0, c1, c2)``; ``kind`` (N,) names
+    the measurement ("local" or "pair")."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    count: np.ndarray
+    design: np.ndarray
+    kind: np.ndarray
+
+    @staticmethod
+    def concat(parts: list["VariancePoints"]) -> "VariancePoints":
+        return VariancePoints(*(np.concatenate([getattr(p, k) for p in parts])
+                                for k in ("mean", "var", "count", "design", "kind")))
+
+
+def binned_variance(ws: WindowStats, ratio: float | None = None, bins: int = 64, min_count: int = 20,
+                    max_texture: np.ndarray | None = None, reject: float = 3.0, robust: bool = True) -> VariancePoints:
+    """Variance against mean: windows binned by mean (equal counts).  Textured windows are
+    dropped: those above ``max_texture`` (per window, from :func:`texture_limit`) or, when
+    no noise model is known yet, above ``reject`` times the bin's median texture.  Each
+    bin's variance is, with ``robust``, the *median* window variance divided by the median
+    of a scaled chi-square of ``ws.dof`` degrees of freedom (unbiased for pure noise, and
+    robust to texture that the Laplacian test lets through in a minority of windows), else
+    the mean (unbiased also when the variance changes within a window, as in the
+    exposure-pair differences, which hold no texture).
+
+    ``ratio`` None gives local-statistics rows ``[1, mu, mu^2]``; a number gives the
+    exposure-pair rows ``[1 + r^2, mu (1 + r), 0]``."""
+    keep = np.ones(ws.mean.size, bool) if max_texture is None else ws.texture <= max_texture
+    mean, var, tex = ws.mean[keep], ws.var[keep], ws.texture[keep]
+    if mean.size < bins * min_count:
+        bins = max(mean.size // min_count, 0)
+    if bins < 1:
+        return variance_points([], [], [], ratio)
+    edges = np.unique(np.quantile(mean, np.linspace(0, 1, bins + 1)))
+    which = np.clip(np.searchsorted(edges, mean, side="right") - 1, 0, edges.size - 2)
+    order = np.argsort(which, kind="stable")
+    starts = np.searchsorted(which[order], np.arange(edges.size))
+    median_factor = stats.chi2.median(ws.dof) / ws.dof
     mus, vs, ns = [], [], []
     for b in range(edges.size - 1):
-        sel = which == b
-        if np.count_nonzero(sel) < min_count:
+        sel = order[starts[b]:starts[b + 1]]
+        if max_texture is None and sel.size:
+            sel = sel[tex[sel] <= reject * np.median(tex[sel])]
+        if sel.size < min_count:
             continue
-        tex = ws.texture[sel]
-        flat = tex <= reject * np.median(tex)
-        if np.count_nonzero(flat) < min_count:
-            continue
-        mus.append(np.mean(ws.mean[sel][flat]))
-        vs.append(np.mean(ws.var[sel][flat]))
-        ns.append(np.count_nonzero(flat))
-    return np.array(mus), np.array(vs), np.array(ns)
+        mus.append(np.mean(mean[sel]))
+        vs.append(np.median(var[sel]) / median_factor if robust else np.mean(var[sel]))
+        ns.append(sel.size)
+    return variance_points(mus, vs, ns, ratio)
+
+
+def variance_points(mean, var, count, ratio: float | None = None) -> VariancePoints:
+    """Binned (mean, var, count) as :class:`VariancePoints`: local-statistics rows when
+    ``ratio`` is None, exposure-pair rows for that exposure ratio otherwise."""
+    mu = np.asarray(mean, np.float64)
+    if ratio is None:
+        design = np.stack([np.ones_like(mu), mu, mu * mu], axis=1)
+    else:
+        design = np.stack([np.full_like(mu, 1 + ratio**2), mu * (1 + ratio), np.zeros_like(mu)], axis=1)
+    kind = np.full(mu.size, "local" if ratio is None else "pair")
+    return VariancePoints(mu, np.asarray(var, np.float64), np.asarray(count, np.float64), design.reshape(-1, 3), kind)
 
 
 @dataclass
 class NoiseFit:
+    """Parameters of (17) with the fit's statistics: the model kept ("affine": beta = 0,
+    or "quadratic"), the F statistic and p-value of the quadratic term, the number of
+    binned points, their relative RMS residual, and the points themselves (for plots)."""
+
     sigma_o2: float
     alpha: float
     beta: float
-    model: str  # "affine" or "quadratic"
+    model: str
     points: int
     f_statistic: float
     p_value: float
-    residual_rms: float  # relative residual of the variance, RMS over the bins
+    residual_rms: float
+    data: VariancePoints | None = None
+
+    @property
+    def coef(self) -> np.ndarray:
+        return np.array([self.sigma_o2, np.sqrt(self.alpha), self.beta / self.alpha])
 
     def as_dict(self) -> dict:
-        return {k: float(v) if isinstance(v, (float, np.floating)) else v for k, v in asdict(self).items()}
+        out = {k: v for k, v in asdict(self).items() if k != "data"}
+        return {k: float(v) if isinstance(v, (float, np.floating)) else v for k, v in out.items()}
 
 
-def fit_noise_model(mu: np.ndarray, var: np.ndarray, counts: np.ndarray, p_threshold: float = 0.01) -> NoiseFit:
-    """Weighted non-negative least squares of (17) on binned (mean, variance) points.
+def _robust_wls(design, var, counts, free, fixed):
+    """Non-negative weighted least squares of ``var ~ design @ c`` over the coefficients
+    ``free`` (the others held at ``fixed``), with a soft-L1 loss on the standardised
+    residuals ``sqrt(count / 2) (var - pred) / pred`` (a bin's variance estimate has
+    relative variance ~2 / count); re-weighted three times.  Returns (c, residuals)."""
+    full = np.array(fixed, dtype=np.float64)
+    rest = [k for k in range(3) if k not in free]
+    offset = design[:, rest] @ full[rest]
+    d = design[:, free]
+    pred = np.maximum(var, 1e-12)
+    for _ in range(3 if free else 0):
+        w = np.sqrt(counts / 2.0) / np.maximum(pred, 1e-12)
+        start, _ = optimize.nnls(d * w[:, None], (var - offset) * w)
+        res = optimize.least_squares(lambda c: w * (d @ c + offset - var), start, bounds=(0, np.inf),
+                                     loss="soft_l1", f_scale=3.0, x_scale="jac")
+        full[free] = res.x
+        pred = np.maximum(design @ full, 1e-12)
+    pred = np.maximum(design @ full, 1e-12)
+    return full, np.sqrt(counts / 2.0) * (var - pred) / pred
 
-    Each bin's variance estimate has relative variance ~ 2 / count, so its weight is
-    ``count / var_model^2`` (two re-weighting passes).  The quadratic term is kept when
-    the F-test of the nested models gives ``p < p_threshold``."""
-    mu, var, counts = (np.asarray(a, np.float64) for a in (mu, var, counts))
-    if mu.size < 4:
-        raise HdrMergeError(f"too few intensity levels ({mu.size}) to fit the noise model")
 
-    def solve(deg):
-        design = np.stack([mu**k for k in range(deg + 1)], axis=1)
-        pred = np.maximum(var, 1e-12)
-        for _ in range(3):
-            w = np.sqrt(counts) / np.maximum(pred, 1e-12)
-            coef, _ = optimize.nnls(design * w[:, None], var * w)
-            pred = design @ coef
-        rss = float(np.sum((counts / np.maximum(pred, 1e-12) ** 2) * (var - pred) ** 2))
-        return coef, rss, pred
-
-    c_aff, rss_aff, pred_aff = solve(1)
-    c_quad, rss_quad, pred_quad = solve(2)
-    dof = mu.size - 3
-    f_stat = max((rss_aff - rss_quad), 0.0) / max(rss_quad / dof, 1e-300) if dof > 0 else 0.0
-    p = float(stats.f.sf(f_stat, 1, dof)) if dof > 0 else 1.0
+def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
+                    known: tuple[float, float] | None = None) -> NoiseFit:
+    """Robust fit of (17) to binned points (:class:`VariancePoints`), affine and quadratic;
+    the quadratic term is kept when the F-test of the nested models gives
+    ``p < p_threshold`` (residual sums over the points both fits treat as inliers,
+    |standardised residual| <= 5 robust scales).  ``known = (c0, c1)`` holds sigma_o^2 and
+    sqrt(alpha) fixed (measured elsewhere) and fits and tests beta alone."""
+    if points.mean.size < 4:
+        raise HdrMergeError(f"too few intensity levels ({points.mean.size}) to fit the noise model")
+    var, counts, design = points.var, points.count, points.design
+    base = [known[0], known[1], 0.0] if known else [0.0, 0.0, 0.0]
+    c_aff, r_aff = _robust_wls(design, var, counts, [] if known else [0, 1], base)
+    quad_possible = bool(np.any(design[:, 2] > 0)) and points.mean.size >= 5
+    c_quad, r_quad = _robust_wls(design, var, counts, [2] if known else [0, 1, 2], base) if quad_possible \
+        else (c_aff, r_aff)
+    scale = 1.4826 * np.median(np.abs(r_quad)) + 1e-12
+    inl = (np.abs(r_quad) <= 5 * scale) & (np.abs(r_aff) <= 5 * max(scale, 1.4826 * np.median(np.abs(r_aff))))
+    dof = int(np.count_nonzero(inl)) - (1 if known else 3)
+    if quad_possible and dof > 0:
+        rss_aff, rss_quad = float(np.sum(r_aff[inl] ** 2)), float(np.sum(r_quad[inl] ** 2))
+        f_stat = max(rss_aff - rss_quad, 0.0) / max(rss_quad / dof, 1e-300)
+        p = float(stats.f.sf(f_stat, 1, dof))
+    else:
+        f_stat, p = 0.0, 1.0
     quadratic = p < p_threshold and c_quad[2] > 0
-    coef, pred = (c_quad, pred_quad) if quadratic else (np.append(c_aff, 0.0), pred_aff)
+    coef, r = (c_quad, r_quad) if quadratic else (c_aff, r_aff)
     if coef[1] <= 0:
         raise HdrMergeError("the noise does not grow with the signal: cannot estimate the gain")
     alpha = coef[1] ** 2
-    resid = float(np.sqrt(np.mean(((var - pred) / np.maximum(pred, 1e-12)) ** 2)))
+    rel = r / np.sqrt(counts / 2.0)
     return NoiseFit(float(coef[0]), float(alpha), float(coef[2] * alpha), "quadratic" if quadratic else "affine",
-                    int(mu.size), float(f_stat), p, resid)
+                    int(points.mean.size), float(f_stat), p, float(np.sqrt(np.mean(rel**2))), points)
+
+
+def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int = 7, bins: int = 64,
+                   pairs: bool = True, p_threshold: float = 0.01) -> tuple[NoiseFit, list[float]]:
+    """Noise parameters of one channel from frames of one scene at one ISO.
+
+    planes : list of (H, W) float arrays, linear values (code values above black),
+        sorted by exposure (shortest first); one frame is allowed.
+    lo, hi : values at or beyond which a pixel is clipped.
+    pairs : use the exposure pairs of consecutive frames (needs a static scene).
+
+    With exposure pairs (texture-free), sigma_o^2 and alpha come from the pairs alone, and
+    beta (with its F-test) from the local statistics of every frame, binned after
+    rejecting windows whose Laplacian exceeds :data:`TEXTURE_SIGMAS` noise standard
+    deviations of the pairs' model.  Without pairs (one frame, or frames too far apart)
+    the local statistics give everything: a first fit with median-relative texture
+    rejection, then the noise-relative rejection and the final fit.  Returns the fit and
+    the measured exposure ratios of the pairs used."""
+    local = [window_statistics(p, lo, hi, window) for p in planes]
+    pair_points, ratios = [], []
+    if pairs:
+        for s, g in zip(planes[:-1], planes[1:]):
+            try:
+                r = exposure_ratio(s, g, lo, hi)
+            except HdrMergeError:
+                continue
+            pts = binned_variance(pair_statistics(s, g, r, lo, hi, window), ratio=r, bins=max(bins // 2, 4),
+                                  robust=False)
+            if r > 1.05 and pts.mean.size >= 4:
+                pair_points.append(pts)
+                ratios.append(r)
+    pooled = WindowStats.concat(local)
+    if not pair_points:
+        first = fit_noise_model(binned_variance(pooled, bins=bins), p_threshold).coef
+        points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, first))
+        if points.mean.size < 4:
+            raise HdrMergeError(f"too few usable flat windows ({pooled.mean.size}) to measure the noise")
+        return fit_noise_model(points, p_threshold), ratios
+    pair_data = VariancePoints.concat(pair_points)
+    fit = fit_noise_model(pair_data, p_threshold)
+    local_points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, fit.coef))
+    if local_points.mean.size >= 4:  # beta from the flat windows, sigma_o^2 and alpha held
+        fit = fit_noise_model(local_points, p_threshold, known=(fit.coef[0], fit.coef[1]))
+    data = VariancePoints.concat([pair_data, local_points])
+    rel = (data.var - data.design @ fit.coef) / np.maximum(data.design @ fit.coef, 1e-12)
+    fit.data, fit.points, fit.residual_rms = data, int(data.mean.size), float(np.sqrt(np.mean(rel**2)))
+    return fit, ratios

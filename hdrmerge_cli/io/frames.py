@@ -107,6 +107,17 @@ def is_raw_path(path: str | os.PathLike) -> bool:
     return Path(path).suffix.lower() not in IMAGE_EXTENSIONS
 
 
+def list_frames(folder: str | os.PathLike) -> list[str]:
+    """The frames in ``folder``: every regular, non-hidden file that is not a sidecar or
+    an output of this tool (.json, .xmp, .exr, .txt, .csv), sorted by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise HdrMergeError(f"{folder}: not a folder")
+    skip = {".json", ".xmp", ".exr", ".txt", ".csv", ".md"}
+    return [str(p) for p in sorted(folder.iterdir())
+            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() not in skip]
+
+
 def read_frame(path: str | os.PathLike) -> Frame:
     """Metadata of one frame (RAW or image), validated; raises HdrMergeError."""
     path = str(path)

@@ -1,73 +1,343 @@
-"""calibrate-noise: fit the noise model (17) per ISO and channel into a profile."""
+"""calibrate-noise: fit the noise model (17) per ISO and channel into a profile, from
+ordinary photographs (local statistics and exposure pairs) and/or from dark and flat
+frames (photon transfer, the reference when available)."""
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.calibrate import binned_variance, fit_noise_model, window_statistics, WindowStats
+from hdrmerge_cli.core.calibrate import NoiseFit, estimate_noise
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable
-from hdrmerge_cli.io.frames import load_codes, raw_channel_map, read_frame
-from hdrmerge_cli.io.profile import new_profile, save_profile
-from hdrmerge_cli.pipeline.merge import choose_crf
+from hdrmerge_cli.io.crfspec import resolve_crf
+from hdrmerge_cli.io.frames import Frame, list_frames, load_codes, raw_channel_map, read_frame
+from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
+from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
 
 log = logging.getLogger("hdrmerge_cli")
 
+#: a frame with less than this fraction of unclipped pixels is skipped
+MIN_UNCLIPPED = 0.01
 
-def _planes(frame, codes, crf):
-    """(name, plane in code values above black, lo, hi) per channel."""
+NOISE_UNITS = ("code values above black (RAW) or linearised code values at the image's bit depth; "
+               "x in photo-electrons, Var[y] = sigma_o2 + alpha x + beta x^2")
+
+
+@dataclass
+class CalibrateOptions:
+    output: Path | None = None
+    darks: str | None = None
+    flats: str | None = None
+    crf: str | None = None
+    profile: str | None = None
+    plot: Path | None = None
+    window: int = 7
+    bins: int = 64
+    overwrite: bool = False
+
+
+def iso_key(frame: Frame) -> str:
+    return f"ISO{frame.iso:g}" if frame.iso else "ISO_unknown"
+
+
+def channel_planes(frame: Frame, codes: np.ndarray, crf):
+    """(name, plane of linear values above black (H', W') float64, lo, hi) per channel:
+    the CFA sites of one colour for RAW, the linearised colour channels otherwise."""
     if frame.kind == "raw":
-        names = frame.channel_names
         cmap = raw_channel_map(frame.path)
-        for k in range(4):
+        for k, name in enumerate(frame.channel_names):
             ys, xs = np.nonzero(cmap[:2, :2] == k)
-            if ys.size == 0:
-                continue
-            plane = codes[ys[0]::2, xs[0]::2].astype(np.float64) - frame.black[k]
-            yield names[k], plane, -frame.black[k], frame.white[k] - frame.black[k]
+            if ys.size:
+                plane = codes[ys[0]::2, xs[0]::2].astype(np.float64) - frame.black[k]
+                yield name, plane, -frame.black[k], frame.white[k] - frame.black[k]
         return
     full = frame.n_codes - 1.0
     for c in range(frame.channels):
         lin = crf.inverse(codes[..., c] / full, c) * full
-        yield frame.channel_colors[c], lin, crf.inverse(np.array([0.5 / full]), c)[0] * full, crf.inverse(
-            np.array([(full - 0.5) / full]), c)[0] * full
+        lo, hi = crf.inverse(np.array([0.5 / full, (full - 0.5) / full]), c) * full
+        yield frame.channel_colors[c], lin, lo, hi
 
 
-def calibrate_noise(paths, output: Path, crf_spec=None, window: int = 7, bins: int = 64,
-                    overwrite: bool = False) -> dict:
-    t0 = time.perf_counter()
-    check_writable(output, overwrite)
-    frames = [read_frame(p) for p in paths]
-    first = frames[0]
-    for f in frames[1:]:
-        if f.kind != first.kind or f.camera != first.camera:
-            raise HdrMergeError(f"{f.path}: a different camera or file type than {first.path}")
-    crf = choose_crf(frames, crf_spec)
-    pooled: dict[str, dict[str, list[WindowStats]]] = {}
+def _usable(frame: Frame, planes) -> str | None:
+    """Why a frame cannot be used (all clipped, or black), or None.  planes: as
+    :func:`channel_planes` yields them."""
+    inside = np.mean([np.mean((p > lo) & (p < hi)) for _, p, lo, hi in planes])
+    if inside < MIN_UNCLIPPED:
+        return f"{100 * (1 - inside):.1f} % of its pixels are clipped"
+    top = max(np.percentile(p[::4, ::4], 99) / (hi - max(lo, 0.0)) for _, p, lo, hi in planes)
+    if top < 0.002:
+        return "it is black (no signal above 0.2 % of the range)"
+    return None
+
+
+def _read_group(frames: list[Frame], crf, what: str) -> dict[str, list]:
+    """{channel: [(plane, lo, hi, frame) per usable frame]}, in the order of ``frames``;
+    photographs that are all clipped or black are skipped with a warning."""
+    out: dict[str, list] = {}
     for f in frames:
-        codes = load_codes(f)
-        iso = f"ISO{f.iso:g}" if f.iso else "ISO_unknown"
-        for name, plane, lo, hi in _planes(f, codes, crf):
-            pooled.setdefault(iso, {}).setdefault(name, []).append(window_statistics(plane, lo, hi, window))
-    noise = {}
-    for iso, chans in pooled.items():
-        noise[iso] = {}
-        for name, parts in chans.items():
-            ws = WindowStats(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("mean", "var", "texture")))
-            try:
-                fit = fit_noise_model(*binned_variance(ws, bins=bins))
-            except HdrMergeError as exc:
-                raise HdrMergeError(f"{first.path} ({iso}, channel {name}): {exc}") from None
-            noise[iso][name] = fit.as_dict() | {"method": "local-statistics", "window": window}
-            log.info("%s %s: sigma_o2=%.4g alpha=%.4g beta=%.3g (%s, %d levels)", iso, name, fit.sigma_o2,
-                     fit.alpha, fit.beta, fit.model, fit.points)
-    profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames],
-                          "calibrate-noise")
-    profile["noise"] = noise
-    profile["noise_units"] = ("code values above black (RAW) or linearised code values at the image's bit depth; "
-                              "x in photo-electrons, Var[y] = sigma_o2 + alpha x + beta x^2")
-    save_profile(output, profile, overwrite)
-    return {"output": str(output), "noise": noise, "seconds": round(time.perf_counter() - t0, 4)}
+        planes = list(channel_planes(f, load_codes(f), crf))
+        if what == "images":
+            reason = _usable(f, planes)
+            if reason:
+                log.warning("%s: skipped, %s", f.path, reason)
+                continue
+        for name, plane, lo, hi in planes:
+            out.setdefault(name, []).append((plane, lo, hi, f))
+    return out
+
+
+def frame_report(frame: Frame, planes, params: dict[str, dict]) -> dict:
+    """Whether a frame is photon- or offset-noise limited: the SNR breaking point is where
+    the photon noise alpha x equals the read noise sigma_o^2, x* = sigma_o^2 / alpha
+    electrons, i.e. E* = sigma_o^2 / (alpha t) electrons per second and
+    y* = sigma_o^2 / sqrt(alpha) code values; pixels above it are photon-noise limited."""
+    above, total, breaks = 0, 0, {}
+    for name, plane, lo, hi in planes:
+        p = params.get(name)
+        if not p:
+            continue
+        y_star = p["sigma_o2"] / np.sqrt(p["alpha"])
+        ok = (plane > lo) & (plane < hi)
+        above += int(np.count_nonzero(plane[ok] > y_star))
+        total += int(np.count_nonzero(ok))
+        breaks[name] = {"code_value": round(float(y_star), 4),
+                        "electrons_per_second": (float(p["sigma_o2"] / (p["alpha"] * frame.exposure_time))
+                                                 if frame.exposure_time else None)}
+    frac = above / max(total, 1)
+    return {"path": frame.path, "exposure_time": frame.exposure_time, "iso": frame.iso,
+            "limited": "photon" if frac >= 0.5 else "offset", "photon_limited_fraction": round(frac, 4),
+            "break_point": breaks}
+
+
+def _fit_entry(fit: NoiseFit, pairs: list[float], window: int) -> dict:
+    paired = bool(pairs)
+    source = "exposure pairs" if paired else "local statistics"
+    return fit.as_dict() | {
+        "method": {"sigma_o2": source, "alpha": source,
+                   "beta": "local statistics" + (" (scene texture and gain FPN look alike in one bracket; "
+                                                 "--flats measures beta)" if fit.beta > 0 else "")},
+        "window": window, "exposure_ratios": [round(r, 5) for r in pairs],
+    }
+
+
+def _ptc_entry(r: PTCResult) -> dict:
+    return {
+        "sigma_o2": r.sigma_o2, "alpha": r.alpha, "beta": r.beta, "model": r.model,
+        "points": int(np.count_nonzero(r.used)), "residual_rms": r.residual_rms,
+        "z_statistic": r.z_statistic, "p_value": r.p_value,
+        "dark_offset": r.dark_offset, "dsnu2": r.dsnu2,
+        "method": {"sigma_o2": "photon transfer: darks" if r.dark_offset is not None
+                   else "photon transfer: intercept of the flats",
+                   "alpha": "photon transfer: flats", "beta": "photon transfer: averaged flats"},
+        "levels": {"mean": r.mean.tolist(), "temporal_variance": r.temporal.tolist(),
+                   "spatial_variance": r.spatial.tolist(), "in_linear_range": r.used.tolist()},
+    }
+
+
+def _combine(image: dict | None, ptc: dict | None) -> dict:
+    """Each parameter from its best source: sigma_o^2 from darks, else the photographs,
+    else the flats' intercept; alpha and beta from the flats, else the photographs."""
+    if ptc is None:
+        return image
+    if image is None:
+        return ptc
+    out = ptc | {"from_photographs": {k: image[k] for k in ("sigma_o2", "alpha", "beta", "model")}}
+    if ptc["dark_offset"] is None:
+        out["sigma_o2"] = image["sigma_o2"]
+        out["method"] = ptc["method"] | {"sigma_o2": image["method"]["sigma_o2"]}
+    return out
+
+
+def _check_group(frames: list[Frame], what: str, reference: Frame | None) -> None:
+    for f in frames:
+        ref = reference or frames[0]
+        if f.kind != ref.kind or f.camera != ref.camera:
+            raise HdrMergeError(f"{f.path}: a different camera or file type than {ref.path}")
+    isos = {f.iso is None for f in frames}
+    if len(isos) > 1:
+        missing = next(f for f in frames if f.iso is None)
+        raise HdrMergeError(f"{missing.path}: no ISO in the metadata while other {what} have one; "
+                            "calibrate frames of unknown ISO separately")
+
+
+def _calibration_frames(folder: str | None, what: str) -> list[Frame]:
+    if folder is None:
+        return []
+    frames = [read_frame(p) for p in list_frames(folder)]
+    if not frames:
+        raise HdrMergeError(f"{folder}: no image or RAW files among the {what}")
+    return frames
+
+
+def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
+    t0 = time.perf_counter()
+    output = opts.output or (Path(opts.profile) if opts.profile else None)
+    if output is None:
+        raise HdrMergeError("give -o/--output (or --profile to update a profile in place)")
+    updating = opts.profile is not None and Path(opts.profile).resolve() == Path(output).resolve()
+    check_writable(output, opts.overwrite or updating)
+    if opts.plot:
+        check_figure_path(opts.plot, opts.overwrite)
+    if not paths and not opts.flats and not opts.darks:
+        raise HdrMergeError("give photographs (IMAGES), or calibration frames with --flats (and --darks)")
+    if opts.darks and not opts.flats and not paths:
+        raise HdrMergeError("--darks measure the read noise only: add --flats or photographs for the gain")
+    base = load_profile(opts.profile) if opts.profile else None
+    images = [read_frame(p) for p in paths]
+    darks = _calibration_frames(opts.darks, "darks")
+    flats = _calibration_frames(opts.flats, "flats")
+    everything = images + darks + flats
+    first = everything[0]
+    _check_group(everything, "frames", None)
+    if base and base.get("camera") and base["camera"].get("model") and \
+            (base["camera"].get("make"), base["camera"].get("model")) != (first.make, first.model):
+        raise HdrMergeError(f"{opts.profile}: a profile of {base['camera'].get('make')} {base['camera'].get('model')}, "
+                            f"not of {first.camera} ({first.path})")
+    crf = _choose_crf(first, opts, base)
+
+    noise: dict[str, dict] = {}
+    reports: list[dict] = []
+    plot_data: dict[str, dict] = {}
+    isos = sorted({iso_key(f) for f in everything})
+    for iso in isos:
+        group = sorted((f for f in images if iso_key(f) == iso), key=lambda f: f.exposure_time or 0.0)
+        fits: dict[str, dict] = {}
+        if group:
+            planes = _read_group(group, crf, "images")
+            if not planes:
+                raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (all clipped or black)")
+            for name, items in planes.items():
+                try:
+                    fit, ratios = estimate_noise([p for p, *_ in items], items[0][1], items[0][2], opts.window,
+                                                 opts.bins)
+                except HdrMergeError as exc:
+                    raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
+                fits[name] = _fit_entry(fit, ratios, opts.window)
+                plot_data.setdefault(iso, {})[name] = {"fit": fit}
+        ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f) == iso], [f for f in flats if iso_key(f) == iso],
+                                crf)
+        if not fits and not ptcs:
+            continue
+        noise[iso] = {name: _combine(fits.get(name), ptcs.get(name)) for name in sorted(set(fits) | set(ptcs))}
+        for name, e in noise[iso].items():
+            plot_data.setdefault(iso, {}).setdefault(name, {})["levels"] = e.get("levels")
+            log.info("%s %s: sigma_o2=%.4g alpha=%.4g beta=%.3g (%s; %s)", iso, name, e["sigma_o2"], e["alpha"],
+                     e["beta"], e["model"], ", ".join(f"{k} from {v}" for k, v in e["method"].items()))
+        used = {id(f): f for items in (planes.values() if group else []) for *_, f in items}
+        for f in used.values():
+            mine = [(name, p, lo, hi) for name, items in planes.items() for p, lo, hi, g in items if g is f]
+            rep = frame_report(f, mine, noise[iso])
+            reports.append(rep)
+            log.info("%s: %s-noise limited (%.0f %% of pixels above the SNR breaking point)", f.name, rep["limited"],
+                     100 * rep["photon_limited_fraction"])
+    if not noise:
+        raise HdrMergeError("no usable frames to calibrate")
+
+    if base is not None:
+        profile = base
+        for iso, entries in noise.items():
+            profile.setdefault("noise", {}).setdefault(iso, {}).update(entries)
+        profile.setdefault("provenance", {})["noise_command"] = "calibrate-noise"
+    else:
+        profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
+                              [f.path for f in everything], "calibrate-noise")
+        profile["noise"] = noise
+    profile["noise_units"] = NOISE_UNITS
+    if opts.plot:
+        plot_noise(opts.plot, noise, plot_data, opts.overwrite)
+    save_profile(output, profile, opts.overwrite or updating)
+    return {"output": str(output), "noise": noise, "frames": reports, "plot": str(opts.plot) if opts.plot else None,
+            "seconds": round(time.perf_counter() - t0, 4)}
+
+
+def _choose_crf(first: Frame, opts: CalibrateOptions, base: dict | None):
+    """RAW is linear; JPEG/TIFF/PNG need their response: --crf, else the profile's."""
+    from hdrmerge_cli.core.crf import CRF
+
+    if first.kind == "raw":
+        return CRF("linear")
+    if opts.crf:
+        return resolve_crf(opts.crf)
+    if base is not None:
+        return crf_from_json(base["crf"])
+    raise HdrMergeError(f"{first.path}: the noise of JPEG/TIFF/PNG frames is measured on linear values; give their "
+                        "camera response with --crf (linear for linear TIFFs, or a profile from estimate-crf)")
+
+
+def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> dict[str, dict]:
+    if not flats:
+        if darks:
+            log.warning("%s: darks without flats are ignored for %s (the gain needs flats)", darks[0].path, iso)
+        return {}
+    dark_planes = _read_group(darks, crf, "darks") if darks else {}
+    by_time: dict[float, list[Frame]] = {}
+    for f in flats:
+        if not f.exposure_time:
+            raise HdrMergeError(f"{f.path}: no exposure time in the metadata (flats are grouped by exposure time)")
+        by_time.setdefault(f.exposure_time, []).append(f)
+    for t, fs in by_time.items():
+        if len(fs) < 2:
+            log.warning("%s: the only flat at %g s; photon transfer needs pairs, skipped", fs[0].path, t)
+    levels = [_read_group(fs, crf, "flats") for _, fs in sorted(by_time.items()) if len(fs) >= 2]
+    out = {}
+    for name in (levels[0] if levels else {}):
+        lv = [[p for p, *_ in level[name]] for level in levels]
+        full = levels[0][name][0][2]
+        try:
+            r = photon_transfer([p for p, *_ in dark_planes[name]] if name in dark_planes else None, lv, full)
+        except HdrMergeError as exc:
+            raise HdrMergeError(f"{flats[0].path} ({iso}, channel {name}): {exc}") from None
+        out[name] = _ptc_entry(r)
+    if not out:
+        raise HdrMergeError(f"{flats[0].path}: photon transfer needs at least two flats per exposure time")
+    return out
+
+
+def plot_noise(path: Path, noise: dict, plot_data: dict, overwrite: bool) -> None:
+    """Like the paper's Fig. 22: per ISO and channel, the measured noise variance against
+    the mean (log-log) with the fitted curve (17); exposure-pair points are scaled to one
+    frame by the model ratio, photon-transfer levels are drawn as measured."""
+    rows = [(iso, name) for iso in noise for name in noise[iso]]
+    cols = min(4, len(rows))
+    nrows = -(-len(rows) // cols)
+    fig, axes = pyplot().subplots(nrows, cols, figsize=(3.8 * cols, 3.4 * nrows), dpi=110, squeeze=False)
+    for ax, (iso, name) in zip(axes.ravel(), rows):
+        e = noise[iso][name]
+        coef = np.array([e["sigma_o2"], np.sqrt(e["alpha"]), e["beta"] / e["alpha"]])
+        data = plot_data.get(iso, {}).get(name, {})
+        fit, levels = data.get("fit"), data.get("levels")
+        xs = []
+        if fit is not None and fit.data is not None and fit.data.mean.size:
+            d = fit.data
+            single = coef[0] + coef[1] * d.mean + coef[2] * d.mean**2
+            scaled = d.var * single / np.maximum(d.design @ coef, 1e-12)
+            for kind, marker, label in (("local", "o", "local statistics"), ("pair", "^", "exposure pairs")):
+                k = (d.kind == kind) & (d.mean > 0)
+                if np.any(k):
+                    ax.plot(d.mean[k], scaled[k], marker, ms=3, alpha=0.6, label=label)
+                    xs.append(d.mean[k])
+        if levels is not None:
+            m = np.asarray(levels["mean"])
+            ax.plot(m[m > 0], np.asarray(levels["temporal_variance"])[m > 0], "s", ms=4, label="flats (temporal)")
+            xs.append(m[m > 0])
+        x = np.concatenate(xs) if xs else np.array([1.0, 1e4])
+        grid = np.geomspace(max(x.min(), 1e-3), x.max(), 200)
+        ax.plot(grid, coef[0] + coef[1] * grid + coef[2] * grid**2, "k-", lw=1.2,
+                label=f"fit ({e['model']})")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("local mean (code values above black)")
+        ax.set_ylabel("noise variance")
+        ax.set_title(f"{iso} {name}: sigma_o2={e['sigma_o2']:.3g}, alpha={e['alpha']:.3g}, beta={e['beta']:.2g}",
+                     fontsize=8)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(rows):]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    save_figure(fig, path, overwrite)

@@ -38,6 +38,7 @@ class SimulateOptions:
     scale: float = 1.0
     frames: int = 5
     times: list[float] | None = None
+    repeat: int = 1
     sensor: SensorModel = SensorModel()
     fmt: str = "dng"
     crf: str = "srgb"
@@ -74,9 +75,14 @@ def stored_time(folder: Path, fmt: str, t: float) -> float:
 
 
 def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
-    """Scene irradiance in photo-electrons per second, ``(H, W, 3)`` float64."""
+    """Scene irradiance in photo-electrons per second, ``(H, W, 3)`` float64: the built-in
+    procedural scene, a uniform ``flat`` field (1 per second times --scale: flat-field
+    calibration frames), ``dark`` (no light: dark frames) or an EXR."""
     if opts.scene in (None, "builtin"):
         scene, name = procedural_scene(opts.height, opts.width, opts.seed), "builtin"
+    elif opts.scene in ("flat", "dark"):
+        value = 1.0 if opts.scene == "flat" else 0.0
+        return np.full((opts.height - opts.height % 2, opts.width - opts.width % 2, 3), value * opts.scale), opts.scene
     else:
         pixels, _ = read_exr(opts.scene)
         if pixels.shape[-1] >= 3:
@@ -111,8 +117,18 @@ def simulate(opts: SimulateOptions) -> dict:
                             "use a larger --size or less --downscale")
     rng = np.random.default_rng(opts.seed)
     signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
-    times = np.asarray(opts.times if opts.times else auto_exposure_times(signal, sensor, opts.frames), float)
-    times = np.sort([photographic_time(t) for t in times])
+    if opts.times:
+        times = np.asarray(opts.times, float)
+    elif scene_name == "dark":
+        times = np.full(opts.frames, 1.0 / 100)
+    elif scene_name == "flat":  # a photon-transfer series: 2 % to 90 % of saturation
+        times = np.geomspace(0.02, 0.9, opts.frames) * sensor.saturation_electrons / (signal.max())
+    else:
+        times = auto_exposure_times(signal, sensor, opts.frames)
+    times = np.sort(np.repeat([photographic_time(t) for t in times], opts.repeat))
+    if opts.fmt == "dng" and times[0] < 1e-6:
+        raise HdrMergeError(f"exposure time {times[0]:.3g} s is shorter than a DNG can store (1e-6 s): "
+                            "lower --scale or give longer --times")
     pattern = gain_pattern(signal.shape, sensor, rng)
 
     out = Path(opts.output_dir)

@@ -1,0 +1,157 @@
+"""Noise-parameter estimation (17): local statistics, exposure pairs and photon transfer,
+against closed forms and Monte-Carlo simulations of the sensor model (seeded)."""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from hdrmerge_cli.core.calibrate import (
+    _IMMERKAER, binned_variance, estimate_noise, fit_noise_model, immerkaer_dof, pair_statistics, variance_points,
+    window_statistics,
+)
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.photon_transfer import IMMERKAER_SUM_RHO2, photon_transfer, spatial_variance, temporal_variance
+
+
+def expose(e, t, sigma_o2, alpha, rng, pattern=0.0):
+    """(16)-(17): Poisson electrons, gain sqrt(alpha) (1 + pattern), Gaussian read noise."""
+    return np.sqrt(alpha) * rng.poisson(e * t) * (1 + pattern) + rng.normal(0, np.sqrt(sigma_o2), np.shape(e))
+
+
+def textured_scene(rng, n=400):
+    """Strong texture at every scale (a real photograph's grain, edges and gradients)."""
+    base = np.exp(ndimage.gaussian_filter(rng.normal(0, 1.0, (n, n)), 6) * 12)
+    return 2000 * base / np.median(base) * np.abs(1 + 0.2 * rng.normal(0, 1, (n, n)))
+
+
+@pytest.mark.parametrize("sigma_o2,alpha,beta", [(16.0, 1.0, 0.0), (4.0, 0.25, 0.0), (9.0, 2.0, 5e-3)])
+def test_fit_recovers_parameters_from_exact_points(sigma_o2, alpha, beta):
+    mu = np.linspace(5, 3000, 40)
+    x = mu / np.sqrt(alpha)
+    fit = fit_noise_model(variance_points(mu, sigma_o2 + alpha * x + beta * x**2, np.full(mu.size, 1000)))
+    assert fit.model == ("quadratic" if beta else "affine")
+    assert fit.sigma_o2 == pytest.approx(sigma_o2, rel=1e-4)
+    assert fit.alpha == pytest.approx(alpha, rel=1e-4)
+    assert fit.beta == pytest.approx(beta, rel=1e-3, abs=1e-9)
+
+
+def test_fit_resists_outlier_bins_and_tests_beta_at_its_stated_level():
+    """Soft-L1 loss: three bins 10x too high (texture) barely move the fit.  F-test: on
+    points drawn with their sampling variance (2 v^2 / n) and beta = 0 the quadratic term
+    is kept in about 1 % of 200 draws (p < 0.01)."""
+    rng = np.random.default_rng(0)
+    mu = np.linspace(5, 3000, 40)
+    var = 9 + 0.5 * mu
+    bad = var.copy()
+    bad[[10, 20, 30]] *= 10
+    fit = fit_noise_model(variance_points(mu, bad, np.full(40, 5000)))
+    assert fit.alpha == pytest.approx(0.25, rel=0.02) and fit.sigma_o2 == pytest.approx(9, rel=0.05)
+    n = 2000
+    picks = [fit_noise_model(variance_points(mu, var * (1 + rng.normal(0, np.sqrt(2 / n), 40)), np.full(40, n))).model
+             for _ in range(200)]
+    assert picks.count("quadratic") <= 8
+
+
+def test_fit_with_known_offset_and_gain_tests_beta_alone():
+    mu = np.linspace(5, 3000, 40)
+    fit = fit_noise_model(variance_points(mu, 9 + 0.5 * mu + 2e-4 * mu**2, np.full(40, 1000)), known=(9.0, 0.5))
+    assert fit.model == "quadratic" and fit.beta == pytest.approx(2e-4 * 0.25, rel=1e-3)
+    assert (fit.sigma_o2, fit.alpha) == (9.0, 0.25)
+
+
+def test_window_statistics_measure_gaussian_noise_on_a_ramp():
+    """Monte-Carlo: white noise of variance 25 on a steep smooth ramp (shading must not
+    count as noise)."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:300, 0:300]
+    ws = window_statistics(100 + 2.0 * xx + 0.5 * yy + rng.normal(0, 5, (300, 300)), -1e9, 1e9)
+    assert np.mean(ws.var) == pytest.approx(25, rel=0.03)
+
+
+def test_immerkaer_degrees_of_freedom_match_monte_carlo():
+    """The window variance of white noise is a scaled chi-square with dof = N^2 / sum rho^2:
+    its relative variance 2 / dof matches the simulation to 5 %; and the plane mean's
+    variance factor of photon_transfer (sum of rho^2 over all lags) matches the closed form."""
+    rng = np.random.default_rng(1)
+    ws = window_statistics(rng.normal(0, 1, (1200, 1200)), -1e9, 1e9)
+    sub = ws.var[::7]  # decimate (neighbouring windows overlap) without changing the marginal
+    assert np.var(sub) / np.mean(sub) ** 2 == pytest.approx(2 / immerkaer_dof(7), rel=0.05)
+    rho = ndimage.correlate(np.pad(_IMMERKAER, 2), _IMMERKAER, mode="constant") / 36
+    assert np.sum(rho**2) == pytest.approx(IMMERKAER_SUM_RHO2, rel=1e-12)
+
+
+def test_median_binning_is_unbiased_for_pure_noise():
+    rng = np.random.default_rng(2)
+    plane = 500 + rng.normal(0, 3, (600, 600))
+    pts = binned_variance(window_statistics(plane, -1e9, 1e9), bins=4)
+    np.testing.assert_allclose(pts.var, 9, rtol=0.02)
+
+
+def test_exposure_pairs_cancel_scene_texture():
+    """A scene whose texture swamps the noise in most windows: the local statistics alone
+    are off by more than 15 % (100-200 % for most seeds), the exposure pairs (ratio 4)
+    recover sigma_o^2 and alpha within 3 % (within 1 % and 3 % over seeds 0-5)."""
+    rng = np.random.default_rng(3)
+    e = textured_scene(rng, 500)
+    sigma_o2, alpha = 9.0, 0.25
+    planes = [np.clip(expose(e, t, sigma_o2, alpha, rng), -50, 16000) for t in (0.1, 0.4, 1.6)]
+    local = fit_noise_model(binned_variance(window_statistics(planes[1], -50, 16000), bins=32))
+    assert abs(local.alpha / alpha - 1) > 0.15
+    fit, ratios = estimate_noise(planes, -50, 16000)
+    np.testing.assert_allclose(ratios, 4.0, rtol=0.01)
+    assert fit.alpha == pytest.approx(alpha, rel=0.03) and fit.sigma_o2 == pytest.approx(sigma_o2, rel=0.03)
+
+
+def test_pair_statistics_variance_closed_form():
+    """Var[long - r short] = sigma_o^2 (1 + r^2) + sqrt(alpha) mu_long (1 + r) on a flat field."""
+    rng = np.random.default_rng(4)
+    e = np.full((300, 300), 1000.0)
+    s, g = expose(e, 1.0, 4.0, 1.0, rng), expose(e, 3.0, 4.0, 1.0, rng)
+    ws = pair_statistics(s, g, 3.0, -1e9, 1e9)
+    assert np.mean(ws.var) == pytest.approx(4 * 10 + 3000 * 4, rel=0.01)
+
+
+def test_single_frame_with_gain_fpn_picks_the_quadratic_model():
+    rng = np.random.default_rng(5)
+    levels = np.repeat(np.geomspace(20, 12000, 40), 12)[:, None] * np.ones((1, 400))
+    pattern = rng.normal(0, 0.02, levels.shape)  # beta / alpha = 4e-4
+    y = expose(levels, 1.0, 16.0, 1.0, rng, pattern)
+    fit, ratios = estimate_noise([y], -1e9, 1e9)
+    assert ratios == [] and fit.model == "quadratic"
+    assert fit.beta == pytest.approx(4e-4, rel=0.15) and fit.alpha == pytest.approx(1.0, rel=0.05)
+
+
+def test_too_few_windows_is_an_error():
+    with pytest.raises(HdrMergeError, match="too few"):
+        estimate_noise([np.zeros((12, 12))], 1, 2)
+
+
+def test_photon_transfer_recovers_the_model_from_darks_and_flats():
+    """EMVA 1288 on simulated darks and flats (256 x 256, pairs at 7 levels): sigma_o^2
+    and alpha within 1.5 %, beta within 5 %; beta = 0 is recognised."""
+    rng = np.random.default_rng(6)
+    for beta in (0.0, 1e-4):
+        alpha, sigma_o2 = 0.25, 9.0
+        pattern = rng.normal(0, np.sqrt(beta / alpha), (256, 256))
+        darks = [np.rint(rng.normal(0, 3, (256, 256))) for _ in range(4)]
+        flats = [[np.rint(expose(np.full((256, 256), 1000.0), t, sigma_o2, alpha, rng, pattern)) for _ in range(2)]
+                 for t in np.geomspace(0.5, 25, 7)]
+        r = photon_transfer(darks, flats, 16000)
+        assert r.sigma_o2 == pytest.approx(sigma_o2 + 1 / 12, rel=0.015)
+        assert r.alpha == pytest.approx(alpha, rel=0.015)
+        assert r.model == ("quadratic" if beta else "affine")
+        assert r.beta == pytest.approx(beta, rel=0.05, abs=1e-9)
+        assert r.used.sum() == 6  # the brightest level is above 70 % of saturation
+
+
+def test_photon_transfer_variances_against_closed_forms():
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(0, 2, (500, 500)), rng.normal(0, 2, (500, 500))
+    assert temporal_variance([a + 7, b + 7]) == pytest.approx(4, rel=0.01)
+    yy, xx = np.mgrid[0:500, 0:500]
+    assert spatial_variance(a + 0.3 * xx + 0.1 * yy) == pytest.approx(4, rel=0.02)
+
+
+def test_photon_transfer_needs_three_levels_of_pairs():
+    flat = [[np.zeros((8, 8)), np.zeros((8, 8))]]
+    with pytest.raises(HdrMergeError, match="three or more exposures"):
+        photon_transfer(None, flat * 2, 100)
