@@ -1,0 +1,155 @@
+"""calibrate-noise end to end: brackets, darks/flats, profile merging, plots, bad input."""
+import dataclasses
+import json
+
+import pytest
+
+from conftest import SHARED, frames_of, needs_shared
+from hdrmerge_cli.core.errors import HdrMergeError
+
+
+def simulate(run, folder, *args):
+    run("simulate", "-o", folder, "-q", *args)
+    return json.loads((folder / "simulation.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def calibration_set(tmp_path_factory, run):
+    """A 5-frame bracket, 4 darks and flats (2 frames at 6 levels) of one sensor with
+    gain FPN (beta = 1e-4)."""
+    root = tmp_path_factory.mktemp("calset")
+    sensor = ("--alpha", "0.5", "--sigma-o2", "16", "--beta", "1e-4")
+    meta = simulate(run, root / "bracket", "--size", "384x256", "--frames", "5", *sensor)
+    simulate(run, root / "darks", "--scene", "dark", "--size", "192x192", "--frames", "4", *sensor)
+    simulate(run, root / "flats", "--scene", "flat", "--scale", "1000", "--size", "192x192", "--frames", "6",
+             "--repeat", "2", *sensor)
+    return root, meta
+
+
+def test_bracket_alone_gives_sigma_o2_and_alpha_from_exposure_pairs(run, tmp_path):
+    folder = tmp_path / "cal"
+    meta = simulate(run, folder, "--frames", "5")
+    s = json.loads(run("calibrate-noise", *frames_of(folder, meta), "-o", tmp_path / "n.json", "--json").stdout)
+    sensor = meta["sensor"]
+    for ch in ("R", "G", "B", "G2"):
+        fit = s["noise"]["ISO100"][ch]
+        assert fit["alpha"] == pytest.approx(sensor["alpha"], rel=0.05)
+        assert fit["sigma_o2"] == pytest.approx(sensor["sigma_o2_total"], rel=0.1)
+        assert fit["model"] == "affine" and fit["method"]["alpha"] == "exposure pairs"
+        assert len(fit["exposure_ratios"]) >= 3
+    assert [f["limited"] for f in s["frames"]][-1] == "photon"
+    first = s["frames"][0]
+    assert first["break_point"]["G"]["code_value"] == pytest.approx(
+        s["noise"]["ISO100"]["G"]["sigma_o2"] / s["noise"]["ISO100"]["G"]["alpha"] ** 0.5, rel=1e-3)
+
+
+def test_darks_and_flats_are_the_reference_and_find_gain_fpn(run, tmp_path, calibration_set):
+    root, meta = calibration_set
+    out = tmp_path / "n.json"
+    s = json.loads(run("calibrate-noise", *frames_of(root / "bracket", meta), "--darks", root / "darks",
+                       "--flats", root / "flats", "-o", out, "--json").stdout)
+    for ch, fit in s["noise"]["ISO100"].items():
+        assert fit["method"] == {"sigma_o2": "photon transfer: darks", "alpha": "photon transfer: flats",
+                                 "beta": "photon transfer: averaged flats"}
+        assert fit["sigma_o2"] == pytest.approx(16 + 1 / 12, rel=0.03)
+        assert fit["alpha"] == pytest.approx(0.5, rel=0.03)
+        assert fit["model"] == "quadratic" and fit["beta"] == pytest.approx(1e-4, rel=0.15)
+        assert fit["from_photographs"]["alpha"] == pytest.approx(0.5, rel=0.05)
+    assert json.loads(out.read_text())["noise"] == s["noise"]
+
+
+def test_flats_alone_are_enough(run, tmp_path, calibration_set):
+    root, _ = calibration_set
+    s = json.loads(run("calibrate-noise", "--flats", root / "flats", "-o", tmp_path / "n.json", "--json").stdout)
+    fit = s["noise"]["ISO100"]["G"]
+    assert fit["alpha"] == pytest.approx(0.5, rel=0.03)
+    assert fit["method"]["sigma_o2"] == "photon transfer: intercept of the flats"
+
+
+def test_profile_merges_new_iso_and_keeps_the_rest(run, tmp_path, calibration_set):
+    root, meta = calibration_set
+    prof = tmp_path / "p.json"
+    run("calibrate-noise", *frames_of(root / "bracket", meta), "-o", prof)
+    other = simulate(run, tmp_path / "iso400", "--size", "256x192", "--frames", "3", "--iso", "400",
+                     "--alpha", "2", "--sigma-o2", "30")
+    run("calibrate-noise", *frames_of(tmp_path / "iso400", other), "--profile", prof)  # in place
+    noise = json.loads(prof.read_text())["noise"]
+    assert set(noise) == {"ISO100", "ISO400"}
+    assert noise["ISO400"]["G"]["alpha"] == pytest.approx(2.0, rel=0.05)
+    assert noise["ISO100"]["G"]["alpha"] == pytest.approx(0.5, rel=0.05)
+
+
+def test_profile_of_another_camera_is_refused(run, tmp_path, calibration_set):
+    root, meta = calibration_set
+    prof = tmp_path / "p.json"
+    run("calibrate-noise", *frames_of(root / "bracket", meta), "-o", prof)
+    data = json.loads(prof.read_text())
+    data["camera"]["model"] = "Other X1"
+    prof.write_text(json.dumps(data))
+    before = prof.read_text()
+    proc = run("calibrate-noise", *frames_of(root / "bracket", meta), "--profile", prof, check=False)
+    assert proc.returncode == 1 and "Other X1" in proc.stderr and prof.read_text() == before
+
+
+def test_plot_is_drawn_and_a_bad_type_writes_nothing(run, tmp_path, calibration_set):
+    root, meta = calibration_set
+    frames = frames_of(root / "bracket", meta)
+    run("calibrate-noise", *frames, "--flats", root / "flats", "-o", tmp_path / "n.json", "--plot", tmp_path / "n.png")
+    assert (tmp_path / "n.png").read_bytes()[:4] == b"\x89PNG"
+    proc = run("calibrate-noise", *frames, "-o", tmp_path / "m.json", "--plot", tmp_path / "n.xyz", check=False)
+    assert proc.returncode == 1 and "n.xyz" in proc.stderr and not (tmp_path / "m.json").exists()
+
+
+@needs_shared
+def test_the_real_dng_gives_a_plausible_fit(run, tmp_path):
+    s = json.loads(run("calibrate-noise", SHARED / "raw" / "colorchart.dng", "-o", tmp_path / "n.json", "--json").stdout)
+    for fit in next(iter(s["noise"].values())).values():
+        assert fit["sigma_o2"] > 0 and fit["alpha"] > 0 and fit["beta"] >= 0 and fit["points"] > 10
+        assert fit["residual_rms"] < 0.1
+
+
+# ---------------------------------------------------------------- bad input
+def test_jpeg_without_a_crf_is_refused(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    proc = run("calibrate-noise", *frames_of(folder, meta), "-o", tmp_path / "n.json", check=False)
+    assert proc.returncode == 1 and "--crf" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "n.json").exists()
+
+
+def test_all_clipped_frames_are_refused_with_reasons(run, tmp_path):
+    meta = simulate(run, tmp_path / "sat", "--size", "64x64", "--times", "1000,2000")
+    proc = run("calibrate-noise", *frames_of(tmp_path / "sat", meta), "-o", tmp_path / "n.json", check=False)
+    assert proc.returncode == 1 and "no usable frame" in proc.stderr and "clipped" in proc.stderr
+    assert not (tmp_path / "n.json").exists()
+
+
+def test_a_black_frame_is_skipped_with_a_warning(run, tmp_path, calibration_set):
+    root, meta = calibration_set
+    dark = sorted((root / "darks").glob("*.dng"))[0]
+    proc = run("calibrate-noise", dark, *frames_of(root / "bracket", meta), "-o", tmp_path / "n.json")
+    assert f"{dark}: skipped, it is black" in proc.stderr
+
+
+def test_too_few_windows_and_missing_inputs(run, tmp_path, calibration_set):
+    root, _ = calibration_set
+    meta = simulate(run, tmp_path / "tiny", "--size", "32x32", "--frames", "1")
+    proc = run("calibrate-noise", *frames_of(tmp_path / "tiny", meta), "-o", tmp_path / "n.json", check=False)
+    assert proc.returncode == 1 and "too few" in proc.stderr
+    proc = run("calibrate-noise", "-o", tmp_path / "n.json", check=False)
+    assert proc.returncode == 1 and "IMAGES" in proc.stderr
+    proc = run("calibrate-noise", "--darks", root / "darks", "-o", tmp_path / "n.json", check=False)
+    assert proc.returncode == 1 and "--flats" in proc.stderr
+    proc = run("calibrate-noise", "--flats", root / "darks", "-o", tmp_path / "n.json", check=False)
+    assert proc.returncode == 1 and "three or more exposures" in proc.stderr
+    assert not (tmp_path / "n.json").exists()
+
+
+def test_frames_of_unknown_iso_mixed_with_known_are_refused(calibration_set):
+    from hdrmerge_cli.io.frames import read_frame
+    from hdrmerge_cli.pipeline.calibrate import _check_group
+
+    root, meta = calibration_set
+    frames = [read_frame(p) for p in frames_of(root / "bracket", meta)]
+    frames[1] = dataclasses.replace(frames[1], iso=None)
+    with pytest.raises(HdrMergeError, match="no ISO"):
+        _check_group(frames, "photographs", None)
