@@ -153,3 +153,19 @@ def test_frames_of_unknown_iso_mixed_with_known_are_refused(calibration_set):
     frames[1] = dataclasses.replace(frames[1], iso=None)
     with pytest.raises(HdrMergeError, match="no ISO"):
         _check_group(frames, "photographs", None)
+
+
+def test_merge_without_a_profile_measures_the_noise_on_the_bracket(run, tmp_path, calibration_set):
+    root, meta = calibration_set
+    out = tmp_path / "m.exr"
+    s = json.loads(run("merge", *frames_of(root / "bracket", meta), "-o", out, "--json").stdout)
+    assert s["noise_source"].startswith("measured on the bracket") and s["variance"] == "model"
+    for ch in ("R", "G", "B", "G2"):
+        assert s["noise"][ch]["alpha"] == pytest.approx(0.5, rel=0.05)
+        assert s["noise"][ch]["sigma_o2"] == pytest.approx(16 + 1 / 12, rel=0.1)
+        assert s["noise"][ch]["beta"] == 0  # a bracket's beta may be texture: recorded, not used
+    recorded = json.loads((tmp_path / "m.profile.json").read_text())["noise"]["estimated_from_bracket"]
+    assert recorded["G"]["method"]["alpha"] == "exposure pairs" and recorded["G"]["subsample_sites"] > 0
+    s = json.loads(run("merge", *frames_of(root / "bracket", meta), "-o", out, "--overwrite", "--variance", "photon",
+                       "--json").stdout)
+    assert s["noise_source"] is None and s["noise"] is None

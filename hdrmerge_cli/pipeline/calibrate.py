@@ -341,3 +341,38 @@ def plot_noise(path: Path, noise: dict, plot_data: dict, overwrite: bool) -> Non
         ax.set_visible(False)
     fig.tight_layout()
     save_figure(fig, path, overwrite)
+
+
+#: merge's fast path measures the noise on at most this many sites per channel and frame
+FAST_PATH_SITES = 1 << 18
+_TILE = 128
+
+
+def subsample(plane: np.ndarray, budget: int = FAST_PATH_SITES) -> np.ndarray:
+    """At most ``budget`` sites of ``plane`` (H, W): tiles of 128 x 128 spread evenly over
+    the frame, laid side by side (the seams are edges, which the texture test rejects and
+    exposure pairs cancel)."""
+    h, w = plane.shape
+    if plane.size <= budget or h < 2 * _TILE or w < 2 * _TILE:
+        return plane
+    n = max(int(np.sqrt(budget / _TILE**2)), 1)
+    ys = np.linspace(0, h - _TILE, n).astype(int)
+    xs = np.linspace(0, w - _TILE, n).astype(int)
+    return np.block([[plane[y:y + _TILE, x:x + _TILE] for x in xs] for y in ys])
+
+
+def estimate_bracket_noise(frames: list[Frame], crf) -> tuple[dict, dict]:
+    """merge without noise parameters: (17) per channel from the bracket itself, by the
+    calibrate-noise code on a subsample (:func:`subsample`).  Returns
+    ({channel: {"sigma_o2", "alpha", "beta"}}, {channel: profile entry}).
+
+    merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
+    :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used."""
+    by_time = sorted(frames, key=lambda f: f.exposure_time or 0.0)
+    planes = _read_group(by_time, crf, "images")
+    used, entries = {}, {}
+    for name, items in planes.items():
+        fit, ratios = estimate_noise([subsample(p) for p, *_ in items], items[0][1], items[0][2])
+        entries[name] = _fit_entry(fit, ratios, 7) | {"subsample_sites": int(subsample(items[0][0]).size)}
+        used[name] = {"sigma_o2": fit.sigma_o2, "alpha": fit.alpha, "beta": 0.0}
+    return used, entries

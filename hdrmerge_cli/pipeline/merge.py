@@ -184,6 +184,10 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     h_ref = reference_exposure(opts.reference, exposures)
     first = frames[0]
     noise = resolve_noise(opts, frames)
+    estimated = None
+    needs_noise = opts.variance in ("auto", "model") or opts.weights in NOISE_MODEL_WEIGHTS or opts.irls
+    if noise is None and first.kind == "raw" and needs_noise and not opts.lut:
+        noise, estimated = _estimate_noise(frames, crf)
     variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
     estimator = opts.estimator if opts.estimator != "auto" else ("ml" if first.kind == "raw" else "log")
     if opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded" and not noise and not opts.lut:
@@ -248,6 +252,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
                   if noise else None)
     if noise:
         profile["noise"] = {"used": noise_used}
+    if estimated:
+        profile["noise"]["estimated_from_bracket"] = estimated
     profile_text = dumps(profile)
     attrs = {
         "Software": f"hdrmerge-cli {__version__}",
@@ -292,6 +298,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "variance": variance,
         "irls_iterations": iterations,
         "noise": noise_used,
+        "noise_source": ("measured on the bracket (calibrate-noise fast path)" if estimated
+                         else "given (--noise or --profile)" if noise_used else None),
         "prior_rate": prior,
         "bounds": list(bounds) if bounds else None,
         "crf": crf.describe(),
@@ -302,6 +310,22 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
         "timing_seconds": {k: round(v, 4) for k, v in timings.items()},
     }
+
+
+def _estimate_noise(frames: list[Frame], crf: CRF):
+    """No --noise or --profile for a RAW bracket: measure (17) on the bracket itself (the
+    calibrate-noise code, fast path); on failure fall back to photon-noise weights."""
+    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+
+    t0 = time.perf_counter()
+    try:
+        used, entries = estimate_bracket_noise(frames, crf)
+    except HdrMergeError as exc:
+        log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
+        return None, None
+    log.info("noise measured on the bracket in %.2f s: %s", time.perf_counter() - t0,
+             ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+    return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
 
 
 def resolve_noise(opts: MergeOptions, frames: list[Frame]) -> dict[str, NoiseParams] | None:
