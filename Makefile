@@ -25,10 +25,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-## CRF estimation benchmark on the DoRF curves (needs ../shared/data; installs OpenCV).
+## Benchmarks: CRF estimation on the DoRF curves, noise calibration (need ../shared/data; installs OpenCV).
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python -m benchmarks.crf_dorf
+	$(BIN)/python -m benchmarks.noise_calibration
 
 ## Regenerate the man pages from the click definitions.
 man: $(STAMP)

@@ -24,9 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, stats
 
+from hdrmerge_cli.core.calibrate import _IMMERKAER
 from hdrmerge_cli.core.errors import HdrMergeError
-
-_IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
 
 #: sum over all lags of the squared autocorrelation of the Immerkaer residual of white
 #: noise, ((1 + 16 + 36 + 16 + 1) / 36)^2: its plane mean has the variance of N / 3.78

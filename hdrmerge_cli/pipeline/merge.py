@@ -187,7 +187,9 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     estimated = None
     needs_noise = opts.variance in ("auto", "model") or opts.weights in NOISE_MODEL_WEIGHTS or opts.irls
     if noise is None and first.kind == "raw" and needs_noise and not opts.lut:
+        t1 = time.perf_counter()
         noise, estimated = _estimate_noise(frames, crf)
+        timings["noise_estimate"] = time.perf_counter() - t1
     variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
     estimator = opts.estimator if opts.estimator != "auto" else ("ml" if first.kind == "raw" else "log")
     if opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded" and not noise and not opts.lut:
@@ -195,7 +197,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
                     "conservative upper bounds", opts.weights)
     if opts.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
-    timings["read_metadata"] = time.perf_counter() - t0
+    timings["read_metadata"] = time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
 
     t0 = time.perf_counter()
     prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
@@ -317,14 +319,12 @@ def _estimate_noise(frames: list[Frame], crf: CRF):
     calibrate-noise code, fast path); on failure fall back to photon-noise weights."""
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
-    t0 = time.perf_counter()
     try:
         used, entries = estimate_bracket_noise(frames, crf)
     except HdrMergeError as exc:
         log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
         return None, None
-    log.info("noise measured on the bracket in %.2f s: %s", time.perf_counter() - t0,
-             ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+    log.info("noise measured on the bracket: %s", ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
     return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
 
 
