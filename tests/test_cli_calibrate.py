@@ -169,3 +169,15 @@ def test_merge_without_a_profile_measures_the_noise_on_the_bracket(run, tmp_path
     s = json.loads(run("merge", *frames_of(root / "bracket", meta), "-o", out, "--overwrite", "--variance", "photon",
                        "--json").stdout)
     assert s["noise_source"] is None and s["noise"] is None
+
+
+def test_linearised_tiff_through_its_crf(run, tmp_path, tiff_bracket):
+    """16-bit TIFFs of a 12-bit linear sensor through gamma 2.2: linearised at 16 bits the
+    parameters scale by (65535 / 4095)^2."""
+    folder, meta = tiff_bracket
+    s = json.loads(run("calibrate-noise", *frames_of(folder, meta), "--crf", "gamma:2.2", "-o", tmp_path / "n.json",
+                       "--json").stdout)
+    k2 = (65535 / 4095) ** 2
+    for fit in next(iter(s["noise"].values())).values():
+        assert fit["alpha"] == pytest.approx(meta["sensor"]["alpha"] * k2, rel=0.15)
+        assert fit["sigma_o2"] == pytest.approx(meta["sensor"]["sigma_o2_total"] * k2, rel=0.3)
