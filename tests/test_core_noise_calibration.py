@@ -5,7 +5,7 @@ import pytest
 from scipy import ndimage
 
 from hdrmerge_cli.core.calibrate import (
-    _IMMERKAER, binned_variance, estimate_noise, fit_noise_model, immerkaer_dof, pair_statistics, variance_points,
+    IMMERKAER, binned_variance, estimate_noise, fit_noise_model, immerkaer_dof, pair_statistics, variance_points,
     window_statistics,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -75,7 +75,7 @@ def test_immerkaer_degrees_of_freedom_match_monte_carlo():
     ws = window_statistics(rng.normal(0, 1, (1200, 1200)), -1e9, 1e9)
     sub = ws.var[::7]  # decimate (neighbouring windows overlap) without changing the marginal
     assert np.var(sub) / np.mean(sub) ** 2 == pytest.approx(2 / immerkaer_dof(7), rel=0.05)
-    rho = ndimage.correlate(np.pad(_IMMERKAER, 2), _IMMERKAER, mode="constant") / 36
+    rho = ndimage.correlate(np.pad(IMMERKAER, 2), IMMERKAER, mode="constant") / 36
     assert np.sum(rho**2) == pytest.approx(IMMERKAER_SUM_RHO2, rel=1e-12)
 
 

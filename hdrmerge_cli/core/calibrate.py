@@ -36,7 +36,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 #: Immerkaer (1996) noise mask: the product of two second differences, blind to any
 #: signal that is linear in x or in y (ramps, smooth shading); white noise of variance
 #: s^2 gives an output of variance 36 s^2.
-_IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+IMMERKAER = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
 
 #: variance of :func:`scipy.ndimage.laplace` (4-neighbour) on white noise of variance 1
 LAPLACE_GAIN = 20.0
@@ -81,7 +81,7 @@ def immerkaer_dof(window: int) -> float:
     """Effective degrees of freedom of the window mean of the squared Immerkaer residual of
     Gaussian white noise: ``N^2 / sum_ij rho_ij^2`` with ``rho`` the residual's
     autocorrelation (exact for Gaussian noise: Cov(r_i^2, r_j^2) = 2 rho_ij^2 s^4)."""
-    rho = ndimage.correlate(np.pad(_IMMERKAER, 2), _IMMERKAER, mode="constant") / 36.0
+    rho = ndimage.correlate(np.pad(IMMERKAER, 2), IMMERKAER, mode="constant") / 36.0
     c = rho.shape[0] // 2
     total = 0.0
     for dy in range(-2, 3):
@@ -101,7 +101,7 @@ def window_statistics(plane: np.ndarray, lo: float, hi: float, window: int = 7) 
     are dropped."""
     x = np.asarray(plane, dtype=np.float64)
     mean = ndimage.uniform_filter(x, window, mode="reflect")
-    resid = ndimage.convolve(x, _IMMERKAER, mode="reflect")
+    resid = ndimage.convolve(x, IMMERKAER, mode="reflect")
     var = ndimage.uniform_filter(resid * resid, window, mode="reflect") / 36.0
     texture = ndimage.maximum_filter(np.abs(ndimage.laplace(x)), window)
     ok = _valid([x], lo, hi, window)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, stats
 
-from hdrmerge_cli.core.calibrate import _IMMERKAER
+from hdrmerge_cli.core.calibrate import IMMERKAER
 from hdrmerge_cli.core.errors import HdrMergeError
 
 #: sum over all lags of the squared autocorrelation of the Immerkaer residual of white
@@ -46,7 +46,7 @@ def temporal_variance(frames: list[np.ndarray]) -> float:
 def spatial_variance(plane: np.ndarray) -> float:
     """Variance of the pixel-to-pixel (white) part of ``plane`` (H, W): the mean squared
     Immerkaer residual / 36, blind to smooth shading (interior pixels only)."""
-    r = ndimage.convolve(np.asarray(plane, np.float64), _IMMERKAER, mode="reflect")[1:-1, 1:-1]
+    r = ndimage.convolve(np.asarray(plane, np.float64), IMMERKAER, mode="reflect")[1:-1, 1:-1]
     return float(np.mean(r * r) / 36.0)
 
 

@@ -34,15 +34,20 @@ def parse_noise(text: str) -> dict[str, NoiseParams]:
     return out
 
 
+def iso_key(iso: float | None) -> str:
+    """A profile's noise key for ``iso``: ``ISO100``, or ``ISO_unknown``."""
+    return f"ISO{iso:g}" if iso else "ISO_unknown"
+
+
 def noise_from_profile(profile: dict, iso: float | None, path: str) -> dict[str, NoiseParams]:
     """The profile's noise entry for ``iso`` (or its only entry): {channel: NoiseParams}."""
     entries = profile.get("noise") or {}
     if not entries:
         raise HdrMergeError(f"{path}: the profile has no noise parameters (run calibrate-noise)")
-    key = f"ISO{iso:g}" if iso else None
+    key = iso_key(iso)
     if key not in entries:
         if len(entries) != 1:
-            raise HdrMergeError(f"{path}: no noise entry for {key or 'unknown ISO'} (has {', '.join(entries)})")
+            raise HdrMergeError(f"{path}: no noise entry for {key} (has {', '.join(entries)})")
         key = next(iter(entries))
     try:
         return {ch.upper(): NoiseParams(float(v["sigma_o2"]), float(v["alpha"]), float(v.get("beta", 0.0)))

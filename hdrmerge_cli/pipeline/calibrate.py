@@ -14,10 +14,11 @@ from hdrmerge_cli.core.calibrate import NoiseFit, estimate_noise
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable
-from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, list_frames, load_codes, raw_channel_map, read_frame
+from hdrmerge_cli.io.noisespec import iso_key
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
+from hdrmerge_cli.pipeline.merge import choose_crf
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -41,17 +42,15 @@ class CalibrateOptions:
     overwrite: bool = False
 
 
-def iso_key(frame: Frame) -> str:
-    return f"ISO{frame.iso:g}" if frame.iso else "ISO_unknown"
-
-
-def channel_planes(frame: Frame, codes: np.ndarray, crf):
+def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None):
     """(name, plane of linear values above black (H', W') float64, lo, hi) per channel:
-    the CFA sites of one colour for RAW, the linearised colour channels otherwise."""
+    the CFA sites of one colour for RAW (``corner``: LibRaw's colour index of the top-left
+    2 x 2 visible sites, read from the file when not given), the linearised colour
+    channels otherwise."""
     if frame.kind == "raw":
-        cmap = raw_channel_map(frame.path)
+        corner = raw_channel_map(frame.path)[:2, :2] if corner is None else corner
         for k, name in enumerate(frame.channel_names):
-            ys, xs = np.nonzero(cmap[:2, :2] == k)
+            ys, xs = np.nonzero(corner == k)
             if ys.size:
                 plane = codes[ys[0]::2, xs[0]::2].astype(np.float64) - frame.black[k]
                 yield name, plane, -frame.black[k], frame.white[k] - frame.black[k]
@@ -79,8 +78,10 @@ def _read_group(frames: list[Frame], crf, what: str) -> dict[str, list]:
     """{channel: [(plane, lo, hi, frame) per usable frame]}, in the order of ``frames``;
     photographs that are all clipped or black are skipped with a warning."""
     out: dict[str, list] = {}
+    # one camera (checked): the CFA layout is read once, not by a second decode per frame
+    corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
     for f in frames:
-        planes = list(channel_planes(f, load_codes(f), crf))
+        planes = list(channel_planes(f, load_codes(f), crf, corner))
         if what == "images":
             reason = _usable(f, planes)
             if reason:
@@ -115,8 +116,7 @@ def frame_report(frame: Frame, planes, params: dict[str, dict]) -> dict:
 
 
 def _fit_entry(fit: NoiseFit, pairs: list[float], window: int) -> dict:
-    paired = bool(pairs)
-    source = "exposure pairs" if paired else "local statistics"
+    source = "exposure pairs" if pairs else "local statistics"
     return fit.as_dict() | {
         "method": {"sigma_o2": source, "alpha": source,
                    "beta": "local statistics" + (" (scene texture and gain FPN look alike in one bracket; "
@@ -203,9 +203,9 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
     noise: dict[str, dict] = {}
     reports: list[dict] = []
     plot_data: dict[str, dict] = {}
-    isos = sorted({iso_key(f) for f in everything})
+    isos = sorted({iso_key(f.iso) for f in everything})
     for iso in isos:
-        group = sorted((f for f in images if iso_key(f) == iso), key=lambda f: f.exposure_time or 0.0)
+        group = sorted((f for f in images if iso_key(f.iso) == iso), key=lambda f: f.exposure_time or 0.0)
         fits: dict[str, dict] = {}
         if group:
             planes = _read_group(group, crf, "images")
@@ -219,8 +219,8 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
                     raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
                 fits[name] = _fit_entry(fit, ratios, opts.window)
                 plot_data.setdefault(iso, {})[name] = {"fit": fit}
-        ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f) == iso], [f for f in flats if iso_key(f) == iso],
-                                crf)
+        ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f.iso) == iso],
+                                [f for f in flats if iso_key(f.iso) == iso], crf)
         if not fits and not ptcs:
             continue
         noise[iso] = {name: _combine(fits.get(name), ptcs.get(name)) for name in sorted(set(fits) | set(ptcs))}
@@ -256,13 +256,10 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
 
 
 def _choose_crf(first: Frame, opts: CalibrateOptions, base: dict | None):
-    """RAW is linear; JPEG/TIFF/PNG need their response: --crf, else the profile's."""
-    from hdrmerge_cli.core.crf import CRF
-
-    if first.kind == "raw":
-        return CRF("linear")
-    if opts.crf:
-        return resolve_crf(opts.crf)
+    """RAW is linear; JPEG/TIFF/PNG need their response: --crf (as merge reads it), else
+    the profile's; no sRGB guess, since the noise would be measured on a wrong scale."""
+    if first.kind == "raw" or opts.crf:
+        return choose_crf([first], opts.crf)
     if base is not None:
         return crf_from_json(base["crf"])
     raise HdrMergeError(f"{first.path}: the noise of JPEG/TIFF/PNG frames is measured on linear values; give their "

@@ -324,7 +324,8 @@ def _estimate_noise(frames: list[Frame], crf: CRF):
     except HdrMergeError as exc:
         log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
         return None, None
-    log.info("noise measured on the bracket: %s", ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+    log.info("noise measured on the bracket: %s",
+             ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
     return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
 
 
