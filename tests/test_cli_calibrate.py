@@ -152,7 +152,7 @@ def test_frames_of_unknown_iso_mixed_with_known_are_refused(calibration_set):
     frames = [read_frame(p) for p in frames_of(root / "bracket", meta)]
     frames[1] = dataclasses.replace(frames[1], iso=None)
     with pytest.raises(HdrMergeError, match="no ISO"):
-        _check_group(frames, "photographs", None)
+        _check_group(frames, "photographs")
 
 
 def test_merge_without_a_profile_measures_the_noise_on_the_bracket(run, tmp_path, calibration_set):
@@ -181,3 +181,9 @@ def test_linearised_tiff_through_its_crf(run, tmp_path, tiff_bracket):
     for fit in next(iter(s["noise"].values())).values():
         assert fit["alpha"] == pytest.approx(meta["sensor"]["alpha"] * k2, rel=0.15)
         assert fit["sigma_o2"] == pytest.approx(meta["sensor"]["sigma_o2_total"] * k2, rel=0.3)
+
+
+def test_merge_falls_back_to_photon_weights_when_the_bracket_shows_no_noise(run, tmp_path):
+    meta = simulate(run, tmp_path / "sat", "--size", "64x64", "--times", "1000,2000")
+    s = json.loads(run("merge", *frames_of(tmp_path / "sat", meta), "-o", tmp_path / "m.exr", "--json").stdout)
+    assert s["noise_source"] is None and s["variance"] == "photon"

@@ -74,21 +74,41 @@ def _usable(frame: Frame, planes) -> str | None:
     return None
 
 
-def _read_group(frames: list[Frame], crf, what: str) -> dict[str, list]:
-    """{channel: [(plane, lo, hi, frame) per usable frame]}, in the order of ``frames``;
-    photographs that are all clipped or black are skipped with a warning."""
-    out: dict[str, list] = {}
+def _read_group(frames: list[Frame], crf, what: str) -> list[tuple[Frame, list]]:
+    """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
+    ``frames``; photographs that are all clipped or black are skipped with a warning."""
+    out = []
     # one camera (checked): the CFA layout is read once, not by a second decode per frame
     corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
     for f in frames:
         planes = list(channel_planes(f, load_codes(f), crf, corner))
-        if what == "images":
-            reason = _usable(f, planes)
-            if reason:
-                log.warning("%s: skipped, %s", f.path, reason)
-                continue
+        reason = _usable(f, planes) if what == "images" else None
+        if reason:
+            log.warning("%s: skipped, %s", f.path, reason)
+        else:
+            out.append((f, planes))
+    return out
+
+
+def _by_channel(read: list[tuple[Frame, list]]) -> dict[str, list]:
+    """{channel: [(plane, lo, hi, frame) per frame]} from :func:`_read_group`'s list."""
+    out: dict[str, list] = {}
+    for f, planes in read:
         for name, plane, lo, hi in planes:
             out.setdefault(name, []).append((plane, lo, hi, f))
+    return out
+
+
+def _fit_channels(read: list[tuple[Frame, list]], iso: str, window: int = 7, bins: int = 64,
+                  reduce=lambda plane: plane) -> dict[str, tuple[NoiseFit, list[float]]]:
+    """:func:`estimate_noise` per channel of the frames (sorted by exposure); ``reduce``
+    picks the sites to use.  Errors name the first frame, the ISO and the channel."""
+    out = {}
+    for name, items in _by_channel(read).items():
+        try:
+            out[name] = estimate_noise([reduce(p) for p, *_ in items], items[0][1], items[0][2], window, bins)
+        except HdrMergeError as exc:
+            raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
     return out
 
 
@@ -153,9 +173,10 @@ def _combine(image: dict | None, ptc: dict | None) -> dict:
     return out
 
 
-def _check_group(frames: list[Frame], what: str, reference: Frame | None) -> None:
+def _check_group(frames: list[Frame], what: str) -> None:
+    """One camera and file type; ISO known for all frames or for none."""
+    ref = frames[0]
     for f in frames:
-        ref = reference or frames[0]
         if f.kind != ref.kind or f.camera != ref.camera:
             raise HdrMergeError(f"{f.path}: a different camera or file type than {ref.path}")
     isos = {f.iso is None for f in frames}
@@ -193,7 +214,7 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
     flats = _calibration_frames(opts.flats, "flats")
     everything = images + darks + flats
     first = everything[0]
-    _check_group(everything, "frames", None)
+    _check_group(everything, "frames")
     if base and base.get("camera") and base["camera"].get("model") and \
             (base["camera"].get("make"), base["camera"].get("model")) != (first.make, first.model):
         raise HdrMergeError(f"{opts.profile}: a profile of {base['camera'].get('make')} {base['camera'].get('model')}, "
@@ -206,19 +227,13 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
     isos = sorted({iso_key(f.iso) for f in everything})
     for iso in isos:
         group = sorted((f for f in images if iso_key(f.iso) == iso), key=lambda f: f.exposure_time or 0.0)
+        read = _read_group(group, crf, "images")
+        if group and not read:
+            raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (all clipped or black)")
         fits: dict[str, dict] = {}
-        if group:
-            planes = _read_group(group, crf, "images")
-            if not planes:
-                raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (all clipped or black)")
-            for name, items in planes.items():
-                try:
-                    fit, ratios = estimate_noise([p for p, *_ in items], items[0][1], items[0][2], opts.window,
-                                                 opts.bins)
-                except HdrMergeError as exc:
-                    raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
-                fits[name] = _fit_entry(fit, ratios, opts.window)
-                plot_data.setdefault(iso, {})[name] = {"fit": fit}
+        for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
+            fits[name] = _fit_entry(fit, ratios, opts.window)
+            plot_data.setdefault(iso, {})[name] = {"fit": fit}
         ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f.iso) == iso],
                                 [f for f in flats if iso_key(f.iso) == iso], crf)
         if not fits and not ptcs:
@@ -228,10 +243,8 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
             plot_data.setdefault(iso, {}).setdefault(name, {})["levels"] = e.get("levels")
             log.info("%s %s: sigma_o2=%.4g alpha=%.4g beta=%.3g (%s; %s)", iso, name, e["sigma_o2"], e["alpha"],
                      e["beta"], e["model"], ", ".join(f"{k} from {v}" for k, v in e["method"].items()))
-        used = {id(f): f for items in (planes.values() if group else []) for *_, f in items}
-        for f in used.values():
-            mine = [(name, p, lo, hi) for name, items in planes.items() for p, lo, hi, g in items if g is f]
-            rep = frame_report(f, mine, noise[iso])
+        for f, planes in read:
+            rep = frame_report(f, planes, noise[iso])
             reports.append(rep)
             log.info("%s: %s-noise limited (%.0f %% of pixels above the SNR breaking point)", f.name, rep["limited"],
                      100 * rep["photon_limited_fraction"])
@@ -271,7 +284,7 @@ def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> d
         if darks:
             log.warning("%s: darks without flats are ignored for %s (the gain needs flats)", darks[0].path, iso)
         return {}
-    dark_planes = _read_group(darks, crf, "darks") if darks else {}
+    dark_planes = _by_channel(_read_group(darks, crf, "darks"))
     by_time: dict[float, list[Frame]] = {}
     for f in flats:
         if not f.exposure_time:
@@ -280,7 +293,7 @@ def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> d
     for t, fs in by_time.items():
         if len(fs) < 2:
             log.warning("%s: the only flat at %g s; photon transfer needs pairs, skipped", fs[0].path, t)
-    levels = [_read_group(fs, crf, "flats") for _, fs in sorted(by_time.items()) if len(fs) >= 2]
+    levels = [_by_channel(_read_group(fs, crf, "flats")) for _, fs in sorted(by_time.items()) if len(fs) >= 2]
     out = {}
     for name in (levels[0] if levels else {}):
         lv = [[p for p, *_ in level[name]] for level in levels]
@@ -365,11 +378,11 @@ def estimate_bracket_noise(frames: list[Frame], crf) -> tuple[dict, dict]:
 
     merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
     :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used."""
-    by_time = sorted(frames, key=lambda f: f.exposure_time or 0.0)
-    planes = _read_group(by_time, crf, "images")
+    read = _read_group(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, "images")
+    if not read:
+        raise HdrMergeError("no usable frame (all clipped or black)")
     used, entries = {}, {}
-    for name, items in planes.items():
-        fit, ratios = estimate_noise([subsample(p) for p, *_ in items], items[0][1], items[0][2])
-        entries[name] = _fit_entry(fit, ratios, 7) | {"subsample_sites": int(subsample(items[0][0]).size)}
+    for name, (fit, ratios) in _fit_channels(read, iso_key(frames[0].iso), reduce=subsample).items():
+        entries[name] = _fit_entry(fit, ratios, 7) | {"subsample_sites": int(subsample(read[0][1][0][1]).size)}
         used[name] = {"sigma_o2": fit.sigma_o2, "alpha": fit.alpha, "beta": 0.0}
     return used, entries
