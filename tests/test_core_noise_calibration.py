@@ -5,7 +5,7 @@ import pytest
 from scipy import ndimage
 
 from hdrmerge_cli.core.calibrate import (
-    IMMERKAER, binned_variance, estimate_noise, fit_noise_model, immerkaer_dof, pair_statistics, variance_points,
+    IMMERKAER, binned_variance, estimate_noise, fit_noise_model, immerkaer_dof, pair_statistics, texture_limit, variance_points,
     window_statistics,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -77,6 +77,21 @@ def test_immerkaer_degrees_of_freedom_match_monte_carlo():
     assert np.var(sub) / np.mean(sub) ** 2 == pytest.approx(2 / immerkaer_dof(7), rel=0.05)
     rho = ndimage.correlate(np.pad(IMMERKAER, 2), IMMERKAER, mode="constant") / 36
     assert np.sum(rho**2) == pytest.approx(IMMERKAER_SUM_RHO2, rel=1e-12)
+
+
+def test_texture_limit_keeps_flat_windows_of_pure_noise():
+    """Monte-Carlo: on white noise of the predicted variance, fewer than 0.1 % of the
+    windows exceed the 5.5-sigma Laplacian limit (so the test does not bias the variance).
+    The limit is loose: a step of 5 noise sigmas passes (its Laplacian, 5 sigma, plus the
+    noise stays below 5.5 sqrt(20) = 24.6 sigma; the median binning copes with such
+    windows), a step of 40 sigmas is rejected."""
+    rng = np.random.default_rng(8)
+    ws = window_statistics(100 + rng.normal(0, 4, (800, 800)), -1e9, 1e9)
+    coef = np.array([16.0, 0.0, 0.0])
+    assert np.mean(ws.texture > texture_limit(ws.mean, coef)) < 1e-3
+    for sigmas, rejected in ((5, False), (40, True)):
+        edge = window_statistics(100 + 4.0 * sigmas * (np.arange(64) >= 32) + rng.normal(0, 4, (64, 64)), -1e9, 1e9)
+        assert (np.max(edge.texture / texture_limit(edge.mean, coef)) > 1) == rejected
 
 
 def test_median_binning_is_unbiased_for_pure_noise():

@@ -137,7 +137,8 @@ def pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo: float
     """Local statistics of the exposure-normalised difference ``d = long - ratio * short``
     of two frames (H, W) of one static scene: per window the mean of ``long`` and the
     sample variance of ``d`` (49 independent pixels, 48 degrees of freedom).  Scene texture
-    and gain FPN cancel in ``d``; ``Var[d] = sigma_o^2 (1 + r^2) + sqrt(alpha) mu (1 + r)``."""
+    and gain FPN cancel in ``d``; by (17) for each frame,
+    ``Var[d] = sigma_o^2 (1 + r^2) + sqrt(alpha) mu (1 + r)``."""
     s = np.asarray(short, dtype=np.float64)
     g = np.asarray(long, dtype=np.float64)
     d = g - ratio * s
@@ -306,7 +307,7 @@ def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
 
 def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int = 7, bins: int = 64,
                    pairs: bool = True, p_threshold: float = 0.01) -> tuple[NoiseFit, list[float]]:
-    """Noise parameters of one channel from frames of one scene at one ISO.
+    """Noise parameters of (17) for one channel from frames of one scene at one ISO.
 
     planes : list of (H, W) float arrays, linear values (code values above black),
         sorted by exposure (shortest first); one frame is allowed.

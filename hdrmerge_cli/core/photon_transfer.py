@@ -73,7 +73,7 @@ class PTCResult:
 
 def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]], full_scale: float,
                     p_threshold: float = 0.01) -> PTCResult:
-    """EMVA 1288 photon transfer for one channel.
+    """EMVA 1288 photon transfer for one channel: the parameters of (17).
 
     darks : frames (H, W) with no light, at least 2, or None (then the read noise is the
         intercept of the photon-transfer line and the offset is taken as 0).
