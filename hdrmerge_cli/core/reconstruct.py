@@ -13,8 +13,9 @@ merging a frame is two gathers and two additions per sample (:class:`LogMerge`).
 
 Tables are indexed by the *stored* code value ``r`` (for RAW: before black-level
 subtraction), ``z = r - black``, full scale ``z_max = white - black``.  A table has one
-row per channel ``c``; a sample of channel ``c`` with stored code ``r`` reads entry
-``c * N + r`` of the flattened table.
+row per channel ``c`` (flattened ``(C * N,)``); which row a sample reads is a small
+periodic pattern (the CFA cell, or the channel of interleaved RGB), so no per-sample
+index array is ever built.
 
 Pixels that no frame measures (weight 0 in every frame) get a finite, documented value
 and a flag (see :meth:`LogMerge.finish`).
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
@@ -192,17 +194,19 @@ def exposure_tables(
     )
 
 
-def flat_index(codes: np.ndarray, channel_offset: np.ndarray | None) -> np.ndarray:
-    """Index of each sample into flattened ``(C * N,)`` tables.
+def channel_index(shape: tuple[int, ...], pattern: np.ndarray | None) -> np.ndarray | None:
+    """Table row of every sample, ``shape`` intp: ``pattern`` tiled over ``(H, W)``
+    (a CFA mosaic) or ``(H, W * C)`` (interleaved channels); None when one row serves all."""
+    if pattern is None:
+        return None
+    rows, cols = _rows_cols(shape)
+    ph, pw = pattern.shape
+    tiled = np.tile(pattern.astype(np.intp), (-(-rows // ph), -(-cols // pw)))[:rows, :cols]
+    return tiled.reshape(shape)
 
-    codes : (H, W) or (H, W, C) integer stored code values
-    channel_offset : ``c * N`` for each sample's channel, broadcastable to ``codes``
-        (``(C,)`` for interleaved RGB, ``(H, W)`` for a CFA mosaic), or None when all
-        channels share one table.
-    """
-    if channel_offset is None:
-        return codes
-    return codes.astype(np.int32) + channel_offset
+
+def _rows_cols(shape):
+    return shape[0], int(np.prod(shape[1:]))
 
 
 def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_full: float, noise_maps,
@@ -221,57 +225,220 @@ def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_fu
     return np.where(certainty > 0, np.maximum(w, np.float32(WEIGHT_FLOOR)), np.float32(0.0))
 
 
+def noise_maps(shape: tuple[int, ...], params: list[NoiseParams], pattern: np.ndarray | None):
+    """(sigma_o2, sqrt_alpha, beta / alpha) of (21) per sample, float32, broadcastable to
+    ``shape``; ``params`` one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
+    cols = [np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
+            for i in range(3)]
+    if len(params) == 1 or pattern is None:
+        return tuple(c[0] for c in cols)
+    idx = channel_index(shape, pattern)
+    return tuple(c[idx] for c in cols)
+
+
+#: IRLS stops when no measured sample's log-irradiance moves more than this
+IRLS_TOLERANCE = 1e-3
+
+
+def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, maps,
+         linear: bool, iterations: int, tol: float = IRLS_TOLERANCE):
+    """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
+    at the previous estimate, until no measured sample moves more than ``tol`` (in log E).
+
+    codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
+    y_full : per frame, the full-scale code value ``white - black``
+    maps : :func:`noise_maps`
+    Returns ``(log_e, flags, den, passes, largest_change)``.
+    """
+    flags = den = None
+    change = np.inf
+    rows = channel_index(log_e.shape, pattern)
+    for it in range(1, iterations + 1):
+        acc = LogMerge(log_e.shape, pattern)
+        for k, (tab, h) in enumerate(zip(tables, exposures)):
+            codes = codes_of(k)
+            cert = tab.certainty.reshape(-1, tab.n_codes)
+            w = irls_weights(cert[0][codes] if rows is None else cert[rows, codes], log_e, h, y_full[k], maps, linear)
+            acc.add(codes, tab, last=k == len(tables) - 1, weight=w)
+        new, flags = acc.finish(linear)
+        den = acc.den
+        change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
+        log_e = new
+        if change < tol:
+            break
+    return log_e, flags, den, it, change
+
+
+def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, weighting: str = "triangle",
+                 noise: list[NoiseParams] | None = None, variance: str = "none", estimator: str = "log",
+                 prior_rate: float | None = None, k: float = DEFAULT_K, pattern: np.ndarray | None = None,
+                 scale: float = 1.0, irls_iterations: int = 0):
+    """The merge core on decoded frames in memory: (7) (or the ML estimator) with the
+    tables of :func:`exposure_tables`, optionally re-weighted (:func:`irls`).
+
+    codes : P arrays ``(H, W)`` or ``(H, W, C)`` uint8/uint16 in increasing exposure order
+    exposures : (P,) ``h_j`` in seconds
+    black, white : (R,) levels per table row (R = 1, or one per row of ``pattern``)
+    noise : R noise parameter sets (code units), needed by the noise-model weights'
+        exact form, ``variance='model'``, ``estimator='ml'`` and IRLS
+    Returns ``(E * scale, flags, summed weights)``, float32/int8/float32.
+    """
+    n_codes = 256 if codes[0].dtype == np.uint8 else 65536
+    black = np.atleast_1d(np.asarray(black, np.float64))
+    white = np.broadcast_to(np.asarray(white, np.float64), black.shape)
+    tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
+                              k, estimator=estimator) for h in exposures]
+    acc = LogMerge(codes[0].shape, pattern)
+    for j, (z, tab) in enumerate(zip(codes, tables)):
+        acc.add(z, tab, last=j == len(codes) - 1)
+    if not irls_iterations:
+        out, flags = acc.finish(estimator == "ml", scale)
+        return out, flags, acc.den
+    log_e, flags = acc.finish(estimator == "ml")
+    maps = noise_maps(log_e.shape, noise, pattern)
+    y_full = [float(white[0] - black[0])] * len(codes)
+    log_e, flags, den, _, _ = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, maps,
+                                   estimator == "ml", irls_iterations)
+    out = np.exp(log_e, out=log_e)
+    out *= np.float32(scale)
+    return out, flags, den
+
+
 class LogMerge:
-    """Accumulate (7) over frames given in increasing exposure order.
+    """Accumulate (7) over frames given in increasing exposure order, in one fused pass per
+    frame (numba, both cores): per sample one code read, two table reads and two
+    read-modify-writes; nothing else is allocated.
 
     shape : the sample array shape, ``(H, W)`` (mosaic) or ``(H, W, C)``.
-    Memory: three float32 and one bool array of that shape.
+    pattern : ``(ph, pw)`` int, the table row of each sample, periodic over ``(H, W)`` for
+        a mosaic (e.g. the 2 x 2 Bayer cell) or over ``(H, W * C)`` for interleaved
+        channels (``[[0, 1, 2]]``); None when one table row serves every sample.
+
+    Memory: two float32 arrays of ``shape`` (``num``, ``den``).  A sample that no frame has
+    measured yet keeps its fallback value in ``num`` and its class in ``den`` (0: dark,
+    -1: saturated, decided by the shortest frame), so no third array is needed.
     """
 
-    def __init__(self, shape: tuple[int, ...]):
-        self.num = np.zeros(shape, np.float32)
-        self.den = np.zeros(shape, np.float32)
-        self.fallback = np.empty(shape, np.float32)
-        self.saturated = None  # set by the first (shortest) frame
+    def __init__(self, shape: tuple[int, ...], pattern: np.ndarray | None = None):
+        self.shape = tuple(shape)
+        self.num = np.zeros(self.shape, np.float32)
+        self.den = np.zeros(self.shape, np.float32)
+        self.pattern = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
         self.frames = 0
 
-    def add(self, index: np.ndarray, tables: ExposureTables, last: bool = False, weight: np.ndarray | None = None) -> None:
-        """Add one frame; ``index`` from :func:`flat_index`; ``last`` for the longest;
-        ``weight`` per-sample weights (IRLS) instead of the table's."""
+    def _2d(self, a: np.ndarray) -> np.ndarray:
+        if a.shape != self.shape:
+            raise ValueError(f"samples of shape {a.shape}, expected {self.shape}")
+        return a.reshape(_rows_cols(self.shape))
+
+    def add(self, codes: np.ndarray, tables: ExposureTables, last: bool = False,
+            weight: np.ndarray | None = None) -> None:
+        """Add one frame of stored code values ``codes`` (``shape``, uint8/uint16); ``last``
+        for the longest exposure; ``weight`` per-sample weights (IRLS) instead of the
+        table's ``w(z) sigma^-2``, combined with the table's ``value``."""
+        n = tables.n_codes
+        mode = 0 if self.frames == 0 else 2 if last else 1
         if weight is None:
-            self.den += tables.weight.take(index)
-            self.num += tables.weighted_log.take(index)
+            w_tab, num_tab, per_sample = tables.weight, tables.weighted_log, _NO_WEIGHT
         else:
-            self.den += weight
-            self.num += weight * tables.value.take(index)
-        if self.saturated is None:
-            self.saturated = tables.above_mid.take(index)
-            np.copyto(self.fallback, tables.fallback_log.take(index))
-        elif last:
-            np.copyto(self.fallback, tables.fallback_log.take(index), where=~self.saturated)
+            w_tab, num_tab, per_sample = tables.weight, tables.value, self._2d(weight.astype(np.float32, copy=False))
+        _accumulate(self._2d(codes), self.pattern, w_tab.reshape(-1, n), num_tab.reshape(-1, n),
+                    tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
+                    weight is not None, mode, self._2d(self.num), self._2d(self.den))
+        # the ML estimator's dark floor: the longest frame's fallback at code 0, per row
+        self._dark_floor = np.ascontiguousarray(tables.fallback_log.reshape(-1, n)[:, 0])
         self.frames += 1
 
-    def finish(self, linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Return ``(log_E, flag)``: the log-exposure-normalised irradiance (float32, finite)
-        and an int8 flag per sample.
+    def finish(self, linear: bool = False, scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``(result, flag)``: the log-exposure-normalised irradiance ``log E``
+        (float32, finite), or with ``scale`` the linear ``E * scale`` (computed in the same
+        pass), and an int8 flag per sample.  The result is written over ``num``; ``den`` is
+        left as the summed weights (0 where unmeasured).
 
         Where some frame has weight: (7).  Where none has (flag != 0):
         ``FLAG_SATURATED`` (above mid-scale in the shortest frame): the clipping level of
         the shortest frame, ``log(gamma^-1(z_max) / h_min)``, a lower bound;
         ``FLAG_DARK``: the longest frame's value with a floor of half a code value,
         ``log(max(gamma^-1(z), gamma^-1(1/2)) / h_max)``, an upper bound.
-        ``linear``: the sums hold linear values (the ML estimator); their ratio is logged.
+        ``linear``: the sums hold linear values (the ML estimator); a sample whose weighted
+        mean is not positive (every weighted frame read black) is dark, with the floor
+        ``log(gamma^-1(1/2) / h_max)`` of its channel.
         """
         if self.frames == 0:
             raise ValueError("no frame was added")
-        measured = self.den > 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            est = self.num / self.den
-            if linear:
-                measured &= est > 0
-                est = np.log(est)
-            log_e = np.where(measured, est, self.fallback)
-        flag = np.zeros(self.num.shape, np.int8)
-        flag[~measured & self.saturated] = FLAG_SATURATED
-        flag[~measured & ~self.saturated] = FLAG_DARK
-        return log_e, flag
+        flag = np.empty(self.shape, np.int8)
+        _finish(self._2d(self.num), self._2d(self.den), self.pattern, self._dark_floor, linear,
+                -1.0 if scale is None else float(scale), self._2d(flag))
+        return self.num, flag
+
+
+_NO_WEIGHT = np.zeros((1, 1), np.float32)
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den):  # pragma: no cover
+    """One frame of (7) into ``num``/``den`` (2-D views), rows in parallel.  ``mode`` 0:
+    the shortest frame (sets the fallback and the saturated/dark class), 1: a middle
+    frame, 2: the longest (dark samples take its fallback).  See :class:`LogMerge`."""
+    rows, cols = codes.shape
+    ph, pw = pattern.shape
+    for r in numba.prange(rows):
+        prow = pattern[r % ph]
+        for q in range(min(pw, cols)):
+            c = prow[q]
+            for s in range(q, cols, pw):
+                z = codes[r, s]
+                if use_weight:
+                    w = weight[r, s]
+                    wv = w * num_tab[c, z]
+                else:
+                    w = w_tab[c, z]
+                    wv = num_tab[c, z]
+                if mode == 0:
+                    if w > 0:
+                        num[r, s] = wv
+                        den[r, s] = w
+                    else:
+                        num[r, s] = fb_tab[c, z]
+                        den[r, s] = -1.0 if hi_tab[c, z] else 0.0
+                elif w > 0:
+                    if den[r, s] > 0:
+                        num[r, s] += wv
+                        den[r, s] += w
+                    else:
+                        num[r, s] = wv
+                        den[r, s] = w
+                elif mode == 2 and den[r, s] == 0:
+                    num[r, s] = fb_tab[c, z]
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _finish(num, den, pattern, dark_floor, linear, scale, flag):  # pragma: no cover
+    """(7)'s ratio, the fallbacks and flags, in place over ``num``; ``scale > 0``: return
+    ``exp(log E) * scale`` instead of ``log E``."""
+    rows, cols = num.shape
+    ph, pw = pattern.shape
+    nf = dark_floor.shape[0]
+    for r in numba.prange(rows):
+        prow = pattern[r % ph]
+        for s in range(cols):
+            d = den[r, s]
+            f = 0
+            if d > 0:
+                v = num[r, s] / d
+                if linear:
+                    if v > 0:
+                        if scale > 0:
+                            num[r, s] = v * scale
+                            flag[r, s] = 0
+                            continue
+                        v = np.log(v)
+                    else:
+                        v = dark_floor[min(prow[s % pw], nf - 1)]
+                        f = -1
+            else:
+                v = num[r, s]
+                f = 1 if d < 0 else -1
+                den[r, s] = 0.0
+            num[r, s] = np.exp(v) * scale if scale > 0 else v
+            flag[r, s] = f

@@ -16,7 +16,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import (
-    FLAG_DARK, FLAG_SATURATED, LogMerge, exposure_tables, flat_index, irls_weights,
+    FLAG_DARK, FLAG_SATURATED, LogMerge, channel_index, exposure_tables, irls, noise_maps,
 )
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
@@ -35,9 +35,6 @@ EXTRA_CHANNELS = ("clipped", "weight")
 
 #: estimator choices: log = the paper's (7), ml = linear inverse-variance (censored)
 ESTIMATORS = ("auto", "log", "ml")
-#: IRLS stops when no measured sample's log-irradiance moves more than this
-IRLS_TOLERANCE = 1e-3
-
 #: relative difference under which two exposures count as equal
 EQUAL_EXPOSURE_RTOL = 1e-3
 
@@ -203,28 +200,29 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
     luts = _lut_columns(opts.lut, frames) if opts.lut else None
     bounds = parse_bounds(opts.bounds) if opts.bounds else None
-    tables, offsets, table_channels = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k,
+    tables, pattern, table_channels = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k,
                                              estimator, luts, bounds)
     timings["tables"] = time.perf_counter() - t0
 
-    log_e, flags, den, timings_stream = _stream(frames, tables, offsets, estimator == "ml")
+    # without IRLS the stream's last pass returns the linear image directly
+    result, flags, den, timings_stream = _stream(frames, tables, pattern, estimator == "ml",
+                                                 None if opts.irls else h_ref)
     timings.update(timings_stream)
     iterations = 0
     if opts.irls:
         t0 = time.perf_counter()
-        maps = _noise_maps(first, noise, table_channels, offsets)
-        for iterations in range(1, opts.irls + 1):
-            new, flags, den = _irls_pass(frames, tables, offsets, log_e, exposures, maps, estimator == "ml")
-            change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
-            log_e = new
-            log.info("IRLS iteration %d: largest change %.2e", iterations, change)
-            if change < IRLS_TOLERANCE:
-                break
+        maps = noise_maps(result.shape, per_channel(noise, table_channels), pattern)
+        y_full = [float(f.white[0] - f.black[0]) for f in frames]
+        log_e, flags, den, iterations, change = irls(lambda k: load_codes(frames[k]), tables, pattern, result,
+                                                     exposures, y_full, maps, estimator == "ml", opts.irls)
+        log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
+        result = np.exp(log_e, out=log_e)
+        result *= np.float32(h_ref)
+        del log_e
         timings["irls"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    linear = np.exp(log_e, dtype=np.float32) * np.float32(h_ref)
-    del log_e
+    linear = result
     if first.kind == "raw" and not opts.cfa:
         rgb = _raw_to_rec709(linear, first)
         channels, flag_img = ["R", "G", "B"], flags
@@ -380,8 +378,8 @@ def _lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
 def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
             luts=None, bounds=None):
     """Per-frame lookup tables (each frame with its own black and white levels), the
-    per-sample channel offsets into them (None when one row serves every channel) and the
-    table rows' channel names."""
+    periodic pattern of table rows (see :class:`LogMerge`; None when one row serves every
+    channel) and the table rows' channel names."""
     first = frames[0]
     names = first.channel_names
     chan_noise = per_channel(noise, names) if noise else None
@@ -399,40 +397,25 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
     if shared:
         return tables, None, names
     if first.kind == "raw":
-        return tables, raw_channel_map(first.path).astype(np.int32) * first.n_codes, names
-    return tables, np.arange(first.channels, dtype=np.int32) * first.n_codes, names
+        return tables, cfa_cell(raw_channel_map(first.path)), names
+    return tables, np.arange(first.channels, dtype=np.intp)[None, :], names
 
 
-def _noise_maps(frame: Frame, noise, names, offsets):
-    """(sigma_o2, sqrt_alpha, beta / alpha) per sample, broadcastable to its shape."""
-    params = per_channel(noise, names)
-    cols = [np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
-            for i in range(3)]
-    if len(params) == 1:
-        return tuple(c[0] for c in cols)
-    if frame.kind == "raw":
-        idx = (offsets // frame.n_codes).astype(np.intp)
-        return tuple(c[idx] for c in cols)
-    return tuple(cols)
+def cfa_cell(channel_map: np.ndarray) -> np.ndarray:
+    """The repeating cell of a CFA's ``(H, W)`` channel map (2 x 2 Bayer, 6 x 6 X-Trans)."""
+    for ph, pw in ((2, 2), (6, 6)):
+        cell = channel_map[:ph, :pw]
+        if np.array_equal(channel_map, channel_index(channel_map.shape, cell)):
+            return cell.astype(np.intp)
+    raise HdrMergeError("the colour filter array does not repeat with a 2 x 2 or 6 x 6 cell")
 
 
-def _irls_pass(frames, tables, offsets, log_e, exposures, maps, linear):
-    """One re-weighted pass: every frame's weight at the current estimate."""
-    acc = LogMerge(log_e.shape)
-    for k, (frame, tab, h) in enumerate(zip(frames, tables, exposures)):
-        idx = flat_index(load_codes(frame), offsets)
-        y_full = float(frame.white[0] - frame.black[0])
-        w = irls_weights(tab.certainty.take(idx), log_e, h, y_full, maps, linear)
-        acc.add(idx, tab, last=k == len(frames) - 1, weight=w)
-    new, flags = acc.finish(linear)
-    return new, flags, acc.den
-
-
-def _stream(frames, tables, offsets, linear=False):
+def _stream(frames, tables, pattern, linear=False, scale=None):
     """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
-    decoded frames in memory."""
+    decoded frames in memory.  Returns ``log E``, or ``E * scale`` when ``scale`` is given
+    (see :meth:`LogMerge.finish`), the flags and the summed weights."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
-    acc = LogMerge(shape)
+    acc = LogMerge(shape, pattern)
     decode_time = 0.0
     merge_time = 0.0
 
@@ -452,14 +435,14 @@ def _stream(frames, tables, offsets, linear=False):
             if k + 1 < len(frames):
                 pending = pool.submit(decode, frames[k + 1])
             t = time.perf_counter()
-            acc.add(flat_index(codes, offsets), tables[k], last=k == len(frames) - 1)
+            acc.add(codes, tables[k], last=k == len(frames) - 1)
             del codes
             merge_time += time.perf_counter() - t
     t = time.perf_counter()
-    log_e, flags = acc.finish(linear)
+    result, flags = acc.finish(linear, scale)
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
-    return log_e, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
+    return result, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
 
 
 def _raw_to_rec709(mosaic: np.ndarray, frame: Frame) -> np.ndarray:
