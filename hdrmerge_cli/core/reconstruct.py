@@ -62,6 +62,13 @@ class ExposureTables:
     certainty: np.ndarray | None = None
 
 
+def table_size(dtype, white) -> int:
+    """Entries of a lookup table: the smallest power of two above every white level (a
+    14-bit RAW in a uint16 container needs 16384, not 65536), at most the dtype's range.
+    Stored codes above it are clipped codes and read the table's last (clipped) entry."""
+    return min(int(2 ** np.ceil(np.log2(float(np.max(white)) + 1))), int(np.iinfo(dtype).max) + 1)
+
+
 def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
     """Normalised code values ``v = (r - black) / (white - black)`` for ``r = 0..N-1``."""
     return (np.arange(n_codes, dtype=np.float64) - black) / float(white - black)
@@ -283,9 +290,9 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
         exact form, ``variance='model'``, ``estimator='ml'`` and IRLS
     Returns ``(E * scale, flags, summed weights)``, float32/int8/float32.
     """
-    n_codes = 256 if codes[0].dtype == np.uint8 else 65536
     black = np.atleast_1d(np.asarray(black, np.float64))
     white = np.broadcast_to(np.asarray(white, np.float64), black.shape)
+    n_codes = table_size(codes[0].dtype, white)
     tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
                               k, estimator=estimator) for h in exposures]
     acc = LogMerge(codes[0].shape, pattern)
@@ -382,12 +389,13 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
     frame, 2: the longest (dark samples take its fallback).  See :class:`LogMerge`."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
+    top = w_tab.shape[1] - 1  # codes above the table (never valid data) read its last, clipped entry
     for r in numba.prange(rows):
         prow = pattern[r % ph]
         for q in range(min(pw, cols)):
             c = prow[q]
             for s in range(q, cols, pw):
-                z = codes[r, s]
+                z = min(codes[r, s], top)
                 if use_weight:
                     w = weight[r, s]
                     wv = w * num_tab[c, z]

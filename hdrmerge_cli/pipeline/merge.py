@@ -16,7 +16,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import (
-    FLAG_DARK, FLAG_SATURATED, LogMerge, channel_index, exposure_tables, irls, noise_maps,
+    FLAG_DARK, FLAG_SATURATED, LogMerge, channel_index, exposure_tables, irls, noise_maps, table_size,
 )
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
@@ -390,7 +390,8 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
     rows = 1 if shared else len(first.black)
     names = names[:rows]
     row_noise = chan_noise[:rows] if chan_noise else None
-    tables = [exposure_tables(f.n_codes, f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
+    tables = [exposure_tables(f.n_codes if luts else table_size(np.uint8 if f.n_codes == 256 else np.uint16, f.white),
+                              f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
                               bounds=bounds)
               for j, (f, h) in enumerate(zip(frames, exposures))]
