@@ -25,11 +25,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-## Benchmarks: CRF estimation on the DoRF curves, noise calibration (need ../shared/data; installs OpenCV).
+## Benchmarks: accuracy and speed against OpenCV/colour-hdri, CRF estimation, noise calibration
+## (need ../shared/data; install OpenCV and colour-hdri); tables and plots in benchmarks/results/.
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
-	$(BIN)/python -m benchmarks.crf_dorf
-	$(BIN)/python -m benchmarks.noise_calibration
+	$(BIN)/python -W ignore -m benchmarks
 
 ## Regenerate the man pages from the click definitions.
 man: $(STAMP)

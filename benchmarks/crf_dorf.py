@@ -117,11 +117,8 @@ def evaluate(methods: dict, curves, levels, e) -> dict:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="every 10th curve (11 of 101)")
-    args = ap.parse_args()
-    curves = range(0, 101, 10 if args.quick else 1)
+def main(quick: bool = False) -> str:
+    curves = range(0, 101, 10 if quick else 1)
     e = scene()
     res = evaluate(METHODS, curves, LEVELS, e)
     lines = [
@@ -140,14 +137,16 @@ def main() -> None:
     # speed against error: pixels sampled
     sweep = {f"goossens, {n or 'all'} px": ours("goossens", n) for n in (1000, 10000, 100000, None)}
     sweep |= {f"debevec, {n} px": ours("debevec", n) for n in (100, 1000, 5000)}
-    res = evaluate(sweep, range(0, 101, 20 if args.quick else 5), ["moderate"], e)
+    res = evaluate(sweep, range(0, 101, 20 if quick else 5), ["moderate"], e)
     lines += ["", "Speed against error (moderate noise): pixels sampled per channel.", "",
               "| method | median RMSE | 90th pct RMSE | mean time (s) |", "|---|---|---|---|"]
     for (_, name), v in res.items():
         a = np.array([(r, t) for r, t, _ in v])
         lines.append(f"| {name} | {np.median(a[:, 0]):.4f} | {np.percentile(a[:, 0], 90):.4f} | {a[:, 1].mean():.3f} |")
-    print(write_result(Path(__file__).parent / "results" / "crf_dorf.md", lines))
+    return write_result(Path(__file__).parent / "results" / ("crf_dorf_quick.md" if quick else "crf_dorf.md"), lines)
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="every 10th curve (11 of 101)")
+    print(main(ap.parse_args().quick))

@@ -41,7 +41,7 @@ from hdrmerge_cli.core.scene import procedural_scene
 RESULTS = Path(__file__).parent / "results"
 GAMMA = 2.5  # gamma^-1(v) = v^2.5, the paper's x^0.4 CRF
 #: the steps of ``merge --json``'s timing_seconds, in order
-STEPS = ("read_metadata", "noise_estimate", "tables", "decode_and_merge_wall", "irls", "color", "write")
+STEPS = ("read_metadata", "noise_estimate", "tables", "decode_and_merge_wall", "irls", "color_and_write")
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -252,13 +252,13 @@ def main(quick: bool = False) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         col = (f"{r['colour_hdri']:.2f} | {r['colour_hdri'] / r['probabilistic']:.0f}x" if "colour_hdri" in r else "- | -")
-        lines.append(f"| {r['mp']:.1f} | {r['frames']} | {r["floor"] * 1e3:.1f} | {r['triangle']:.3f} | {r['probabilistic']:.3f} "
+        lines.append(f"| {r['mp']:.1f} | {r['frames']} | {r['floor'] * 1e3:.1f} | {r['triangle']:.3f} | {r['probabilistic']:.3f} "
                      f"| {r['probabilistic'] / r['triangle']:.2f} | {r['probabilistic'] / r['floor']:.1f}x "
                      f"| {r['opencv_debevec']:.2f} | {r['opencv_debevec'] / r['probabilistic']:.0f}x | {col} |")
     lines += ["", "14-bit Bayer mosaics (RAW-like), ML estimator, probabilistic weights, per-CFA-channel tables:", "",
               "| MP | frames | floor ms | merge s | merge/floor | ns per sample per frame |", "|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['mp']:.1f} | {r['frames']} | {r["raw_floor"] * 1e3:.1f} | {r['raw_ml']:.3f} | "
+        lines.append(f"| {r['mp']:.1f} | {r['frames']} | {r['raw_floor'] * 1e3:.1f} | {r['raw_ml']:.3f} | "
                      f"{r['raw_ml'] / r['raw_floor']:.1f}x | {r['raw_ml'] / (r['mp'] * 1e6 * r['frames']) * 1e9:.2f} |")
     lines += ["", "## End-to-end `hdrmerge-cli merge` on 14-bit DNG brackets (defaults: noise measured on the bracket, "
               "demosaic, EXR)", "",

@@ -37,21 +37,21 @@ def _set_attribute(spec, name: str, value) -> None:
         spec.attribute(name, value)
 
 
-def write_exr(path: str, pixels: np.ndarray, channel_names: list[str], attributes: dict, half: bool = False) -> None:
-    """Write ``(H, W, C)`` float pixels as a zip-compressed (lossless) EXR.
+def write_exr(path: str, pixels, channel_names: list[str], attributes: dict, half: bool = False,
+              size: tuple[int, int] | None = None) -> None:
+    """Write float pixels as a zip-compressed (lossless) EXR.
 
-    ``half`` stores 16-bit floats (values beyond 65504 are clamped to it, with no inf)."""
+    pixels : ``(H, W, C)`` (or ``(H, W)``) floats, or, with ``size = (H, W)``, an iterable
+        of ``(y0, strip)`` with strips ``(rows, W, C)`` in increasing ``y0`` that together
+        cover the image (so the whole image never needs to be in memory at once)
+    half : store 16-bit floats (values beyond 65504 are clamped to it, with no inf)."""
     import OpenImageIO as oiio
 
-    data = np.ascontiguousarray(pixels, dtype=np.float32)
-    if data.ndim == 2:
-        data = data[..., None]
-    if not np.all(np.isfinite(data)):
-        raise HdrMergeError(f"{path}: refusing to write non-finite values (internal error)")
-    if half:
-        data = np.clip(data, -65504.0, 65504.0)
-    h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, "half" if half else "float")
+    if size is None:
+        pixels = np.asarray(pixels)
+        size, pixels = pixels.shape[:2], [(0, pixels)]
+    h, w = size
+    spec = oiio.ImageSpec(w, h, len(channel_names), "half" if half else "float")
     spec.channelnames = tuple(channel_names)
     spec.attribute("compression", "zip")
     for key, value in attributes.items():
@@ -59,10 +59,19 @@ def write_exr(path: str, pixels: np.ndarray, channel_names: list[str], attribute
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec):
         raise HdrMergeError(f"{path}: cannot write ({oiio.geterror().strip() or 'unknown error'})")
-    ok = out.write_image(data)
-    out.close()
-    if not ok:
-        raise HdrMergeError(f"{path}: cannot write ({out.geterror().strip() or 'unknown error'})")
+    try:
+        for y0, strip in pixels:
+            data = np.ascontiguousarray(strip, dtype=np.float32)
+            if data.ndim == 2:
+                data = data[..., None]
+            if not np.all(np.isfinite(data)):
+                raise HdrMergeError(f"{path}: refusing to write non-finite values (internal error)")
+            if half:
+                data = np.clip(data, -65504.0, 65504.0)
+            if not out.write_scanlines(y0, y0 + data.shape[0], 0, data):
+                raise HdrMergeError(f"{path}: cannot write ({out.geterror().strip() or 'unknown error'})")
+    finally:
+        out.close()
 
 
 def write_ldr(path: str, codes: np.ndarray, exif: dict) -> None:

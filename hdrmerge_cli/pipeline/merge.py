@@ -221,28 +221,31 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         del log_e
         timings["irls"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
     linear = result
-    if first.kind == "raw" and not opts.cfa:
-        rgb = _raw_to_rec709(linear, first)
-        channels, flag_img = ["R", "G", "B"], flags
-    elif first.kind == "raw":
-        rgb, channels, flag_img = linear[..., None], ["Y"], flags
+    if first.kind == "raw":
+        channels = ["Y"] if opts.cfa else ["R", "G", "B"]
+        flag_img = flags
     else:
-        rgb = linear
         channels = ["R", "G", "B"] if first.channels == 3 else ["Y"]
         flag_img = np.where((flags == FLAG_SATURATED).any(-1), FLAG_SATURATED, np.where((flags == FLAG_DARK).any(-1), FLAG_DARK, 0))
-    timings["color"] = time.perf_counter() - t0
+    wsum = den if den.ndim == 2 else den.mean(axis=-1)
+    names = channels + [c for c in EXTRA_CHANNELS if c in opts.extra_channels]
 
-    planes, names = [rgb], list(channels)
-    if "clipped" in opts.extra_channels:
-        planes.append(flag_img.astype(np.float32)[..., None])
-        names.append("clipped")
-    if "weight" in opts.extra_channels:
-        wsum = den if den.ndim == 2 else den.mean(axis=-1)
-        planes.append(wsum.astype(np.float32)[..., None])
-        names.append("weight")
-    pixels = np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
+    def strips():
+        """The EXR in strips of rows: colour (RAW: white balance, demosaic, camera matrix)
+        and extra channels are made per strip, so no full-size RGB copy is ever held."""
+        for y0 in range(0, first.height, STRIP_ROWS):
+            y1 = min(first.height, y0 + STRIP_ROWS)
+            if first.kind == "raw" and not opts.cfa:
+                rgb = _raw_to_rec709_rows(linear, first, y0, y1)
+            else:
+                rgb = linear[y0:y1].reshape(y1 - y0, first.width, -1)
+            planes = [rgb]
+            if "clipped" in opts.extra_channels:
+                planes.append(flag_img[y0:y1, :, None].astype(np.float32))
+            if "weight" in opts.extra_channels:
+                planes.append(wsum[y0:y1, :, None].astype(np.float32))
+            yield y0, np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
 
     profile = new_profile(
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
@@ -283,9 +286,9 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
 
     t0 = time.perf_counter()
     with atomic_paths([output, profile_out], opts.overwrite) as (tmp_exr, tmp_json):
-        write_exr(tmp_exr, pixels, names, attrs, half=opts.half)
+        write_exr(tmp_exr, strips(), names, attrs, half=opts.half, size=(first.height, first.width))
         Path(tmp_json).write_text(profile_text, encoding="utf-8")
-    timings["write"] = time.perf_counter() - t0
+    timings["color_and_write"] = time.perf_counter() - t0
 
     n = flags.size
     return {
@@ -403,12 +406,11 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
 
 
 def cfa_cell(channel_map: np.ndarray) -> np.ndarray:
-    """The repeating cell of a CFA's ``(H, W)`` channel map (2 x 2 Bayer, 6 x 6 X-Trans)."""
-    for ph, pw in ((2, 2), (6, 6)):
-        cell = channel_map[:ph, :pw]
-        if np.array_equal(channel_map, channel_index(channel_map.shape, cell)):
-            return cell.astype(np.intp)
-    raise HdrMergeError("the colour filter array does not repeat with a 2 x 2 or 6 x 6 cell")
+    """The 2 x 2 repeating cell of a Bayer CFA's ``(H, W)`` channel map."""
+    cell = channel_map[:2, :2].astype(np.intp)
+    if not np.array_equal(channel_map, channel_index(channel_map.shape, cell)):
+        raise HdrMergeError("the colour filter array does not repeat with a 2 x 2 cell (Bayer only)")
+    return cell
 
 
 def _stream(frames, tables, pattern, linear=False, scale=None):
@@ -446,10 +448,18 @@ def _stream(frames, tables, pattern, linear=False, scale=None):
     return result, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
 
 
-def _raw_to_rec709(mosaic: np.ndarray, frame: Frame) -> np.ndarray:
-    """White balance (green = 1) per CFA colour, demosaic, camera matrix -> Rec.709."""
-    colors = bayer_channels(frame.cfa_pattern, mosaic.shape)
-    wb = frame.white_balance.astype(np.float32)
-    balanced = mosaic * wb[colors]
-    rgb = demosaic(balanced, frame.cfa_pattern)
+#: rows per strip of the colour conversion and EXR writing (even: keeps the CFA phase)
+STRIP_ROWS = 256
+#: rows of context around a strip for the demosaic (Malvar's 5 x 5 kernels need 2; even)
+STRIP_HALO = 4
+
+
+def _raw_to_rec709_rows(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
+    """Rows ``y0:y1`` of the Rec.709 image: white balance (green = 1) per CFA colour,
+    demosaic (with a halo of rows, so strips join seamlessly), camera matrix."""
+    a, b = max(0, y0 - STRIP_HALO), min(mosaic.shape[0], y1 + STRIP_HALO)
+    part = mosaic[a:b]
+    colors = bayer_channels(frame.cfa_pattern, part.shape)  # a is even: same CFA phase as row 0
+    balanced = part * frame.white_balance.astype(np.float32)[colors]
+    rgb = demosaic(balanced, frame.cfa_pattern)[y0 - a:y1 - a]
     return camera_to_rec709(rgb, frame.color_matrix)

@@ -1,0 +1,30 @@
+"""``python -m benchmarks [--quick] [NAME ...]``: every benchmark in one run.
+
+Writes Markdown tables and PNG plots under benchmarks/results/: accuracy (every method
+against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), speed
+(merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
+on the DoRF curves, noise calibration.  Needs ../shared/data and the ``bench`` extras.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import time
+
+BENCHMARKS = ("accuracy", "speed", "crf_dorf", "noise_calibration")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small versions of each benchmark")
+    ap.add_argument("names", nargs="*", choices=[[], *BENCHMARKS], default=[], metavar="NAME",
+                    help=f"run only these ({', '.join(BENCHMARKS)})")
+    args = ap.parse_args()
+    for name in args.names or BENCHMARKS:
+        t = time.perf_counter()
+        print(importlib.import_module(f"benchmarks.{name}").main(args.quick))
+        print(f"[{name}: {time.perf_counter() - t:.0f} s]\n", flush=True)
+
+
+if __name__ == "__main__":
+    main()
