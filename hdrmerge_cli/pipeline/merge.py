@@ -228,7 +228,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     else:
         channels = ["R", "G", "B"] if first.channels == 3 else ["Y"]
         flag_img = np.where((flags == FLAG_SATURATED).any(-1), FLAG_SATURATED, np.where((flags == FLAG_DARK).any(-1), FLAG_DARK, 0))
-    wsum = den if den.ndim == 2 else den.mean(axis=-1)
+    wsum = (den if den.ndim == 2 else den.mean(axis=-1)) if "weight" in opts.extra_channels else None
     names = channels + [c for c in EXTRA_CHANNELS if c in opts.extra_channels]
 
     def strips():
