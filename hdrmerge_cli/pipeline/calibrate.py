@@ -74,9 +74,11 @@ def _usable(frame: Frame, planes) -> str | None:
     return None
 
 
-def _read_group(frames: list[Frame], crf, what: str) -> list[tuple[Frame, list]]:
+def _read_group(frames: list[Frame], crf, what: str, reduce=None) -> list[tuple[Frame, list]]:
     """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
-    ``frames``; photographs that are all clipped or black are skipped with a warning."""
+    ``frames``; photographs that are all clipped or black are skipped with a warning.
+    ``reduce`` picks the sites to keep of each plane as it is read (e.g. :func:`subsample`),
+    so a bracket's full-size planes are never all held at once."""
     out = []
     # one camera (checked): the CFA layout is read once, not by a second decode per frame
     corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
@@ -86,7 +88,7 @@ def _read_group(frames: list[Frame], crf, what: str) -> list[tuple[Frame, list]]
         if reason:
             log.warning("%s: skipped, %s", f.path, reason)
         else:
-            out.append((f, planes))
+            out.append((f, planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]))
     return out
 
 
@@ -99,14 +101,14 @@ def _by_channel(read: list[tuple[Frame, list]]) -> dict[str, list]:
     return out
 
 
-def _fit_channels(read: list[tuple[Frame, list]], iso: str, window: int = 7, bins: int = 64,
-                  reduce=lambda plane: plane) -> dict[str, tuple[NoiseFit, list[float]]]:
-    """:func:`estimate_noise` per channel of the frames (sorted by exposure); ``reduce``
-    picks the sites to use.  Errors name the first frame, the ISO and the channel."""
+def _fit_channels(read: list[tuple[Frame, list]], iso: str, window: int = 7,
+                  bins: int = 64) -> dict[str, tuple[NoiseFit, list[float]]]:
+    """:func:`estimate_noise` per channel of the frames (sorted by exposure).  Errors name
+    the first frame, the ISO and the channel."""
     out = {}
     for name, items in _by_channel(read).items():
         try:
-            out[name] = estimate_noise([reduce(p) for p, *_ in items], items[0][1], items[0][2], window, bins)
+            out[name] = estimate_noise([p for p, *_ in items], items[0][1], items[0][2], window, bins)
         except HdrMergeError as exc:
             raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
     return out
@@ -378,11 +380,11 @@ def estimate_bracket_noise(frames: list[Frame], crf) -> tuple[dict, dict]:
 
     merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
     :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used."""
-    read = _read_group(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, "images")
+    read = _read_group(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, "images", reduce=subsample)
     if not read:
         raise HdrMergeError("no usable frame (all clipped or black)")
     used, entries = {}, {}
-    for name, (fit, ratios) in _fit_channels(read, iso_key(frames[0].iso), reduce=subsample).items():
-        entries[name] = _fit_entry(fit, ratios, 7) | {"subsample_sites": int(subsample(read[0][1][0][1]).size)}
+    for name, (fit, ratios) in _fit_channels(read, iso_key(frames[0].iso)).items():
+        entries[name] = _fit_entry(fit, ratios, 7) | {"subsample_sites": int(read[0][1][0][1].size)}
         used[name] = {"sigma_o2": fit.sigma_o2, "alpha": fit.alpha, "beta": 0.0}
     return used, entries
