@@ -17,6 +17,7 @@ BENCHMARKS = ("accuracy", "speed", "crf_dorf", "noise_calibration")
 def main() -> None:
     ap = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small versions of each benchmark")
+    # [] among the choices: Python 3.11's argparse checks an empty nargs="*" default against them
     ap.add_argument("names", nargs="*", choices=[[], *BENCHMARKS], default=[], metavar="NAME",
                     help=f"run only these ({', '.join(BENCHMARKS)})")
     args = ap.parse_args()

@@ -38,6 +38,7 @@ from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, quantise_crf, quantise_raw
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import log_normal_interval
+from hdrmerge_cli.io.plots import pyplot, save_figure
 
 RESULTS = Path(__file__).parent / "results"
 HDR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdr"
@@ -81,28 +82,29 @@ def render(scene: np.ndarray, case: str, gain: float, sigma_o: float, seed: int 
     return frames, times, e * np.sqrt(sensor.alpha), sensor
 
 
-def crb_log(e_codes: np.ndarray, times, sensor: SensorModel, case: str) -> np.ndarray:
-    """Cramer-Rao bound on Var[log E] given the bracket's quantised, clipped codes: the
-    inverse of sum_j sum_z (dP_j(z|E)/dlogE)^2 / P_j(z|E), P_j a normal of mean t E and
-    variance sigma_o^2 + sqrt(alpha) t E through the code bins (E in codes per second)."""
-    full = sensor.full_scale
+def crb_log(e: np.ndarray, times, gain: float, sigma_o2: float, full: float, case: str) -> np.ndarray:
+    """Cramer-Rao bound on Var[log E] given a bracket's quantised, clipped codes: the
+    inverse Fisher information sum_j sum_z (dP_j(z|E)/dlogE)^2 / P_j(z|E), with P_j a
+    normal of mean ``mu = t E`` and variance ``sigma_o2 + gain mu`` (gain = sqrt(alpha))
+    through the code bins: every code of a ``full``-scale linear ADC (``raw``) or 256
+    codes through the CRF x^0.4 (``jpeg``).  ``e`` in linear code values per second."""
     if case == "raw":
         edges = np.arange(full + 2) - 0.5
     else:
         edges = CRF("gamma", GAMMA).inverse(np.clip((np.arange(257) - 0.5) / 255.0, 0, 1)) * full
     edges[0], edges[-1] = -np.inf, np.inf
-    g, s2 = np.sqrt(sensor.alpha), sensor.sigma_o2_total
     pdf = quiet_import("scipy.stats").norm.pdf
-    info = np.zeros_like(e_codes)
+    info = np.zeros_like(e)
     for t in times:
-        mu = t * e_codes[:, None]
-        sd = np.sqrt(s2 + g * mu)
-        dsd = g / (2 * sd)
+        mu = t * e[:, None]
+        sd = np.sqrt(sigma_o2 + gain * mu)
+        dsd = gain / (2 * sd)  # d sd / d mu
         a, b = (edges[None, :-1] - mu) / sd, (edges[None, 1:] - mu) / sd
-        p = np.exp(log_normal_interval(a, b))
-        fa, fb = np.clip(a, -40, 40), np.clip(b, -40, 40)
+        p = np.exp(log_normal_interval(a, b))  # no cancellation in the tails
+        fa, fb = np.clip(a, -40, 40), np.clip(b, -40, 40)  # phi(+-40) = 0 in float64
+        # d/dmu Phi((c - mu)/sd) = -phi(x) (1 + x dsd) / sd with x = (c - mu) / sd; times mu: d / d log E
         dp = (-pdf(fb) * (1 + fb * dsd) + pdf(fa) * (1 + fa * dsd)) / sd * mu
-        used = p > 1e-12
+        used = p > 1e-12  # bins of negligible probability carry negligible information
         info += np.sum(np.where(used, dp * dp / np.where(used, p, 1.0), 0.0), axis=1)
     return 1.0 / np.maximum(info, 1e-300)
 
@@ -137,7 +139,7 @@ def colour_merge(frames, times, case: str):
     return run
 
 
-def per_pixel_merge(frames, times, crf, full, weighting, noise, prior):
+def per_pixel_merge(frames, times, crf, full, weighting):
     """(7) with the weighting function evaluated on every pixel (no tables): the
     'per-pixel' option of the speed/error plot; classical weights only.  Pixels no frame
     measures are NaN here (scored at the median), not the tables' clipping bounds."""
@@ -171,7 +173,7 @@ def methods(frames, times, case, sensor, prior, quick):
     for it in (1, 3):
         out[f"probabilistic/log IRLS {it}"] = ("ours IRLS", lambda it=it: merge_frames(
             frames, times, crf, black, white, "probabilistic", noise, prior_rate=prior, irls_iterations=it)[0])
-    out["triangle/log per-pixel"] = ("ours per-pixel", per_pixel_merge(frames, times, crf, full, "triangle", noise, prior))
+    out["triangle/log per-pixel"] = ("ours per-pixel", per_pixel_merge(frames, times, crf, full, "triangle"))
     out["OpenCV MergeDebevec"] = ("baseline", opencv_merge("debevec", frames, times, case))
     out["OpenCV MergeRobertson"] = ("baseline", opencv_merge("robertson", frames, times, case))
     out["colour-hdri"] = ("baseline", colour_merge(frames, times, case))
@@ -206,7 +208,8 @@ def evaluate(case: str, scene: np.ndarray, gain: float, sigma_o: float, quick: b
     frames, times, e_codes, sensor = render(scene, case, gain, sigma_o)
     lum = e_codes.reshape(-1)
     grid = np.geomspace(max(lum.min(), 1e-6), lum.max(), 300)
-    crb = np.exp(np.interp(np.log(np.maximum(lum, 1e-6)), np.log(grid), np.log(crb_log(grid, times, sensor, case))))
+    crb = np.exp(np.interp(np.log(np.maximum(lum, 1e-6)), np.log(grid), np.log(crb_log(grid, times, np.sqrt(sensor.alpha), sensor.sigma_o2_total,
+                                                                         sensor.full_scale, case))))
     ok = crb < 1.0
     log_t = np.log(lum[ok])
     peak2 = np.ptp(log_t) ** 2
@@ -282,12 +285,7 @@ def main(quick: bool = False) -> str:
 
 
 def plot(case: str, stats: dict, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 5.5))
+    fig, ax = pyplot().subplots(figsize=(8, 5.5))
     markers = {"ours": "o", "ours IRLS": "D", "ours per-pixel": "v", "baseline": "s", "ours + estimated CRF": "^"}
     for fam, marker in markers.items():
         pts = [(spm, below, n) for n, (f, below, spm) in stats.items() if f == fam]
@@ -305,8 +303,7 @@ def plot(case: str, stats: dict, out: Path) -> None:
     ax.legend(fontsize=7)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, overwrite=True)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ from benchmarks import write_result
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams, log_moments_approx, log_moments_exact
 from hdrmerge_cli.core.reconstruct import certainty_table, exposure_tables
-from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 
 TIMES = (0.1, 0.25, 1.0, 2.0)
 GAINS = (0.25, 0.5, 1.0, 2.0, 4.0)

@@ -25,14 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import write_result
-from scipy.stats import norm
-
-norm_pdf = norm.pdf
-
-from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.noise import NoiseParams
+from benchmarks.accuracy import GAMMA, crb_log
 from hdrmerge_cli.core.sensor import SensorModel
-from hdrmerge_cli.core.weights_goossens2012 import log_normal_interval
 from hdrmerge_cli.io.images import read_exr
 from hdrmerge_cli.pipeline.merge import MergeOptions, merge
 from hdrmerge_cli.pipeline.simulate import SimulateOptions, simulate
@@ -41,35 +35,8 @@ SCENE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdr" /
 GAINS = (0.25, 0.5, 1.0, 2.0, 4.0)
 SIGMAS = (0.001, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 WEIGHTS = ("triangle", "mann", "deneve", "gaussian", "uniform", "probabilistic", "direct", "optimal", "bounded")
-GAMMA = 2.5  # gamma^-1(v) = v^2.5, i.e. the paper's gamma(x) = x^0.4
 LINEAR_BITS = 12
 SCALE = (2**LINEAR_BITS - 1) / 255.0  # 12-bit linear codes per 8-bit linear code
-
-
-def crb_log(e: np.ndarray, times, gain: float, sigma_o: float) -> np.ndarray:
-    """Cramer-Rao bound on Var[log E] (8-bit linear units, E in codes per second) of the
-    bracket's quantised, clipped codes through the CRF: 1 / Fisher information."""
-    crf = CRF("gamma", GAMMA)
-    edges_v = (np.arange(257) - 0.5) / 255.0
-    edges_y = crf.inverse(np.clip(edges_v, 0, 1)) * 255.0
-    edges_y[0], edges_y[-1] = -np.inf, np.inf
-    info = np.zeros_like(e)
-    for t in times:
-        mu = gain * t * e[:, None] / gain  # e is in code values per second already (mu = E t)
-        var = sigma_o**2 + gain * mu
-        sd = np.sqrt(var)
-        dsd = gain / (2 * sd)  # d sd / d mu
-        a = (edges_y[None, :-1] - mu) / sd
-        b = (edges_y[None, 1:] - mu) / sd
-        p = np.exp(log_normal_interval(a, b))  # no cancellation in the tails
-        fa, fb = np.clip(a, -40, 40), np.clip(b, -40, 40)  # phi(+-40) = 0 in float64
-        # d/dmu Phi((c - mu)/sd) = -phi(x) (1 + x dsd) / sd with x = (c - mu) / sd
-        da = -norm_pdf(fa) * (1 + fa * dsd) / sd
-        db = -norm_pdf(fb) * (1 + fb * dsd) / sd
-        dp = (db - da) * mu  # d / d log E
-        used = p > 1e-12  # bins of negligible probability carry negligible information
-        info += np.sum(np.where(used, dp * dp / np.where(used, p, 1.0), 0.0), axis=1)
-    return 1.0 / np.maximum(info, 1e-300)
 
 
 def run_config(gain: float, sigma_o: float, folder: Path, downscale: int, scale: float) -> dict:
@@ -84,7 +51,7 @@ def run_config(gain: float, sigma_o: float, folder: Path, downscale: int, scale:
     pos = truth > 0
     e_px = truth[pos] * 255.0 / meta["reference_exposure"]
     grid = np.geomspace(e_px.min(), e_px.max(), 400)
-    crb_px = np.interp(np.log(e_px), np.log(grid), np.log(crb_log(grid, meta["exposure_times"], gain, sigma_o)))
+    crb_px = np.interp(np.log(e_px), np.log(grid), np.log(crb_log(grid, meta["exposure_times"], gain, sigma_o**2, 255.0, "jpeg")))
     ok = pos.copy()
     ok[pos] = np.exp(crb_px) < 1.0  # pixels the bracket measures (log-error sd below 1)
     crb = np.exp(crb_px[ok[pos]])

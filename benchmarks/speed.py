@@ -37,6 +37,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.reconstruct import merge_frames
 from hdrmerge_cli.core.scene import procedural_scene
+from hdrmerge_cli.io.plots import pyplot, save_figure
 
 RESULTS = Path(__file__).parent / "results"
 GAMMA = 2.5  # gamma^-1(v) = v^2.5, the paper's x^0.4 CRF
@@ -92,7 +93,7 @@ def bracket_8bit(mp: float, n_frames: int, seed: int = 0):
     return frames, times
 
 
-def mosaic_14bit(frames_8bit, times):
+def mosaic_14bit(frames_8bit):
     """14-bit Bayer mosaics (RGGB) from the same scene: linear codes with black 512."""
     out = []
     for f in frames_8bit:
@@ -120,7 +121,7 @@ def core_speed(mp: float, n_frames: int, with_colour: bool) -> dict:
     row["opencv_debevec"] = best_of(lambda: debevec.process(frames, times.astype(np.float32), response), 1)
     if with_colour:
         row["colour_hdri"] = best_of(lambda: colour_merge(frames, times), 1)
-    mosaics = mosaic_14bit(frames, times)
+    mosaics = mosaic_14bit(frames)
     pattern = np.array([[0, 1], [1, 2]])
     raw_noise = [NoiseParams(9.0, 0.25, 0.0)] * 3
     row["raw_floor"] = read_floor(mosaics)
@@ -288,12 +289,7 @@ def main(quick: bool = False) -> str:
 
 
 def plot(rows, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = pyplot().subplots(figsize=(7, 4.5))
     samples = np.array([r["mp"] * r["frames"] for r in rows])
     order = np.argsort(samples)
     for key, label in (("floor", "read floor"), ("triangle", "hdrmerge triangle"),
@@ -308,8 +304,7 @@ def plot(rows, out: Path) -> None:
     ax.legend()
     ax.set_title("Merge core time against input size")
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, overwrite=True)
 
 
 if __name__ == "__main__":

@@ -62,11 +62,12 @@ class ExposureTables:
     certainty: np.ndarray | None = None
 
 
-def table_size(dtype, white) -> int:
+def table_size(white, n_codes: int) -> int:
     """Entries of a lookup table: the smallest power of two above every white level (a
-    14-bit RAW in a uint16 container needs 16384, not 65536), at most the dtype's range.
-    Stored codes above it are clipped codes and read the table's last (clipped) entry."""
-    return min(int(2 ** np.ceil(np.log2(float(np.max(white)) + 1))), int(np.iinfo(dtype).max) + 1)
+    14-bit RAW in a uint16 container needs 16384, not 65536), at most the container's
+    ``n_codes``.  Stored codes above it are clipped codes and read the table's last
+    (clipped) entry."""
+    return min(int(2 ** np.ceil(np.log2(float(np.max(white)) + 1))), n_codes)
 
 
 def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
@@ -292,7 +293,7 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     """
     black = np.atleast_1d(np.asarray(black, np.float64))
     white = np.broadcast_to(np.asarray(white, np.float64), black.shape)
-    n_codes = table_size(codes[0].dtype, white)
+    n_codes = table_size(white, int(np.iinfo(codes[0].dtype).max) + 1)
     tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
                               k, estimator=estimator) for h in exposures]
     acc = LogMerge(codes[0].shape, pattern)
@@ -346,10 +347,10 @@ class LogMerge:
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
         if weight is None:
-            w_tab, num_tab, per_sample = tables.weight, tables.weighted_log, _NO_WEIGHT
+            num_tab, per_sample = tables.weighted_log, _NO_WEIGHT
         else:
-            w_tab, num_tab, per_sample = tables.weight, tables.value, self._2d(weight.astype(np.float32, copy=False))
-        _accumulate(self._2d(codes), self.pattern, w_tab.reshape(-1, n), num_tab.reshape(-1, n),
+            num_tab, per_sample = tables.value, self._2d(weight.astype(np.float32, copy=False))
+        _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
                     tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
                     weight is not None, mode, self._2d(self.num), self._2d(self.den))
         # the ML estimator's dark floor: the longest frame's fallback at code 0, per row

@@ -221,7 +221,6 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         del log_e
         timings["irls"] = time.perf_counter() - t0
 
-    linear = result
     if first.kind == "raw":
         channels = ["Y"] if opts.cfa else ["R", "G", "B"]
         flag_img = flags
@@ -237,9 +236,9 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         for y0 in range(0, first.height, STRIP_ROWS):
             y1 = min(first.height, y0 + STRIP_ROWS)
             if first.kind == "raw" and not opts.cfa:
-                rgb = _raw_to_rec709_rows(linear, first, y0, y1)
+                rgb = _raw_to_rec709_rows(result, first, y0, y1)
             else:
-                rgb = linear[y0:y1].reshape(y1 - y0, first.width, -1)
+                rgb = result[y0:y1].reshape(y1 - y0, first.width, -1)
             planes = [rgb]
             if "clipped" in opts.extra_channels:
                 planes.append(flag_img[y0:y1, :, None].astype(np.float32))
@@ -393,7 +392,7 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
     rows = 1 if shared else len(first.black)
     names = names[:rows]
     row_noise = chan_noise[:rows] if chan_noise else None
-    tables = [exposure_tables(f.n_codes if luts else table_size(np.uint8 if f.n_codes == 256 else np.uint16, f.white),
+    tables = [exposure_tables(f.n_codes if luts else table_size(f.white, f.n_codes),
                               f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
                               bounds=bounds)
