@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core import reconstruct
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_OK, FLAG_SATURATED, LogMerge, exposure_tables
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
@@ -171,6 +172,19 @@ def test_fused_kernel_equals_numpy_reference(layout, estimator, irls):
     np.testing.assert_array_equal(flag, want_flag)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-5)
     assert np.all(acc.den >= 0)
+    if weights is None:  # the tile-major in-memory kernel: same sums in the same order, bit for bit
+        for tile in (8, 4096):
+            for scale in (None, 0.5):
+                with pytest.MonkeyPatch.context() as mp:
+                    mp.setattr(reconstruct, "TILE", tile)
+                    out, flag2, den = reconstruct.merge_in_memory(frames, tables, pattern, estimator == "ml", scale)
+                np.testing.assert_array_equal(flag2, flag)
+                np.testing.assert_array_equal(den, acc.den)
+                expect = got if scale is None else np.exp(got) * np.float32(scale)
+                if scale is None:
+                    np.testing.assert_array_equal(out, expect)
+                else:  # linear: the ML path scales the mean directly instead of exp(log)
+                    np.testing.assert_allclose(out, expect, rtol=1e-6)
 
 
 def test_finish_with_scale_returns_the_linear_image():

@@ -296,13 +296,9 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     n_codes = table_size(white, int(np.iinfo(codes[0].dtype).max) + 1)
     tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
                               k, estimator=estimator) for h in exposures]
-    acc = LogMerge(codes[0].shape, pattern)
-    for j, (z, tab) in enumerate(zip(codes, tables)):
-        acc.add(z, tab, last=j == len(codes) - 1)
     if not irls_iterations:
-        out, flags = acc.finish(estimator == "ml", scale)
-        return out, flags, acc.den
-    log_e, flags = acc.finish(estimator == "ml")
+        return merge_in_memory(codes, tables, pattern, estimator == "ml", scale)
+    log_e, flags, _ = merge_in_memory(codes, tables, pattern, estimator == "ml")
     maps = noise_maps(log_e.shape, noise, pattern)
     y_full = [float(white[0] - black[0])] * len(codes)
     log_e, flags, den, _, _ = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, maps,
@@ -310,6 +306,45 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)
     return out, flags, den
+
+
+#: samples per task of :func:`merge_in_memory` (rounded down to whole pattern periods):
+#: its two float32 accumulators stay in the core's L1/L2 cache across all frames
+TILE = 4096
+
+
+def merge_in_memory(codes, tables: list[ExposureTables], pattern: np.ndarray | None = None, linear: bool = False,
+                    scale: float | None = None):
+    """(7) over frames that are all in memory, tile-major: each task accumulates every
+    frame into a cache-resident tile of ``num``/``den`` and finishes it, so per sample the
+    only memory traffic is one read of each frame's code and one write of the result
+    (:class:`LogMerge` streams frames one at a time instead, and reads and writes its
+    full-size accumulators once per frame).  Same arithmetic, same order, same result as
+    :class:`LogMerge` with :meth:`~LogMerge.finish`.
+
+    codes : P arrays of one shape ``(H, W)`` or ``(H, W, C)``, uint8/uint16, shortest
+        exposure first (or one ``(P, ...)`` array)
+    tables : P :class:`ExposureTables`, one per frame
+    Returns ``(result, flag, den)`` as :meth:`LogMerge.finish` with ``den`` the summed weights.
+    """
+    shape = codes[0].shape
+    if any(z.shape != shape for z in codes):
+        raise ValueError("frames of different shapes")
+    rows, cols = _rows_cols(shape)
+    n = tables[0].n_codes
+    pattern = np.zeros((1, 1), np.intp) if pattern is None else np.asarray(pattern, np.intp)
+    ph, pw = pattern.shape
+    tile = max(TILE // pw, 1) * pw
+    # per sample of a tile, the offset of its table row in the flattened (R * N,) tables
+    offsets = np.ascontiguousarray(np.tile(pattern, (1, tile // pw)) * n)
+    stack = lambda name: np.stack([getattr(t, name) for t in tables])  # noqa: E731
+    frames = numba.typed.List([np.ascontiguousarray(z).reshape(rows, cols) for z in codes])
+    out = np.empty((rows, cols), np.float32)
+    flag = np.empty((rows, cols), np.int8)
+    den = np.empty((rows, cols), np.float32)
+    _merge_tiles(frames, offsets, n, stack("weight"), stack("weighted_log"), stack("fallback_log"),
+                 stack("above_mid"), linear, -1.0 if scale is None else float(scale), out, flag, den)
+    return out.reshape(shape), flag.reshape(shape), den.reshape(shape)
 
 
 class LogMerge:
@@ -451,3 +486,61 @@ def _finish(num, den, pattern, dark_floor, linear, scale, flag):  # pragma: no c
                 den[r, s] = 0.0
             num[r, s] = np.exp(v) * scale if scale > 0 else v
             flag[r, s] = f
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _merge_tiles(frames, offsets, n_codes, w_tab, num_tab, fb_tab, hi_tab, linear, scale, out, flag, den_out):  # pragma: no cover
+    """:func:`merge_in_memory`'s kernel: tables ``(P, R * N)``; ``offsets`` ``(ph, T)``
+    the table-row offset of each sample of a tile; the fallbacks and flags as
+    :func:`_accumulate` then :func:`_finish` set them."""
+    n_frames = len(frames)
+    rows, cols = out.shape
+    ph, tile = offsets.shape
+    top = n_codes - 1
+    last = n_frames - 1
+    n_tiles = (cols + tile - 1) // tile
+    for task in numba.prange(rows * n_tiles):
+        r = task // n_tiles
+        s0 = (task % n_tiles) * tile
+        n = min(cols, s0 + tile) - s0
+        off = offsets[r % ph]
+        num = np.zeros(tile, np.float32)
+        den = np.zeros(tile, np.float32)
+        for j in range(n_frames):
+            z_row = frames[j][r, s0:s0 + n]
+            w_j = w_tab[j]
+            num_j = num_tab[j]
+            for i in range(n):
+                z = min(np.intp(z_row[i]), top) + off[i]
+                num[i] += num_j[z]
+                den[i] += w_j[z]
+        z_first = frames[0][r, s0:s0 + n]
+        z_last = frames[last][r, s0:s0 + n]
+        for i in range(n):
+            d = den[i]
+            f = 0
+            if d > 0:
+                v = num[i] / d
+                if linear:
+                    if v > 0:
+                        if scale > 0:
+                            out[r, s0 + i] = v * scale
+                            flag[r, s0 + i] = 0
+                            den_out[r, s0 + i] = d
+                            continue
+                        v = np.log(v)
+                    else:  # every weighted frame read black: the dark floor of the channel
+                        v = fb_tab[last, off[i]]
+                        f = -1
+            else:
+                z = min(np.intp(z_first[i]), top) + off[i]
+                if hi_tab[0, z]:
+                    v = fb_tab[0, z]
+                    f = 1
+                else:
+                    v = fb_tab[last, min(np.intp(z_last[i]), top) + off[i]]
+                    f = -1
+                d = 0.0
+            out[r, s0 + i] = np.exp(v) * scale if scale > 0 else v
+            flag[r, s0 + i] = f
+            den_out[r, s0 + i] = d

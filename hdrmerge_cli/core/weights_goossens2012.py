@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from scipy.special import log_ndtr
 
@@ -94,12 +95,36 @@ def _posterior_expectation(y_obs: np.ndarray, ctx: WeightContext, func_of_mu) ->
     m_prior = ctx.prior_rate * ctx.exposure
     mu = np.geomspace(1e-4, 50.0 * max(ctx.y_full, m_prior), GRID)
     var = code_variance(mu, ctx.noise)
-    loglik = -0.5 * (y_obs[:, None] - mu[None, :]) ** 2 / var[None, :] - 0.5 * np.log(var)[None, :]
-    logpost = loglik - mu[None, :] / m_prior + np.log(mu)[None, :]  # d mu = mu d log mu
-    logpost -= logpost.max(axis=1, keepdims=True)
-    post = np.exp(logpost)
-    f = func_of_mu(mu)
-    return np.sum(post * f[None, :], axis=1) / np.sum(post, axis=1)
+    base = -0.5 * np.log(var) - mu / m_prior + np.log(mu)  # prior and d mu = mu d log mu
+    f = np.broadcast_to(np.asarray(func_of_mu(mu), np.float64), mu.shape)
+    return _posterior_mean(np.asarray(y_obs, np.float64), mu, 0.5 / var, base, np.ascontiguousarray(f))
+
+
+#: posterior terms this far (in log) below the largest are skipped: their total is below
+#: GRID * exp(-60) ~ 2e-23 of the sum
+_LOG_NEGLIGIBLE = 60.0
+
+
+@numba.njit(parallel=True, cache=True)
+def _posterior_mean(y_obs, mu, half_inv_var, base, f):  # pragma: no cover
+    """``sum_g p_g f_g / sum_g p_g`` per observation with ``log p_g = -(y - mu_g)^2 / (2 v_g)
+    + base_g``, shifted by its maximum; exponentials only where they are not negligible."""
+    out = np.empty(y_obs.shape[0])
+    for i in numba.prange(y_obs.shape[0]):
+        y = y_obs[i]
+        top = -np.inf
+        for g in range(mu.shape[0]):
+            top = max(top, base[g] - (y - mu[g]) ** 2 * half_inv_var[g])
+        num = 0.0
+        den = 0.0
+        for g in range(mu.shape[0]):
+            lp = base[g] - (y - mu[g]) ** 2 * half_inv_var[g] - top
+            if lp > -_LOG_NEGLIGIBLE:
+                p = np.exp(lp)
+                num += p * f[g]
+                den += p
+        out[i] = num / den
+    return out
 
 
 def weights_goossens2012_probabilistic(v: np.ndarray, lin: np.ndarray, ctx: WeightContext) -> np.ndarray:
