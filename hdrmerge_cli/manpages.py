@@ -14,8 +14,10 @@ def write(target_dir: str) -> None:
     from click_man.core import write_man_pages
 
     from hdrmerge_cli import __version__
-    from hdrmerge_cli.cli import cli
+    from hdrmerge_cli.cli import COMMANDS, cli
 
+    for name in COMMANDS:  # click-man walks ``cli.commands``; the group loads them lazily
+        cli.add_command(cli.get_command(None, name))
     write_man_pages("hdrmerge-cli", cli, version=__version__, target_dir=target_dir, date=MAN_DATE)
 
 

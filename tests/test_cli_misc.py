@@ -33,7 +33,7 @@ def _options_in_help(run, command):
     from hdrmerge_cli.cli import cli
 
     text = run(command, "--help").stdout
-    opts = {o for p in cli.commands[command].params if isinstance(p, click.Option) for o in p.opts if o.startswith("--")}
+    opts = {o for p in cli.get_command(None, command).params if isinstance(p, click.Option) for o in p.opts if o.startswith("--")}
     opts.discard("--help")
     assert all(o in text for o in opts)
     return opts

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import errno
+import importlib
 
 import click
 
@@ -9,8 +10,28 @@ from hdrmerge_cli import __version__
 from hdrmerge_cli.core.errors import HdrMergeError
 
 
+#: subcommand -> the module defining it as ``command``; imported only when that command
+#: runs (or help lists it), so one command does not pay for the others' imports
+COMMANDS = {
+    "calibrate-noise": "calibrate_noise",
+    "estimate-crf": "estimate_crf",
+    "merge": "merge",
+    "weights-lut": "weights_lut",
+    "simulate": "simulate",
+}
+
+
 class _Group(click.Group):
-    """Turns data errors into one-line messages with exit code 1 (never a traceback)."""
+    """Turns data errors into one-line messages with exit code 1 (never a traceback);
+    loads subcommands lazily."""
+
+    def list_commands(self, ctx):
+        return list(COMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in COMMANDS:
+            return None
+        return importlib.import_module(f"hdrmerge_cli.cli.{COMMANDS[name]}").command
 
     def invoke(self, ctx):
         try:
@@ -36,16 +57,6 @@ def cli():
     --overwrite; logs go to stderr, --json summaries to stdout.  Exit codes: 0 success,
     1 a data error (explained in one line), 2 a usage error.
     """
-
-
-def _register():
-    from hdrmerge_cli.cli import calibrate_noise, estimate_crf, merge, simulate, weights_lut
-
-    for mod in (calibrate_noise, estimate_crf, merge, weights_lut, simulate):
-        cli.add_command(mod.command)
-
-
-_register()
 
 
 def main():

@@ -28,6 +28,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -89,11 +90,11 @@ def knot_levels(n_codes: int) -> int:
 
 
 def to_knots(codes: np.ndarray, n_codes: int, levels: int) -> np.ndarray:
-    """Nearest knot of each code value (identity when every code is a knot)."""
+    """Nearest knot of each code value (the codes themselves when every code is a knot)."""
     codes = np.asarray(codes)
     if levels == n_codes:
-        return codes.astype(np.int32)
-    return np.rint(codes.astype(np.float64) * ((levels - 1) / (n_codes - 1))).astype(np.int32)
+        return codes
+    return np.rint(codes * ((levels - 1) / (n_codes - 1))).astype(np.uint16)
 
 
 def from_knots(g_knots: np.ndarray, n_codes: int) -> np.ndarray:
@@ -106,19 +107,32 @@ def from_knots(g_knots: np.ndarray, n_codes: int) -> np.ndarray:
 def comparagram(knots: np.ndarray, levels: int) -> Comparagram:
     """Joint histograms of every frame pair.
 
-    knots : (N, P) knot index of each pixel in each frame (frames in exposure order)
+    knots : (N, P) knot index (unsigned integers below ``levels``) of each pixel in each
+        frame (frames in exposure order)
     """
     n_frames = knots.shape[1]
     parts = []
     for j in range(n_frames):
         for jp in range(j + 1, n_frames):
-            cell = knots[:, j].astype(np.int64) * levels + knots[:, jp]
-            counts = np.bincount(cell, minlength=levels * levels)
+            counts = _pair_counts(knots, levels, j, jp, numba.get_num_threads())
             occupied = np.flatnonzero(counts)
             parts.append((occupied // levels, occupied % levels, np.full(occupied.size, j), np.full(occupied.size, jp),
                           counts[occupied]))
     a, b, j, jp, count = (np.concatenate(col) for col in zip(*parts))
     return Comparagram(a, b, j, jp, count.astype(np.float64), levels)
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _pair_counts(knots, levels, j, jp, chunks):  # pragma: no cover
+    """Counts of ``(knots[:, j], knots[:, jp])``, flattened ``(levels * levels,)``; one
+    histogram per chunk of pixels, summed at the end."""
+    n = knots.shape[0]
+    step = (n + chunks - 1) // chunks
+    hist = np.zeros((chunks, levels * levels), np.int64)
+    for t in numba.prange(chunks):
+        for i in range(t * step, min(n, (t + 1) * step)):
+            hist[t, np.intp(knots[i, j]) * levels + np.intp(knots[i, jp])] += 1
+    return hist.sum(axis=0)
 
 
 def pair_factor(h: np.ndarray, kind: str = "photon") -> np.ndarray:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,9 +57,12 @@ def check_brightness_order(frames, codes) -> None:
 
 def check_overlap(frames, codes, n_codes: int) -> None:
     """Consecutive frames must share pixels that neither clips, or g cannot be chained."""
-    for k in range(1, len(frames)):
-        a, b = codes[k - 1], codes[k]
-        both = np.count_nonzero((a > 0) & (a < n_codes - 1) & (b > 0) & (b < n_codes - 1))
+    unclipped = None
+    for k in range(len(frames)):
+        prev, unclipped = unclipped, codes[k] - np.array(1, codes[k].dtype) < n_codes - 2  # 0 < z < n - 1
+        if prev is None:
+            continue
+        both = np.count_nonzero(prev & unclipped)
         if both < MIN_OVERLAP:
             raise HdrMergeError(
                 f"{frames[k].path}: only {both} pixels are unclipped both here and in {frames[k - 1].path} "
@@ -71,7 +75,10 @@ def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, metho
     stratified choice over the middle frame's codes, else uniformly at random)."""
     n = codes[0][..., c].size
     if not samples or samples >= n:
-        return np.stack([fr[..., c].ravel() for fr in codes], axis=1)
+        out = np.empty((n, len(codes)), codes[0].dtype)
+        for j, fr in enumerate(codes):
+            out[:, j] = fr[..., c].reshape(-1)
+        return out
     idx = (sample_pixels(codes[len(codes) // 2][..., c], samples, rng) if method == "debevec"
            else rng.choice(n, samples, replace=False))
     return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
@@ -100,7 +107,8 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     else:
         if len(frames) < 2:
             raise HdrMergeError(f"{first.path}: estimating a CRF needs at least two exposures")
-        codes = [load_codes(f) for f in frames]
+        with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
+            codes = list(pool.map(load_codes, frames))
         if first.kind == "raw":
             codes = [c[..., None] for c in codes]
         check_brightness_order(frames, codes)
