@@ -196,20 +196,23 @@ def binned_variance(ws: WindowStats, ratio: float | None = None, bins: int = 64,
     if bins < 1:
         return variance_points([], [], [], ratio)
     edges = np.unique(np.quantile(mean, np.linspace(0, 1, bins + 1)))
-    which = np.clip(np.searchsorted(edges, mean, side="right") - 1, 0, edges.size - 2)
-    order = np.argsort(which, kind="stable")
-    starts = np.searchsorted(which[order], np.arange(edges.size))
+    which = np.clip(np.searchsorted(edges, mean, side="right") - 1, 0, edges.size - 2).astype(np.uint16)
+    order = np.argsort(which, kind="stable")  # a radix sort for 16-bit keys
+    starts = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=edges.size - 1))])
+    mean, var, tex = mean[order], var[order], tex[order]  # each bin is now a slice
     median_factor = stats.chi2.median(ws.dof) / ws.dof
     mus, vs, ns = [], [], []
     for b in range(edges.size - 1):
-        sel = order[starts[b]:starts[b + 1]]
-        if max_texture is None and sel.size:
-            sel = sel[tex[sel] <= reject * np.median(tex[sel])]
-        if sel.size < min_count:
+        m, v = mean[starts[b]:starts[b + 1]], var[starts[b]:starts[b + 1]]
+        if max_texture is None and m.size:
+            t = tex[starts[b]:starts[b + 1]]
+            flat = t <= reject * np.median(t)
+            m, v = m[flat], v[flat]
+        if m.size < min_count:
             continue
-        mus.append(np.mean(mean[sel]))
-        vs.append(np.median(var[sel]) / median_factor if robust else np.mean(var[sel]))
-        ns.append(sel.size)
+        mus.append(np.mean(m))
+        vs.append(np.median(v) / median_factor if robust else np.mean(v))
+        ns.append(m.size)
     return variance_points(mus, vs, ns, ratio)
 
 

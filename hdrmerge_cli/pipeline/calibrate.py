@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,13 +106,14 @@ def _fit_channels(read: list[tuple[Frame, list]], iso: str, window: int = 7,
                   bins: int = 64) -> dict[str, tuple[NoiseFit, list[float]]]:
     """:func:`estimate_noise` per channel of the frames (sorted by exposure).  Errors name
     the first frame, the ISO and the channel."""
-    out = {}
-    for name, items in _by_channel(read).items():
+    def fit(name, items):
         try:
-            out[name] = estimate_noise([p for p, *_ in items], items[0][1], items[0][2], window, bins)
+            return name, estimate_noise([p for p, *_ in items], items[0][1], items[0][2], window, bins)
         except HdrMergeError as exc:
             raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
-    return out
+
+    with ThreadPoolExecutor(2) as pool:  # SciPy's filters and NumPy's sorts release the GIL: both cores
+        return dict(pool.map(fit, *zip(*_by_channel(read).items())))
 
 
 def frame_report(frame: Frame, planes, params: dict[str, dict]) -> dict:
