@@ -78,18 +78,24 @@ def _usable(frame: Frame, planes) -> str | None:
 def _read_group(frames: list[Frame], crf, what: str, reduce=None) -> list[tuple[Frame, list]]:
     """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
     ``frames``; photographs that are all clipped or black are skipped with a warning.
-    ``reduce`` picks the sites to keep of each plane as it is read (e.g. :func:`subsample`),
-    so a bracket's full-size planes are never all held at once."""
-    out = []
+    ``reduce`` picks the sites to keep of each plane as it is read (e.g. :func:`subsample`;
+    usability is then judged on those sites), so a bracket's full-size planes are never
+    all held at once.  Frames are decoded two at a time (both cores)."""
     # one camera (checked): the CFA layout is read once, not by a second decode per frame
     corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
-    for f in frames:
+
+    def read(f):
         planes = list(channel_planes(f, load_codes(f), crf, corner))
-        reason = _usable(f, planes) if what == "images" else None
-        if reason:
-            log.warning("%s: skipped, %s", f.path, reason)
-        else:
-            out.append((f, planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]))
+        return planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]
+
+    out = []
+    with ThreadPoolExecutor(2) as pool:
+        for f, planes in zip(frames, pool.map(read, frames)):
+            reason = _usable(f, planes) if what == "images" else None
+            if reason:
+                log.warning("%s: skipped, %s", f.path, reason)
+            else:
+                out.append((f, planes))
     return out
 
 

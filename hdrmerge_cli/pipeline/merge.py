@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -230,21 +231,20 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     wsum = (den if den.ndim == 2 else den.mean(axis=-1)) if "weight" in opts.extra_channels else None
     names = channels + [c for c in EXTRA_CHANNELS if c in opts.extra_channels]
 
-    def strips():
-        """The EXR in strips of rows: colour (RAW: white balance, demosaic, camera matrix)
-        and extra channels are made per strip, so no full-size RGB copy is ever held."""
-        for y0 in range(0, first.height, STRIP_ROWS):
-            y1 = min(first.height, y0 + STRIP_ROWS)
-            if first.kind == "raw" and not opts.cfa:
-                rgb = _raw_to_rec709_rows(result, first, y0, y1)
-            else:
-                rgb = result[y0:y1].reshape(y1 - y0, first.width, -1)
-            planes = [rgb]
-            if "clipped" in opts.extra_channels:
-                planes.append(flag_img[y0:y1, :, None].astype(np.float32))
-            if "weight" in opts.extra_channels:
-                planes.append(wsum[y0:y1, :, None].astype(np.float32))
-            yield y0, np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
+    def strip(y0):
+        """Rows ``y0:y0 + STRIP_ROWS`` of the EXR: colour (RAW: white balance, demosaic,
+        camera matrix) and extra channels, so no full-size RGB copy is ever held."""
+        y1 = min(first.height, y0 + STRIP_ROWS)
+        if first.kind == "raw" and not opts.cfa:
+            rgb = _raw_to_rec709_rows(result, first, y0, y1)
+        else:
+            rgb = result[y0:y1].reshape(y1 - y0, first.width, -1)
+        planes = [rgb]
+        if "clipped" in opts.extra_channels:
+            planes.append(flag_img[y0:y1, :, None].astype(np.float32))
+        if "weight" in opts.extra_channels:
+            planes.append(wsum[y0:y1, :, None].astype(np.float32))
+        return y0, np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
 
     profile = new_profile(
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
@@ -285,7 +285,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
 
     t0 = time.perf_counter()
     with atomic_paths([output, profile_out], opts.overwrite) as (tmp_exr, tmp_json):
-        write_exr(tmp_exr, strips(), names, attrs, half=opts.half, size=(first.height, first.width))
+        write_exr(tmp_exr, prefetched(strip, range(0, first.height, STRIP_ROWS)), names, attrs, half=opts.half,
+                  size=(first.height, first.width))
         Path(tmp_json).write_text(profile_text, encoding="utf-8")
     timings["color_and_write"] = time.perf_counter() - t0
 
@@ -445,6 +446,20 @@ def _stream(frames, tables, pattern, linear=False, scale=None):
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
     return result, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
+
+
+def prefetched(fn, items, ahead: int = 2):
+    """``fn(item)`` for each item in order, computed up to ``ahead`` items in advance on
+    worker threads (so the colour conversion of the next strips runs while the EXR
+    writer compresses this one), holding at most ``ahead + 1`` results."""
+    with ThreadPoolExecutor(ahead) as pool:
+        pending = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 #: rows per strip of the colour conversion and EXR writing (even: keeps the CFA phase)
