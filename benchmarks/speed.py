@@ -172,7 +172,7 @@ def colour_merge(frames, times):
 
 # ---------------------------------------------------------------- CLI runs in fresh processes
 PROBE = r"""
-import json, resource, sys, time
+import json, sys, time
 from click.testing import CliRunner
 from hdrmerge_cli.cli import cli as main
 from hdrmerge_cli.core.reconstruct import LogMerge, exposure_tables
@@ -180,6 +180,7 @@ from hdrmerge_cli.core.crf import CRF
 import numpy as np
 acc = LogMerge((4, 4)); acc.add(np.zeros((4, 4), np.uint16), exposure_tables(65536, np.zeros(1), np.full(1, 9.0), CRF("linear"), "triangle", 1.0)); acc.finish(scale=1.0)
 import hdrmerge_cli.core.color as c; c.quiet_import("colour_demosaicing")
+if sys.argv[1] in main.list_commands(None): main.get_command(None, sys.argv[1])  # its imports, before the base RSS
 def rss():
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * 4096
@@ -187,7 +188,9 @@ base = rss()
 t = time.perf_counter()
 res = CliRunner().invoke(main, sys.argv[1:], catch_exceptions=False)
 wall = time.perf_counter() - t
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+# VmHWM: this process's own peak (ru_maxrss would report the forking parent's peak when
+# that was larger: Linux carries it across fork and exec)
+peak = next(int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM:"))
 print(json.dumps({"exit": res.exit_code, "wall": wall, "base": base, "peak": peak, "out": res.output[-20000:]}))
 """
 

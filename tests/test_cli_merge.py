@@ -238,3 +238,33 @@ def test_strip_demosaic_equals_whole_frame(monkeypatch):
     whole = pm._raw_to_rec709_rows(mosaic, frame, 0, 30)
     parts = np.concatenate([pm._raw_to_rec709_rows(mosaic, frame, y, min(30, y + 6)) for y in range(0, 30, 6)])
     np.testing.assert_allclose(parts, whole, rtol=1e-5, atol=1e-6)
+
+
+def test_prefetched_keeps_order_bounds_the_lookahead_and_raises():
+    """Strips come back in order, computed at most ``ahead`` in advance; a failing strip
+    raises in the consumer."""
+    import threading
+
+    from hdrmerge_cli.pipeline.merge import prefetched
+
+    started, lock = [], threading.Lock()
+
+    def fn(i):
+        with lock:
+            started.append(i)
+        return i * i
+
+    seen = []
+    for k, v in enumerate(prefetched(fn, range(20), ahead=2)):
+        with lock:
+            assert max(started) <= k + 2  # never more than `ahead` strips beyond the one consumed
+        seen.append(v)
+    assert seen == [i * i for i in range(20)]
+
+    def bad(i):
+        if i == 3:
+            raise ValueError("strip 3")
+        return i
+
+    with pytest.raises(ValueError, match="strip 3"):
+        list(prefetched(bad, range(10)))

@@ -146,3 +146,22 @@ def test_smoothness_rows_integrate_the_squared_second_derivative(levels):
     v = np.arange(levels) / (levels - 1)
     s = second_difference(np.ones(levels))
     assert np.sum((s @ np.sin(np.pi * v)) ** 2) == pytest.approx(np.pi**4 / 2, rel=5 / levels)
+
+
+@pytest.mark.parametrize("dtype, levels", [(np.uint8, 256), (np.uint16, 1024)])
+def test_comparagram_counts_every_frame_pair_like_histogram2d(dtype, levels):
+    """The numba pair counts (pixels split over chunks) against NumPy's histogram2d."""
+    from hdrmerge_cli.core.crf_goossens2012 import _pair_counts
+
+    rng = np.random.default_rng(5)
+    knots = rng.integers(0, levels, (10_001, 4)).astype(dtype)
+    cg = comparagram(knots, levels)
+    for j in range(4):
+        for jp in range(j + 1, 4):
+            want, _, _ = np.histogram2d(knots[:, j], knots[:, jp], bins=levels, range=[[0, levels], [0, levels]])
+            sel = (cg.j == j) & (cg.jp == jp)
+            got = np.zeros((levels, levels))
+            got[cg.a[sel], cg.b[sel]] = cg.count[sel]
+            np.testing.assert_array_equal(got, want)
+            for chunks in (1, 3, 7):
+                np.testing.assert_array_equal(_pair_counts(knots, levels, j, jp, chunks), want.ravel())
