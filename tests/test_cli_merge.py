@@ -268,3 +268,42 @@ def test_prefetched_keeps_order_bounds_the_lookahead_and_raises():
 
     with pytest.raises(ValueError, match="strip 3"):
         list(prefetched(bad, range(10)))
+
+
+def test_block_mean_of_strips_equals_the_whole_image_block_mean():
+    from hdrmerge_cli.core.preview import BlockMean, block_factor
+
+    img = np.random.default_rng(4).random((37, 50, 3))
+    f = block_factor(37, 50, 16)
+    assert f == 4
+    acc = BlockMean(37, 50, 3, f)
+    for y0, y1 in ((0, 5), (5, 19), (19, 37)):  # strips that cut through blocks
+        acc.add(y0, img[y0:y1])
+    want = img[:36, :48].reshape(9, 4, 12, 4, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(acc.result(), want, rtol=1e-12)
+    assert block_factor(37, 50, 0) == 1 and block_factor(37, 50, 4000) == 1
+
+
+def test_tonemap_is_monotone_srgb_and_black_stays_black():
+    from hdrmerge_cli.core.preview import tonemap_srgb
+
+    ramp = np.geomspace(1e-3, 1e3, 64)[None, :, None].repeat(3, axis=2)
+    out = tonemap_srgb(ramp)
+    assert out.dtype == np.uint8 and out.shape == ramp.shape
+    assert np.all(np.diff(out[0, :, 1].astype(int)) >= 0) and out[0, -1, 1] > out[0, 0, 1] + 100
+    assert not tonemap_srgb(np.zeros((2, 2, 3))).any()
+
+
+def test_merge_writes_a_preview_with_the_exr(run, tmp_path, dng_bracket):
+    import OpenImageIO as oiio
+
+    folder, meta = dng_bracket
+    out, pic = tmp_path / "m.exr", tmp_path / "m.jpg"
+    s = json.loads(run("merge", *frames_of(folder, meta), "-o", out, "--preview", pic, "--preview-size", "100",
+                       "--json").stdout)
+    assert s["preview"] == str(pic)
+    spec = oiio.ImageInput.open(str(pic)).spec()
+    assert (spec.width, spec.height, spec.nchannels) == (256 // 3, 192 // 3, 3)  # factor ceil(256 / 100) = 3
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "n.exr", "--preview", tmp_path / "n.exr.gif",
+               check=False)
+    assert proc.returncode == 1 and "n.exr.gif" in proc.stderr and not (tmp_path / "n.exr").exists()

@@ -12,7 +12,9 @@ from conftest import SHARED, frames_of, log_rmse, needs_shared
 from hdrmerge_cli.io.images import read_exr
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ["calibrate-noise", "estimate-crf", "merge", "simulate", "weights-lut"]
+from hdrmerge_cli.cli import COMMANDS as REGISTRY
+
+COMMANDS = list(REGISTRY)
 
 
 def test_help_lists_every_command(run):
@@ -251,3 +253,17 @@ def test_merge_rejects_a_lut_of_the_wrong_shape(run, tmp_path, jpeg_bracket):
     np.save(bad, np.ones((256, 5)))
     proc = run("merge", *frames_of(folder, meta), "--crf", "srgb", "--lut", bad, "-o", tmp_path / "x.exr", check=False)
     assert proc.returncode == 1 and "columns" in proc.stderr and not (tmp_path / "x.exr").exists()
+
+
+def test_shell_completion_lists_subcommands(run):
+    import os
+    import subprocess
+
+    from conftest import _command
+
+    env = os.environ | {"_HDRMERGE_CLI_COMPLETE": "bash_complete", "COMP_WORDS": "hdrmerge-cli in", "COMP_CWORD": "1"}
+    out = subprocess.run(_command(), env=env, capture_output=True, text=True).stdout
+    assert "plain,info" in out.split()
+    script = subprocess.run(_command(), env=os.environ | {"_HDRMERGE_CLI_COMPLETE": "bash_source"},
+                            capture_output=True, text=True).stdout
+    assert "complete" in script and "hdrmerge-cli" in script

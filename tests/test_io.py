@@ -106,3 +106,30 @@ def test_atomic_outputs_get_the_umask_mode_or_keep_the_replaced_files(tmp_path):
     kept.chmod(0o640)
     atomic_text(kept, "new", overwrite=True)
     assert kept.stat().st_mode & 0o777 == 0o640 and kept.read_text() == "new"
+
+
+def test_silencing_c_stderr_from_many_threads_restores_it():
+    """Frames decode on several threads: however their silenced spans overlap, file
+    descriptor 2 must end up where it was (a race once left it on /dev/null)."""
+    import os
+    import threading
+    import time
+
+    from hdrmerge_cli.io.frames import _quiet_c_stderr
+
+    before = os.fstat(2)
+    null = os.stat(os.devnull)
+    seen = []
+
+    def work(k):
+        with _quiet_c_stderr():
+            seen.append(os.fstat(2).st_ino == null.st_ino)
+            time.sleep(0.001 * (k % 3))
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(24)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    after = os.fstat(2)
+    assert all(seen) and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)

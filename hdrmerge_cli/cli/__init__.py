@@ -17,6 +17,7 @@ COMMANDS = {
     "estimate-crf": "estimate_crf",
     "merge": "merge",
     "weights-lut": "weights_lut",
+    "info": "info",
     "simulate": "simulate",
 }
 
@@ -60,4 +61,7 @@ def cli():
 
 
 def main():
+    from hdrmerge_cli.io.frames import separate_python_stderr
+
+    separate_python_stderr()
     cli(prog_name="hdrmerge-cli")

@@ -1,6 +1,9 @@
 """hdrmerge-cli merge"""
 from __future__ import annotations
 
+import json
+import logging
+import sys
 from pathlib import Path
 
 import click
@@ -9,13 +12,28 @@ from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_o
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
+from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
 from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
 
 
 @click.command("merge")
-@click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
-              help="The EXR to write.")
+@click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
+              help="The EXR to write (with --batch: the folder to write one EXR per bracket to).")
+@click.option("--batch", "batch_dir", type=click.Path(exists=True, file_okay=False),
+              help="Merge every bracket in this folder instead of IMAGES: frames are grouped by capture-time gaps "
+                   "(--gap) and by the exposure sequence starting again; each bracket's EXR is named after its "
+                   "first frame.  A bad bracket is reported and skipped; the exit status is 1 if any failed.")
+@click.option("-j", "--jobs", default=1, show_default=True, type=click.IntRange(1, 256),
+              help="--batch: brackets merged at once, each in its own process.")
+@click.option("--gap", default=DEFAULT_GAP, show_default=True, type=click.FloatRange(0),
+              help="--batch: largest time (s) between two frames of one bracket.")
+@click.option("--scheduler", metavar="ADDRESS",
+              help="--batch: run on the Dask distributed scheduler at ADDRESS (e.g. tcp://host:8786), one task per "
+                   "bracket; inputs and outputs must be on storage the workers share.")
+@click.option("--skip-existing", is_flag=True,
+              help="--batch: skip brackets whose EXR exists and is newer than all their frames.")
+@click.option("--dry-run", is_flag=True, help="--batch: list the brackets and their outputs; merge nothing.")
 @click.option("--profile-out", type=click.Path(dir_okay=False, path_type=Path),
               help="Where to write the camera profile JSON used [default: OUTPUT with .profile.json].")
 @click.option("--weights", type=click.Choice(sorted(WEIGHTING_FUNCTIONS)), default="triangle", show_default=True,
@@ -52,10 +70,15 @@ from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),
               help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
 @click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
+@click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write a tone-mapped sRGB picture (Reinhard-Devlin; .jpg, .png or .tif) to look at.")
+@click.option("--preview-size", default=2048, show_default=True, type=click.IntRange(0),
+              help="Longest side of the preview in pixels (area-averaged; 0 = full size).")
 @output_options
 @common_options
-def command(images, output, profile_out, weights, crf, times, times_file, reference, cfa, half, extra_channels,
-            noise, profile, variance, estimator, irls, k, lut, bounds, overwrite, as_json):
+def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_run, profile_out, weights, crf, times,
+            times_file, reference, cfa, half, extra_channels, noise, profile, variance, estimator, irls, k, lut, bounds,
+            preview, preview_size, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
@@ -63,6 +86,9 @@ def command(images, output, profile_out, weights, crf, times, times_file, refere
     clipping level of an exposure of --reference seconds (stated in the EXR header).
     Pixels clipped or dark in every frame get a finite bound (flagged in the 'clipped'
     channel: 1 saturated, -1 dark).  The camera profile used is written beside the EXR.
+
+    With --batch DIR, every bracket of a folder is merged into -o OUTDIR (see --jobs,
+    --scheduler, --skip-existing, --dry-run); the other options apply to each bracket.
     """
     if times is not None and times_file:
         raise click.UsageError("give either --times or --times-file, not both")
@@ -70,6 +96,41 @@ def command(images, output, profile_out, weights, crf, times, times_file, refere
         output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
         noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
+        preview=preview, preview_size=preview_size,
     )
+    if batch_dir:
+        return _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run, as_json)
+    if not images:
+        raise click.UsageError("give the bracket's IMAGES, or --batch DIR")
+    if jobs != 1 or scheduler or skip_existing or dry_run:
+        raise click.UsageError("--jobs, --scheduler, --skip-existing and --dry-run apply to --batch only")
+    if output.is_dir():
+        raise click.UsageError(f"{output} is a folder; -o names the EXR to write (or use --batch DIR)")
     summary = merge(list(images), opts)
     emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")
+
+
+def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run, as_json):
+    from hdrmerge_cli.pipeline.batch import BatchOptions, describe, plan, run_batch, summarize
+
+    if images:
+        raise click.UsageError("give either IMAGES or --batch DIR, not both")
+    if opts.times is not None or opts.profile_out is not None or opts.preview is not None:
+        raise click.UsageError("--times, --profile-out and --preview name one bracket's files; with --batch use "
+                               "--times-file, and the profiles are named after each EXR")
+    if opts.output.exists() and not opts.output.is_dir():
+        raise click.UsageError(f"{opts.output} is a file; with --batch, -o names the output folder")
+    bopts = BatchOptions(batch_dir, opts.output, opts, jobs, gap, scheduler, skip_existing)
+    entries = plan(bopts)
+    if dry_run:
+        summary = summarize(entries)
+        click.echo(json.dumps(summary, indent=1) if as_json else describe(summary))
+        return
+    todo = sum(e["status"] == "planned" for e in entries)
+    quiet = logging.getLogger("hdrmerge_cli").level > logging.WARNING
+    with click.progressbar(length=todo, label="merging brackets", file=sys.stderr, hidden=quiet or todo == 0) as bar:
+        summary = run_batch(bopts, entries, progress=bar.update)
+    emit(summary, as_json, f"{summary['merged']} bracket(s) merged into {opts.output}, {summary['skipped']} skipped, "
+                           f"{summary['failed']} failed")
+    if summary["failed"]:
+        raise click.ClickException(f"{summary['failed']} of {len(summary['brackets'])} brackets failed (see above)")

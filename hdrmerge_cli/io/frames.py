@@ -9,6 +9,8 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import os
+import sys
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +64,9 @@ class Frame:
 
     @property
     def camera(self) -> str:
+        """Make and model ("Canon EOS REBEL T2i", not "Canon Canon EOS ...")."""
+        if self.make and self.model.lower().startswith(self.make.lower()):
+            return self.model.strip()
         return f"{self.make} {self.model}".strip()
 
     def summary(self) -> dict:
@@ -78,21 +83,49 @@ class Frame:
         }
 
 
+_STDERR_LOCK = threading.Lock()
+_silenced = 0  # threads inside _quiet_c_stderr
+_saved_fd = None
+
+
 @contextlib.contextmanager
 def _quiet_c_stderr():
-    """Silence what LibRaw prints on C-level stderr (we report its errors ourselves)."""
+    """Silence what LibRaw prints on C-level stderr (we report its errors ourselves).
+
+    Frames are decoded on several threads: file descriptor 2 is pointed at /dev/null by the
+    first thread in and restored by the last one out.  Python's own messages do not go
+    through it once :func:`separate_python_stderr` has run."""
+    global _silenced, _saved_fd
+    with _STDERR_LOCK:
+        if _silenced == 0:
+            try:
+                _saved_fd = os.dup(2)
+                with open(os.devnull, "wb") as null:
+                    os.dup2(null.fileno(), 2)
+            except OSError:  # no stderr to silence
+                _saved_fd = None
+        _silenced += 1
+    try:
+        yield
+    finally:
+        with _STDERR_LOCK:
+            _silenced -= 1
+            if _silenced == 0 and _saved_fd is not None:
+                os.dup2(_saved_fd, 2)
+                os.close(_saved_fd)
+                _saved_fd = None
+
+
+def separate_python_stderr() -> None:
+    """Point ``sys.stderr`` at a duplicate of file descriptor 2, so that silencing C
+    libraries (:func:`_quiet_c_stderr`, while another thread decodes) never swallows a log
+    line or an error message of ours."""
     try:
         fd = os.dup(2)
-    except OSError:  # no stderr to silence
-        yield
+    except OSError:
         return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(fd, 2)
-        os.close(fd)
+    sys.stderr = os.fdopen(fd, "w", buffering=1, encoding=getattr(sys.stderr, "encoding", None) or "utf-8",
+                           errors="backslashreplace")
 
 
 def _positive(value) -> float | None:

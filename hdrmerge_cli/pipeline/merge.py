@@ -16,6 +16,7 @@ from hdrmerge_cli.core.color import REC709_CHROMATICITIES, bayer_channels, camer
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
+from hdrmerge_cli.core.preview import BlockMean, block_factor, tonemap_srgb
 from hdrmerge_cli.core.reconstruct import (
     FLAG_DARK, FLAG_SATURATED, LogMerge, channel_index, exposure_tables, irls, noise_maps, table_size,
 )
@@ -25,7 +26,7 @@ from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.io.atomic import atomic_paths, check_writable
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
-from hdrmerge_cli.io.images import write_exr
+from hdrmerge_cli.io.images import write_exr, write_ldr
 from hdrmerge_cli.io.profile import dumps, new_profile
 from hdrmerge_cli.io.times import read_times_file
 
@@ -61,6 +62,12 @@ class MergeOptions:
     k: float = DEFAULT_K
     lut: str | None = None
     bounds: str | None = None
+    preview: Path | None = None
+    preview_size: int = 2048
+
+
+#: file types ``--preview`` writes (by suffix)
+PREVIEW_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
 def default_profile_path(output: Path) -> Path:
@@ -174,6 +181,10 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(output)
     check_writable(output, opts.overwrite)
     check_writable(profile_out, opts.overwrite)
+    if opts.preview is not None:
+        if Path(opts.preview).suffix.lower() not in PREVIEW_SUFFIXES:
+            raise HdrMergeError(f"{opts.preview}: a preview is written as {', '.join(PREVIEW_SUFFIXES)} (by suffix)")
+        check_writable(opts.preview, opts.overwrite)
     frames = read_bracket(paths, opts.times, opts.times_file)
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
@@ -284,16 +295,26 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
 
     t0 = time.perf_counter()
-    with atomic_paths([output, profile_out], opts.overwrite) as (tmp_exr, tmp_json):
-        write_exr(tmp_exr, prefetched(strip, range(0, first.height, STRIP_ROWS)), names, attrs, half=opts.half,
-                  size=(first.height, first.width))
-        Path(tmp_json).write_text(profile_text, encoding="utf-8")
+    strips = prefetched(strip, range(0, first.height, STRIP_ROWS))
+    preview = None
+    if opts.preview is not None:
+        f = block_factor(first.height, first.width, opts.preview_size)
+        preview = BlockMean(first.height, first.width, len(channels), f)
+        strips = _tee_preview(strips, preview, len(channels))
+    outputs = [output, profile_out] + ([opts.preview] if preview else [])
+    with atomic_paths(outputs, opts.overwrite) as tmps:
+        write_exr(tmps[0], strips, names, attrs, half=opts.half, size=(first.height, first.width))
+        Path(tmps[1]).write_text(profile_text, encoding="utf-8")
+        if preview:
+            rgb = preview.result()
+            write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
     timings["color_and_write"] = time.perf_counter() - t0
 
     n = flags.size
     return {
         "output": str(output),
         "profile": str(profile_out),
+        **({"preview": str(opts.preview)} if preview else {}),
         "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(frames, exposures)],
         "reference_exposure": h_ref,
         "weights": opts.weights,
@@ -446,6 +467,13 @@ def _stream(frames, tables, pattern, linear=False, scale=None):
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
     return result, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
+
+
+def _tee_preview(strips, preview, n_channels: int):
+    """Pass the EXR strips on, adding each one's image channels to the preview."""
+    for y0, data in strips:
+        preview.add(y0, data[..., :n_channels])
+        yield y0, data
 
 
 def prefetched(fn, items, ahead: int = 2):

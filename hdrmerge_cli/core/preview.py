@@ -1,0 +1,54 @@
+"""Tone-mapped sRGB previews of a scene-linear image (array code).
+
+The image is first reduced by area averaging in scene-linear units (the physically right
+mean of the light in each block), then tone-mapped by Reinhard and Devlin's photoreceptor
+operator (2005, "Dynamic range reduction inspired by photoreceptor physiology", as
+colour-hdri implements it with its automatic parameters) and sRGB-encoded.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hdrmerge_cli.core.color import quiet_import
+
+
+def block_factor(height: int, width: int, max_side: int) -> int:
+    """The integer reduction ``f`` that brings the longer side to at most ``max_side``
+    (1: full size; ``max_side`` 0 means full size)."""
+    if max_side <= 0:
+        return 1
+    return max(1, -(-max(height, width) // max_side))
+
+
+class BlockMean:
+    """Area-average an image of ``(height, width, C)`` by ``factor`` while it arrives in
+    strips of rows (so the full-size image is never held): ``(height // f, width // f, C)``
+    float64; rows and columns beyond whole blocks are dropped."""
+
+    def __init__(self, height: int, width: int, channels: int, factor: int):
+        self.f = factor
+        self.sum = np.zeros((height // factor, width // factor, channels))
+
+    def add(self, y0: int, rows: np.ndarray) -> None:
+        """Rows ``y0 : y0 + len(rows)`` of the image, ``(n, width, C)``."""
+        f, (h, w, c) = self.f, self.sum.shape
+        cols = rows[:, : w * f].reshape(rows.shape[0], w, f, c).sum(axis=2, dtype=np.float64)
+        block = (y0 + np.arange(rows.shape[0])) // f
+        keep = block < h
+        np.add.at(self.sum, block[keep], cols[keep])
+
+    def result(self) -> np.ndarray:
+        return self.sum / (self.f * self.f)
+
+
+def tonemap_srgb(rgb: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` scene-linear Rec.709 -> ``(H, W, 3)`` uint8 sRGB: Reinhard-Devlin
+    (automatic key and adaptation), then the sRGB encoding (IEC 61966-2-1).  Negative or
+    non-finite values are treated as black."""
+    ch = quiet_import("colour_hdri")
+    rgb = np.nan_to_num(np.maximum(np.asarray(rgb, np.float64), 0.0), posinf=0.0)
+    if not np.any(rgb > 0):
+        return np.zeros(rgb.shape, np.uint8)
+    mapped = np.clip(np.nan_to_num(ch.tonemapping_operator_Reinhard2004(rgb)), 0.0, 1.0)
+    encoded = quiet_import("colour.models").eotf_inverse_sRGB(mapped)
+    return np.rint(np.clip(encoded, 0.0, 1.0) * 255.0).astype(np.uint8)

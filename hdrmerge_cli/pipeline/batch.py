@@ -1,0 +1,218 @@
+"""merge --batch: group a folder into brackets and merge each, on local processes or a
+Dask cluster, continuing past bad brackets."""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import logging
+import os
+import tempfile
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
+from hdrmerge_cli.pipeline.merge import MergeOptions, merge
+
+log = logging.getLogger("hdrmerge_cli")
+
+#: default largest capture-time gap (s) inside one bracket (HDRMerge's -g default)
+DEFAULT_GAP = 3.0
+
+
+def capture_seconds(stamp: str | None) -> float | None:
+    """Seconds since the epoch of a frame's timestamp (ISO 8601 from LibRaw, or EXIF's
+    ``YYYY:MM:DD HH:MM:SS``); None when absent or unreadable."""
+    if not stamp:
+        return None
+    for parse in (_dt.datetime.fromisoformat, lambda s: _dt.datetime.strptime(s, "%Y:%m:%d %H:%M:%S")):
+        try:
+            t = parse(stamp.strip())
+        except ValueError:
+            continue
+        return (t if t.tzinfo else t.replace(tzinfo=_dt.timezone.utc)).timestamp()
+    return None
+
+
+def _layout(f: Frame):
+    return f.kind, f.width, f.height, f.channels, f.cfa_pattern, f.camera
+
+
+def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[Frame]]:
+    """Split frames into brackets, in capture order (timestamp, then file name).
+
+    A new bracket starts at a frame taken more than ``gap`` seconds after the previous
+    one (when both have timestamps), whose exposure time repeats one already in the
+    current bracket (the camera's exposure sequence started again), or whose camera or
+    image layout differs."""
+    def key(f):
+        t = capture_seconds(f.timestamp)
+        return (t if t is not None else float("-inf"), Path(f.path).name)
+
+    groups: list[list[Frame]] = []
+    prev_t = None
+    for f in sorted(frames, key=key):
+        t = capture_seconds(f.timestamp)
+        current = groups[-1] if groups else None
+        new = (
+            current is None
+            or (t is not None and prev_t is not None and t - prev_t > gap)
+            or any(_same_time(f.exposure_time, g.exposure_time) for g in current)
+            or _layout(f) != _layout(current[0])
+        )
+        if new:
+            groups.append([f])
+        else:
+            current.append(f)
+        prev_t = t
+    return groups
+
+
+def _same_time(a, b) -> bool:
+    return a is not None and b is not None and abs(a - b) <= 1e-6 * max(a, b)
+
+
+@dataclass
+class BatchOptions:
+    folder: str
+    outdir: Path
+    merge: MergeOptions
+    jobs: int = 1
+    gap: float = DEFAULT_GAP
+    scheduler: str | None = None
+    skip_existing: bool = False
+
+
+def plan(opts: BatchOptions) -> list[dict]:
+    """The brackets of the folder, each ``{"frames": [...], "output": ...}``; unreadable
+    files are reported as their own failed entries (``"error"``)."""
+    frames, bad = [], []
+    for p in list_frames(opts.folder):
+        try:
+            frames.append(read_frame(p))
+        except HdrMergeError as exc:
+            log.error("%s", exc)
+            bad.append({"frames": [p], "output": None, "status": "failed", "error": str(exc)})
+    out = []
+    for group in group_brackets(frames, opts.gap):
+        output = opts.outdir / (Path(group[0].path).stem + ".exr")
+        entry = {"frames": [f.path for f in group], "output": str(output), "status": "planned"}
+        if opts.skip_existing and output.exists() and all(
+                output.stat().st_mtime >= os.stat(f.path).st_mtime for f in group):
+            entry["status"] = "skipped"
+        out.append(entry)
+    return out + bad
+
+
+def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = None) -> dict:
+    """Merge one bracket; never raises for a bad bracket: returns ``{"status": "failed",
+    "error": ...}`` instead.  ``profile_text``: the --profile JSON, sent once to a cluster's
+    workers (their file systems may not hold it)."""
+    try:
+        if profile_text is not None:
+            with tempfile.TemporaryDirectory() as tmp:
+                profile = Path(tmp) / "profile.json"
+                profile.write_text(profile_text, encoding="utf-8")
+                return {"status": "merged", "summary": merge(paths, dataclasses.replace(opts, profile=str(profile)))}
+        return {"status": "merged", "summary": merge(paths, opts)}
+    except HdrMergeError as exc:
+        return {"status": "failed", "error": str(exc)}
+    except MemoryError:
+        return {"status": "failed", "error": "out of memory: merge fewer or smaller frames (or fewer --jobs)"}
+    except OSError as exc:
+        return {"status": "failed", "error": f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}"}
+
+
+def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
+    """Merge the planned brackets of ``entries`` (from :func:`plan`): ``jobs`` local
+    processes, or the Dask cluster at ``scheduler`` (one task per bracket; the profile
+    sent to the workers once).  ``progress(n)`` is called as brackets finish.  Returns the
+    batch summary; the caller decides the exit status from ``summary["failed"]``."""
+    todo = [e for e in entries if e["status"] == "planned"]
+    opts.outdir.mkdir(parents=True, exist_ok=True)
+    profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
+    jobs = [(e, dataclasses.replace(opts.merge, output=Path(e["output"]), profile_out=None)) for e in todo]
+    if opts.scheduler:
+        results = _on_dask(opts.scheduler, jobs, profile_text, progress)
+    elif opts.jobs > 1 and len(jobs) > 1:
+        results = _on_processes(opts.jobs, jobs, progress)
+    else:
+        results = []
+        for e, mo in jobs:
+            results.append((e, merge_one(e["frames"], mo)))
+            if progress:
+                progress(1)
+    for e, res in results:
+        e["status"] = res["status"]
+        if res["status"] == "failed":
+            e["error"] = res["error"]
+            log.error("bracket %s: %s", Path(e["frames"][0]).name, res["error"])
+        else:
+            e["profile"] = res["summary"]["profile"]
+    return summarize(entries)
+
+
+def _init_worker(level: int) -> None:
+    """Worker processes log like the parent (prefix, level, stderr)."""
+    separate_python_stderr()
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("hdrmerge-cli: %(levelname)s: %(message)s"))
+    log.handlers[:] = [handler]
+    log.setLevel(level)
+    log.propagate = False
+
+
+def _on_processes(n: int, jobs, progress):
+    # spawn: a fresh interpreter per worker (forking a process whose numba threads run is unsafe)
+    with ProcessPoolExecutor(n, mp_context=get_context("spawn"), initializer=_init_worker,
+                             initargs=(log.getEffectiveLevel(),)) as pool:
+        futures = {pool.submit(merge_one, e["frames"], mo): e for e, mo in jobs}
+        results = []
+        for fut in as_completed(futures):
+            try:
+                res = fut.result()
+            except BrokenProcessPool:
+                res = {"status": "failed", "error": "its worker process died (out of memory? try fewer --jobs)"}
+            results.append((futures[fut], res))
+            if progress:
+                progress(1)
+    return results
+
+
+def _on_dask(address: str, jobs, profile_text, progress):
+    try:
+        from distributed import Client, as_completed as dask_completed
+    except ImportError:
+        raise HdrMergeError("--scheduler needs Dask: pip install 'hdrmerge-cli[cluster]'") from None
+    try:
+        client = Client(address, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise HdrMergeError(f"cannot reach the Dask scheduler at {address} ({exc})") from None
+    with client:
+        shared = client.scatter(profile_text, broadcast=True) if profile_text is not None else None
+        futures = {client.submit(merge_one, e["frames"], mo, shared, pure=False, key=f"merge-{Path(e['output']).stem}"): e
+                   for e, mo in jobs}
+        results = []
+        for fut in dask_completed(futures):
+            results.append((futures[fut], fut.result()))
+            if progress:
+                progress(1)
+    return results
+
+
+def summarize(entries: list[dict]) -> dict:
+    counts = {s: sum(e["status"] == s for e in entries) for s in ("merged", "skipped", "failed", "planned")}
+    return {"brackets": entries, **counts}
+
+
+def describe(summary: dict) -> str:
+    """One line per bracket for the terminal (the --dry-run listing)."""
+    lines = []
+    for e in summary["brackets"]:
+        names = ", ".join(Path(p).name for p in e["frames"])
+        target = e["output"] or "-"
+        lines.append(f"{e['status']:8} {target}  <- {names}" + (f"  ({e['error']})" if e.get("error") else ""))
+    return "\n".join(lines)

@@ -1,0 +1,98 @@
+"""info: what a bracket holds, and whether it covers its scene."""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from hdrmerge_cli.core.coverage import Coverage, clip_classes
+from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
+from hdrmerge_cli.pipeline.merge import _fmt_time, cfa_cell
+
+
+def _pattern(frame: Frame) -> np.ndarray:
+    if frame.kind == "raw":
+        return cfa_cell(raw_channel_map(frame.path))
+    return np.arange(frame.channels, dtype=np.intp)[None, :]
+
+
+def _layout(frame: Frame):
+    return frame.kind, frame.width, frame.height, frame.channels, frame.cfa_pattern
+
+
+def bracket_info(paths) -> dict:
+    """Per frame: camera, exposure time, ISO, bit depth, black/white levels and the
+    fractions of clipped and dark samples (:func:`~hdrmerge_cli.core.coverage.clip_classes`);
+    for the bracket (frames of one layout with exposure times): whether some frame measures
+    every pixel (:class:`~hdrmerge_cli.core.coverage.Coverage`) and what to add if not.
+    Frames are decoded two at a time; one decoded frame per thread is held."""
+    frames = [read_frame(p) for p in paths]
+    timed = all(f.exposure_time for f in frames)
+    if timed:  # shortest first, as the coverage's "too bright" needs
+        frames.sort(key=lambda f: f.exposure_time)
+    comparable = timed and len({_layout(f) for f in frames}) == 1
+    coverage = Coverage() if comparable else None
+
+    def classes(frame):
+        return clip_classes(load_codes(frame), _pattern(frame), frame.black, frame.white)
+
+    rows = []
+    with ThreadPoolExecutor(2) as pool:
+        for f, (clipped, dark) in zip(frames, pool.map(classes, frames)):
+            rows.append(f.summary() | {"width": f.width, "height": f.height,
+                                       "clipped_fraction": float(np.mean(clipped)), "dark_fraction": float(np.mean(dark))})
+            if coverage is not None:
+                coverage.add(clipped, dark)
+            del clipped, dark
+    return {"frames": rows, "bracket": _bracket_summary(frames, coverage, timed)}
+
+
+def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:
+    out = {"frames": len(frames)}
+    if timed:
+        t = [f.exposure_time for f in frames]
+        out["exposure_range_ev"] = float(np.log2(t[-1] / t[0]))
+    if coverage is None:
+        out["covers_scene"] = None
+        out["advice"] = ("give every frame an exposure time to judge the coverage" if not timed else
+                         "the frames differ in type, size or channels: not one bracket")
+        return out
+    out |= {"covers_scene": coverage.uncovered == 0.0, "uncovered_fraction": coverage.uncovered,
+            "too_bright_fraction": coverage.too_bright, "too_dark_fraction": coverage.too_dark,
+            "gap_fraction": coverage.gap}
+    advice = []
+    if coverage.too_bright:
+        advice.append(f"{100 * coverage.too_bright:.3g} % of pixels are clipped in every frame: add an exposure "
+                      f"shorter than {_fmt_time(frames[0].exposure_time)}")
+    if coverage.too_dark:
+        advice.append(f"{100 * coverage.too_dark:.3g} % of pixels are dark in every frame: add an exposure "
+                      f"longer than {_fmt_time(frames[-1].exposure_time)}")
+    if coverage.gap:
+        advice.append(f"{100 * coverage.gap:.3g} % of pixels are dark in one frame and clipped in the next: "
+                      "add exposures between them")
+    out["advice"] = "; ".join(advice) or "every pixel is measured by some frame"
+    return out
+
+
+def format_info(summary: dict) -> str:
+    """The human-readable table of :func:`bracket_info` (one line per frame, then the
+    bracket)."""
+    head = ("file", "camera", "exposure", "ISO", "bits", "black", "white", "clipped", "dark")
+    lines = []
+    for r in summary["frames"]:
+        black = sorted(set(r["black"]))
+        white = sorted(set(r["white"]))
+        lines.append((
+            r["path"].rsplit("/", 1)[-1], r["camera"] or "-",
+            _fmt_time(r["exposure_time"]) if r["exposure_time"] else "-",
+            f"{r['iso']:g}" if r["iso"] else "-", str(r["bits"]),
+            "/".join(f"{b:g}" for b in black), "/".join(f"{w:g}" for w in white),
+            f"{100 * r['clipped_fraction']:.2f} %", f"{100 * r['dark_fraction']:.2f} %",
+        ))
+    widths = [max(len(row[i]) for row in [head, *lines]) for i in range(len(head))]
+    text = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in [head, *lines]]
+    b = summary["bracket"]
+    span = f", {b['exposure_range_ev']:.1f} EV" if "exposure_range_ev" in b else ""
+    verdict = {True: "covers the scene", False: "does not cover the scene", None: "coverage unknown"}[b["covers_scene"]]
+    text.append(f"bracket: {b['frames']} frame{'s' if b['frames'] != 1 else ''}{span}; {verdict} ({b['advice']})")
+    return "\n".join(text)
