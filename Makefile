@@ -26,9 +26,8 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 ## Benchmarks: accuracy and speed against OpenCV/colour-hdri, CRF estimation, noise calibration
-## (need ../shared/data; install OpenCV and colour-hdri); tables and plots in benchmarks/results/.
+## (need ../shared/data); tables and plots in benchmarks/results/.
 bench: $(STAMP)
-	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python -W ignore -m benchmarks
 
 ## Regenerate the man pages from the click definitions.

@@ -3,7 +3,7 @@
 Writes Markdown tables and PNG plots under benchmarks/results/: accuracy (every method
 against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), speed
 (merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
-on the DoRF curves, noise calibration.  Needs ../shared/data and the ``bench`` extras.
+on the DoRF curves, noise calibration, alignment and deghosting.  Needs ../shared/data.
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import argparse
 import importlib
 import time
 
-BENCHMARKS = ("accuracy", "speed", "crf_dorf", "noise_calibration")
+BENCHMARKS = ("accuracy", "speed", "crf_dorf", "noise_calibration", "motion")
 
 
 def main() -> None:

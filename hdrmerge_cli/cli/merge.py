@@ -14,6 +14,7 @@ from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
 from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
 from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
+from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
 
 @click.command("merge")
@@ -70,6 +71,14 @@ from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),
               help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
 @click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
+@click.option("--align", type=click.Choice(ALIGN_MODES), default="off", show_default=True,
+              help="Bring hand-held frames onto the middle exposure (OpenCV ECC on exposure-normalised images): "
+                   "translation, similarity (also rotation and scale), auto (translation, applied only when a frame "
+                   "is off by more than a quarter pixel).  RAW moves by whole CFA periods (similarity: per colour).")
+@click.option("--deghost", type=click.Choice(DEGHOST_MODES), default="off", show_default=True,
+              help="Drop moving objects: per cell, a chi-square test of each frame against the reference (the "
+                   "middle exposure) under the noise model, false-alarm rate 1e-3, cleaned morphologically; auto "
+                   "acts only when more than 0.2 % of a frame moves.  --extra-channels ghost shows where.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write a tone-mapped sRGB picture (Reinhard-Devlin; .jpg, .png or .tif) to look at.")
 @click.option("--preview-size", default=2048, show_default=True, type=click.IntRange(0),
@@ -78,7 +87,7 @@ from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
 @common_options
 def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_run, profile_out, weights, crf, times,
             times_file, reference, cfa, half, extra_channels, noise, profile, variance, estimator, irls, k, lut, bounds,
-            preview, preview_size, overwrite, as_json):
+            align, deghost, preview, preview_size, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
@@ -96,7 +105,7 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
         noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
-        preview=preview, preview_size=preview_size,
+        preview=preview, preview_size=preview_size, align=align, deghost=deghost,
     )
     if batch_dir:
         return _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run, as_json)

@@ -75,7 +75,7 @@ def _usable(frame: Frame, planes) -> str | None:
     return None
 
 
-def _read_group(frames: list[Frame], crf, what: str, reduce=None) -> list[tuple[Frame, list]]:
+def _read_group(frames: list[Frame], crf, what: str, reduce=None, load=load_codes) -> list[tuple[Frame, list]]:
     """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
     ``frames``; photographs that are all clipped or black are skipped with a warning.
     ``reduce`` picks the sites to keep of each plane as it is read (e.g. :func:`subsample`;
@@ -85,7 +85,7 @@ def _read_group(frames: list[Frame], crf, what: str, reduce=None) -> list[tuple[
     corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
 
     def read(f):
-        planes = list(channel_planes(f, load_codes(f), crf, corner))
+        planes = list(channel_planes(f, load(f), crf, corner))
         return planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]
 
     out = []
@@ -381,14 +381,14 @@ def subsample(plane: np.ndarray, budget: int = FAST_PATH_SITES) -> np.ndarray:
     return np.block([[plane[y:y + _TILE, x:x + _TILE] for x in xs] for y in ys])
 
 
-def estimate_bracket_noise(frames: list[Frame], crf) -> tuple[dict, dict]:
+def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes) -> tuple[dict, dict]:
     """merge without noise parameters: (17) per channel from the bracket itself, by the
     calibrate-noise code on a subsample (:func:`subsample`).  Returns
     ({channel: {"sigma_o2", "alpha", "beta"}}, {channel: profile entry}).
 
     merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
     :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used."""
-    read = _read_group(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, "images", reduce=subsample)
+    read = _read_group(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, "images", reduce=subsample, load=load)
     if not read:
         raise HdrMergeError("no usable frame (all clipped or black)")
     used, entries = {}, {}

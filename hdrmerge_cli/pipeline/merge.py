@@ -29,11 +29,12 @@ from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_fram
 from hdrmerge_cli.io.images import write_exr, write_ldr
 from hdrmerge_cli.io.profile import dumps, new_profile
 from hdrmerge_cli.io.times import read_times_file
+from hdrmerge_cli.pipeline import motion
 
 log = logging.getLogger("hdrmerge_cli")
 
 #: extra EXR channels a user may ask for
-EXTRA_CHANNELS = ("clipped", "weight")
+EXTRA_CHANNELS = ("clipped", "weight", "ghost")
 
 #: estimator choices: log = the paper's (7), ml = linear inverse-variance (censored)
 ESTIMATORS = ("auto", "log", "ml")
@@ -64,6 +65,8 @@ class MergeOptions:
     bounds: str | None = None
     preview: Path | None = None
     preview_size: int = 2048
+    align: str = "off"
+    deghost: str = "off"
 
 
 #: file types ``--preview`` writes (by suffix)
@@ -193,11 +196,17 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     h_ref = reference_exposure(opts.reference, exposures)
     first = frames[0]
     noise = resolve_noise(opts, frames)
+    alignment = None
+    if opts.align != "off":
+        t1 = time.perf_counter()
+        alignment = motion.estimate_alignment(frames, exposures, crf, opts.align)
+        timings["align"] = time.perf_counter() - t1
+    load = motion.loader(frames, alignment)
     estimated = None
     needs_noise = opts.variance in ("auto", "model") or opts.weights in NOISE_MODEL_WEIGHTS or opts.irls
     if noise is None and first.kind == "raw" and needs_noise and not opts.lut:
         t1 = time.perf_counter()
-        noise, estimated = _estimate_noise(frames, crf)
+        noise, estimated = _estimate_noise(frames, crf, load)
         timings["noise_estimate"] = time.perf_counter() - t1
     variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
     estimator = opts.estimator if opts.estimator != "auto" else ("ml" if first.kind == "raw" else "log")
@@ -206,7 +215,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
                     "conservative upper bounds", opts.weights)
     if opts.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
-    timings["read_metadata"] = time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
+    timings["read_metadata"] = time.perf_counter() - t0 - timings.get("noise_estimate", 0.0) - timings.get("align", 0.0)
 
     t0 = time.perf_counter()
     prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
@@ -216,16 +225,27 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
                                              estimator, luts, bounds)
     timings["tables"] = time.perf_counter() - t0
 
+    ghosts, ghost_weights = None, None
+    if opts.deghost != "off":
+        if opts.irls:
+            raise HdrMergeError("--deghost and --irls cannot be combined yet; drop one of them")
+        t0 = time.perf_counter()
+        ghosts = motion.find_ghosts(frames, exposures, crf, motion.require_noise(noise, frames, crf), load,
+                                    opts.deghost)
+        timings["deghost"] = time.perf_counter() - t0
+        if ghosts["applied"]:
+            ghost_weights = motion.ghost_weights(tables, pattern, ghosts)
+
     # without IRLS the stream's last pass returns the linear image directly
     result, flags, den, timings_stream = _stream(frames, tables, pattern, estimator == "ml",
-                                                 None if opts.irls else h_ref)
+                                                 None if opts.irls else h_ref, load, ghost_weights)
     timings.update(timings_stream)
     iterations = 0
     if opts.irls:
         t0 = time.perf_counter()
         maps = noise_maps(result.shape, per_channel(noise, table_channels), pattern)
         y_full = [float(f.white[0] - f.black[0]) for f in frames]
-        log_e, flags, den, iterations, change = irls(lambda k: load_codes(frames[k]), tables, pattern, result,
+        log_e, flags, den, iterations, change = irls(lambda k: load(frames[k]), tables, pattern, result,
                                                      exposures, y_full, maps, estimator == "ml", opts.irls)
         log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
         result = np.exp(log_e, out=log_e)
@@ -240,6 +260,13 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         channels = ["R", "G", "B"] if first.channels == 3 else ["Y"]
         flag_img = np.where((flags == FLAG_SATURATED).any(-1), FLAG_SATURATED, np.where((flags == FLAG_DARK).any(-1), FLAG_DARK, 0))
     wsum = (den if den.ndim == 2 else den.mean(axis=-1)) if "weight" in opts.extra_channels else None
+    ghost_img = None
+    if "ghost" in opts.extra_channels:  # frames dropped per pixel
+        ghost_img = np.zeros((first.height, first.width), np.float32)
+        if ghosts and ghosts["applied"]:
+            step = 1 if first.kind == "raw" else first.channels  # a pixel's channels share one decision
+            for m in ghosts["masks"]:
+                ghost_img += motion.deghost.expand(m, ghosts["cell"], (first.height, first.width * step))[:, ::step]
     names = channels + [c for c in EXTRA_CHANNELS if c in opts.extra_channels]
 
     def strip(y0):
@@ -255,6 +282,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
             planes.append(flag_img[y0:y1, :, None].astype(np.float32))
         if "weight" in opts.extra_channels:
             planes.append(wsum[y0:y1, :, None].astype(np.float32))
+        if ghost_img is not None:
+            planes.append(ghost_img[y0:y1, :, None])
         return y0, np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
 
     profile = new_profile(
@@ -332,17 +361,21 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "channels": names,
         "saturated_fraction": float(np.count_nonzero(flags == FLAG_SATURATED) / n),
         "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
+        **({"alignment": {k: v for k, v in alignment.items() if k != "warps"}
+                | {"warps": [np.round(w, 6).tolist() for w in alignment["warps"]]}} if alignment else {}),
+        **({"deghost": {k: v for k, v in ghosts.items() if k not in ("masks", "anchor", "anchor_ok")}}
+           if ghosts else {}),
         "timing_seconds": {k: round(v, 4) for k, v in timings.items()},
     }
 
 
-def _estimate_noise(frames: list[Frame], crf: CRF):
+def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes):
     """No --noise or --profile for a RAW bracket: measure (17) on the bracket itself (the
     calibrate-noise code, fast path); on failure fall back to photon-noise weights."""
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
     try:
-        used, entries = estimate_bracket_noise(frames, crf)
+        used, entries = estimate_bracket_noise(frames, crf, load)
     except HdrMergeError as exc:
         log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
         return None, None
@@ -434,7 +467,7 @@ def cfa_cell(channel_map: np.ndarray) -> np.ndarray:
     return cell
 
 
-def _stream(frames, tables, pattern, linear=False, scale=None):
+def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None):
     """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
     decoded frames in memory.  Returns ``log E``, or ``E * scale`` when ``scale`` is given
     (see :meth:`LogMerge.finish`), the flags and the summed weights."""
@@ -445,7 +478,7 @@ def _stream(frames, tables, pattern, linear=False, scale=None):
 
     def decode(frame):
         t = time.perf_counter()
-        codes = load_codes(frame)
+        codes = load(frame)
         if codes.shape != shape:
             raise HdrMergeError(f"{frame.path}: decoded size {codes.shape} differs from the metadata {shape}")
         return codes, time.perf_counter() - t
@@ -459,7 +492,8 @@ def _stream(frames, tables, pattern, linear=False, scale=None):
             if k + 1 < len(frames):
                 pending = pool.submit(decode, frames[k + 1])
             t = time.perf_counter()
-            acc.add(codes, tables[k], last=k == len(frames) - 1)
+            acc.add(codes, tables[k], last=k == len(frames) - 1,
+                    weight=None if weights_of is None else weights_of(k, codes))
             del codes
             merge_time += time.perf_counter() - t
     t = time.perf_counter()

@@ -1,0 +1,219 @@
+"""Aligning the frames of a hand-held bracket (array code; OpenCV's ECC registration).
+
+Frames differ in exposure, so they are compared in an exposure-invariant form: the
+linearised signal divided by the frame's exposure (an irradiance estimate), clipped to the
+irradiance range *both* frames measure (so clipping and darkness look the same in both),
+in log units.  OpenCV's enhanced-correlation-coefficient maximisation (Evangelidis and
+Psarakis 2008, ``cv2.findTransformECC``), itself invariant to gain and offset, finds the
+warp, first on area-averaged images at most :data:`COARSE_SIDE` pixels wide, then refined
+at full resolution on a central window.
+
+A warp is a ``(2, 3)`` affine matrix ``W`` mapping reference-frame coordinates ``(x, y)``
+(pixel centres, x to the right) to the frame's own coordinates: the frame is brought onto
+the reference by sampling it at ``W @ (x, y, 1)``.  ``translation`` has ``W = [I | t]``;
+``similarity`` a rotation and uniform scale (OpenCV's affine ECC, projected onto the
+nearest similarity).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+
+#: longest side of the coarse registration level
+COARSE_SIDE = 1024
+#: side of the full-resolution refinement window
+FINE_SIDE = 1024
+MOTIONS = ("translation", "similarity")
+
+
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+def log_irradiance(lin: np.ndarray, exposure: float, lo: float, hi: float) -> np.ndarray:
+    """``log(clip(lin / exposure, lo, hi))`` as float32: ``lin`` the linearised signal
+    (full scale 1), ``[lo, hi]`` the irradiance range to keep (see :func:`common_range`)."""
+    return np.log(np.clip(np.asarray(lin, np.float64) / exposure, lo, hi)).astype(np.float32)
+
+
+def common_range(exposures, lo_code: float = 0.02, hi_code: float = 0.9) -> tuple[float, float]:
+    """The irradiance range every frame of a pair measures well: above ``lo_code`` of full
+    scale in the shorter exposure (RAW: 16 codes) and below ``hi_code`` in the longer one."""
+    h = np.asarray(exposures, np.float64)
+    lo, hi = lo_code / h.min(), hi_code / h.max()
+    if lo >= hi:
+        raise HdrMergeError("two frames share no well-exposed irradiance range; they cannot be aligned")
+    return lo, hi
+
+
+def block_mean(img: np.ndarray, f: int) -> np.ndarray:
+    """Area average over ``f x f`` blocks (rows and columns beyond whole blocks dropped)."""
+    if f == 1:
+        return img
+    h, w = img.shape[0] // f * f, img.shape[1] // f * f
+    return img[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
+
+
+def _ecc(template: np.ndarray, image: np.ndarray, motion: str, warp: np.ndarray) -> np.ndarray:
+    cv2 = _cv2()
+    kind = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_AFFINE
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 200, 1e-6)
+    try:
+        _, warp = cv2.findTransformECC(template, image, warp.astype(np.float32), kind, criteria, None, 3)
+    except cv2.error:
+        raise HdrMergeError("the registration did not converge (too little texture, or the frames differ too "
+                            "much); try --align off or --align translation") from None
+    warp = warp.astype(np.float64)
+    return warp if motion == "translation" else nearest_similarity(warp)
+
+
+def nearest_similarity(warp: np.ndarray) -> np.ndarray:
+    """The rotation-and-uniform-scale matrix nearest (Frobenius) to ``warp[:, :2]``, same
+    translation."""
+    a = 0.5 * (warp[0, 0] + warp[1, 1])
+    b = 0.5 * (warp[1, 0] - warp[0, 1])
+    return np.array([[a, -b, warp[0, 2]], [b, a, warp[1, 2]]])
+
+
+def rescale_warp(warp: np.ndarray, f: float, c: float) -> np.ndarray:
+    """A warp found on images reduced by ``f`` (coarse pixel ``u`` has its centre at full-
+    resolution ``f u + c``) expressed at full resolution."""
+    a = warp[:, :2]
+    out = warp.copy()
+    out[:, 2] = f * warp[:, 2] + (np.eye(2) - a) @ np.array([c, c])
+    return out
+
+
+def shift_warp(warp: np.ndarray, origin) -> np.ndarray:
+    """The warp in the coordinates of a window whose top-left corner is ``origin = (x0, y0)``
+    in both images (and back with ``-origin``)."""
+    out = warp.copy()
+    out[:, 2] = warp[:, 2] + (warp[:, :2] - np.eye(2)) @ np.asarray(origin, np.float64)
+    return out
+
+
+#: log-irradiance difference (about 25 %) within which a pixel counts as matched
+MATCH_TOL = 0.25
+
+
+def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> tuple[np.ndarray, float]:
+    """Pixels of the reference that ``image`` (brought onto it by ``warp``) matches to
+    :data:`MATCH_TOL` (plateaus included), and the fraction matched among the pixels the
+    warped image covers off the plateaus.  Moving objects and misregistered texture are
+    the unmatched ones."""
+    cv2 = _cv2()
+    h, w = reference.shape
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    moved = cv2.warpAffine(image, warp.astype(np.float32), (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=np.nan)
+    lo, hi = float(reference.min()), float(reference.max())
+    # pixels on the clipping plateaus of the common range match trivially: they do not vote
+    inside = np.isfinite(moved) & (reference > lo + 1e-4) & (reference < hi - 1e-4)
+    ok = inside & (np.abs(np.where(inside, moved, 0) - reference) < MATCH_TOL)
+    return ok | ~inside, float(ok.sum() / max(inside.sum(), 1))
+
+
+def _phase_shift(template: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """The translation warp of the phase-correlation peak (OpenCV, Hann window)."""
+    cv2 = _cv2()
+    win = cv2.createHanningWindow(template.shape[::-1], cv2.CV_64F)
+    (dx, dy), _ = cv2.phaseCorrelate(template.astype(np.float64), image.astype(np.float64), win)
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
+
+
+def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> np.ndarray:
+    """The warp bringing ``image`` onto ``reference`` (both ``(H, W)`` float32 exposure-
+    invariant images, see :func:`log_irradiance`).
+
+    On images at most :data:`COARSE_SIDE` wide, two starting points compete, no motion and
+    the phase-correlation peak (OpenCV), and the one matching more pixels (:func:`matched`)
+    wins: a bright object crossing a still scene can win the correlation peak, but not the
+    vote of the pixels.  ``translation`` is then refined by phase correlation (sub-pixel
+    peak) at full resolution on a central :data:`FINE_SIDE` window, pre-shifted by the
+    whole-pixel estimate, and kept only if it matches at least as many pixels;
+    ``similarity`` starts from that translation and adds ECC's rotation and scale (affine,
+    projected onto the nearest similarity) on the window when that matches more pixels.
+    Returns ``(2, 3)``."""
+    if motion not in MOTIONS:
+        raise ValueError(f"unknown motion {motion!r}")
+    h, w = reference.shape
+    f = max(1, -(-max(h, w) // COARSE_SIDE))
+    ref_c, img_c = block_mean(reference, f), block_mean(image, f)
+    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
+    warp = rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
+    y0, x0 = max(0, (h - FINE_SIDE) // 2), max(0, (w - FINE_SIDE) // 2)
+    y1, x1 = min(h, y0 + FINE_SIDE), min(w, x0 + FINE_SIDE)
+    ref_w = np.ascontiguousarray(reference[y0:y1, x0:x1])
+    if motion == "translation":
+        tx, ty = np.rint(warp[:, 2]).astype(int)
+        sy0, sx0 = int(np.clip(y0 + ty, 0, h - (y1 - y0))), int(np.clip(x0 + tx, 0, w - (x1 - x0)))
+        img_w = np.ascontiguousarray(image[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)])
+        fine = _phase_shift(ref_w, img_w)
+        fine[:, 2] += (sx0 - x0, sy0 - y0)
+        img_win = np.ascontiguousarray(image[y0:y1, x0:x1])
+        coarse = shift_warp(warp, (x0, y0))
+        full_img = lambda c: matched(ref_w, img_win, c)[1]  # noqa: E731  (same window, same pixels)
+        return shift_warp(max((fine, coarse), key=full_img), (-x0, -y0))
+    # similarity: ECC from the translation, kept only where it matches more pixels than it
+    translation = estimate_warp(reference, image, "translation")
+    img_w = np.ascontiguousarray(image[y0:y1, x0:x1])
+    try:
+        fine = _ecc(ref_w, img_w, motion, shift_warp(translation, (x0, y0)))
+    except HdrMergeError:
+        return translation
+    better = matched(ref_w, img_w, fine)[1] > matched(ref_w, img_w, shift_warp(translation, (x0, y0)))[1]
+    return shift_warp(fine, (-x0, -y0)) if better else translation
+
+
+def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """``outer o inner``: first ``inner``, then ``outer`` (both ``(2, 3)``)."""
+    return outer[:, :2] @ np.hstack([inner[:, :2], inner[:, 2:]]) + np.hstack([np.zeros((2, 2)), outer[:, 2:]])
+
+
+def warp_size(warp: np.ndarray, height: int, width: int) -> float:
+    """Largest displacement (pixels) the warp causes anywhere in the frame."""
+    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], np.float64)
+    moved = corners @ warp.T
+    return float(np.max(np.hypot(*(moved - corners[:, :2]).T)))
+
+
+def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarray:
+    """Resample ``(H, W)`` or ``(H, W, C)`` code values onto the reference (bilinear,
+    rounded to codes).  A result touched by a clipped code (``>= clip_code``) is clipped;
+    samples from outside the frame are 0 (dark: no weight in the merge)."""
+    cv2 = _cv2()
+    h, w = codes.shape[:2]
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    out = cv2.warpAffine(codes.astype(np.float32), warp, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0)
+    clipped = cv2.warpAffine((codes >= clip_code).astype(np.float32), warp, (w, h), flags=flags,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out = np.rint(out)
+    out[clipped > 0] = clip_code
+    return out.reshape(codes.shape).astype(codes.dtype)
+
+
+def apply_warp_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, motion: str) -> np.ndarray:
+    """Bring a Bayer mosaic ``(H, W)`` onto the reference without mixing colours:
+    ``translation`` shifts it by whole 2 x 2 CFA periods (the translation rounded to even
+    pixels); ``similarity`` resamples each of the four same-colour sub-planes on its own
+    (a site ``(2u + dx, 2v + dy)`` of the sub-plane ``(dy, dx)``)."""
+    if motion == "translation":
+        tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
+        out = np.zeros_like(codes)
+        h, w = codes.shape
+        src = codes[max(ty, 0):h + min(ty, 0), max(tx, 0):w + min(tx, 0)]
+        out[max(-ty, 0):max(-ty, 0) + src.shape[0], max(-tx, 0):max(-tx, 0) + src.shape[1]] = src
+        return out
+    out = np.zeros_like(codes)
+    a = warp[:, :2]
+    for dy in (0, 1):
+        for dx in (0, 1):
+            d = np.array([dx, dy], np.float64)
+            sub = np.ascontiguousarray(codes[dy::2, dx::2])
+            w_sub = np.hstack([a, ((a @ d + warp[:, 2] - d) / 2)[:, None]])
+            out[dy::2, dx::2] = apply_warp(sub, w_sub, clip_code)
+    return out

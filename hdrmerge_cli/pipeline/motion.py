@@ -1,0 +1,222 @@
+"""merge --align / --deghost: bring hand-held frames onto a reference frame, and drop
+moving objects from the frames that disagree with it (see core/align.py, core/deghost.py)."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from hdrmerge_cli.core import align, deghost
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.noise import NoiseParams
+from hdrmerge_cli.core.reconstruct import channel_index
+from hdrmerge_cli.io.frames import Frame, load_codes
+
+log = logging.getLogger("hdrmerge_cli")
+
+ALIGN_MODES = ("off", "auto", "translation", "similarity")
+DEGHOST_MODES = ("off", "auto", "on")
+#: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
+AUTO_ALIGN_PX = 0.25
+#: a frame pair is registered only when this fraction of pixels is well exposed in both
+MIN_SHARED = 0.2
+
+
+def reference_index(frames: list[Frame]) -> int:
+    """The reference frame of alignment and deghosting: the middle exposure."""
+    return len(frames) // 2
+
+
+def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
+    """The registration image of a frame, full scale 1: RAW the mean of each 2 x 2 CFA cell
+    (black subtracted; half resolution), images the mean of the linearised channels."""
+    if frame.kind == "raw":
+        h, w = codes.shape[0] // 2 * 2, codes.shape[1] // 2 * 2
+        z = codes[:h, :w].astype(np.float32)
+        black = np.asarray(frame.black, np.float32)
+        white = np.asarray(frame.white, np.float32)
+        cell = (z.reshape(h // 2, 2, w // 2, 2) - float(black.mean())) / float((white - black).mean())
+        return cell.mean(axis=(1, 3))
+    full = frame.n_codes - 1.0
+    chans = [crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])]
+    return np.mean(chans, axis=0).astype(np.float32)
+
+
+def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str) -> dict:
+    """Warps bringing every frame onto the reference (``core.align``); ``auto`` measures
+    translations and keeps them only when one exceeds :data:`AUTO_ALIGN_PX`.  Returns
+    ``{"mode", "reference", "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...]}``
+    with warps in the frames' own sample coordinates."""
+    ref = reference_index(frames)
+    motion = "translation" if mode == "auto" else mode
+    raw = frames[0].kind == "raw"
+    images = [_linear(f, load_codes(f), crf) for f in frames]
+
+    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+    unaligned = []
+
+    def step(a: int, b: int) -> np.ndarray:
+        """Warp from frame a's coordinates to frame b's (neighbours in exposure); identity
+        when too few pixels are well exposed in both to register them."""
+        y_full = float(np.min(frames[a].white - frames[a].black))
+        lo, hi = exposures[b] / exposures[a], 0.0  # no shared range unless common_range finds one
+        try:
+            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=min(0.02, 16.0 / y_full))
+        except HdrMergeError:
+            pass
+        ea, eb = images[a] / exposures[a], images[b] / exposures[b]
+        shared = float(np.mean((ea > lo) & (ea < hi) & (eb > lo) & (eb < hi)))
+        if shared < MIN_SHARED:
+            unaligned.append(frames[b].path)
+            log.warning("%s: only %.1f %% of its pixels are well exposed in its neighbour too; left unaligned",
+                        frames[b].path, 100 * shared)
+            return identity
+        w = align.estimate_warp(align.log_irradiance(images[a], exposures[a], lo, hi),
+                                align.log_irradiance(images[b], exposures[b], lo, hi), motion)
+        return align.rescale_warp(w, 2, 0.5) if raw else w  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+
+    # each frame is registered to its neighbour towards the reference (they share the most
+    # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1)
+    warps = [None] * len(frames)
+    warps[ref] = identity
+    for j in list(range(ref + 1, len(frames))) + list(range(ref - 1, -1, -1)):
+        prev = j - 1 if j > ref else j + 1
+        warps[j] = align.compose(step(prev, j), warps[prev])
+    sizes = [align.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
+    applied = mode != "auto" or max(sizes) > AUTO_ALIGN_PX
+    if raw and motion == "translation":  # whole CFA periods only
+        applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
+    out = {"mode": mode, "motion": motion, "reference": frames[ref].path, "applied": bool(applied),
+           "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
+           "largest_displacement_px": [round(s, 3) for s in sizes], "unaligned": unaligned}
+    if motion == "similarity":
+        out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in warps]
+        out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in warps]
+    out["warps"] = warps
+    log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
+             "applied" if applied else "not needed")
+    return out
+
+
+def loader(frames: list[Frame], alignment: dict | None):
+    """``frame -> codes``, brought onto the reference when the alignment is applied."""
+    if not alignment or not alignment["applied"]:
+        return load_codes
+    warps = {f.path: w for f, w in zip(frames, alignment["warps"])}
+    motion = alignment["motion"]
+
+    def load(frame: Frame) -> np.ndarray:
+        codes = load_codes(frame)
+        clip = int(np.max(frame.white))
+        if frame.kind == "raw":
+            return align.apply_warp_mosaic(codes, warps[frame.path], clip, motion)
+        return align.apply_warp(codes, warps[frame.path], clip)
+
+    return load
+
+
+def _samples(codes: np.ndarray) -> np.ndarray:
+    return codes.reshape(codes.shape[0], -1)
+
+
+def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams], load, mode: str,
+                p_fa: float = deghost.P_FALSE_ALARM) -> dict:
+    """Per frame, the cells inconsistent with the anchor (``core.deghost``), cleaned.
+    ``noise``: one parameter set per channel (code units).  Returns ``{"mode", "applied",
+    "p_false_alarm", "rejected_fraction": [...], "masks": [(cells) bool ...], "cell"}``;
+    ``auto`` applies the masks only when some frame has more than
+    :data:`~hdrmerge_cli.core.deghost.AUTO_FRACTION` of its cells rejected."""
+    first = frames[0]
+    raw = first.kind == "raw"
+    cell = (2, 2) if raw else (1, first.channels)
+    pattern = None
+    if raw:
+        from hdrmerge_cli.io.frames import raw_channel_map
+        from hdrmerge_cli.pipeline.merge import cfa_cell
+
+        pattern = cfa_cell(raw_channel_map(first.path))
+    shape = (first.height, first.width) + (() if raw else (first.channels,))
+    rows = channel_index(shape, pattern if raw else np.arange(first.channels)[None, :])
+    rows2 = _samples(rows)
+
+    def estimates(k: int):
+        """Frame k's x, s and validity per sample, and its codes' censoring: the x of the
+        lowest and highest measuring codes (what a dark / clipped reading bounds)."""
+        f = frames[k]
+        n = f.n_codes
+        tabs = [deghost.ghost_tables(n, f.black[c], f.white[c], lambda v, c=c: crf.inverse(v, 0 if raw else c),
+                                     exposures[k], noise[min(c, len(noise) - 1)]) for c in range(len(f.black))]
+        x_t, s_t, ok_t = (np.concatenate(col) for col in zip(*tabs))
+        z = np.minimum(_samples(load(f)), n - 1)
+        idx = rows2 * n + z
+        lowest = np.array([t[0][np.flatnonzero(t[2])[0]] for t in tabs], np.float32)[rows2]
+        highest = np.array([t[0][np.flatnonzero(t[2])[-1]] for t in tabs], np.float32)[rows2]
+        black = np.asarray(f.black)[rows2]
+        return (x_t[idx].astype(np.float32), s_t[idx].astype(np.float32), ok_t[idx],
+                np.where(z <= black, lowest, np.where(ok_t[idx], 0, -highest)))
+
+    ref = reference_index(frames)
+    _, _, _, bound_r = estimates(ref)  # > 0: the reference is dark (upper bound); < 0: clipped (lower bound)
+    order = sorted(range(len(frames)), key=lambda k: (abs(np.log(exposures[k] / exposures[ref])), k))
+    xa = sa = None
+    for k in order:  # the anchor: the reference where it measures, else the nearest frame consistent with it
+        x, s, ok, _ = estimates(k)
+        ok = ok & ~deghost.violates_bound(x, s, bound_r)
+        if xa is None:
+            xa, sa, va = x, s, ok
+            source = np.where(ok, k, -1).astype(np.int16)
+            continue
+        take = ok & ~va
+        xa[take], sa[take], source[take] = x[take], s[take], k
+        va |= ok
+    grad2 = _samples(deghost.squared_gradient(xa.reshape(shape), "mosaic" if raw else "rgb"))
+    masks, fractions = [], []
+    for k in range(len(frames)):
+        x, s, ok, _ = estimates(k)
+        bad = deghost.inconsistent_cells(x, s, ok, xa, sa, va, grad2, cell, p_fa)
+        bad |= deghost._cells(deghost.violates_bound(x, s, bound_r) & ok, *cell) > 0
+        bad = deghost.clean(bad) & ~(deghost._cells(source == k, *cell) > 0)  # the anchor itself stays
+        masks.append(bad)
+        fractions.append(float(bad.mean()))
+    applied = mode == "on" or max(fractions) > deghost.AUTO_FRACTION
+    log.info("deghosting: up to %.2f %% of a frame's cells move; %s", 100 * max(fractions),
+             "applied" if applied else "not needed")
+    return {"mode": mode, "applied": bool(applied), "p_false_alarm": p_fa, "cell": cell,
+            "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks, "anchor": xa, "anchor_ok": va}
+
+
+def ghost_weights(tables, pattern, ghosts: dict):
+    """``(k, codes) -> weights`` for the merge (see :class:`LogMerge.add`): frame ``k``'s
+    table weight ``w(z) sigma^-2`` where it is consistent, 0 in its rejected cells."""
+    cell = ghosts["cell"]
+
+    def weights(k: int, codes: np.ndarray) -> np.ndarray:
+        table = tables[k]
+        n = table.n_codes
+        w_t = table.weight.reshape(-1, n)
+        z = np.minimum(_samples(codes), n - 1)
+        w = w_t[0][z] if pattern is None else w_t[_samples(channel_index(codes.shape, pattern)), z]
+        keep = ~deghost.expand(ghosts["masks"][k], cell, z.shape)
+        return (w * keep).reshape(codes.shape).astype(np.float32)
+
+    return weights
+
+
+def require_noise(noise, frames, crf) -> list[NoiseParams]:
+    """Noise parameters for the ghost test: given, measured on the bracket, or (failing
+    both) a conservative default with a warning."""
+    if noise:
+        from hdrmerge_cli.io.noisespec import per_channel
+
+        return per_channel(noise, frames[0].channel_names)
+    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+
+    try:
+        used, _ = estimate_bracket_noise(frames, crf)
+        return [NoiseParams(**used[name]) if name in used else NoiseParams(**next(iter(used.values())))
+                for name in frames[0].channel_names]
+    except HdrMergeError as exc:
+        y_full = float(np.max(frames[0].white) - np.min(frames[0].black))
+        log.warning("could not measure the noise for the ghost test (%s); assuming 1 %% of full scale", exc)
+        return [NoiseParams((0.01 * y_full) ** 2, 0.01 * y_full, 0.0)]
