@@ -86,7 +86,7 @@ def test_ghost_test_false_alarm_rate_and_detection():
 
 
 def test_dark_reference_bounds_a_bright_reading():
-    x = np.array([0.5, 0.001, 0.5])
+    x = np.array([0.5, 0.001, 0.3])  # beyond the bounds by more than BOUND_FACTOR = 2: 0.5 > 0.02, 0.3 < 0.45
     s = np.full(3, 1e-6)
     bound = np.array([0.01, 0.01, -0.9])  # dark, dark (upper bound 0.01), clipped (lower bound 0.9)
     assert deghost.violates_bound(x, s, bound).tolist() == [True, False, True]
