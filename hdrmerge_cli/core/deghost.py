@@ -94,7 +94,7 @@ def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float 
     return ((bound > 0) & (x - k > bound * BOUND_FACTOR)) | ((bound < 0) & (x + k < -bound / BOUND_FACTOR))
 
 
-def _cells(a: np.ndarray, ph: int, pw: int) -> np.ndarray:
+def cell_sums(a: np.ndarray, ph: int, pw: int) -> np.ndarray:
     """Sum over cells of ``ph x pw`` samples of a 2-D array (partial cells dropped)."""
     h, w = a.shape[0] // ph * ph, a.shape[1] // pw * pw
     return a[:h, :w].reshape(h // ph, ph, w // pw, pw).sum(axis=(1, 3))
@@ -136,8 +136,8 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     x = match_anchor(x, xa, both)
     var = s + sa + (MODEL_TOLERANCE * xa) ** 2 + ALIGN_TOLERANCE_PX**2 * grad2
     t = np.where(both, (x - xa) ** 2 / np.maximum(var, 1e-30), 0.0)
-    stat = _cells(t, *cell)
-    k = _cells(both.astype(np.int32), *cell)
+    stat = cell_sums(t, *cell)
+    k = cell_sums(both.astype(np.int32), *cell)
     return stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
 
 

@@ -363,7 +363,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
         **({"alignment": {k: v for k, v in alignment.items() if k != "warps"}
                 | {"warps": [np.round(w, 6).tolist() for w in alignment["warps"]]}} if alignment else {}),
-        **({"deghost": {k: v for k, v in ghosts.items() if k not in ("masks", "anchor", "anchor_ok")}}
+        **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}}
            if ghosts else {}),
         "timing_seconds": {k: round(v, 4) for k, v in timings.items()},
     }

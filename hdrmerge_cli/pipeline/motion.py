@@ -175,15 +175,15 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     for k in range(len(frames)):
         x, s, ok, _ = estimates(k)
         bad = deghost.inconsistent_cells(x, s, ok, xa, sa, va, grad2, cell, p_fa)
-        bad |= deghost._cells(deghost.violates_bound(x, s, bound_r) & ok, *cell) > 0
-        bad = deghost.clean(bad) & ~(deghost._cells(source == k, *cell) > 0)  # the anchor itself stays
+        bad |= deghost.cell_sums(deghost.violates_bound(x, s, bound_r) & ok, *cell) > 0
+        bad = deghost.clean(bad) & ~(deghost.cell_sums(source == k, *cell) > 0)  # the anchor itself stays
         masks.append(bad)
         fractions.append(float(bad.mean()))
     applied = mode == "on" or max(fractions) > deghost.AUTO_FRACTION
     log.info("deghosting: up to %.2f %% of a frame's cells move; %s", 100 * max(fractions),
              "applied" if applied else "not needed")
     return {"mode": mode, "applied": bool(applied), "p_false_alarm": p_fa, "cell": cell,
-            "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks, "anchor": xa, "anchor_ok": va}
+            "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks}
 
 
 def ghost_weights(tables, pattern, ghosts: dict):
