@@ -29,6 +29,8 @@ from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
 #: false-alarm rate of the per-cell test
 P_FALSE_ALARM = 1e-3
+#: samples the intensity matching of :func:`match_anchor` is fitted on
+FIT_SAMPLES = 1 << 20
 #: relative error allowed beyond the noise (residual model error after :func:`match_anchor`)
 MODEL_TOLERANCE = 0.01
 #: registration error allowed (pixels): an edge's contrast times this is not motion
@@ -61,10 +63,12 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 64
     is global, not motion: nominal exposure times that are a few per cent off, a camera
     response that is not exactly the assumed one; medians ignore a moving minority."""
     ok = both & (x > 0) & (xa > 0)
-    if np.count_nonzero(ok) < 10 * bins:
+    n_ok = np.count_nonzero(ok)
+    if n_ok < 10 * bins:
         return x
-    lx = np.log(x[ok])
-    d = np.log(xa[ok]) - lx
+    pick = np.flatnonzero(ok)[:: max(1, n_ok // FIT_SAMPLES)]  # a smooth curve: a subsample fits it
+    lx = np.log(x.ravel()[pick])
+    d = np.log(xa.ravel()[pick]) - lx
     edges = np.unique(np.quantile(lx, np.linspace(0, 1, bins + 1)))
     which = np.clip(np.searchsorted(edges, lx, side="right") - 1, 0, edges.size - 2)
     order = np.argsort(which, kind="stable")
@@ -90,8 +94,13 @@ def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float 
     The factor absorbs camera-response errors, which are largest far from mid-grey."""
     from scipy.stats import norm
 
-    k = norm.isf(p_fa) * np.sqrt(s)
-    return ((bound > 0) & (x - k > bound * BOUND_FACTOR)) | ((bound < 0) & (x + k < -bound / BOUND_FACTOR))
+    out = np.zeros(x.shape, bool)
+    where = np.flatnonzero(bound)  # only where the reference reads dark or clipped
+    xb, bb = x.ravel()[where], bound.ravel()[where]
+    k = np.float32(norm.isf(p_fa)) * np.sqrt(s.ravel()[where])
+    out.ravel()[where] = ((bb > 0) & (xb - k > bb * np.float32(BOUND_FACTOR))) | (
+        (bb < 0) & (xb + k < -bb / np.float32(BOUND_FACTOR)))
+    return out
 
 
 def cell_sums(a: np.ndarray, ph: int, pw: int) -> np.ndarray:

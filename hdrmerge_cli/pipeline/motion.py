@@ -137,32 +137,36 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
 
         pattern = cfa_cell(raw_channel_map(first.path))
     shape = (first.height, first.width) + (() if raw else (first.channels,))
-    rows = channel_index(shape, pattern if raw else np.arange(first.channels)[None, :])
-    rows2 = _samples(rows)
+    rows2 = _samples(channel_index(shape, pattern if raw else np.arange(first.channels)[None, :])).astype(np.int32)
 
-    def estimates(k: int):
-        """Frame k's x, s and validity per sample, and its codes' censoring: the x of the
-        lowest and highest measuring codes (what a dark / clipped reading bounds)."""
+    def estimates(k: int, bounds: bool = False):
+        """Frame k's x, s and validity per sample; with ``bounds`` also what its dark or
+        clipped readings bound: > 0 the x of the lowest measuring code (dark), < 0 minus the
+        x of the highest one (clipped), 0 where it measures."""
         f = frames[k]
         n = f.n_codes
         tabs = [deghost.ghost_tables(n, f.black[c], f.white[c], lambda v, c=c: crf.inverse(v, 0 if raw else c),
                                      exposures[k], noise[min(c, len(noise) - 1)]) for c in range(len(f.black))]
         x_t, s_t, ok_t = (np.concatenate(col) for col in zip(*tabs))
-        z = np.minimum(_samples(load(f)), n - 1)
-        idx = rows2 * n + z
-        lowest = np.array([t[0][np.flatnonzero(t[2])[0]] for t in tabs], np.float32)[rows2]
-        highest = np.array([t[0][np.flatnonzero(t[2])[-1]] for t in tabs], np.float32)[rows2]
-        black = np.asarray(f.black)[rows2]
-        return (x_t[idx].astype(np.float32), s_t[idx].astype(np.float32), ok_t[idx],
-                np.where(z <= black, lowest, np.where(ok_t[idx], 0, -highest)))
+        idx = rows2 * np.int32(n) + np.minimum(_samples(load(f)), n - 1).astype(np.int32)
+        x, s, ok = x_t.astype(np.float32)[idx], s_t.astype(np.float32)[idx], ok_t[idx]
+        if not bounds:
+            return x, s, ok
+        low = np.array([t[0][np.flatnonzero(t[2])[0]] for t in tabs], np.float32)
+        high = np.array([t[0][np.flatnonzero(t[2])[-1]] for t in tabs], np.float32)
+        dark = (np.arange(len(x_t)) % n <= np.repeat(np.asarray(f.black), n)) & ~ok_t
+        bound_t = np.where(ok_t, 0.0, np.where(dark, np.repeat(low, n), -np.repeat(high, n))).astype(np.float32)
+        return x, s, ok, bound_t[idx]
 
     ref = reference_index(frames)
-    _, _, _, bound_r = estimates(ref)  # > 0: the reference is dark (upper bound); < 0: clipped (lower bound)
+    bound_r = estimates(ref, bounds=True)[3]
     order = sorted(range(len(frames)), key=lambda k: (abs(np.log(exposures[k] / exposures[ref])), k))
     xa = sa = None
+    beyond = {}  # per frame: readings far outside the reference's dark / clipped bound
     for k in order:  # the anchor: the reference where it measures, else the nearest frame consistent with it
-        x, s, ok, _ = estimates(k)
-        ok = ok & ~deghost.violates_bound(x, s, bound_r)
+        x, s, ok = estimates(k)
+        beyond[k] = deghost.violates_bound(x, s, bound_r) & ok
+        ok &= ~beyond[k]
         if xa is None:
             xa, sa, va = x, s, ok
             source = np.where(ok, k, -1).astype(np.int16)
@@ -173,9 +177,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     grad2 = _samples(deghost.squared_gradient(xa.reshape(shape), "mosaic" if raw else "rgb"))
     masks, fractions = [], []
     for k in range(len(frames)):
-        x, s, ok, _ = estimates(k)
+        x, s, ok = estimates(k)
         bad = deghost.inconsistent_cells(x, s, ok, xa, sa, va, grad2, cell, p_fa)
-        bad |= deghost.cell_sums(deghost.violates_bound(x, s, bound_r) & ok, *cell) > 0
+        bad |= deghost.cell_sums(beyond.pop(k), *cell) > 0
         bad = deghost.clean(bad) & ~(deghost.cell_sums(source == k, *cell) > 0)  # the anchor itself stays
         masks.append(bad)
         fractions.append(float(bad.mean()))
