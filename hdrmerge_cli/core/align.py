@@ -57,17 +57,17 @@ def block_mean(img: np.ndarray, f: int) -> np.ndarray:
     return img[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
 
-def _ecc(template: np.ndarray, image: np.ndarray, motion: str, warp: np.ndarray) -> np.ndarray:
+def _ecc_similarity(template: np.ndarray, image: np.ndarray, warp: np.ndarray) -> np.ndarray | None:
+    """OpenCV's affine ECC from ``warp``, projected onto the nearest similarity; None when
+    it does not converge."""
     cv2 = _cv2()
-    kind = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_AFFINE
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 200, 1e-6)
     try:
-        _, warp = cv2.findTransformECC(template, image, warp.astype(np.float32), kind, criteria, None, 3)
+        _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), cv2.MOTION_AFFINE, criteria,
+                                        None, 3)
     except cv2.error:
-        raise HdrMergeError("the registration did not converge (too little texture, or the frames differ too "
-                            "much); try --align off or --align translation") from None
-    warp = warp.astype(np.float64)
-    return warp if motion == "translation" else nearest_similarity(warp)
+        return None
+    return nearest_similarity(found.astype(np.float64))
 
 
 def nearest_similarity(warp: np.ndarray) -> np.ndarray:
@@ -124,6 +124,28 @@ def _phase_shift(template: np.ndarray, image: np.ndarray) -> np.ndarray:
     return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
 
 
+def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
+    h, w = reference.shape
+    f = max(1, -(-max(h, w) // COARSE_SIDE))
+    ref_c, img_c = block_mean(reference, f), block_mean(image, f)
+    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
+    coarse = rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
+    (y0, y1), (x0, x1) = _window(h), _window(w)
+    ref_w, img_w = reference[y0:y1, x0:x1], image[y0:y1, x0:x1]
+    tx, ty = np.rint(coarse[:, 2]).astype(int)  # the image window, pre-shifted by whole pixels
+    sy0, sx0 = int(np.clip(y0 + ty, 0, h - (y1 - y0))), int(np.clip(x0 + tx, 0, w - (x1 - x0)))
+    fine = _phase_shift(ref_w, image[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)])
+    fine[:, 2] += (sx0 - x0, sy0 - y0)
+    best = max((fine, shift_warp(coarse, (x0, y0))), key=lambda c: matched(ref_w, img_w, c)[1])
+    return shift_warp(best, (-x0, -y0))
+
+
+def _window(n: int) -> tuple[int, int]:
+    """The central :data:`FINE_SIDE` span of ``n`` pixels."""
+    start = max(0, (n - FINE_SIDE) // 2)
+    return start, min(n, start + FINE_SIDE)
+
+
 def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> np.ndarray:
     """The warp bringing ``image`` onto ``reference`` (both ``(H, W)`` float32 exposure-
     invariant images, see :func:`log_irradiance`).
@@ -131,46 +153,30 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
     On images at most :data:`COARSE_SIDE` wide, two starting points compete, no motion and
     the phase-correlation peak (OpenCV), and the one matching more pixels (:func:`matched`)
     wins: a bright object crossing a still scene can win the correlation peak, but not the
-    vote of the pixels.  ``translation`` is then refined by phase correlation (sub-pixel
+    vote of the pixels.  The translation is then refined by phase correlation (sub-pixel
     peak) at full resolution on a central :data:`FINE_SIDE` window, pre-shifted by the
-    whole-pixel estimate, and kept only if it matches at least as many pixels;
-    ``similarity`` starts from that translation and adds ECC's rotation and scale (affine,
-    projected onto the nearest similarity) on the window when that matches more pixels.
-    Returns ``(2, 3)``."""
+    whole-pixel estimate, and kept only if it matches at least as many pixels.
+    ``similarity`` adds ECC's rotation and scale (affine, projected onto the nearest
+    similarity) on that window when it matches more pixels.  Returns ``(2, 3)``."""
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}")
-    h, w = reference.shape
-    f = max(1, -(-max(h, w) // COARSE_SIDE))
-    ref_c, img_c = block_mean(reference, f), block_mean(image, f)
-    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
-    warp = rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
-    y0, x0 = max(0, (h - FINE_SIDE) // 2), max(0, (w - FINE_SIDE) // 2)
-    y1, x1 = min(h, y0 + FINE_SIDE), min(w, x0 + FINE_SIDE)
-    ref_w = np.ascontiguousarray(reference[y0:y1, x0:x1])
+    translation = _translation(reference, image)
     if motion == "translation":
-        tx, ty = np.rint(warp[:, 2]).astype(int)
-        sy0, sx0 = int(np.clip(y0 + ty, 0, h - (y1 - y0))), int(np.clip(x0 + tx, 0, w - (x1 - x0)))
-        img_w = np.ascontiguousarray(image[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)])
-        fine = _phase_shift(ref_w, img_w)
-        fine[:, 2] += (sx0 - x0, sy0 - y0)
-        img_win = np.ascontiguousarray(image[y0:y1, x0:x1])
-        coarse = shift_warp(warp, (x0, y0))
-        full_img = lambda c: matched(ref_w, img_win, c)[1]  # noqa: E731  (same window, same pixels)
-        return shift_warp(max((fine, coarse), key=full_img), (-x0, -y0))
-    # similarity: ECC from the translation, kept only where it matches more pixels than it
-    translation = estimate_warp(reference, image, "translation")
-    img_w = np.ascontiguousarray(image[y0:y1, x0:x1])
-    try:
-        fine = _ecc(ref_w, img_w, motion, shift_warp(translation, (x0, y0)))
-    except HdrMergeError:
         return translation
-    better = matched(ref_w, img_w, fine)[1] > matched(ref_w, img_w, shift_warp(translation, (x0, y0)))[1]
-    return shift_warp(fine, (-x0, -y0)) if better else translation
+    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
+    ref_w, img_w = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
+    start = shift_warp(translation, (x0, y0))
+    found = _ecc_similarity(ref_w, img_w, start)
+    if found is None or matched(ref_w, img_w, found)[1] <= matched(ref_w, img_w, start)[1]:
+        return translation
+    return shift_warp(found, (-x0, -y0))
 
 
 def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
     """``outer o inner``: first ``inner``, then ``outer`` (both ``(2, 3)``)."""
-    return outer[:, :2] @ np.hstack([inner[:, :2], inner[:, 2:]]) + np.hstack([np.zeros((2, 2)), outer[:, 2:]])
+    out = outer[:, :2] @ inner
+    out[:, 2] += outer[:, 2]
+    return out
 
 
 def warp_size(warp: np.ndarray, height: int, width: int) -> float:
