@@ -1,4 +1,5 @@
 """merge --batch: grouping, local processes, a Dask LocalCluster, failures and skips."""
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -115,3 +116,25 @@ def test_batch_sample_config(run, tmp_path, shoot):
     assert s["merged"] == 2
     s = json.loads(run("merge", "--config", cfg, "--batch", shoot, "-o", tmp_path / "m", "--json").stdout)
     assert s["skipped"] == 2  # skip-existing = true in the config
+
+
+def test_interleaved_raw_and_jpeg_frames_group_per_layout():
+    """A RAW + JPEG folder sorted by name interleaves x.dng, x.jpg, ...: each layout keeps
+    its own open bracket."""
+    raw = [_frame(f"f{k}.dng", t) for k, t in enumerate((0.01, 0.04, 0.16))]
+    jpg = [dataclasses.replace(_frame(f"f{k}.jpg", t), kind="image", channels=3, cfa_pattern=None)
+           for k, t in enumerate((0.01, 0.04, 0.16))]
+    groups = group_brackets([f for pair in zip(raw, jpg) for f in pair])
+    assert sorted([f.path[3:] for f in g] for g in groups) == [["f0.dng", "f1.dng", "f2.dng"],
+                                                              ["f0.jpg", "f1.jpg", "f2.jpg"]]
+
+
+def test_brackets_never_share_an_output_name(run, tmp_path, dng_bracket, jpeg_bracket):
+    shoot = tmp_path / "mixed"
+    shoot.mkdir()
+    for (folder, meta), ext in ((dng_bracket, "dng"), (jpeg_bracket, "jpg")):
+        for k, p in enumerate(frames_of(folder, meta)[:3]):
+            shutil.copy(p, shoot / f"x_{k}.{ext}")
+    s = json.loads(run("merge", "--batch", shoot, "-o", tmp_path / "o", "--dry-run", "--json").stdout)
+    outputs = [Path(e["output"]).name for e in s["brackets"]]
+    assert sorted(outputs) == ["x_0.exr", "x_0_jpg.exr"] and all(Path(e["output"]).is_absolute() for e in s["brackets"])

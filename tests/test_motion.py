@@ -54,7 +54,11 @@ def test_mosaic_moves_by_whole_cfa_periods_and_clipping_survives_resampling():
     w = np.array([[1.0, 0.0, 2.7], [0.0, 1.0, -1.2]])  # rounds to (+2, -2): whole periods
     out = align.apply_warp_mosaic(codes, w, 4095, "translation")
     np.testing.assert_array_equal(out[2:, :14], codes[:10, 2:])
-    assert not out[:2].any() and not out[:, 14:].any()  # brought in from outside: dark, no weight
+    # sites from outside the frame repeat the nearest edge site of the same colour
+    np.testing.assert_array_equal(out[:2, :14], codes[:2, 2:])
+    np.testing.assert_array_equal(out[2:, 14:], codes[:10, 14:16])
+    huge = align.apply_warp_mosaic(codes, np.array([[1.0, 0, 40.0], [0, 1.0, -30.0]]), 4095, "translation")
+    assert huge.shape == codes.shape  # a shift beyond the frame is no crash
     img = np.full((8, 8), 100, np.uint16)
     img[4, 4] = 4095
     moved = align.apply_warp(img, np.array([[1.0, 0, 0.5], [0, 1.0, 0.0]]), 4095)
@@ -129,3 +133,21 @@ def test_explicit_alignment_modes_run(run, tmp_path, jpeg_bracket, mode):
     s = json.loads(run("merge", *frames_of(folder, meta), "-o", tmp_path / "m.exr", "--crf", "srgb", "--align", mode,
                        "--json").stdout)
     assert s["alignment"]["motion"] == mode and max(s["alignment"]["largest_displacement_px"]) < 1.0
+
+
+def test_samples_shifted_in_from_outside_get_no_weight():
+    """An aligned frame covers the reference only partly: ``covered`` marks the rest (RAW:
+    whole CFA periods; images: every channel of a pixel alike)."""
+    from hdrmerge_cli.io.frames import Frame
+    from hdrmerge_cli.pipeline.motion import covered
+
+    def frame(kind, channels):
+        return Frame(path="x", kind=kind, width=10, height=6, exposure_time=1.0, iso=None, aperture=None, make="",
+                     model="", timestamp=None, bits=8, n_codes=256, black=np.zeros(channels),
+                     white=np.full(channels, 255.0), channels=channels)
+
+    w = np.array([[1.0, 0.0, 2.7], [0.0, 1.0, -1.2]])
+    raw = covered(frame("raw", 4), w, "translation")  # moved by (+2, -2): the last 2 columns, first 2 rows
+    assert raw.shape == (6, 10) and not raw[:2].any() and not raw[:, 8:].any() and raw[2:, :8].all()
+    rgb = covered(frame("image", 3), w, "translation")  # x + 2.7 beyond 9.5 from x = 7
+    assert rgb.shape == (6, 30) and not rgb[:, 21:].any() and rgb[3:, :21].all()

@@ -1,6 +1,7 @@
 """hdrmerge-cli merge"""
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -129,6 +130,10 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
                                "--times-file, and the profiles are named after each EXR")
     if opts.output.exists() and not opts.output.is_dir():
         raise click.UsageError(f"{opts.output} is a file; with --batch, -o names the output folder")
+    if scheduler:  # cluster workers do not share our working directory: every file path absolute
+        opts = dataclasses.replace(opts, **{
+            k: str(Path(v).resolve()) for k in ("crf", "lut", "times_file", "profile")
+            if (v := getattr(opts, k)) and Path(v).is_file()})
     bopts = BatchOptions(batch_dir, opts.output, opts, jobs, gap, scheduler, skip_existing)
     entries = plan(bopts)
     if dry_run:

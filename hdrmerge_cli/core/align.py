@@ -189,31 +189,38 @@ def warp_size(warp: np.ndarray, height: int, width: int) -> float:
 def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarray:
     """Resample ``(H, W)`` or ``(H, W, C)`` code values onto the reference (bilinear,
     rounded to codes).  A result touched by a clipped code (``>= clip_code``) is clipped;
-    samples from outside the frame are 0 (dark: no weight in the merge)."""
+    samples from outside the frame repeat its nearest edge (a dark or clipped stand-in
+    would turn the border into a no-data fallback)."""
     cv2 = _cv2()
     h, w = codes.shape[:2]
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    out = cv2.warpAffine(codes.astype(np.float32), warp, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=0)
+    out = cv2.warpAffine(codes.astype(np.float32), warp, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
     clipped = cv2.warpAffine((codes >= clip_code).astype(np.float32), warp, (w, h), flags=flags,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                             borderMode=cv2.BORDER_REPLICATE)
     out = np.rint(out)
     out[clipped > 0] = clip_code
     return out.reshape(codes.shape).astype(codes.dtype)
+
+
+def _same_colour_index(n: int, shift: int) -> np.ndarray:
+    """Source rows (or columns) ``i + shift`` (``shift`` even), those beyond the frame
+    replaced by the nearest in-frame one of the same CFA parity."""
+    src = np.arange(n) + shift
+    low, high = src < 0, src > n - 1
+    src[low] = src[low] % 2
+    src[high] = (n - 1) - ((n - 1 - src[high]) % 2)
+    return src
 
 
 def apply_warp_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, motion: str) -> np.ndarray:
     """Bring a Bayer mosaic ``(H, W)`` onto the reference without mixing colours:
     ``translation`` shifts it by whole 2 x 2 CFA periods (the translation rounded to even
     pixels); ``similarity`` resamples each of the four same-colour sub-planes on its own
-    (a site ``(2u + dx, 2v + dy)`` of the sub-plane ``(dy, dx)``)."""
+    (a site ``(2u + dx, 2v + dy)`` of the sub-plane ``(dy, dx)``).  Sites from outside
+    the frame repeat the nearest same-colour edge site."""
     if motion == "translation":
         tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
-        out = np.zeros_like(codes)
-        h, w = codes.shape
-        src = codes[max(ty, 0):h + min(ty, 0), max(tx, 0):w + min(tx, 0)]
-        out[max(-ty, 0):max(-ty, 0) + src.shape[0], max(-tx, 0):max(-tx, 0) + src.shape[1]] = src
-        return out
+        return codes[np.ix_(_same_colour_index(codes.shape[0], ty), _same_colour_index(codes.shape[1], tx))]
     out = np.zeros_like(codes)
     a = warp[:, :2]
     for dy in (0, 1):

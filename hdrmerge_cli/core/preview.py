@@ -17,7 +17,7 @@ def block_factor(height: int, width: int, max_side: int) -> int:
     (1: full size; ``max_side`` 0 means full size)."""
     if max_side <= 0:
         return 1
-    return max(1, -(-max(height, width) // max_side))
+    return max(1, min(-(-max(height, width) // max_side), height, width))  # at least one pixel
 
 
 class BlockMean:

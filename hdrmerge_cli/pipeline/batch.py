@@ -44,30 +44,32 @@ def _layout(f: Frame):
 def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[Frame]]:
     """Split frames into brackets, in capture order (timestamp, then file name).
 
-    A new bracket starts at a frame taken more than ``gap`` seconds after the previous
-    one (when both have timestamps), whose exposure time repeats one already in the
-    current bracket (the camera's exposure sequence started again), or whose camera or
-    image layout differs."""
+    Frames of different cameras or image layouts (a RAW + JPEG folder) go to separate
+    brackets.  Within one layout a new bracket starts at a frame taken more than ``gap``
+    seconds after the bracket's last frame (when both have timestamps), or whose exposure
+    time repeats one already in the bracket (the camera's exposure sequence started
+    again)."""
     def key(f):
         t = capture_seconds(f.timestamp)
         return (t if t is not None else float("-inf"), Path(f.path).name)
 
     groups: list[list[Frame]] = []
-    prev_t = None
+    open_group: dict = {}  # layout -> index of its current bracket in groups
     for f in sorted(frames, key=key):
         t = capture_seconds(f.timestamp)
-        current = groups[-1] if groups else None
+        k = open_group.get(_layout(f))
+        current = None if k is None else groups[k]
+        last_t = None if current is None else capture_seconds(current[-1].timestamp)
         new = (
             current is None
-            or (t is not None and prev_t is not None and t - prev_t > gap)
+            or (t is not None and last_t is not None and t - last_t > gap)
             or any(_same_time(f.exposure_time, g.exposure_time) for g in current)
-            or _layout(f) != _layout(current[0])
         )
         if new:
+            open_group[_layout(f)] = len(groups)
             groups.append([f])
         else:
             current.append(f)
-        prev_t = t
     return groups
 
 
@@ -91,14 +93,22 @@ def plan(opts: BatchOptions) -> list[dict]:
     files are reported as their own failed entries (``"error"``)."""
     frames, bad = [], []
     for p in list_frames(opts.folder):
+        p = str(Path(p).resolve())  # absolute: cluster workers do not share our working directory
         try:
             frames.append(read_frame(p))
         except HdrMergeError as exc:
             log.error("%s", exc)
             bad.append({"frames": [p], "output": None, "status": "failed", "error": str(exc)})
-    out = []
+    out, taken = [], set()
+    outdir = Path(opts.outdir).resolve()
     for group in group_brackets(frames, opts.gap):
-        output = opts.outdir / (Path(group[0].path).stem + ".exr")
+        first = Path(group[0].path)
+        name = first.stem if first.stem not in taken else f"{first.stem}_{first.suffix.lstrip('.').lower()}"
+        k = 2
+        while name in taken:  # unique output names: never two brackets on one file
+            name, k = f"{first.stem}_{k}", k + 1
+        taken.add(name)
+        output = outdir / (name + ".exr")
         entry = {"frames": [f.path for f in group], "output": str(output), "status": "planned"}
         if opts.skip_existing and output.exists() and all(
                 output.stat().st_mtime >= os.stat(f.path).st_mtime for f in group):
@@ -124,6 +134,9 @@ def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = N
         return {"status": "failed", "error": "out of memory: merge fewer or smaller frames (or fewer --jobs)"}
     except OSError as exc:
         return {"status": "failed", "error": f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}"}
+    except Exception as exc:  # a bug must not cost the other brackets; -vv shows where
+        log.debug("bracket %s", paths[0], exc_info=True)
+        return {"status": "failed", "error": f"internal error ({type(exc).__name__}: {exc}); please report it"}
 
 
 def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
@@ -171,14 +184,20 @@ def _on_processes(n: int, jobs, progress):
                              initargs=(log.getEffectiveLevel(),)) as pool:
         futures = {pool.submit(merge_one, e["frames"], mo): e for e, mo in jobs}
         results = []
-        for fut in as_completed(futures):
-            try:
-                res = fut.result()
-            except BrokenProcessPool:
-                res = {"status": "failed", "error": "its worker process died (out of memory? try fewer --jobs)"}
-            results.append((futures[fut], res))
-            if progress:
-                progress(1)
+        try:
+            for fut in as_completed(futures):
+                try:
+                    res = fut.result()
+                except BrokenProcessPool:
+                    res = {"status": "failed", "error": "its worker process died (out of memory? try fewer --jobs)"}
+                results.append((futures[fut], res))
+                if progress:
+                    progress(1)
+        except KeyboardInterrupt:  # Ctrl-C: no further bracket starts, the running ones stop
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+            raise
     return results
 
 
@@ -197,7 +216,11 @@ def _on_dask(address: str, jobs, profile_text, progress):
                    for e, mo in jobs}
         results = []
         for fut in dask_completed(futures):
-            results.append((futures[fut], fut.result()))
+            try:
+                res = fut.result()
+            except Exception as exc:  # e.g. a worker killed: that bracket fails, the batch goes on
+                res = {"status": "failed", "error": f"the cluster lost this task ({type(exc).__name__}: {exc})"}
+            results.append((futures[fut], res))
             if progress:
                 progress(1)
     return results

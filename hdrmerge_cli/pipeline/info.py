@@ -7,7 +7,7 @@ import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
 from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
-from hdrmerge_cli.pipeline.merge import _fmt_time, cfa_cell
+from hdrmerge_cli.pipeline.merge import _fmt_time, cfa_cell, exposure_values
 
 
 def _pattern(frame: Frame) -> np.ndarray:
@@ -28,8 +28,8 @@ def bracket_info(paths) -> dict:
     Frames are decoded two at a time; one decoded frame per thread is held."""
     frames = [read_frame(p) for p in paths]
     timed = all(f.exposure_time for f in frames)
-    if timed:  # shortest first, as the coverage's "too bright" needs
-        frames.sort(key=lambda f: f.exposure_time)
+    if timed:  # shortest exposure (time x ISO gain, as merge sorts) first, as "too bright" needs
+        frames = [frames[i] for i in np.argsort(exposure_values(frames), kind="stable")]
     comparable = timed and len({_layout(f) for f in frames}) == 1
     coverage = Coverage() if comparable else None
 

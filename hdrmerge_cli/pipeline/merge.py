@@ -225,20 +225,19 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
                                              estimator, luts, bounds)
     timings["tables"] = time.perf_counter() - t0
 
-    ghosts, ghost_weights = None, None
+    ghosts = None
     if opts.deghost != "off":
         if opts.irls:
             raise HdrMergeError("--deghost and --irls cannot be combined yet; drop one of them")
         t0 = time.perf_counter()
-        ghosts = motion.find_ghosts(frames, exposures, crf, motion.require_noise(noise, frames, crf), load,
+        ghosts = motion.find_ghosts(frames, exposures, crf, motion.require_noise(noise, frames, crf, load), load,
                                     opts.deghost)
         timings["deghost"] = time.perf_counter() - t0
-        if ghosts["applied"]:
-            ghost_weights = motion.ghost_weights(tables, pattern, ghosts)
 
     # without IRLS the stream's last pass returns the linear image directly
     result, flags, den, timings_stream = _stream(frames, tables, pattern, estimator == "ml",
-                                                 None if opts.irls else h_ref, load, ghost_weights)
+                                                 None if opts.irls else h_ref, load,
+                                                 motion.sample_weights(tables, pattern, frames, ghosts, alignment))
     timings.update(timings_stream)
     iterations = 0
     if opts.irls:

@@ -190,10 +190,31 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks}
 
 
-def ghost_weights(tables, pattern, ghosts: dict):
-    """``(k, codes) -> weights`` for the merge (see :class:`LogMerge.add`): frame ``k``'s
-    table weight ``w(z) sigma^-2`` where it is consistent, 0 in its rejected cells."""
-    cell = ghosts["cell"]
+def covered(frame: Frame, warp: np.ndarray, motion: str) -> np.ndarray:
+    """Which samples of the aligned frame come from inside it, ``(H, W')`` bool (a pixel's
+    channels share its value); the others are stand-ins (the edge repeated) and get no
+    weight in the merge."""
+    h, w = frame.height, frame.width
+    if frame.kind == "raw" and motion == "translation":  # whole CFA periods
+        tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
+        rows = (np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1)
+        cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
+        return rows[:, None] & cols[None, :]
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    sx = warp[0, 0] * x + warp[0, 1] * y + warp[0, 2]
+    sy = warp[1, 0] * x + warp[1, 1] * y + warp[1, 2]
+    inside = (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
+    return inside if frame.kind == "raw" else np.repeat(inside, frame.channels, axis=1)
+
+
+def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None):
+    """``(k, codes) -> weights`` for the merge (see :meth:`LogMerge.add`), or None when
+    neither applies: frame ``k``'s table weight ``w(z) sigma^-2``, zero in its rejected
+    ghost cells and where the aligned frame does not cover the reference."""
+    ghosts = ghosts if ghosts and ghosts["applied"] else None
+    alignment = alignment if alignment and alignment["applied"] else None
+    if ghosts is None and alignment is None:
+        return None
 
     def weights(k: int, codes: np.ndarray) -> np.ndarray:
         table = tables[k]
@@ -201,13 +222,16 @@ def ghost_weights(tables, pattern, ghosts: dict):
         w_t = table.weight.reshape(-1, n)
         z = np.minimum(_samples(codes), n - 1)
         w = w_t[0][z] if pattern is None else w_t[_samples(channel_index(codes.shape, pattern)), z]
-        keep = ~deghost.expand(ghosts["masks"][k], cell, z.shape)
-        return (w * keep).reshape(codes.shape).astype(np.float32)
+        if ghosts is not None:
+            w *= ~deghost.expand(ghosts["masks"][k], ghosts["cell"], z.shape)
+        if alignment is not None:
+            w *= covered(frames[k], alignment["warps"][k], alignment["motion"])
+        return w.reshape(codes.shape).astype(np.float32)
 
     return weights
 
 
-def require_noise(noise, frames, crf) -> list[NoiseParams]:
+def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams]:
     """Noise parameters for the ghost test: given, measured on the bracket, or (failing
     both) a conservative default with a warning."""
     if noise:
@@ -217,10 +241,10 @@ def require_noise(noise, frames, crf) -> list[NoiseParams]:
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
     try:
-        used, _ = estimate_bracket_noise(frames, crf)
+        used, _ = estimate_bracket_noise(frames, crf, load)  # on the aligned frames
         return [NoiseParams(**used[name]) if name in used else NoiseParams(**next(iter(used.values())))
                 for name in frames[0].channel_names]
     except HdrMergeError as exc:
         y_full = float(np.max(frames[0].white) - np.min(frames[0].black))
         log.warning("could not measure the noise for the ghost test (%s); assuming 1 %% of full scale", exc)
-        return [NoiseParams((0.01 * y_full) ** 2, 0.01 * y_full, 0.0)]
+        return [NoiseParams((0.01 * y_full) ** 2, 1e-12, 0.0)]  # a 1 % read noise, no photon term
