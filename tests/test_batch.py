@@ -101,6 +101,8 @@ def test_unreachable_scheduler_is_a_one_line_error(run, tmp_path, shoot):
 
 @pytest.mark.parametrize("args, message", [
     (["-j", "2"], "apply to --batch only"),
+    (["--gap", "5"], "apply to --batch only"),
+    (["--preview-size", "100"], "--preview only"),
     (["--batch", "."], "not both"),
 ])
 def test_batch_usage_errors(run, tmp_path, dng_bracket, args, message):

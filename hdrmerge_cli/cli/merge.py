@@ -17,6 +17,8 @@ from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
 from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
 from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
+log = logging.getLogger("hdrmerge_cli")
+
 
 @click.command("merge")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
@@ -108,16 +110,27 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
         preview=preview, preview_size=preview_size, align=align, deghost=deghost,
     )
+    given = _given(click.get_current_context())
+    if "preview_size" in given and preview is None:
+        raise click.UsageError("--preview-size applies to --preview only")
+    if "ghost" in extra_channels and deghost == "off":
+        log.warning("--extra-channels ghost without --deghost: the ghost channel is all zero")
     if batch_dir:
         return _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run, as_json)
     if not images:
         raise click.UsageError("give the bracket's IMAGES, or --batch DIR")
-    if jobs != 1 or scheduler or skip_existing or dry_run:
-        raise click.UsageError("--jobs, --scheduler, --skip-existing and --dry-run apply to --batch only")
+    if given & {"jobs", "gap", "scheduler", "skip_existing", "dry_run"}:
+        raise click.UsageError("--jobs, --gap, --scheduler, --skip-existing and --dry-run apply to --batch only")
     if output.is_dir():
         raise click.UsageError(f"{output} is a folder; -o names the EXR to write (or use --batch DIR)")
     summary = merge(list(images), opts)
     emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")
+
+
+def _given(ctx) -> set[str]:
+    """Options set on the command line or in a --config file (not left at their default)."""
+    sources = (click.core.ParameterSource.COMMANDLINE, click.core.ParameterSource.DEFAULT_MAP)
+    return {p.name for p in ctx.command.params if ctx.get_parameter_source(p.name) in sources}
 
 
 def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run, as_json):
@@ -130,6 +143,8 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
                                "--times-file, and the profiles are named after each EXR")
     if opts.output.exists() and not opts.output.is_dir():
         raise click.UsageError(f"{opts.output} is a file; with --batch, -o names the output folder")
+    if scheduler and jobs != 1:
+        log.warning("-j is ignored with --scheduler: the cluster's workers decide how many brackets run at once")
     if scheduler:  # cluster workers do not share our working directory: every file path absolute
         opts = dataclasses.replace(opts, **{
             k: str(Path(v).resolve()) for k in ("crf", "lut", "times_file", "profile")
