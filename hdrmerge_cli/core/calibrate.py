@@ -176,6 +176,17 @@ class VariancePoints:
                                 for k in ("mean", "var", "count", "design", "kind")))
 
 
+def equal_count_bins(values: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bins of (about) equal counts over ``values`` (N,): ``(edges, order, starts)`` with
+    ``values[order][starts[b]:starts[b + 1]]`` the members of bin ``b`` (edges at the
+    quantiles; repeated quantiles merge bins).  ``bins`` < 65536."""
+    edges = np.unique(np.quantile(values, np.linspace(0, 1, bins + 1)))
+    which = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, edges.size - 2).astype(np.uint16)
+    order = np.argsort(which, kind="stable")  # a radix sort for 16-bit keys
+    starts = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=edges.size - 1))])
+    return edges, order, starts
+
+
 def binned_variance(ws: WindowStats, ratio: float | None = None, bins: int = 64, min_count: int = 20,
                     max_texture: np.ndarray | None = None, reject: float = 3.0, robust: bool = True) -> VariancePoints:
     """Variance against mean: windows binned by mean (equal counts).  Textured windows are
@@ -195,10 +206,7 @@ def binned_variance(ws: WindowStats, ratio: float | None = None, bins: int = 64,
         bins = max(mean.size // min_count, 0)
     if bins < 1:
         return variance_points([], [], [], ratio)
-    edges = np.unique(np.quantile(mean, np.linspace(0, 1, bins + 1)))
-    which = np.clip(np.searchsorted(edges, mean, side="right") - 1, 0, edges.size - 2).astype(np.uint16)
-    order = np.argsort(which, kind="stable")  # a radix sort for 16-bit keys
-    starts = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=edges.size - 1))])
+    edges, order, starts = equal_count_bins(mean, bins)
     mean, var, tex = mean[order], var[order], tex[order]  # each bin is now a slice
     median_factor = stats.chi2.median(ws.dof) / ws.dof
     mus, vs, ns = [], [], []

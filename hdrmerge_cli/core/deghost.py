@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from hdrmerge_cli.core.calibrate import equal_count_bins
 from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
 #: false-alarm rate of the per-cell test
@@ -69,10 +70,7 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 64
     pick = np.flatnonzero(ok)[:: max(1, n_ok // FIT_SAMPLES)]  # a smooth curve: a subsample fits it
     lx = np.log(x.ravel()[pick])
     d = np.log(xa.ravel()[pick]) - lx
-    edges = np.unique(np.quantile(lx, np.linspace(0, 1, bins + 1)))
-    which = np.clip(np.searchsorted(edges, lx, side="right") - 1, 0, edges.size - 2)
-    order = np.argsort(which, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=edges.size - 1))])
+    edges, order, starts = equal_count_bins(lx, bins)
     d_sorted, lx_sorted = d[order], lx[order]
     centres, shifts = [], []
     for b in range(edges.size - 1):
