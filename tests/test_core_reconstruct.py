@@ -250,3 +250,9 @@ def test_codes_above_the_table_read_as_clipped():
     log_e, flag = acc.finish()
     assert flag.tolist() == [[FLAG_OK, FLAG_SATURATED, FLAG_SATURATED]]
     assert log_e[0, 1] == log_e[0, 2] and np.isfinite(log_e).all()
+    # the per-sample lookup of IRLS and deghosting reads them the same way
+    codes = np.array([[2048, 4095, 60000]], np.uint16)
+    np.testing.assert_array_equal(reconstruct.lookup(tab.weight, 4096, codes, None), tab.weight[[[2048, 4095, 4095]]])
+    two = np.concatenate([tab.weight, 2 * tab.weight])  # a second table row
+    rows = np.array([[0, 1, 1]])
+    np.testing.assert_array_equal(reconstruct.lookup(two, 4096, codes, rows), [[tab.weight[2048], *2 * tab.weight[[4095, 4095]]]])

@@ -213,6 +213,15 @@ def channel_index(shape: tuple[int, ...], pattern: np.ndarray | None) -> np.ndar
     return tiled.reshape(shape)
 
 
+def lookup(table: np.ndarray, n_codes: int, codes: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    """Per-sample values of a flattened ``(C * N,)`` table (an :class:`ExposureTables`
+    field): row ``rows`` (:func:`channel_index`; None: row 0), entry ``codes``; codes above
+    the table read its last (clipped) entry, as the fused kernels do."""
+    per_row = table.reshape(-1, n_codes)
+    z = np.minimum(codes, n_codes - 1)
+    return per_row[0][z] if rows is None else per_row[rows, z]
+
+
 def _rows_cols(shape):
     return shape[0], int(np.prod(shape[1:]))
 
@@ -265,8 +274,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
         acc = LogMerge(log_e.shape, pattern)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
-            cert = tab.certainty.reshape(-1, tab.n_codes)
-            w = irls_weights(cert[0][codes] if rows is None else cert[rows, codes], log_e, h, y_full[k], maps, linear)
+            w = irls_weights(lookup(tab.certainty, tab.n_codes, codes, rows), log_e, h, y_full[k], maps, linear)
             acc.add(codes, tab, last=k == len(tables) - 1, weight=w)
         new, flags = acc.finish(linear)
         den = acc.den

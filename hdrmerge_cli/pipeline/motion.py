@@ -10,7 +10,7 @@ from hdrmerge_cli.core import align, deghost
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.core.reconstruct import channel_index
+from hdrmerge_cli.core.reconstruct import channel_index, lookup
 from hdrmerge_cli.io.frames import Frame, load_codes
 
 log = logging.getLogger("hdrmerge_cli")
@@ -217,13 +217,10 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
         return None
 
     def weights(k: int, codes: np.ndarray) -> np.ndarray:
-        table = tables[k]
-        n = table.n_codes
-        w_t = table.weight.reshape(-1, n)
-        z = np.minimum(_samples(codes), n - 1)
-        w = w_t[0][z] if pattern is None else w_t[_samples(channel_index(codes.shape, pattern)), z]
+        rows = None if pattern is None else channel_index(codes.shape, pattern)
+        w = _samples(lookup(tables[k].weight, tables[k].n_codes, codes, rows))
         if ghosts is not None:
-            w *= ~deghost.expand(ghosts["masks"][k], ghosts["cell"], z.shape)
+            w *= ~deghost.expand(ghosts["masks"][k], ghosts["cell"], w.shape)
         if alignment is not None:
             w *= covered(frames[k], alignment["warps"][k], alignment["motion"])
         return w.reshape(codes.shape).astype(np.float32)
