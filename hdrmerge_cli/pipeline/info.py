@@ -6,14 +6,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
-from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
-from hdrmerge_cli.pipeline.merge import _fmt_time, cfa_cell, exposure_values
-
-
-def _pattern(frame: Frame) -> np.ndarray:
-    if frame.kind == "raw":
-        return cfa_cell(raw_channel_map(frame.path))
-    return np.arange(frame.channels, dtype=np.intp)[None, :]
+from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
+from hdrmerge_cli.pipeline.merge import _fmt_time, exposure_values, sample_pattern
 
 
 def _layout(frame: Frame):
@@ -34,7 +28,7 @@ def bracket_info(paths) -> dict:
     coverage = Coverage() if comparable else None
 
     def classes(frame):
-        return clip_classes(load_codes(frame), _pattern(frame), frame.black, frame.white)
+        return clip_classes(load_codes(frame), sample_pattern(frame), frame.black, frame.white)
 
     rows = []
     with ThreadPoolExecutor(2) as pool:

@@ -451,11 +451,15 @@ def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
                               bounds=bounds)
               for j, (f, h) in enumerate(zip(frames, exposures))]
-    if shared:
-        return tables, None, names
-    if first.kind == "raw":
-        return tables, cfa_cell(raw_channel_map(first.path)), names
-    return tables, np.arange(first.channels, dtype=np.intp)[None, :], names
+    return tables, None if shared else sample_pattern(first), names
+
+
+def sample_pattern(frame: Frame) -> np.ndarray:
+    """Which table row each sample reads, as the periodic pattern of :class:`LogMerge`:
+    the 2 x 2 CFA cell of a RAW frame, the channel order of an image."""
+    if frame.kind == "raw":
+        return cfa_cell(raw_channel_map(frame.path))
+    return np.arange(frame.channels, dtype=np.intp)[None, :]
 
 
 def cfa_cell(channel_map: np.ndarray) -> np.ndarray:

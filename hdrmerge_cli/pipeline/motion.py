@@ -32,12 +32,8 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     """The registration image of a frame, full scale 1: RAW the mean of each 2 x 2 CFA cell
     (black subtracted; half resolution), images the mean of the linearised channels."""
     if frame.kind == "raw":
-        h, w = codes.shape[0] // 2 * 2, codes.shape[1] // 2 * 2
-        z = codes[:h, :w].astype(np.float32)
-        black = np.asarray(frame.black, np.float32)
-        white = np.asarray(frame.white, np.float32)
-        cell = (z.reshape(h // 2, 2, w // 2, 2) - float(black.mean())) / float((white - black).mean())
-        return cell.mean(axis=(1, 3))
+        black = float(np.mean(frame.black))
+        return align.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
     full = frame.n_codes - 1.0
     chans = [crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])]
     return np.mean(chans, axis=0).astype(np.float32)
@@ -130,14 +126,10 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     first = frames[0]
     raw = first.kind == "raw"
     cell = (2, 2) if raw else (1, first.channels)
-    pattern = None
-    if raw:
-        from hdrmerge_cli.io.frames import raw_channel_map
-        from hdrmerge_cli.pipeline.merge import cfa_cell
+    from hdrmerge_cli.pipeline.merge import sample_pattern
 
-        pattern = cfa_cell(raw_channel_map(first.path))
     shape = (first.height, first.width) + (() if raw else (first.channels,))
-    rows2 = _samples(channel_index(shape, pattern if raw else np.arange(first.channels)[None, :])).astype(np.int32)
+    rows2 = _samples(channel_index(shape, sample_pattern(first))).astype(np.int32)
 
     def estimates(k: int, bounds: bool = False):
         """Frame k's x, s and validity per sample; with ``bounds`` also what its dark or
