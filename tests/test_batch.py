@@ -140,3 +140,10 @@ def test_brackets_never_share_an_output_name(run, tmp_path, dng_bracket, jpeg_br
     s = json.loads(run("merge", "--batch", shoot, "-o", tmp_path / "o", "--dry-run", "--json").stdout)
     outputs = [Path(e["output"]).name for e in s["brackets"]]
     assert sorted(outputs) == ["x_0.exr", "x_0_jpg.exr"] and all(Path(e["output"]).is_absolute() for e in s["brackets"])
+
+
+def test_an_empty_folder_is_a_one_line_error_and_writes_nothing(run, tmp_path):
+    (tmp_path / "empty").mkdir()
+    proc = run("merge", "--batch", tmp_path / "empty", "-o", tmp_path / "out", check=False)
+    assert proc.returncode == 1 and "no frames" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()

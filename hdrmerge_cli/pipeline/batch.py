@@ -92,7 +92,10 @@ def plan(opts: BatchOptions) -> list[dict]:
     """The brackets of the folder, each ``{"frames": [...], "output": ...}``; unreadable
     files are reported as their own failed entries (``"error"``)."""
     frames, bad = [], []
-    for p in list_frames(opts.folder):
+    paths = list_frames(opts.folder)
+    if not paths:
+        raise HdrMergeError(f"{opts.folder}: no frames to merge in this folder")
+    for p in paths:
         p = str(Path(p).resolve())  # absolute: cluster workers do not share our working directory
         try:
             frames.append(read_frame(p))
@@ -145,7 +148,8 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     sent to the workers once).  ``progress(n)`` is called as brackets finish.  Returns the
     batch summary; the caller decides the exit status from ``summary["failed"]``."""
     todo = [e for e in entries if e["status"] == "planned"]
-    opts.outdir.mkdir(parents=True, exist_ok=True)
+    if todo:  # nothing to write: no output folder either
+        opts.outdir.mkdir(parents=True, exist_ok=True)
     profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
     jobs = [(e, dataclasses.replace(opts.merge, output=Path(e["output"]), profile_out=None)) for e in todo]
     if opts.scheduler:
