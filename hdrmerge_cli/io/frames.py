@@ -63,6 +63,11 @@ class Frame:
         return [c + "2" if self.channel_colors[:i].count(c) else c for i, c in enumerate(self.channel_colors)]
 
     @property
+    def layout(self) -> tuple:
+        """What frames of one bracket share: file kind, size, channels, CFA, camera."""
+        return self.kind, self.width, self.height, self.channels, self.cfa_pattern, self.camera
+
+    @property
     def camera(self) -> str:
         """Make and model ("Canon EOS REBEL T2i", not "Canon Canon EOS ...")."""
         if self.make and self.model.lower().startswith(self.make.lower()):

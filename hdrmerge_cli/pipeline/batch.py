@@ -37,10 +37,6 @@ def capture_seconds(stamp: str | None) -> float | None:
     return None
 
 
-def _layout(f: Frame):
-    return f.kind, f.width, f.height, f.channels, f.cfa_pattern, f.camera
-
-
 def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[Frame]]:
     """Split frames into brackets, in capture order (timestamp, then file name).
 
@@ -57,7 +53,7 @@ def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[F
     open_group: dict = {}  # layout -> index of its current bracket in groups
     for f in sorted(frames, key=key):
         t = capture_seconds(f.timestamp)
-        k = open_group.get(_layout(f))
+        k = open_group.get(f.layout)
         current = None if k is None else groups[k]
         last_t = None if current is None else capture_seconds(current[-1].timestamp)
         new = (
@@ -66,7 +62,7 @@ def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[F
             or any(_same_time(f.exposure_time, g.exposure_time) for g in current)
         )
         if new:
-            open_group[_layout(f)] = len(groups)
+            open_group[f.layout] = len(groups)
             groups.append([f])
         else:
             current.append(f)

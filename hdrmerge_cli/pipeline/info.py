@@ -10,10 +10,6 @@ from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.pipeline.merge import _fmt_time, exposure_values, sample_pattern
 
 
-def _layout(frame: Frame):
-    return frame.kind, frame.width, frame.height, frame.channels, frame.cfa_pattern
-
-
 def bracket_info(paths) -> dict:
     """Per frame: camera, exposure time, ISO, bit depth, black/white levels and the
     fractions of clipped and dark samples (:func:`~hdrmerge_cli.core.coverage.clip_classes`);
@@ -24,7 +20,7 @@ def bracket_info(paths) -> dict:
     timed = all(f.exposure_time for f in frames)
     if timed:  # shortest exposure (time x ISO gain, as merge sorts) first, as "too bright" needs
         frames = [frames[i] for i in np.argsort(exposure_values(frames), kind="stable")]
-    comparable = timed and len({_layout(f) for f in frames}) == 1
+    comparable = timed and len({f.layout for f in frames}) == 1
     coverage = Coverage() if comparable else None
 
     def classes(frame):
@@ -49,7 +45,7 @@ def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool
     if coverage is None:
         out["covers_scene"] = None
         out["advice"] = ("give every frame an exposure time to judge the coverage" if not timed else
-                         "the frames differ in type, size or channels: not one bracket")
+                         "the frames differ in type, size, channels or camera: not one bracket")
         return out
     out |= {"covers_scene": coverage.uncovered == 0.0, "uncovered_fraction": coverage.uncovered,
             "too_bright_fraction": coverage.too_bright, "too_dark_fraction": coverage.too_dark,
