@@ -307,3 +307,15 @@ def test_merge_writes_a_preview_with_the_exr(run, tmp_path, dng_bracket):
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "n.exr", "--preview", tmp_path / "n.exr.gif",
                check=False)
     assert proc.returncode == 1 and "n.exr.gif" in proc.stderr and not (tmp_path / "n.exr").exists()
+
+
+def test_default_weights_follow_the_estimator(run, tmp_path, dng_bracket, jpeg_bracket):
+    """--weights auto: uniform for the ML estimator (RAW), triangle for the log one."""
+    folder, meta = dng_bracket
+    _, s = _merge(run, tmp_path, frames_of(folder, meta), "--cfa")
+    assert (s["weights"], s["estimator"]) == ("uniform", "ml")
+    _, s = _merge(run, tmp_path, frames_of(folder, meta), "--cfa", "--estimator", "log", "--overwrite")
+    assert (s["weights"], s["estimator"]) == ("triangle", "log")
+    folder, meta = jpeg_bracket
+    _, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--overwrite")
+    assert (s["weights"], s["estimator"]) == ("triangle", "log")

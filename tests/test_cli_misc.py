@@ -267,3 +267,22 @@ def test_shell_completion_lists_subcommands(run):
     script = subprocess.run(_command(), env=os.environ | {"_HDRMERGE_CLI_COMPLETE": "bash_source"},
                             capture_output=True, text=True).stdout
     assert "complete" in script and "hdrmerge-cli" in script
+
+
+def test_estimate_crf_calibrate_noise_and_merge_share_one_profile(run, tmp_path, tiff_bracket):
+    """The documented flow: estimate-crf writes a CRF-only profile that merge --profile
+    takes as it is; calibrate-noise --profile adds the noise model to the same file (CRF
+    kept), and merge then uses both."""
+    folder, meta = tiff_bracket
+    frames = frames_of(folder, meta)
+    prof = tmp_path / "cam.json"
+    run("estimate-crf", *frames, "-o", prof)
+    s = json.loads(run("merge", *frames, "--profile", prof, "-o", tmp_path / "a.exr", "--json").stdout)
+    assert s["crf"] == "profile" and s["noise"] is None
+    assert s["weights"] == "triangle" and s["estimator"] == "log"
+    crf = json.loads(prof.read_text())["crf"]
+    run("calibrate-noise", *frames, "--profile", prof)
+    data = json.loads(prof.read_text())
+    assert data["crf"] == crf and any(k.startswith("ISO") for k in data["noise"])
+    s = json.loads(run("merge", *frames, "--profile", prof, "-o", tmp_path / "b.exr", "--json").stdout)
+    assert s["crf"] == "profile" and s["noise"] and s["variance"] == "model"

@@ -256,3 +256,22 @@ def test_codes_above_the_table_read_as_clipped():
     two = np.concatenate([tab.weight, 2 * tab.weight])  # a second table row
     rows = np.array([[0, 1, 1]])
     np.testing.assert_array_equal(reconstruct.lookup(two, 4096, codes, rows), [[tab.weight[2048], *2 * tab.weight[[4095, 4095]]]])
+
+
+@pytest.mark.parametrize("crf", [CRF("srgb"), CRF("gamma", 2.5), CRF("linear")])
+def test_quantisation_variance_matches_monte_carlo(crf):
+    """(dy/dz)^2 / 12: the variance of the rounding error of a code, seen through the
+    inverse response, against Monte-Carlo: a continuous signal near each code is encoded,
+    rounded to 8 bits and linearised; the error's variance per code is compared."""
+    full = 255.0
+    lin = crf.inverse(np.arange(256) / full)
+    predicted = reconstruct.quantisation_variance(lin, full)
+    rng = np.random.default_rng(7)
+    v = rng.uniform(0.5, 254.5, 4_000_000) / full  # code values, continuous
+    z = np.rint(v * full).astype(np.int64)
+    err = (lin[z] - crf.inverse(v)) * full
+    var = np.bincount(z, weights=err * err, minlength=256) / np.maximum(np.bincount(z, minlength=256), 1)
+    codes = np.arange(8, 250)  # away from the rounding of the ends
+    np.testing.assert_allclose(var[codes], predicted[codes], rtol=0.06)
+    if crf.is_linear:
+        np.testing.assert_allclose(predicted, 1 / 12)

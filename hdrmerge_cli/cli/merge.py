@@ -40,9 +40,10 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--dry-run", is_flag=True, help="--batch: list the brackets and their outputs; merge nothing.")
 @click.option("--profile-out", type=click.Path(dir_okay=False, path_type=Path),
               help="Where to write the camera profile JSON used [default: OUTPUT with .profile.json].")
-@click.option("--weights", type=click.Choice(sorted(WEIGHTING_FUNCTIONS)), default="triangle", show_default=True,
+@click.option("--weights", type=click.Choice(["auto", *sorted(WEIGHTING_FUNCTIONS)]), default="auto", show_default=True,
               help="Weighting function of (7): classical triangle, mann, deneve, gaussian, uniform; the paper's "
-                   "probabilistic (32), direct (33), optimal (29), bounded (unknown noise parameters).")
+                   "probabilistic (32), direct (33), optimal (29), bounded (unknown noise parameters). auto: uniform "
+                   "with the ml estimator (RAW), triangle with log (images); the measured winners.")
 @click.option("--crf", metavar="CRF",
               help="Camera response of JPEG/TIFF/PNG input: linear, srgb, gamma:G, a CSV table (z, linear) "
                    "or a profile JSON [default: srgb, with a warning].  RAW input is linear.")

@@ -123,11 +123,25 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
     return np.stack(rows)
 
 
-def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: NoiseParams | None) -> np.ndarray:
+def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
+    """Variance that the quantisation of the codes adds to the linearised signal
+    ``y = gamma^-1(z) y_full``: a code step is worth ``dy/dz = y_full d gamma^-1 / dz``, and a
+    uniform rounding error of one step has variance ``(dy/dz)^2 / 12``.
+
+    lin : (N,) ``gamma^-1`` at every stored code value (one channel), in [0, 1]
+    Returns (N,) variances in squared code values of ``y`` (``1/12`` for a linear CRF).
+    """
+    step = np.gradient(np.asarray(lin, dtype=np.float64) * y_full) if lin.size > 1 else np.ones(1)
+    return step * step / 12.0
+
+
+def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: NoiseParams | None,
+                     quantisation: np.ndarray | None = None) -> np.ndarray:
     """The factor ``sigma^-2(E, t_j)`` of (7) at each frame's own estimate ``mu = y``:
     ``none`` 1; ``photon`` ``t E`` up to the common gain (the photon-limited case of (22),
     which needs no parameters); ``model`` ``mu^2 / v(mu)``, the clipping-free variance (21)
-    with the noise parameters (clipping is the weights' business)."""
+    with the noise parameters (clipping is the weights' business) plus ``quantisation``
+    (:func:`quantisation_variance`, for codes of a non-linear response)."""
     y = np.clip(lin, 0.0, 1.0) * y_full
     if variance == "none":
         return np.ones_like(y)
@@ -135,7 +149,8 @@ def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: Noise
         return y
     if noise is None:
         raise HdrMergeError("--variance model needs noise parameters (--noise or a profile)")
-    return y * y / code_variance(y, noise)
+    var = code_variance(y, noise) if quantisation is None else code_variance(y, noise) + quantisation
+    return y * y / var
 
 
 def exposure_tables(
@@ -187,10 +202,13 @@ def exposure_tables(
         if estimator == "ml":
             y = lin * (wl - b)
             var_y = code_variance(y, chan_noise) if chan_noise is not None else np.maximum(y, 1.0)
+            if not crf.is_linear:  # a linear sensor's measured read noise already holds its 1/12
+                var_y = var_y + quantisation_variance(lin, wl - b)
             w = cert * (exposure * (wl - b)) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
             value = lin / exposure
         else:
-            w = cert * inverse_variance(variance, lin, wl - b, chan_noise)
+            w = cert * inverse_variance(variance, lin, wl - b, chan_noise,
+                                        None if crf.is_linear else quantisation_variance(lin, wl - b))
             with np.errstate(divide="ignore"):
                 value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w

@@ -84,6 +84,43 @@ def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, metho
     return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
 
 
+def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: str = "goossens",
+            smoothing: float | None = None, samples: int | None = None, options: dict | None = None,
+            rng: np.random.Generator | None = None, shared: bool = False):
+    """The inverse response of decoded frames: ``method`` of
+    :data:`~hdrmerge_cli.core.crf_estimate.CRF_ESTIMATORS` per channel.
+
+    codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
+    smoothing, samples : None for the method's defaults; options : the method's keywords
+    Returns (CRF with a ``(C, n_codes)`` table, the per-channel fits, whether a fit had to
+    be made monotone).  ``shared``: one curve for every channel, fitted to their pooled
+    samples (a camera applies one tone curve to all channels, so a neutral ramp stays
+    neutral), each channel normalised to 1 at full scale as always.
+    """
+    m = CRF_ESTIMATORS[method]
+    rng = rng if rng is not None else np.random.default_rng(0)
+    samples = m.samples if samples is None else samples
+    options = dict(options or {})
+    if m.smoothing is not None:
+        options["smoothing"] = m.smoothing if smoothing is None else smoothing
+    fits, tables, changed = [], [], False
+    channels = codes[0].shape[-1]
+    for c in range(1 if shared else channels):
+        z = (np.concatenate([_channel_samples(codes, k, samples, method, rng) for k in range(channels)]) if shared
+             else _channel_samples(codes, c, samples, method, rng))
+        fit = m.estimate(z, log_h, n_codes, **options)
+        log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, method, fit.iterations,
+                 "" if fit.converged else " (not converged)", fit.rows)
+        inv, fixed = inverse_from_log(fit.g)
+        changed |= fixed
+        fits.append(fit)
+        tables.append(inv)
+    if changed:
+        log.warning("the %s fit was not monotone; it was made non-decreasing", method)
+    table = np.stack(tables * (channels if shared else 1))
+    return table_crf(table, f"estimate-crf:{method}"), fits, changed
+
+
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     t0 = time.perf_counter()
     method = CRF_ESTIMATORS[opts.method]
@@ -114,26 +151,12 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         check_brightness_order(frames, codes)
         check_overlap(frames, codes, first.n_codes)
         log_h = np.log(exposure_values(frames))
-        rng = np.random.default_rng(opts.seed)
         options = {}
-        if method.smoothing is not None:
-            options["smoothing"] = smoothing
         if method.noise_weighted:
             options.update(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
                            **({"weighting": opts.weighting} if opts.weighting else {}))
-        tables = []
-        for c in range(codes[0].shape[-1]):
-            z = _channel_samples(codes, c, samples, opts.method, rng)
-            fit = method.estimate(z, log_h, first.n_codes, **options)
-            log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, opts.method, fit.iterations,
-                     "" if fit.converged else " (not converged)", fit.rows)
-            inv, fixed = inverse_from_log(fit.g)
-            changed |= fixed
-            fits.append(fit)
-            tables.append(inv)
-        if changed:
-            log.warning("the %s fit was not monotone; it was made non-decreasing", opts.method)
-        crf = table_crf(np.stack(tables), f"estimate-crf:{opts.method}")
+        crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, samples, options,
+                                     np.random.default_rng(opts.seed))
         points = (codes, log_h)
     details = {"method": opts.method, "channels": first.channel_colors if first.kind != "raw" else "linear"}
     if fits:

@@ -47,7 +47,7 @@ class MergeOptions:
     output: Path
     profile_out: Path | None = None
     overwrite: bool = False
-    weights: str = "triangle"
+    weights: str = "auto"
     crf: str | None = None
     times: list[float] | None = None
     times_file: str | None = None
@@ -156,6 +156,22 @@ def reference_exposure(spec: str, exposures: np.ndarray) -> float:
     return parse_seconds(spec)
 
 
+def default_estimator(frame: Frame) -> str:
+    """``--estimator auto``: the linear ML estimate for RAW (it reaches the Cramer-Rao bound
+    there), the paper's log-domain (7) for camera-processed images (JPEG/TIFF/PNG), whose
+    errors are the response's and the camera's processing more than noise: it predicts
+    left-out real frames best (benchmarks/results/real_loo.md)."""
+    return "ml" if frame.kind == "raw" else "log"
+
+
+def default_weights(estimator: str) -> str:
+    """``--weights auto``: ``uniform`` for the ML estimator, whose inverse-variance weights
+    are already the noise-optimal ones (any other weight distorts them: -0.4 dB on
+    simulated RAW brackets, benchmarks/results/accuracy.md); the classical ``triangle`` for
+    the log estimator, the best of every weighting on the real brackets' leave-one-out."""
+    return "uniform" if estimator == "ml" else "triangle"
+
+
 def choose_crf(frames: list[Frame], spec: str | None) -> CRF:
     """RAW is linear; images use ``spec`` or sRGB with a warning."""
     if frames[0].kind == "raw":
@@ -203,25 +219,26 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         timings["align"] = time.perf_counter() - t1
     load = motion.loader(frames, alignment)
     estimated = None
-    needs_noise = opts.variance in ("auto", "model") or opts.weights in NOISE_MODEL_WEIGHTS or opts.irls
+    estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first)
+    weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
+    needs_noise = opts.variance in ("auto", "model") or weights in NOISE_MODEL_WEIGHTS or opts.irls
     if noise is None and first.kind == "raw" and needs_noise and not opts.lut:
         t1 = time.perf_counter()
         noise, estimated = _estimate_noise(frames, crf, load)
         timings["noise_estimate"] = time.perf_counter() - t1
     variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
-    estimator = opts.estimator if opts.estimator != "auto" else ("ml" if first.kind == "raw" else "log")
-    if opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded" and not noise and not opts.lut:
+    if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
         log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
-                    "conservative upper bounds", opts.weights)
+                    "conservative upper bounds", weights)
     if opts.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
     timings["read_metadata"] = time.perf_counter() - t0 - timings.get("noise_estimate", 0.0) - timings.get("align", 0.0)
 
     t0 = time.perf_counter()
-    prior = prior_rate(frames, exposures, crf) if opts.weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
+    prior = prior_rate(frames, exposures, crf) if weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
     luts = _lut_columns(opts.lut, frames) if opts.lut else None
     bounds = parse_bounds(opts.bounds) if opts.bounds else None
-    tables, pattern, table_channels = _tables(frames, exposures, crf, opts.weights, noise, variance, prior, opts.k,
+    tables, pattern, table_channels = _tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
                                              estimator, luts, bounds)
     timings["tables"] = time.perf_counter() - t0
 
@@ -288,7 +305,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     profile = new_profile(
         {"make": first.make, "model": first.model}, first.bits, crf, [f.path for f in frames], "merge"
     )
-    profile["weights"] = f"lut:{Path(opts.lut).name}" if opts.lut else opts.weights
+    profile["weights"] = f"lut:{Path(opts.lut).name}" if opts.lut else weights
     noise_used = ({ch: vars(p) for ch, p in zip(first.channel_names, per_channel(noise, first.channel_names))}
                   if noise else None)
     if noise:
@@ -306,7 +323,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
             "scene-linear; 1.0 = the full-scale (clipping) signal of an exposure of "
             "hdrmerge:referenceExposure seconds" + ("" if first.kind != "raw" or opts.cfa else ", after white balance (green = 1)")
         ),
-        "hdrmerge:weights": opts.weights,
+        "hdrmerge:weights": weights,
         "hdrmerge:estimator": estimator,
         "hdrmerge:variance": variance,
         "hdrmerge:crf": crf.describe(),
@@ -345,7 +362,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         **({"preview": str(opts.preview)} if preview else {}),
         "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(frames, exposures)],
         "reference_exposure": h_ref,
-        "weights": opts.weights,
+        "weights": weights,
         "estimator": estimator,
         "variance": variance,
         "irls_iterations": iterations,
@@ -385,7 +402,8 @@ def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes):
 
 def resolve_noise(opts: MergeOptions, frames: list[Frame]) -> dict[str, NoiseParams] | None:
     """Noise parameters from ``--noise``, else from the profile (``--profile``, or a
-    profile given as ``--crf``), else None."""
+    profile given as ``--crf``), else None (a CRF-only profile from estimate-crf included:
+    the noise is then measured on a RAW bracket, as without a profile)."""
     if opts.noise:
         return parse_noise(opts.noise)
     source = opts.profile or (opts.crf if opts.crf and opts.crf.lower().endswith(".json") else None)
@@ -394,24 +412,40 @@ def resolve_noise(opts: MergeOptions, frames: list[Frame]) -> dict[str, NoisePar
         if prof.get("noise") and any(k.startswith("ISO") for k in prof["noise"]):
             isos = {f.iso for f in frames}
             return noise_from_profile(prof, isos.pop() if len(isos) == 1 else None, source)
-        if opts.profile:
-            raise HdrMergeError(f"{source}: the profile has no noise parameters (run calibrate-noise)")
+        log.info("%s: the profile has no noise parameters; %s", source,
+                 "measuring them on the bracket" if frames[0].kind == "raw" else "using the weights' defaults")
     return None
 
 
 def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF) -> float:
     """Mean of the exponential irradiance prior (code values per second), estimated from
-    the middle frame's unclipped samples (the paper assumes it known)."""
+    the middle frame (the paper assumes it known); see :func:`prior_rate_of`."""
     k = len(frames) // 2
     f = frames[k]
-    codes = load_codes(f).astype(np.float64)
-    full = float(f.white[0] - f.black[0])
-    lin = crf.inverse(np.clip((codes - f.black[0]) / full, 0, 1)) if f.kind == "raw" else np.stack(
-        [crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])], axis=-1)
+    return prior_rate_of(load_codes(f), float(f.black[0]), float(f.white[0]), exposures[k], crf, f.kind == "raw",
+                         f.path)
+
+
+#: samples of the middle frame that estimate the prior's mean
+PRIOR_SAMPLES = 1 << 18
+
+
+def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float, crf: CRF, raw: bool,
+                  name: str = "the middle frame") -> float:
+    """The prior's mean from one frame's unclipped samples: the mean linear signal (code
+    values) per second over an even subsample of at most :data:`PRIOR_SAMPLES` samples.
+
+    codes : (H, W) mosaic (``raw``) or (H, W, C) image of the frame of exposure ``exposure`` s
+    """
+    full = white - black
+    step = max(1, codes.shape[0] * codes.shape[1] // PRIOR_SAMPLES)
+    sub = codes.reshape(codes.shape[0] * codes.shape[1], -1)[::step].astype(np.float64)
+    v = np.clip((sub - black) / full, 0, 1)
+    lin = crf.inverse(v) if raw else np.stack([crf.inverse(v[:, c], c) for c in range(v.shape[1])], axis=-1)
     ok = (lin > 0) & (lin < 1)
     if not np.any(ok):
-        raise HdrMergeError(f"{f.path}: every sample is clipped; cannot estimate the irradiance prior")
-    return float(np.mean(lin[ok]) * full / exposures[k])
+        raise HdrMergeError(f"{name}: every sample is clipped; cannot estimate the irradiance prior")
+    return float(np.mean(lin[ok]) * full / exposure)
 
 
 def _lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:

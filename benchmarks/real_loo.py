@@ -1,0 +1,194 @@
+"""Leave-one-out on the real brackets of ``../shared/data/brackets``: our methods and the
+peers on the same frames.
+
+For every bracket and every interior frame ``k`` (the shortest and longest exposures
+would need extrapolation): merge all frames but ``k`` -- the camera response estimated
+*without* frame ``k`` -- predict frame ``k``'s codes through each method's own response
+(``z = gamma(E h_k)``), and measure the RMSE in code values over the pixels whose actual
+code lies in [10, 245] (well exposed) in every channel.  No ground truth is needed, and a
+method that gets the response, the merge or the units wrong predicts the frame badly.
+
+Frames are decimated (every ``s``-th pixel, so the codes stay genuine camera codes) to at
+most :data:`MAX_PIXELS` pixels.  Hand-held and ghosted brackets are kept (no method
+aligns here): their numbers show how much misregistration costs everyone alike.
+
+Ours: each CRF method of ``estimate-crf`` (and its options) with each merge configuration;
+peers: :mod:`benchmarks.peers` (OpenCV Debevec/Robertson, colour-hdri, Luminance HDR CLI,
+pfstools when installed).
+
+    python -m benchmarks.real_loo [--quick]   # results/real_loo.md
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import write_result
+
+RESULTS = Path(__file__).parent / "results"
+BRACKETS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "brackets"
+MAX_PIXELS = 400_000
+LOW, HIGH = 10, 245
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
+    """Frames (sorted by exposure), their decimated codes (H, W, 3) uint8 and exposures."""
+    from hdrmerge_cli.io.frames import load_codes
+    from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
+
+    paths = sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    frames = read_bracket(paths)
+    step = max(1, int(np.ceil(np.sqrt(frames[0].width * frames[0].height / max_pixels))))
+    codes = [np.ascontiguousarray(load_codes(f)[::step, ::step]) for f in frames]
+    return frames, codes, exposure_values(frames)
+
+
+# ---------------------------------------------------------------- our configurations
+def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | None = None, weights: str = "triangle",
+         estimator: str = "log", noise: str = "none", variance: str = "auto", shared: bool = False):
+    """Estimate the response of ``codes`` (our estimate-crf), merge them (our merge core).
+    Returns (E per second in units of the normalised linear signal, CRF)."""
+    from hdrmerge_cli.core.reconstruct import merge_frames
+    from hdrmerge_cli.pipeline.crf import fit_crf
+
+    log_h = np.log(exposures)
+    opts = dict(crf_options or {})
+    crf, _, _ = fit_crf(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts,
+                        shared=shared)
+    params = None
+    if noise == "measured":
+        from hdrmerge_cli.core.noise import NoiseParams
+        from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+
+        lookup = {id(f): c for f, c in zip(frames, codes)}
+        used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])
+        params = [NoiseParams(**used[ch]) for ch in frames[0].channel_names]
+    from hdrmerge_cli.pipeline.merge import prior_rate_of
+
+    k = len(codes) // 2
+    prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None
+    e, _, _ = merge_frames(codes, exposures, crf, [0.0] * 3, [255.0] * 3, weights, params,
+                           ("model" if params else "photon") if variance == "auto" else variance, estimator, prior_rate=prior,
+                           pattern=np.arange(3)[None, :])
+    return e.astype(np.float64), crf
+
+
+def predict_ours(e: np.ndarray, crf, h: float) -> np.ndarray:
+    return np.stack([crf.forward(np.clip(e[..., c] * h, 0, 1), c) * 255.0 for c in range(3)], axis=-1)
+
+
+#: name -> keywords of :func:`ours`
+CONFIGS = {
+    "goossens triangle/log": {},
+    "goossens triangle/log var=none": {"variance": "none"},
+    "goossens triangle/log noise": {"noise": "measured"},
+    "goossens shared triangle/log": {"shared": True},
+    "goossens l=1e-4 triangle/log": {"crf_options": {"smoothing": 1e-4}},
+    "debevec triangle/log": {"crf": "debevec"},
+    "robertson triangle/log": {"crf": "robertson"},
+    "goossens probabilistic/log": {"weights": "probabilistic"},
+    "goossens probabilistic/log noise": {"weights": "probabilistic", "noise": "measured"},
+    "goossens triangle/ml noise": {"estimator": "ml", "noise": "measured"},
+    "goossens uniform/ml noise": {"weights": "uniform", "estimator": "ml", "noise": "measured"},
+}
+
+
+def rmse(pred: np.ndarray, actual: np.ndarray, mask: np.ndarray) -> float:
+    d = pred[mask] - actual[mask]
+    return float(np.sqrt(np.mean(d * d)))
+
+
+def run(quick: bool = False, configs=None, peers=True, brackets=None) -> list[dict]:
+    configs = configs or CONFIGS
+    rows = []
+    folders = sorted(p for p in BRACKETS.iterdir() if p.is_dir())
+    if brackets:
+        folders = [f for f in folders if f.name in brackets]
+    available = {}
+    if peers:
+        from benchmarks import peers as peer_mod
+
+        available = peer_mod.available()
+    for folder in folders:
+        frames, codes, exposures = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
+        interior = range(1, len(frames) - 1)
+        if quick:
+            interior = [len(frames) // 2]
+        for k in interior:
+            keep = [j for j in range(len(frames)) if j != k]
+            actual = codes[k].astype(np.float64)
+            mask = np.all((codes[k] >= LOW) & (codes[k] <= HIGH), axis=-1)
+            row = {"bracket": folder.name, "left_out": frames[k].name, "frames": len(frames), "pixels": int(mask.sum())}
+            for name, kw in configs.items():
+                t = time.perf_counter()
+                try:
+                    e, crf = ours([codes[j] for j in keep], exposures[keep], [frames[j] for j in keep], **kw)
+                    row[name] = rmse(predict_ours(e, crf, exposures[k]), actual, mask)
+                except Exception as exc:  # noqa: BLE001 - a benchmark reports and goes on
+                    logging.warning("%s %s: %s failed: %s", folder.name, frames[k].name, name, exc)
+                    row[name] = float("nan")
+                row[name + " s"] = time.perf_counter() - t
+            for name, why in available.items():
+                if why is not None:
+                    continue
+                with tempfile.TemporaryDirectory() as tmp:
+                    try:
+                        res = peer_mod.run_peer(name, [codes[j] for j in keep], list(exposures[keep]), Path(tmp))
+                        row[name] = rmse(peer_mod.predict_codes(res, exposures[k]), actual, mask)
+                        row[name + " s"] = res.seconds
+                    except Exception as exc:  # noqa: BLE001
+                        logging.warning("%s %s: peer %s failed: %s", folder.name, frames[k].name, name, exc)
+                        row[name] = float("nan")
+            rows.append(row)
+            print(f"{row['bracket']} {row['left_out']}: " + ", ".join(
+                f"{n}={v:.2f}" for n, v in row.items() if isinstance(v, float) and not n.endswith(" s")), flush=True)
+    return rows, available
+
+
+def table(rows, available) -> list[str]:
+    methods = [n for n in rows[0] if n not in ("bracket", "left_out", "frames", "pixels") and not n.endswith(" s")]
+    ours_names = [m for m in methods if m in CONFIGS or m.startswith("goossens") or m.startswith("debevec")
+                  or m.startswith("robertson")]
+    peer_names = [m for m in methods if m not in ours_names]
+    lines = ["# Leave-one-out on the real brackets", "",
+             "RMSE (code values) of the left-out frame's codes predicted from the merge of the other frames, "
+             f"over its pixels with every channel in [{LOW}, {HIGH}]; frames decimated to at most "
+             f"{MAX_PIXELS} pixels. Lower is better; **bold** = best of the row.", ""]
+    skipped = {n: why for n, why in available.items() if why}
+    if skipped:
+        lines += ["Peers skipped: " + "; ".join(f"{n} ({why})" for n, why in skipped.items()), ""]
+    lines += ["| bracket | left out | " + " | ".join(methods) + " |", "|---|---|" + "---|" * len(methods)]
+    for r in rows:
+        vals = [r[m] for m in methods]
+        best = np.nanmin(vals)
+        lines.append(f"| {r['bracket']} | {r['left_out']} | " + " | ".join(
+            ("**%.2f**" if v == best else "%.2f") % v for v in vals) + " |")
+    arr = np.array([[r[m] for m in methods] for r in rows])
+    best_peer = np.nanmin(arr[:, [methods.index(p) for p in peer_names]], axis=1) if peer_names else None
+    lines += ["", "| method | mean RMSE | geo-mean ratio to best peer | cases <= best peer | mean seconds |",
+              "|---|---|---|---|---|"]
+    for i, m in enumerate(methods):
+        ratio = (np.exp(np.nanmean(np.log(arr[:, i] / best_peer))) if best_peer is not None else float("nan"))
+        wins = int(np.sum(arr[:, i] <= best_peer * (1 + 1e-9))) if best_peer is not None else 0
+        secs = np.mean([r.get(m + " s", np.nan) for r in rows])
+        lines.append(f"| {m} | {np.nanmean(arr[:, i]):.3f} | {ratio:.3f} | {wins}/{len(rows)} | {secs:.2f} |")
+    return lines
+
+
+def main(quick: bool = False) -> str:
+    if not BRACKETS.is_dir():
+        return f"real_loo: skipped ({BRACKETS} not found: the real brackets live in ../shared/data)"
+    rows, available = run(quick)
+    return write_result(RESULTS / f"real_loo{'_quick' if quick else ''}.md", table(rows, available))
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    print(main(ap.parse_args().quick))
