@@ -69,12 +69,12 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
         lookup = {id(f): c for f, c in zip(frames, codes)}
         used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])
         params = [NoiseParams(**used[ch]) for ch in frames[0].channel_names]
-    from hdrmerge_cli.pipeline.merge import prior_rate_of
+    from hdrmerge_cli.pipeline.merge import default_variance, prior_rate_of
 
     k = len(codes) // 2
     prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None
     e, _, _ = merge_frames(codes, exposures, crf, [0.0] * 3, [255.0] * 3, weights, params,
-                           ("model" if params else "photon") if variance == "auto" else variance, estimator, prior_rate=prior,
+                           default_variance(params, crf) if variance == "auto" else variance, estimator, prior_rate=prior,
                            pattern=np.arange(3)[None, :])
     return e.astype(np.float64), crf
 
@@ -86,15 +86,13 @@ def predict_ours(e: np.ndarray, crf, h: float) -> np.ndarray:
 #: name -> keywords of :func:`ours`
 CONFIGS = {
     "goossens triangle/log": {},
+    "goossens indep. triangle/log": {"crf_options": {"coupling": 0.0}},
+    "goossens triangle/log var=photon": {"variance": "photon"},
     "goossens triangle/log var=none": {"variance": "none"},
     "goossens triangle/log noise": {"noise": "measured"},
-    "goossens shared triangle/log": {"shared": True},
-    "goossens l=1e-4 triangle/log": {"crf_options": {"smoothing": 1e-4}},
     "debevec triangle/log": {"crf": "debevec"},
     "robertson triangle/log": {"crf": "robertson"},
-    "goossens probabilistic/log": {"weights": "probabilistic"},
     "goossens probabilistic/log noise": {"weights": "probabilistic", "noise": "measured"},
-    "goossens triangle/ml noise": {"estimator": "ml", "noise": "measured"},
     "goossens uniform/ml noise": {"weights": "uniform", "estimator": "ml", "noise": "measured"},
 }
 

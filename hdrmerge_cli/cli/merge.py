@@ -63,8 +63,10 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False),
               help="Camera profile JSON (from calibrate-noise / estimate-crf): noise parameters and CRF.")
 @click.option("--variance", type=click.Choice(("auto",) + VARIANCE_FACTORS), default="auto", show_default=True,
-              help="Variance factor sigma^-2 of (7): model (noise parameters), photon, none; auto = model when "
-                   "noise parameters are known, else photon.")
+              help="Variance factor sigma^-2 of (7): model (noise parameters, plus for images the codes' "
+                   "quantisation through the response and a 1% model tolerance), codes (those two alone), photon, "
+                   "none; auto = model when noise parameters are known, else codes for images with a non-linear "
+                   "response, photon otherwise.")
 @click.option("--estimator", type=click.Choice(ESTIMATORS), default="auto", show_default=True,
               help="log = the paper's (7); ml = linear-domain inverse-variance with saturation censored; "
                    "auto = ml for RAW, log otherwise.")

@@ -42,6 +42,9 @@ EPSILON = 1e-5
 #: integral of ``w_smooth^2 g''^2`` over normalised codes, so lambda does not depend on the
 #: pixel count or the bit depth
 DEFAULT_LAMBDA = 1e-5
+#: default weight of the channel coupling of :func:`solve_qp_channels` (normalised like
+#: lambda); chosen on the real brackets' leave-one-out (benchmarks/results/real_loo.md)
+DEFAULT_COUPLING = 1e-2
 #: cvxpy solvers tried in turn
 SOLVERS = ("CLARABEL", "OSQP")
 #: the weighting function ``w_j(z)`` of (36) unless told otherwise.  Not the paper's
@@ -77,12 +80,14 @@ class Comparagram:
 class CRFFit:
     """g : (n_codes,) float64 ``log gamma^-1(z)`` with ``g(mid-scale) = 0``;
     iterations : solves done; converged : whether ``g`` settled before the limit;
-    rows : occupied comparagram cells (the size of the data term)"""
+    rows : occupied comparagram cells (the size of the data term);
+    smoothing : the lambda used (None for methods without one)"""
 
     g: np.ndarray
     iterations: int
     converged: bool
     rows: int = 0
+    smoothing: float | None = None
 
 
 def knot_levels(n_codes: int) -> int:
@@ -154,7 +159,12 @@ def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.nda
     w_smooth : (L,) weight of the smoothness penalty at each knot; log_h : (P,)
     Returns g : (L,) with ``g[L // 2] = 0``.
     """
-    import cvxpy as cp
+    return solve_qp_channels([cg], [w], [w_smooth], log_h, smoothing, 0.0, epsilon)[0]
+
+
+def _data_rows(cg: Comparagram, w: np.ndarray, log_h: np.ndarray):
+    """The data term of (37) as ``|D g - r ybar|^2``, rows of equal code pairs merged
+    (``sum_k w_k (d - y_k)^2 = W (d - ybar)^2 + const``), normalised to a weighted mean."""
     import scipy.sparse as sp
 
     L = cg.levels
@@ -162,7 +172,6 @@ def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.nda
     keep = w > 1e-12 * w.max(initial=0.0)  # underflowed noise-model weights add nothing but ill-conditioning
     if not np.any(keep):
         raise HdrMergeError("no pair of frames shares a pixel that both expose validly; the CRF is not identifiable")
-    # rows with the same pair of codes merge: sum_k w_k (d - y_k)^2 = W (d - ybar)^2 + const
     cell = cg.a[keep].astype(np.int64) * L + cg.b[keep]
     uniq, inv = np.unique(cell, return_inverse=True)
     wsum = np.bincount(inv, weights=w[keep])
@@ -171,13 +180,44 @@ def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.nda
     r = np.sqrt(wsum / wsum.sum())
     m = uniq.size
     d = sp.csr_matrix((np.concatenate([r, -r]), (np.tile(np.arange(m), 2), np.concatenate([a, b]))), shape=(m, L))
-    # lambda * integral w_smooth^2 g''^2 dv on the knot spacing dv = 1 / (L - 1)
-    s = second_difference(w_smooth)
-    g = cp.Variable(L)
-    objective = cp.sum_squares(d @ g - r * ybar)
-    if smoothing > 0 and s.shape[0]:
-        objective = objective + smoothing * cp.sum_squares(s @ g)
-    constraints = [g[1:] - g[:-1] >= epsilon, g[L // 2] == 0]
+    return d, r * ybar
+
+
+def solve_qp_channels(cgs: list[Comparagram], ws: list[np.ndarray], w_smooths: list[np.ndarray], log_h: np.ndarray,
+                      smoothing: float, coupling: float = 0.0, epsilon: float = EPSILON) -> np.ndarray:
+    """(37) for ``C`` channels at once, optionally coupled: each channel's data and
+    smoothness terms as in :func:`solve_qp`, plus
+    ``coupling * sum_c integral (g_c'(v) - mean_c g_c'(v))^2 dv``, which pulls the slopes of
+    the channels' curves together where their own data are weak (a camera applies one tone
+    curve to every channel, so a neutral ramp should stay neutral), and leaves them apart
+    where the data say they differ.  ``coupling = 0`` gives ``C`` independent solves.
+
+    cgs, ws, w_smooths : per channel, as in :func:`solve_qp` (same ``L``)
+    Returns G : (C, L) with ``G[:, L // 2] = 0``.
+    """
+    import cvxpy as cp
+    import scipy.sparse as sp
+
+    C, L = len(cgs), cgs[0].levels
+    # one vector g = (g_0, ..., g_{C-1}) of C * L knots; every term a sparse matrix on it
+    rows, targets = zip(*(_data_rows(cg, w, log_h) for cg, w in zip(cgs, ws)))
+    data = sp.block_diag(rows, format="csr")
+    # the objective as the quadratic form g' P g - 2 q' g (+ const): C * L unknowns however
+    # many comparagram rows there are, which Clarabel solves directly
+    quad = data.T @ data
+    smooth = sp.block_diag([second_difference(ws_) for ws_ in w_smooths], format="csr")
+    if smoothing > 0 and smooth.shape[0]:
+        quad = quad + smoothing * (smooth.T @ smooth)
+    step = sp.diags([-np.ones(L - 1), np.ones(L - 1)], [0, 1], shape=(L - 1, L))
+    steps = sp.kron(sp.identity(C), step, format="csr")
+    if coupling > 0 and C > 1:
+        # slopes minus the channels' mean slope; integral on the knot spacing dv = 1 / (L - 1)
+        centre = sp.csr_matrix(sp.kron(sp.identity(C) - np.full((C, C), 1.0 / C), sp.identity(L - 1)) @ steps)
+        quad = quad + coupling * (L - 1) * (centre.T @ centre)
+    g = cp.Variable(C * L)
+    quad = sp.csc_matrix((quad + quad.T) / 2)
+    objective = cp.quad_form(g, cp.psd_wrap(quad)) - 2 * (data.T @ np.concatenate(targets)) @ g
+    constraints = [steps @ g >= epsilon, g[np.arange(C) * L + L // 2] == 0]
     problem = cp.Problem(cp.Minimize(objective), constraints)
     status = "not run"
     for solver in SOLVERS:  # an interior-point method first; OSQP if it stalls
@@ -193,7 +233,7 @@ def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.nda
             break
     if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or g.value is None:
         raise HdrMergeError(f"the CRF quadratic program did not solve ({status}); try another --lambda or --method")
-    return np.asarray(g.value, dtype=np.float64)
+    return np.asarray(g.value, dtype=np.float64).reshape(C, L)
 
 
 def second_difference(w_smooth: np.ndarray):
@@ -209,8 +249,35 @@ def second_difference(w_smooth: np.ndarray):
                          shape=(k.size, L))
 
 
+#: lambdas tried by the cross-validation of :func:`choose_smoothing`
+LAMBDA_GRID = (1e-5, 1e-4, 1e-3)
+
+
+def heldout_residual(cg: Comparagram, w: np.ndarray, g: np.ndarray, log_h: np.ndarray) -> float:
+    """Weighted mean squared residual of (36) of knots ``g`` (L,) on comparagram ``cg``
+    with cell weights ``w``."""
+    r = g[cg.a] - g[cg.b] - (log_h[cg.j] - log_h[cg.jp])
+    return float(np.sum(w * r * r) / max(np.sum(w), 1e-300))
+
+
+def choose_smoothing(cgs, ws, smooths, log_h, coupling: float = 0.0, grid=LAMBDA_GRID) -> float:
+    """lambda of (37) by leave-one-frame-out cross-validation: for each interior frame
+    ``j``, the curve is fitted without the frame pairs that involve ``j`` and scored by
+    :func:`heldout_residual` on those pairs (how well it links frame ``j``'s codes to the
+    others', the way a merge uses them); the lambda of the least summed score wins."""
+    n_frames = log_h.size
+    scores = np.zeros(len(grid))
+    for j in range(1, n_frames - 1):
+        held = [(cg.j == j) | (cg.jp == j) for cg in cgs]
+        for k, lam in enumerate(grid):
+            g = solve_qp_channels(cgs, [np.where(h, 0.0, w) for h, w in zip(held, ws)], smooths, log_h, lam, coupling)
+            scores[k] += sum(heldout_residual(cg, np.where(h, w, 0.0), gc, log_h)
+                             for cg, h, w, gc in zip(cgs, held, ws, g))
+    return float(grid[int(np.argmin(scores))])
+
+
 def crf_goossens2012(
-    codes: np.ndarray,
+    codes,
     log_exposures: np.ndarray,
     n_codes: int,
     smoothing: float = DEFAULT_LAMBDA,
@@ -219,53 +286,65 @@ def crf_goossens2012(
     noise=None,
     bounds=None,
     pair_weight: str = "photon",
+    coupling: float = DEFAULT_COUPLING,
     max_iterations: int = 10,
     tol: float = 1e-3,
 ) -> CRFFit:
     """(37) with the chicken-and-egg loop between weights and CRF.
 
-    codes : (N, P) integer code values of N pixels in P frames, frames in exposure order
+    codes : (N, P) integer code values of N pixels in P frames, frames in exposure order;
+        or a list of C such arrays, one per channel, solved together with the channel
+        ``coupling`` of :func:`solve_qp_channels` (``g`` is then (C, n_codes))
     log_exposures : (P,) ``log h_j``
     n_codes : number of code values ``2^B``
-    smoothing : lambda of (37)
+    smoothing : lambda of (37); None: chosen by :func:`choose_smoothing` at the first solve
+        (reported in the fit's ``smoothing``)
     weighting : the ``w_j(z)`` of (36), a name in
         :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`; noise-model weights are
         evaluated with a flat irradiance prior (both codes of a pair see the same ``E``, so
         no per-frame prior applies) for the current CRF estimate
-    noise, bounds : one channel's :class:`~hdrmerge_cli.core.noise.NoiseParams` (code values
-        of the linear signal) for the noise-model weights, or the ``(1/alpha, sigma_o^2,
-        beta)`` upper bounds of ``bounded`` (default: the paper's JPEG values)
+    noise, bounds : :class:`~hdrmerge_cli.core.noise.NoiseParams` (code values of the
+        linear signal; one, or one per channel) for the noise-model weights, or the
+        ``(1/alpha, sigma_o^2, beta)`` upper bounds of ``bounded`` (default: the paper's JPEG values)
     pair_weight : ``photon`` or ``offset``, which noise dominates (the factor ``f_jj'``)
     tol : stop when ``g`` moves less than this (natural log units) at every used knot
     """
     from hdrmerge_cli.core.crf import table_crf
     from hdrmerge_cli.core.reconstruct import certainty_table
 
+    single = not isinstance(codes, (list, tuple))
+    channels = [codes] if single else list(codes)
+    noises = noise if isinstance(noise, (list, tuple)) else [noise] * len(channels)
     log_h = np.asarray(log_exposures, dtype=np.float64)
     h = tuple(float(x) for x in np.exp(log_h))
     L = knot_levels(n_codes)
-    cg = comparagram(to_knots(codes, n_codes, L), L)
+    cgs = [comparagram(to_knots(z, n_codes, L), L) for z in channels]
     pair = pair_factor(np.asarray(h), pair_weight)
     knot_codes = np.rint(np.arange(L) * ((n_codes - 1) / (L - 1))).astype(np.int64)
     used = np.zeros(L, bool)
-    used[cg.a] = used[cg.b] = True
-    lin = np.arange(n_codes) / (n_codes - 1)  # identity CRF to start
+    for cg in cgs:
+        used[cg.a] = used[cg.b] = True
+    lin = np.tile(np.arange(n_codes) / (n_codes - 1), (len(channels), 1))  # identity CRF to start
     g_prev, converged, it = None, False, 0
     for it in range(1, max_iterations + 1):
-        crf = table_crf(lin[None], "estimate")
-        wk = np.stack([certainty_table(n_codes, 0.0, n_codes - 1.0, crf, weighting, hj,
-                                       None if noise is None else [noise], FLAT_PRIOR, h, bounds=bounds)[0]
-                       for hj in h])[:, knot_codes]
-        w = cg.count * wk[cg.j, cg.a] * wk[cg.jp, cg.b] * pair[cg.j, cg.jp]
-        w_smooth = np.maximum(wk.mean(axis=0), 1e-3 * max(wk.max(), 1e-300))
-        g_knots = solve_qp(cg, w, w_smooth, log_h, smoothing)
-        g = from_knots(g_knots, n_codes)
-        lin = np.exp(g - g[-1])
+        ws, smooths = [], []
+        for c, cg in enumerate(cgs):
+            crf = table_crf(lin[c][None], "estimate")
+            wk = np.stack([certainty_table(n_codes, 0.0, n_codes - 1.0, crf, weighting, hj,
+                                           None if noises[c] is None else [noises[c]], FLAT_PRIOR, h, bounds=bounds)[0]
+                           for hj in h])[:, knot_codes]
+            ws.append(cg.count * wk[cg.j, cg.a] * wk[cg.jp, cg.b] * pair[cg.j, cg.jp])
+            smooths.append(np.maximum(wk.mean(axis=0), 1e-3 * max(wk.max(), 1e-300)))
+        if smoothing is None:
+            smoothing = choose_smoothing(cgs, ws, smooths, log_h, coupling)
+        g_knots = solve_qp_channels(cgs, ws, smooths, log_h, smoothing, coupling)
+        g = np.stack([from_knots(gk, n_codes) for gk in g_knots])
+        lin = np.exp(g - g[:, -1:])
         if weighting not in NOISE_MODEL_WEIGHTS:  # the weights do not depend on the CRF
             converged = True
             break
-        if g_prev is not None and np.max(np.abs(g_knots - g_prev)[used]) < tol:
+        if g_prev is not None and np.max(np.abs(g_knots - g_prev)[:, used]) < tol:
             converged = True
             break
         g_prev = g_knots
-    return CRFFit(g, it, converged, cg.a.size)
+    return CRFFit(g[0] if single else g, it, converged, sum(cg.a.size for cg in cgs), smoothing)

@@ -81,7 +81,12 @@ def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
 WEIGHT_FLOOR = 1e-30
 
 #: choices for the variance factor ``sigma^-2(E, t_j)`` of (7)
-VARIANCE_FACTORS = ("none", "photon", "model")
+VARIANCE_FACTORS = ("none", "photon", "codes", "model")
+#: relative error of a camera-processed code's linearised value that no noise model
+#: explains (the response's fit, the camera's processing): a 1 % floor on the standard
+#: deviation of ``log gamma^-1(z)``, chosen on the real brackets' leave-one-out
+#: (benchmarks/results/real_loo.md)
+MODEL_TOLERANCE = 0.01
 
 
 def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k, bounds=None):
@@ -135,22 +140,39 @@ def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
     return step * step / 12.0
 
 
+def code_error_variance(lin: np.ndarray, y_full: float, tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
+    """What a camera-processed code adds to the variance of its linearised value ``y``
+    beyond sensor noise: the quantisation through the inverse response
+    (:func:`quantisation_variance`) plus the model tolerance ``(tolerance y)^2``.  In the log
+    domain of (7) this is ``(d log gamma^-1 / dz)^2 / 12 + tolerance^2``: large for dark codes,
+    where the inverse response is steep in log, and never below the tolerance.
+
+    lin : (N,) ``gamma^-1`` per code value; returns (N,) squared code values of ``y``.
+    """
+    y = np.asarray(lin, dtype=np.float64) * y_full
+    return quantisation_variance(lin, y_full) + (tolerance * y) ** 2
+
+
 def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: NoiseParams | None,
-                     quantisation: np.ndarray | None = None) -> np.ndarray:
+                     code_error: np.ndarray | None = None) -> np.ndarray:
     """The factor ``sigma^-2(E, t_j)`` of (7) at each frame's own estimate ``mu = y``:
     ``none`` 1; ``photon`` ``t E`` up to the common gain (the photon-limited case of (22),
-    which needs no parameters); ``model`` ``mu^2 / v(mu)``, the clipping-free variance (21)
-    with the noise parameters (clipping is the weights' business) plus ``quantisation``
-    (:func:`quantisation_variance`, for codes of a non-linear response)."""
+    which needs no parameters); ``codes`` ``mu^2 / c(mu)`` with ``code_error`` ``c``
+    (:func:`code_error_variance`; 1/12 when None), the inverse variance of ``log y`` of a
+    noise-free camera-processed code; ``model`` ``mu^2 / (v(mu) + c(mu))``, the
+    clipping-free variance (21) with the noise parameters plus ``code_error`` if given
+    (clipping is the weights' business)."""
     y = np.clip(lin, 0.0, 1.0) * y_full
     if variance == "none":
         return np.ones_like(y)
     if variance == "photon":
         return y
+    extra = 0.0 if code_error is None else code_error
+    if variance == "codes":
+        return y * y / (1.0 / 12.0 if code_error is None else np.maximum(code_error, 1e-300))
     if noise is None:
         raise HdrMergeError("--variance model needs noise parameters (--noise or a profile)")
-    var = code_variance(y, noise) if quantisation is None else code_variance(y, noise) + quantisation
-    return y * y / var
+    return y * y / (code_variance(y, noise) + extra)
 
 
 def exposure_tables(
@@ -203,12 +225,12 @@ def exposure_tables(
             y = lin * (wl - b)
             var_y = code_variance(y, chan_noise) if chan_noise is not None else np.maximum(y, 1.0)
             if not crf.is_linear:  # a linear sensor's measured read noise already holds its 1/12
-                var_y = var_y + quantisation_variance(lin, wl - b)
+                var_y = var_y + code_error_variance(lin, wl - b)
             w = cert * (exposure * (wl - b)) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
             value = lin / exposure
         else:
             w = cert * inverse_variance(variance, lin, wl - b, chan_noise,
-                                        None if crf.is_linear else quantisation_variance(lin, wl - b))
+                                        None if crf.is_linear else code_error_variance(lin, wl - b))
             with np.errstate(divide="ignore"):
                 value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w

@@ -11,7 +11,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sample_pixels
-from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_WEIGHTING
+from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_WEIGHTING, CRFFit
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import check_writable
@@ -42,6 +42,7 @@ class CRFOptions:
     profile: str | None = None
     plot: Path | None = None
     overwrite: bool = False
+    coupling: float = DEFAULT_COUPLING  # goossens: channel coupling of the joint solve
 
 
 def check_brightness_order(frames, codes) -> None:
@@ -103,18 +104,24 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     options = dict(options or {})
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
-    fits, tables, changed = [], [], False
+    if options.get("smoothing") == "cv":
+        options["smoothing"] = None
     channels = codes[0].shape[-1]
-    for c in range(1 if shared else channels):
-        z = (np.concatenate([_channel_samples(codes, k, samples, method, rng) for k in range(channels)]) if shared
-             else _channel_samples(codes, c, samples, method, rng))
-        fit = m.estimate(z, log_h, n_codes, **options)
+    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(channels)]
+    if shared:
+        samples_of = [np.concatenate(samples_of)]
+    if method == "goossens" and len(samples_of) > 1:  # one joint, coupled solve
+        fit = m.estimate(samples_of, log_h, n_codes, **options)
+        fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows, fit.smoothing) for g in fit.g]
+    else:
+        options.pop("coupling", None)
+        fits = [m.estimate(z, log_h, n_codes, **options) for z in samples_of]
+    for c, fit in enumerate(fits):
         log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, method, fit.iterations,
                  "" if fit.converged else " (not converged)", fit.rows)
-        inv, fixed = inverse_from_log(fit.g)
-        changed |= fixed
-        fits.append(fit)
-        tables.append(inv)
+    tables, fixed = zip(*(inverse_from_log(f.g) for f in fits))
+    changed = any(fixed)
+    tables = list(tables)
     if changed:
         log.warning("the %s fit was not monotone; it was made non-decreasing", method)
     table = np.stack(tables * (channels if shared else 1))
@@ -154,17 +161,18 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         options = {}
         if method.noise_weighted:
             options.update(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
-                           **({"weighting": opts.weighting} if opts.weighting else {}))
+                           coupling=opts.coupling, **({"weighting": opts.weighting} if opts.weighting else {}))
         crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, samples, options,
                                      np.random.default_rng(opts.seed))
         points = (codes, log_h)
     details = {"method": opts.method, "channels": first.channel_colors if first.kind != "raw" else "linear"}
     if fits:
-        details |= {"lambda": smoothing, "samples": samples or "all",
+        details |= {"lambda": fits[0].smoothing if fits[0].smoothing is not None else smoothing,
+                    "samples": samples or "all",
                     "iterations": [f.iterations for f in fits], "converged": all(f.converged for f in fits)}
         if method.noise_weighted:
             details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
-                        "pair_weight": opts.pair_weight}
+                        "pair_weight": opts.pair_weight, "coupling": opts.coupling}
     command = f"estimate-crf --method {opts.method}"
     if base is not None:
         profile = base

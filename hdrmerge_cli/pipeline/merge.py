@@ -172,6 +172,16 @@ def default_weights(estimator: str) -> str:
     return "uniform" if estimator == "ml" else "triangle"
 
 
+def default_variance(noise, crf: CRF) -> str:
+    """``--variance auto``: ``model`` with noise parameters (given, or measured on a RAW
+    bracket); without them ``codes`` for a non-linear response (the quantisation of the
+    codes through it plus a 1 % model tolerance: 0.89x the leave-one-out error of
+    ``photon`` on the real brackets, benchmarks/results/real_loo.md), else ``photon``."""
+    if noise:
+        return "model"
+    return "photon" if crf.is_linear else "codes"
+
+
 def choose_crf(frames: list[Frame], spec: str | None) -> CRF:
     """RAW is linear; images use ``spec`` or sRGB with a warning."""
     if frames[0].kind == "raw":
@@ -221,12 +231,15 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     estimated = None
     estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first)
     weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
-    needs_noise = opts.variance in ("auto", "model") or weights in NOISE_MODEL_WEIGHTS or opts.irls
-    if noise is None and first.kind == "raw" and needs_noise and not opts.lut:
+    # RAW: always measured (the ML default needs it); images only where the options ask for
+    # a noise model (their default, the log estimator with code-error variances, does not)
+    needs_noise = (opts.variance == "model" or (weights in NOISE_MODEL_WEIGHTS and weights != "bounded") or opts.irls
+                   or estimator == "ml" or (opts.variance == "auto" and first.kind == "raw"))
+    if noise is None and needs_noise and not opts.lut:
         t1 = time.perf_counter()
         noise, estimated = _estimate_noise(frames, crf, load)
         timings["noise_estimate"] = time.perf_counter() - t1
-    variance = opts.variance if opts.variance != "auto" else ("model" if noise else "photon")
+    variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf)
     if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
         log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
                     "conservative upper bounds", weights)
@@ -386,8 +399,9 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
 
 
 def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes):
-    """No --noise or --profile for a RAW bracket: measure (17) on the bracket itself (the
-    calibrate-noise code, fast path); on failure fall back to photon-noise weights."""
+    """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
+    code, fast path; for images on the signal linearised by ``crf``); on failure fall back
+    to photon-noise weights."""
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
     try:
