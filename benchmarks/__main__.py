@@ -1,9 +1,12 @@
 """``python -m benchmarks [--quick] [NAME ...]``: every benchmark in one run.
 
-Writes Markdown tables and PNG plots under benchmarks/results/: accuracy (every method
+Writes Markdown tables and PNG plots under benchmarks/results/: leave-one-out on the real
+brackets against the peer programs (real_loo), the command line's defaults on simulated
+brackets against the bound and the peers (cli_defaults), accuracy (every method
 against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), speed
 (merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
-on the DoRF curves, noise calibration, alignment and deghosting.  Needs ../shared/data.
+on the DoRF curves, noise calibration, alignment and deghosting.  Those that need
+../shared/data skip with a note without it; peers that are not installed are skipped with a note.
 """
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ import argparse
 import importlib
 import time
 
-BENCHMARKS = ("accuracy", "speed", "crf_dorf", "noise_calibration", "motion")
+BENCHMARKS = ("real_loo", "cli_defaults", "accuracy", "speed", "crf_dorf", "noise_calibration", "motion")
 
 
 def main() -> None:

@@ -118,6 +118,8 @@ def evaluate(methods: dict, curves, levels, e) -> dict:
 
 
 def main(quick: bool = False) -> str:
+    if not (SHARED / "crf" / "dorf_train.npz").exists():
+        return f"crf_dorf: skipped ({SHARED / 'crf' / 'dorf_train.npz'} not found: the DoRF curves live in ../shared/data)"
     curves = range(0, 101, 10 if quick else 1)
     e = scene()
     res = evaluate(METHODS, curves, LEVELS, e)

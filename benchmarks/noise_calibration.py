@@ -122,7 +122,8 @@ def real_dng(tmp: Path) -> list[str]:
     return lines
 
 
-def main(quick: bool = False, out: Path = Path(__file__).parent / "results" / "noise_calibration.md") -> str:
+def main(quick: bool = False, out: Path | None = None) -> str:
+    out = out or Path(__file__).parent / "results" / f"noise_calibration{'_quick' if quick else ''}.md"
     gains, sigmas = ((0.25, 1.0, 4.0), (2.0, 16.0)) if quick else (GAINS, SIGMAS)
     t0 = time.perf_counter()
     per_scene: dict[str, list] = {}
@@ -156,13 +157,11 @@ def main(quick: bool = False, out: Path = Path(__file__).parent / "results" / "n
               f"worst {cost.max():+.3f} dB.  Bracket calibration time (5 frames, incl. decoding): median "
               f"{np.median([r['bracket_seconds'] for r in every]):.2f} s."]
     lines += real
-    text = write_result(out, lines)
-    print(text)
-    return text
+    return write_result(out, lines)
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="2 scenes, 3 gains x 2 offsets")
     args = ap.parse_args()
-    main(args.quick)
+    print(main(args.quick))

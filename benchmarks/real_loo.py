@@ -51,7 +51,7 @@ def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
 
 # ---------------------------------------------------------------- our configurations
 def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | None = None, weights: str = "triangle",
-         estimator: str = "log", noise: str = "none", variance: str = "auto", shared: bool = False):
+         estimator: str = "log", noise: str = "none", variance: str = "auto", shared: bool = False, irls: int = 0):
     """Estimate the response of ``codes`` (our estimate-crf), merge them (our merge core).
     Returns (E per second in units of the normalised linear signal, CRF)."""
     from hdrmerge_cli.core.reconstruct import merge_frames
@@ -75,7 +75,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None
     e, _, _ = merge_frames(codes, exposures, crf, [0.0] * 3, [255.0] * 3, weights, params,
                            default_variance(params, crf) if variance == "auto" else variance, estimator, prior_rate=prior,
-                           pattern=np.arange(3)[None, :])
+                           pattern=np.arange(3)[None, :], irls_iterations=irls)
     return e.astype(np.float64), crf
 
 
@@ -179,11 +179,36 @@ def table(rows, available) -> list[str]:
     return lines
 
 
+def neutral_drift(crf, lo: int = 5, hi: int = 250) -> float:
+    """How far a neutral ramp (equal codes in every channel) drifts in colour over codes
+    ``lo..hi``: the largest peak-to-peak of ``log gamma_c^-1(z) - log gamma_G^-1(z)``."""
+    g = np.log(np.maximum(crf.table[:, lo:hi + 1], 1e-300))
+    return float(max(np.ptp(g[c] - g[1]) for c in (0, 2)))
+
+
+def drift_table(quick: bool = False) -> list[str]:
+    """Each bracket's response from all its frames, channels independent and coupled."""
+    from hdrmerge_cli.pipeline.crf import fit_crf
+
+    lines = ["", "## Neutral ramps", "",
+             "Colour drift of a neutral ramp (equal codes in R, G, B) through each bracket's response, codes 5-250: "
+             "the largest peak-to-peak over codes of log(R/G) and log(B/G) (0 = stays neutral; 0.1 = 10 % colour "
+             "shift between shadows and highlights).", "",
+             "| bracket | channels independent | coupled (default) |", "|---|---|---|"]
+    for folder in sorted(p for p in BRACKETS.iterdir() if p.is_dir()):
+        _, codes, exposures = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
+        free, _, _ = fit_crf(codes, np.log(exposures), 256, options={"coupling": 0.0})
+        tied, _, _ = fit_crf(codes, np.log(exposures), 256)
+        lines.append(f"| {folder.name} | {neutral_drift(free):.3f} | {neutral_drift(tied):.3f} |")
+    return lines
+
+
 def main(quick: bool = False) -> str:
     if not BRACKETS.is_dir():
         return f"real_loo: skipped ({BRACKETS} not found: the real brackets live in ../shared/data)"
     rows, available = run(quick)
-    return write_result(RESULTS / f"real_loo{'_quick' if quick else ''}.md", table(rows, available))
+    return write_result(RESULTS / f"real_loo{'_quick' if quick else ''}.md",
+                        table(rows, available) + drift_table(quick))
 
 
 if __name__ == "__main__":

@@ -166,15 +166,13 @@ def test_merge_takes_noise_from_a_calibrated_profile(run, tmp_path, dng_bracket)
 def test_bounded_needs_no_noise_parameters(run, tmp_path, jpeg_bracket):
     folder, meta = jpeg_bracket
     out, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--weights", "bounded")
-    assert s["variance"] == "photon" and np.all(np.isfinite(read_exr(out)[0]))
+    assert s["variance"] == "codes" and s["noise"] is None and np.all(np.isfinite(read_exr(out)[0]))
 
 
 @pytest.mark.parametrize("args,message", [
     (("--noise", "sigma_o2=4"), "alpha"),
     (("--noise", "sigma_o2=4,alpha=-1"), "alpha"),
     (("--noise", "gain=2"), "sigma_o2"),
-    (("--irls", "3"), "--irls needs noise"),
-    (("--variance", "model"), "noise parameters"),
     (("--weights", "direct", "--noise", "sigma_o2=1e9,alpha=1"), "clipping-safe"),
 ])
 def test_noise_option_errors(run, tmp_path, jpeg_bracket, args, message):
@@ -310,12 +308,32 @@ def test_merge_writes_a_preview_with_the_exr(run, tmp_path, dng_bracket):
 
 
 def test_default_weights_follow_the_estimator(run, tmp_path, dng_bracket, jpeg_bracket):
-    """--weights auto: uniform for the ML estimator (RAW), triangle for the log one."""
+    """--weights auto: uniform for the ML estimator (RAW), triangle for the log one;
+    --irls unset: one pass for the ML estimator."""
     folder, meta = dng_bracket
     _, s = _merge(run, tmp_path, frames_of(folder, meta), "--cfa")
     assert (s["weights"], s["estimator"]) == ("uniform", "ml")
+    assert s["irls_iterations"] == 1  # one re-weighting at the merged estimate (the ML default)
     _, s = _merge(run, tmp_path, frames_of(folder, meta), "--cfa", "--estimator", "log", "--overwrite")
-    assert (s["weights"], s["estimator"]) == ("triangle", "log")
+    assert (s["weights"], s["estimator"], s["irls_iterations"]) == ("triangle", "log", 0)
     folder, meta = jpeg_bracket
     _, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--overwrite")
     assert (s["weights"], s["estimator"]) == ("triangle", "log")
+
+
+def test_image_defaults_use_code_error_variances_and_measure_noise_only_when_asked(run, tmp_path, jpeg_bracket):
+    """Images: --variance auto is 'codes' (no noise model needed, none measured); asking
+    for the ML estimator or a noise-model weighting measures the noise on the bracket
+    instead of falling back to the conservative bounds."""
+    folder, meta = jpeg_bracket
+    frames = frames_of(folder, meta)
+    _, s = _merge(run, tmp_path, frames, "--crf", "srgb")
+    assert s["variance"] == "codes" and s["noise"] is None and "noise_estimate" not in s["timing_seconds"]
+    for args in (("--estimator", "ml"), ("--weights", "probabilistic"), ("--variance", "model"), ("--irls", "2")):
+        proc = run("merge", *frames, "--crf", "srgb", "-o", tmp_path / "m.exr", "--json", "--overwrite", *args)
+        s = json.loads(proc.stdout)
+        assert s["variance"] == "model" and s["noise_source"].startswith("measured on the bracket")
+        assert "bounded scheme" not in proc.stderr
+    est, _ = read_exr(tmp_path / "m.exr")
+    truth, _ = read_exr(folder / "truth.exr")
+    assert np.isfinite(est).all() and log_rmse(est, truth) < 0.5

@@ -275,3 +275,15 @@ def test_quantisation_variance_matches_monte_carlo(crf):
     np.testing.assert_allclose(var[codes], predicted[codes], rtol=0.06)
     if crf.is_linear:
         np.testing.assert_allclose(predicted, 1 / 12)
+
+
+def test_code_error_variance_in_the_log_domain():
+    """c(y) / y^2 = (d log gamma^-1 / dz)^2 / 12 + tolerance^2: for gamma^-1(v) = v^p,
+    d log gamma^-1 / dz = p / z (independent, analytic)."""
+    p, full = 2.2, 255.0
+    z = np.arange(256.0)
+    lin = (z / full) ** p
+    c = reconstruct.code_error_variance(lin, full, tolerance=0.01)
+    codes = np.arange(10, 250)
+    y = lin[codes] * full
+    np.testing.assert_allclose(c[codes] / y**2, (p / codes) ** 2 / 12 + 1e-4, rtol=0.01)

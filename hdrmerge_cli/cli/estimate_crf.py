@@ -4,25 +4,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-import numpy as np
 
 from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, times_option_callback
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
-
-
-def _lambda_callback(ctx, param, value):
-    if value is None or str(value).strip().lower() == "cv":
-        return None if value is None else "cv"
-    try:
-        lam = float(value)
-    except ValueError:
-        raise click.BadParameter(f"{value!r} is not a number or 'cv'") from None
-    if not np.isfinite(lam) or lam < 0:
-        raise click.BadParameter(f"{value!r}: lambda must be a finite number >= 0 (or 'cv')")
-    return lam
 
 
 @click.command("estimate-crf")
@@ -32,11 +19,10 @@ def _lambda_callback(ctx, param, value):
 @click.option("--method", type=click.Choice(list(CRF_ESTIMATORS)), default="goossens", show_default=True,
               help="goossens: the paper's monotone QP (37) on comparagrams; debevec: Debevec-Malik 1997 least "
                    "squares; robertson: Robertson et al. 2003 iterations.")
-@click.option("--lambda", "smoothing", callback=_lambda_callback, metavar="L|cv",
+@click.option("--lambda", "smoothing", type=click.FloatRange(min=0),
               help=f"Smoothness weight of g''. Default per method: goossens {DEFAULT_LAMBDA:g} (normalised: "
-                   f"independent of pixel count and bit depth; 'cv' picks it by leave-one-frame-out "
-                   f"cross-validation), debevec {CRF_ESTIMATORS['debevec'].smoothing:g} (Debevec-Malik's per-sample "
-                   "scale); robertson has none.")
+                   f"independent of pixel count and bit depth), debevec "
+                   f"{CRF_ESTIMATORS['debevec'].smoothing:g} (Debevec-Malik's per-sample scale); robertson has none.")
 @click.option("--coupling", type=click.FloatRange(min=0), default=DEFAULT_COUPLING, show_default=True,
               help="goossens: weight pulling the channels' curves to one shape where their own data are weak "
                    "(0: independent channels), so neutral shadows stay neutral.")
@@ -72,10 +58,8 @@ def command(images, output, method, smoothing, coupling, samples, weighting, pai
         raise click.UsageError("give either --times or --times-file, not both")
     if output is None and profile is None:
         raise click.UsageError("give -o/--output, or --profile to update a profile in place")
-    if method != "goossens" and (weighting or bounds or pair_weight != "photon" or coupling != DEFAULT_COUPLING
-                                 or smoothing == "cv"):
-        raise click.UsageError("--weighting, --pair-weight, --bounds, --coupling and --lambda cv apply to "
-                               "--method goossens only")
+    if method != "goossens" and (weighting or bounds or pair_weight != "photon" or coupling != DEFAULT_COUPLING):
+        raise click.UsageError("--weighting, --pair-weight, --bounds and --coupling apply to --method goossens only")
     opts = CRFOptions(method, smoothing, samples, weighting, pair_weight, bounds, times, times_file, seed, force,
                       profile, plot, overwrite, coupling)
     summary = estimate_crf(images, output, opts)

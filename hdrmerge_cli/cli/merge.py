@@ -70,8 +70,9 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--estimator", type=click.Choice(ESTIMATORS), default="auto", show_default=True,
               help="log = the paper's (7); ml = linear-domain inverse-variance with saturation censored; "
                    "auto = ml for RAW, log otherwise.")
-@click.option("--irls", default=0, show_default=True, type=click.IntRange(0, 50),
-              help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing).")
+@click.option("--irls", type=click.IntRange(0, 50), metavar="N",
+              help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing). "
+                   "Default: 1 for the ML estimator with a noise model (RAW), else 0.")
 @click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations (noise-model weights).")
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),

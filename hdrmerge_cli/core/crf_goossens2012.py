@@ -80,14 +80,12 @@ class Comparagram:
 class CRFFit:
     """g : (n_codes,) float64 ``log gamma^-1(z)`` with ``g(mid-scale) = 0``;
     iterations : solves done; converged : whether ``g`` settled before the limit;
-    rows : occupied comparagram cells (the size of the data term);
-    smoothing : the lambda used (None for methods without one)"""
+    rows : occupied comparagram cells (the size of the data term)"""
 
     g: np.ndarray
     iterations: int
     converged: bool
     rows: int = 0
-    smoothing: float | None = None
 
 
 def knot_levels(n_codes: int) -> int:
@@ -249,33 +247,6 @@ def second_difference(w_smooth: np.ndarray):
                          shape=(k.size, L))
 
 
-#: lambdas tried by the cross-validation of :func:`choose_smoothing`
-LAMBDA_GRID = (1e-5, 1e-4, 1e-3)
-
-
-def heldout_residual(cg: Comparagram, w: np.ndarray, g: np.ndarray, log_h: np.ndarray) -> float:
-    """Weighted mean squared residual of (36) of knots ``g`` (L,) on comparagram ``cg``
-    with cell weights ``w``."""
-    r = g[cg.a] - g[cg.b] - (log_h[cg.j] - log_h[cg.jp])
-    return float(np.sum(w * r * r) / max(np.sum(w), 1e-300))
-
-
-def choose_smoothing(cgs, ws, smooths, log_h, coupling: float = 0.0, grid=LAMBDA_GRID) -> float:
-    """lambda of (37) by leave-one-frame-out cross-validation: for each interior frame
-    ``j``, the curve is fitted without the frame pairs that involve ``j`` and scored by
-    :func:`heldout_residual` on those pairs (how well it links frame ``j``'s codes to the
-    others', the way a merge uses them); the lambda of the least summed score wins."""
-    n_frames = log_h.size
-    scores = np.zeros(len(grid))
-    for j in range(1, n_frames - 1):
-        held = [(cg.j == j) | (cg.jp == j) for cg in cgs]
-        for k, lam in enumerate(grid):
-            g = solve_qp_channels(cgs, [np.where(h, 0.0, w) for h, w in zip(held, ws)], smooths, log_h, lam, coupling)
-            scores[k] += sum(heldout_residual(cg, np.where(h, w, 0.0), gc, log_h)
-                             for cg, h, w, gc in zip(cgs, held, ws, g))
-    return float(grid[int(np.argmin(scores))])
-
-
 def crf_goossens2012(
     codes,
     log_exposures: np.ndarray,
@@ -297,8 +268,7 @@ def crf_goossens2012(
         ``coupling`` of :func:`solve_qp_channels` (``g`` is then (C, n_codes))
     log_exposures : (P,) ``log h_j``
     n_codes : number of code values ``2^B``
-    smoothing : lambda of (37); None: chosen by :func:`choose_smoothing` at the first solve
-        (reported in the fit's ``smoothing``)
+    smoothing : lambda of (37)
     weighting : the ``w_j(z)`` of (36), a name in
         :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`; noise-model weights are
         evaluated with a flat irradiance prior (both codes of a pair see the same ``E``, so
@@ -335,8 +305,6 @@ def crf_goossens2012(
                            for hj in h])[:, knot_codes]
             ws.append(cg.count * wk[cg.j, cg.a] * wk[cg.jp, cg.b] * pair[cg.j, cg.jp])
             smooths.append(np.maximum(wk.mean(axis=0), 1e-3 * max(wk.max(), 1e-300)))
-        if smoothing is None:
-            smoothing = choose_smoothing(cgs, ws, smooths, log_h, coupling)
         g_knots = solve_qp_channels(cgs, ws, smooths, log_h, smoothing, coupling)
         g = np.stack([from_knots(gk, n_codes) for gk in g_knots])
         lin = np.exp(g - g[:, -1:])
@@ -347,4 +315,4 @@ def crf_goossens2012(
             converged = True
             break
         g_prev = g_knots
-    return CRFFit(g[0] if single else g, it, converged, sum(cg.a.size for cg in cgs), smoothing)
+    return CRFFit(g[0] if single else g, it, converged, sum(cg.a.size for cg in cgs))

@@ -104,15 +104,13 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     options = dict(options or {})
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
-    if options.get("smoothing") == "cv":
-        options["smoothing"] = None
     channels = codes[0].shape[-1]
     samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(channels)]
     if shared:
         samples_of = [np.concatenate(samples_of)]
     if method == "goossens" and len(samples_of) > 1:  # one joint, coupled solve
         fit = m.estimate(samples_of, log_h, n_codes, **options)
-        fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows, fit.smoothing) for g in fit.g]
+        fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]
     else:
         options.pop("coupling", None)
         fits = [m.estimate(z, log_h, n_codes, **options) for z in samples_of]
@@ -167,8 +165,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         points = (codes, log_h)
     details = {"method": opts.method, "channels": first.channel_colors if first.kind != "raw" else "linear"}
     if fits:
-        details |= {"lambda": fits[0].smoothing if fits[0].smoothing is not None else smoothing,
-                    "samples": samples or "all",
+        details |= {"lambda": smoothing, "samples": samples or "all",
                     "iterations": [f.iterations for f in fits], "converged": all(f.converged for f in fits)}
         if method.noise_weighted:
             details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
