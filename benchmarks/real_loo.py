@@ -85,15 +85,28 @@ def predict_ours(e: np.ndarray, crf, h: float) -> np.ndarray:
 
 #: name -> keywords of :func:`ours`
 CONFIGS = {
-    "goossens triangle/log": {},
-    "goossens indep. triangle/log": {"crf_options": {"coupling": 0.0}},
-    "goossens triangle/log var=photon": {"variance": "photon"},
-    "goossens triangle/log var=none": {"variance": "none"},
-    "goossens triangle/log noise": {"noise": "measured"},
-    "debevec triangle/log": {"crf": "debevec"},
-    "robertson triangle/log": {"crf": "robertson"},
-    "goossens probabilistic/log noise": {"weights": "probabilistic", "noise": "measured"},
-    "goossens uniform/ml noise": {"weights": "uniform", "estimator": "ml", "noise": "measured"},
+    "defaults": {},
+    "indep. channels": {"crf_options": {"coupling": 0.0}},
+    "var=photon": {"variance": "photon"},
+    "var=none": {"variance": "none"},
+    "noise measured": {"noise": "measured"},
+    "debevec CRF": {"crf": "debevec"},
+    "robertson CRF": {"crf": "robertson"},
+    "probabilistic": {"weights": "probabilistic", "noise": "measured"},
+    "uniform/ml": {"weights": "uniform", "estimator": "ml", "noise": "measured"},
+}
+#: what each configuration is (the Markdown legend)
+LEGEND = {
+    "defaults": "what `estimate-crf` then `merge --crf` do with no option: the goossens QP with coupled channels, "
+                "triangle weights, the log estimator (7), the `codes` variance factor",
+    "indep. channels": "defaults with `estimate-crf --coupling 0`",
+    "var=photon": "defaults with `merge --variance photon` (the previous default)",
+    "var=none": "defaults with `merge --variance none` (weights alone, as OpenCV and colour-hdri)",
+    "noise measured": "defaults with the noise measured on the bracket (`--variance model`)",
+    "debevec CRF": "`estimate-crf --method debevec`, merge defaults",
+    "robertson CRF": "`estimate-crf --method robertson`, merge defaults",
+    "probabilistic": "`merge --weights probabilistic` (noise measured on the bracket)",
+    "uniform/ml": "`merge --estimator ml --weights uniform` (noise measured on the bracket, no IRLS)",
 }
 
 
@@ -151,13 +164,15 @@ def run(quick: bool = False, configs=None, peers=True, brackets=None) -> list[di
 
 def table(rows, available) -> list[str]:
     methods = [n for n in rows[0] if n not in ("bracket", "left_out", "frames", "pixels") and not n.endswith(" s")]
-    ours_names = [m for m in methods if m in CONFIGS or m.startswith("goossens") or m.startswith("debevec")
-                  or m.startswith("robertson")]
-    peer_names = [m for m in methods if m not in ours_names]
+    peer_names = [m for m in methods if m not in CONFIGS]
     lines = ["# Leave-one-out on the real brackets", "",
              "RMSE (code values) of the left-out frame's codes predicted from the merge of the other frames, "
              f"over its pixels with every channel in [{LOW}, {HIGH}]; frames decimated to at most "
              f"{MAX_PIXELS} pixels. Lower is better; **bold** = best of the row.", ""]
+    lines += ["Ours (one estimate-crf + merge per left-out frame, the response fitted without it):", ""]
+    lines += [f"- **{n}**: {LEGEND[n]}" for n in methods if n in LEGEND]
+    lines += ["", "Peers (see benchmarks/peers.py): each recovers its own response from the same frames and "
+              "merges with it; the left-out frame is predicted through that response.", ""]
     skipped = {n: why for n, why in available.items() if why}
     if skipped:
         lines += ["Peers skipped: " + "; ".join(f"{n} ({why})" for n, why in skipped.items()), ""]

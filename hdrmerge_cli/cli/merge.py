@@ -69,7 +69,7 @@ log = logging.getLogger("hdrmerge_cli")
                    "response, photon otherwise.")
 @click.option("--estimator", type=click.Choice(ESTIMATORS), default="auto", show_default=True,
               help="log = the paper's (7); ml = linear-domain inverse-variance with saturation censored; "
-                   "auto = ml for RAW, log otherwise.")
+                   "auto = ml for RAW and linear images, log for camera-processed images (a non-linear response).")
 @click.option("--irls", type=click.IntRange(0, 50), metavar="N",
               help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing). "
                    "Default: 1 for the ML estimator with a noise model (RAW), else 0.")
