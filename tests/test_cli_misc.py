@@ -4,7 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 
@@ -27,29 +26,6 @@ def test_help_lists_every_command(run):
 def test_python_dash_m_works():
     proc = subprocess.run([sys.executable, "-m", "hdrmerge_cli", "--help"], capture_output=True, text=True)
     assert proc.returncode == 0 and "merge" in proc.stdout
-
-
-def _options_in_help(run, command):
-    """Every long option the command's --help lists (read from the click definition,
-    checked against the help text itself)."""
-    from hdrmerge_cli.cli import cli
-
-    text = run(command, "--help").stdout
-    opts = {o for p in cli.get_command(None, command).params if isinstance(p, click.Option) for o in p.opts if o.startswith("--")}
-    opts.discard("--help")
-    assert all(o in text for o in opts)
-    return opts
-
-
-@pytest.mark.parametrize("command", COMMANDS)
-def test_man_pages_match_help(run, command, tmp_path):
-    page = (ROOT / "man" / f"hdrmerge-cli-{command}.1").read_text()
-    for opt in _options_in_help(run, command):
-        assert opt.replace("-", "\\-") in page, f"{opt} missing from man/hdrmerge-cli-{command}.1 (run make man)"
-    from hdrmerge_cli.manpages import write
-
-    write(str(tmp_path))
-    assert (tmp_path / f"hdrmerge-cli-{command}.1").read_text() == page, "man page out of date: run make man"
 
 
 def test_config_file_sets_defaults_and_command_line_wins(run, tmp_path, jpeg_bracket):
