@@ -337,3 +337,22 @@ def test_image_defaults_use_code_error_variances_and_measure_noise_only_when_ask
     est, _ = read_exr(tmp_path / "m.exr")
     truth, _ = read_exr(folder / "truth.exr")
     assert np.isfinite(est).all() and log_rmse(est, truth) < 0.5
+
+
+def test_outputs_the_tool_cannot_write_faithfully_are_refused(run, tmp_path, jpeg_bracket):
+    """No silently wrong result: a non-EXR output, a --reference that underflows or
+    overflows the output type, an all-zero weight table; one line, nothing written."""
+    folder, meta = jpeg_bracket
+    frames = frames_of(folder, meta)
+    lut = tmp_path / "zero.csv"
+    run("weights-lut", *frames, "--crf", "srgb", "-o", lut)
+    rows = lut.read_text().splitlines()
+    lut.write_text("\n".join([rows[0]] + [",".join(["0"] * len(r.split(","))) for r in rows[1:]]) + "\n")
+    for args, words in [(("-o", tmp_path / "x.jpg"), "OpenEXR only"),
+                        (("-o", tmp_path / "x.exr", "--half", "--reference", "1e-8"), "--reference"),
+                        (("-o", tmp_path / "x.exr", "--half", "--reference", "1e5"), "drop --half"),
+                        (("-o", tmp_path / "x.exr", "--lut", lut), "all zero")]:
+        proc = run("merge", *frames, "--crf", "srgb", *args, check=False)
+        assert proc.returncode == 1 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1
+    assert not list(tmp_path.glob("x*"))

@@ -220,6 +220,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
             raise HdrMergeError(f"unknown extra channel {extra!r} (choose from {', '.join(EXTRA_CHANNELS)})")
     output = Path(opts.output)
     profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(output)
+    if output.suffix.lower() != ".exr":
+        raise HdrMergeError(f"{output}: merge writes OpenEXR only; name the output *.exr")
     check_writable(output, opts.overwrite)
     check_writable(profile_out, opts.overwrite)
     if opts.preview is not None:
@@ -294,6 +296,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         result *= np.float32(h_ref)
         del log_e
         timings["irls"] = time.perf_counter() - t0
+    check_range(result, opts.half, opts.reference, h_ref)
 
     if first.kind == "raw":
         channels = ["Y"] if opts.cfa else ["R", "G", "B"]
@@ -411,6 +414,28 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     }
 
 
+#: largest finite value and smallest normal value of the output types
+OUTPUT_RANGE = {True: (65504.0, 6.1e-5), False: (3.4e38, 1.2e-38)}
+
+
+def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float) -> None:
+    """Refuse a result that the output type cannot hold (instead of writing clamped values
+    or a mostly zero image): values above its largest finite value, or a median below its
+    smallest normal value.  The scale is set by ``--reference``, so the error names it."""
+    top, tiny = OUTPUT_RANGE[half]
+    peak = float(np.max(result, initial=0.0))
+    kind = "half" if half else "float"
+    if not np.isfinite(peak) or peak > top:
+        raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): the brightest values ({peak:.3g}) exceed what "
+                            f"{kind} EXR holds ({top:g}); use a shorter --reference (e.g. shortest)"
+                            + (" or drop --half" if half else ""))
+    flat = result.reshape(-1)
+    if np.median(flat[::max(1, flat.size // 100_000)]) < tiny:
+        raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): most values are below what {kind} EXR holds "
+                            f"({tiny:g}); use a longer --reference (e.g. the default, geomean)"
+                            + (" or drop --half" if half else ""))
+
+
 def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes):
     """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
     code, fast path; for images on the signal linearised by ``crf``); on failure fall back
@@ -489,7 +514,14 @@ def _lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
     per = table.shape[1] // len(frames)
     if per * len(frames) != table.shape[1] or per not in (1, first.channels):
         raise HdrMergeError(f"{path}: {table.shape[1]} columns do not fit {len(frames)} frames of {first.channels} channels")
-    return [table[:, j * per:(j + 1) * per].T for j in range(len(frames))]
+    if not np.all(np.isfinite(table)) or np.any(table < 0):
+        raise HdrMergeError(f"{path}: weights must be finite and non-negative")
+    columns = [table[:, j * per:(j + 1) * per].T for j in range(len(frames))]
+    for j, col in enumerate(columns):
+        if not np.any(col > 0):
+            raise HdrMergeError(f"{path}: the weights of frame {j + 1} ({frames[j].name}) are all zero; "
+                                "that frame would be ignored (rebuild the table)")
+    return columns
 
 
 def _tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
