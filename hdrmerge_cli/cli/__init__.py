@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import errno
 import importlib
+import signal
 
 import click
 
@@ -22,6 +23,18 @@ COMMANDS = {
 }
 
 
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: unwinds like Ctrl-C, so every temporary is removed."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _terminate(signum, frame):
+    raise Terminated(signum)
+
+
 class _Group(click.Group):
     """Turns data errors into one-line messages with exit code 1 (never a traceback);
     loads subcommands lazily."""
@@ -39,6 +52,9 @@ class _Group(click.Group):
             return super().invoke(ctx)
         except HdrMergeError as exc:
             raise click.ClickException(str(exc)) from None
+        except Terminated as exc:
+            click.echo(f"hdrmerge-cli: stopped by {signal.Signals(exc.signum).name}; nothing was written", err=True)
+            ctx.exit(128 + exc.signum)
         except MemoryError:
             raise click.ClickException("out of memory: merge fewer or smaller frames") from None
         except OSError as exc:
@@ -64,4 +80,6 @@ def main():
     from hdrmerge_cli.io.frames import separate_python_stderr
 
     separate_python_stderr()
+    for sig in (signal.SIGTERM, signal.SIGHUP):  # handled like Ctrl-C: temporaries removed
+        signal.signal(sig, _terminate)
     cli(prog_name="hdrmerge-cli")

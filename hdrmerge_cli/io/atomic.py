@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -31,34 +32,110 @@ def _umask() -> int:
 UMASK = _umask()
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, overwrite: bool):
-    """Yield a temporary path beside ``path`` (same extension, so writers pick the same
-    format); rename it onto ``path`` when the block succeeds, delete it otherwise."""
-    path = check_writable(path, overwrite)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}", dir=path.parent)
-    os.close(fd)
-    try:
-        yield tmp
-        # mkstemp creates 0600; give the file the mode a plain open() would (or keep the
-        # mode of the file it replaces)
-        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~UMASK)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+def check_distinct(outputs: list, inputs: list = ()) -> None:
+    """Refuse, before any work and whatever ``--overwrite`` says, two outputs that are one
+    file and an output that is one of the inputs."""
+    seen = {}
+    for p in outputs:
+        key = os.path.realpath(p)
+        if key in seen:
+            raise HdrMergeError(f"{p}: given for two outputs ({seen[key]} too); name them apart")
+        seen[key] = p
+    for src in inputs:
+        key = os.path.realpath(src)
+        if key in seen or any(os.path.exists(o) and os.path.samefile(o, src) for o in outputs):
+            raise HdrMergeError(f"{seen.get(key, src)}: is an input; refusing to write over it")
+
+
+def _user_error(exc: BaseException, tmps: list[str], paths: list[Path]) -> HdrMergeError:
+    """An error raised while writing a temporary, told with the user's path instead."""
+    if isinstance(exc, OSError) and not isinstance(exc, FileExistsError):
+        where = next((str(p) for t, p in zip(tmps, paths) if exc.filename in (t, str(p))), None)
+        text = f"{where or exc.filename}: cannot write ({exc.strerror or exc})"
+    else:
+        text = str(exc)
+    for t, p in zip(tmps, paths):
+        text = text.replace(t, str(p))
+    return HdrMergeError(text)
 
 
 @contextlib.contextmanager
-def atomic_paths(paths: list, overwrite: bool):
-    """Several outputs that appear together or not at all: yields temporary paths, renames
-    them all on success (each check done before anything is written)."""
+def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
+    """Several outputs committed as one transaction: yields temporary paths beside them
+    (same extension, so writers pick the same format); when the block succeeds every
+    temporary is moved onto its output, else every temporary is removed.
+
+    The commit never replaces a file that appeared since the start unless ``overwrite``
+    (a concurrent run's output is not silently clobbered: the new name is made with a hard
+    link, which fails if the name exists); files it replaces are kept aside until every
+    output is in place, so a failure part-way restores them and removes the new ones.
+    Errors name the user's paths, not the temporaries."""
+    paths = [Path(p) for p in paths]
+    check_distinct(paths, inputs)
     for p in paths:
         check_writable(p, overwrite)
-    with contextlib.ExitStack() as stack:
-        tmps = [stack.enter_context(atomic_path(p, True)) for p in paths]
-        yield tmps
+    tmps: list[str] = []
+    try:
+        for p in paths:
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=f".part{p.suffix}", dir=p.parent)
+            os.close(fd)
+            tmps.append(tmp)
+        try:
+            yield tmps
+        except (OSError, HdrMergeError) as exc:
+            raise _user_error(exc, tmps, paths) from None
+        _commit(tmps, paths, overwrite)
+    finally:
+        for tmp in tmps:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def _commit(tmps: list[str], paths: list[Path], overwrite: bool) -> None:
+    done: list[tuple[Path, str | None]] = []  # (output, the backup of the file it replaced)
+    try:
+        for tmp, path in zip(tmps, paths):
+            # mkstemp creates 0600: give the file the mode a plain open() would (or keep
+            # the mode of the file it replaces)
+            os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~UMASK)
+            backup = None
+            if path.exists():
+                if not overwrite:
+                    raise FileExistsError(errno.EEXIST, "appeared while this run was working", str(path))
+                backup = f"{tmp}.old"
+                os.replace(path, backup)
+            try:
+                os.link(tmp, path)  # fails if the name was taken meanwhile
+            except FileExistsError:
+                if backup:
+                    os.replace(backup, path)
+                raise FileExistsError(errno.EEXIST, "appeared while this run was working", str(path)) from None
+            except OSError:  # no hard links on this file system: rename (a tiny race remains)
+                os.replace(tmp, path)
+            done.append((path, backup))
+    except BaseException as exc:
+        for path, backup in reversed(done):
+            with contextlib.suppress(OSError):
+                if backup:
+                    os.replace(backup, path)
+                else:
+                    os.unlink(path)
+        if isinstance(exc, FileExistsError):
+            raise HdrMergeError(f"{exc.filename}: {exc.strerror} (use --overwrite to replace it)") from None
+        if isinstance(exc, OSError):
+            raise HdrMergeError(f"{exc.filename or paths[len(done)]}: cannot write ({exc.strerror or exc})") from None
+        raise
+    for _, backup in done:
+        if backup:
+            with contextlib.suppress(OSError):
+                os.unlink(backup)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, overwrite: bool):
+    """One output: :func:`atomic_paths` of one path; yields its temporary path."""
+    with atomic_paths([path], overwrite) as (tmp,):
+        yield tmp
 
 
 def atomic_text(path: str | os.PathLike, text: str, overwrite: bool) -> None:

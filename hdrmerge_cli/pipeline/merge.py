@@ -23,7 +23,7 @@ from hdrmerge_cli.core.reconstruct import (
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
 from hdrmerge_cli.io.profile import load_profile
-from hdrmerge_cli.io.atomic import atomic_paths, check_writable
+from hdrmerge_cli.io.atomic import atomic_paths, check_distinct, check_writable
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
 from hdrmerge_cli.io.images import write_exr, write_ldr
@@ -228,6 +228,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         if Path(opts.preview).suffix.lower() not in PREVIEW_SUFFIXES:
             raise HdrMergeError(f"{opts.preview}: a preview is written as {', '.join(PREVIEW_SUFFIXES)} (by suffix)")
         check_writable(opts.preview, opts.overwrite)
+    inputs = list(paths) + [p for p in (opts.profile, opts.lut, opts.times_file, opts.crf) if p and Path(p).is_file()]
+    check_distinct([output, profile_out] + ([opts.preview] if opts.preview is not None else []), inputs)
     frames = read_bracket(paths, opts.times, opts.times_file)
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
@@ -376,7 +378,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         preview = BlockMean(first.height, first.width, len(channels), f)
         strips = _tee_preview(strips, preview, len(channels))
     outputs = [output, profile_out] + ([opts.preview] if preview else [])
-    with atomic_paths(outputs, opts.overwrite) as tmps:
+    with atomic_paths(outputs, opts.overwrite, inputs) as tmps:
         write_exr(tmps[0], strips, names, attrs, half=opts.half, size=(first.height, first.width))
         Path(tmps[1]).write_text(profile_text, encoding="utf-8")
         if preview:

@@ -1,0 +1,109 @@
+"""Outputs as one transaction (issue 16): all or nothing, no clobbering of a file that
+appeared meanwhile, outputs that collide with each other or with an input refused first,
+errors naming the user's path, SIGTERM cleaned up like SIGINT."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import frames_of
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.io.atomic import atomic_paths
+
+
+def test_all_outputs_appear_together_or_none(tmp_path):
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    with pytest.raises(RuntimeError):
+        with atomic_paths([a, b], False) as (ta, tb):
+            Path(ta).write_text("a")
+            raise RuntimeError("stop")
+    assert sorted(os.listdir(tmp_path)) == []
+    with atomic_paths([a, b], False) as (ta, tb):
+        Path(ta).write_text("a")
+        Path(tb).write_text("b")
+    assert a.read_text() == "a" and b.read_text() == "b" and sorted(os.listdir(tmp_path)) == ["a.txt", "b.txt"]
+
+
+def test_a_file_that_appears_meanwhile_is_not_clobbered_and_nothing_half_done(tmp_path):
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    with pytest.raises(HdrMergeError, match="b.txt: appeared"):
+        with atomic_paths([a, b], False) as (ta, tb):
+            Path(ta).write_text("mine")
+            Path(tb).write_text("mine")
+            b.write_text("theirs")  # a concurrent run finished first
+    assert b.read_text() == "theirs" and not a.exists()
+    assert sorted(os.listdir(tmp_path)) == ["b.txt"]
+
+
+def test_a_failed_commit_restores_the_files_it_replaced(tmp_path, monkeypatch):
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    a.write_text("old a")
+    real_link = os.link
+
+    def link(src, dst):
+        if str(dst).endswith("b.txt"):
+            raise PermissionError(13, "Permission denied", str(dst))
+        return real_link(src, dst)
+
+    monkeypatch.setattr(os, "link", link)
+    monkeypatch.setattr(os, "replace", lambda s, d, real=os.replace: (_ for _ in ()).throw(
+        PermissionError(13, "Permission denied", str(d))) if str(d).endswith("b.txt") else real(s, d))
+    with pytest.raises(HdrMergeError, match="b.txt: cannot write"):
+        with atomic_paths([a, b], True) as (ta, tb):
+            Path(ta).write_text("new a")
+            Path(tb).write_text("new b")
+    assert a.read_text() == "old a" and sorted(os.listdir(tmp_path)) == ["a.txt"]
+
+
+def test_errors_while_writing_name_the_users_path(tmp_path):
+    out = tmp_path / "x.txt"
+    with pytest.raises(HdrMergeError) as info:
+        with atomic_paths([out], False) as (tmp,):
+            raise OSError(28, "No space left on device", tmp)
+    assert str(info.value) == f"{out}: cannot write (No space left on device)" and ".part" not in str(info.value)
+
+
+@pytest.mark.parametrize("which", ["profile", "preview", "input"])
+def test_colliding_outputs_are_refused_before_any_work(run, tmp_path, jpeg_bracket, which):
+    folder, meta = jpeg_bracket
+    frames = frames_of(folder, meta)
+    out = tmp_path / "m.exr"
+    extra = {"profile": ["--profile-out", out],
+             "preview": ["--profile-out", tmp_path / "p.png", "--preview", tmp_path / "p.png"],
+             "input": []}[which]
+    target = frames[0].with_suffix(".exr") if which == "input" else out
+    if which == "input":  # an output that is an input, even with --overwrite
+        os.symlink(frames[0], target)
+    before = target.read_bytes() if target.exists() else None
+    proc = run("merge", *frames, "--crf", "srgb", "-o", target, "--overwrite", *extra, check=False)
+    assert proc.returncode == 1 and ("two outputs" in proc.stderr or "is an input" in proc.stderr), proc.stderr
+    if before is not None:
+        assert target.read_bytes() == before
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_mid_write_removes_the_temporaries(run, tmp_path_factory, sig):
+    """SIGTERM/SIGHUP while the outputs are being written (a temporary exists): every
+    temporary removed, no output, exit 128 + n, one line."""
+    from conftest import _command
+
+    folder = tmp_path_factory.mktemp("big")
+    run("simulate", "-o", folder, "-q", "--size", "2400x1600", "--frames", "3", "--seed", "1")
+    out_dir = tmp_path_factory.mktemp("out")
+    proc = subprocess.Popen(_command() + ["merge", *map(str, sorted(folder.glob("frame_*.dng"))), "-o",
+                                          str(out_dir / "m.exr"), "--preview", str(out_dir / "m.jpg")],
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not any(".part" in n for n in os.listdir(out_dir)):
+        assert proc.poll() is None and time.monotonic() < deadline, "the merge ended before writing"
+        time.sleep(0.005)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    if proc.returncode == 0:
+        pytest.skip("the merge finished writing before the signal arrived")
+    assert proc.returncode == 128 + sig and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1 and os.listdir(out_dir) == []
