@@ -147,3 +147,40 @@ def test_an_empty_folder_is_a_one_line_error_and_writes_nothing(run, tmp_path):
     proc = run("merge", "--batch", tmp_path / "empty", "-o", tmp_path / "out", check=False)
     assert proc.returncode == 1 and "no frames" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_path, tmp_path_factory):
+    """SIGTERM to `merge --batch -j 2`: exit 143, the worker processes are gone, no
+    temporary is left and no output appears after the command has ended."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from conftest import _command
+
+    big = tmp_path_factory.mktemp("bigshoot")
+    run("simulate", "-o", big / "sim", "-q", "--size", "1600x1200", "--frames", "3", "--seed", "2")
+    shoot = big / "shoot"
+    shoot.mkdir()
+    for prefix in "abcd":  # four brackets of the same frames (no timestamps: split by the sequence)
+        for k, p in enumerate(sorted((big / "sim").glob("frame_*.dng"))):
+            shutil.copy(p, shoot / f"{prefix}_{k}.dng")
+    out = tmp_path / "merged"
+    proc = subprocess.Popen(_command() + ["merge", "--batch", str(shoot), "-o", str(out), "-j", "2", "-q"],
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (out.is_dir() and any(".part" in n for n in os.listdir(out))):
+        assert proc.poll() is None and time.monotonic() < deadline, "the batch ended before writing"
+        time.sleep(0.005)
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=90)
+    if proc.returncode == 0:
+        pytest.skip("the batch finished before the signal arrived")
+    assert proc.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
+    listing = sorted(os.listdir(out))
+    time.sleep(3)
+    assert sorted(os.listdir(out)) == listing and not any(".part" in n for n in listing)
+    assert not [c for c in children if Path(f"/proc/{c}").exists()
+                and "zombie" not in Path(f"/proc/{c}/status").read_text()]

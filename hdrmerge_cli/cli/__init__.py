@@ -8,7 +8,7 @@ import signal
 import click
 
 from hdrmerge_cli import __version__
-from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
 
 
 #: subcommand -> the module defining it as ``command``; imported only when that command
@@ -21,18 +21,6 @@ COMMANDS = {
     "info": "info",
     "simulate": "simulate",
 }
-
-
-class Terminated(BaseException):
-    """SIGTERM or SIGHUP arrived: unwinds like Ctrl-C, so every temporary is removed."""
-
-    def __init__(self, signum: int):
-        super().__init__(signum)
-        self.signum = signum
-
-
-def _terminate(signum, frame):
-    raise Terminated(signum)
 
 
 class _Group(click.Group):
@@ -53,7 +41,7 @@ class _Group(click.Group):
         except HdrMergeError as exc:
             raise click.ClickException(str(exc)) from None
         except Terminated as exc:
-            click.echo(f"hdrmerge-cli: stopped by {signal.Signals(exc.signum).name}; nothing was written", err=True)
+            click.echo(f"hdrmerge-cli: stopped by {signal.Signals(exc.signum).name}; no partial output was left", err=True)
             ctx.exit(128 + exc.signum)
         except MemoryError:
             raise click.ClickException("out of memory: merge fewer or smaller frames") from None
@@ -81,5 +69,5 @@ def main():
 
     separate_python_stderr()
     for sig in (signal.SIGTERM, signal.SIGHUP):  # handled like Ctrl-C: temporaries removed
-        signal.signal(sig, _terminate)
+        signal.signal(sig, raise_terminated)
     cli(prog_name="hdrmerge-cli")

@@ -6,14 +6,16 @@ import dataclasses
 import datetime as _dt
 import logging
 import os
+import signal
 import tempfile
+import uuid
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
-from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.errors import HdrMergeError, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.pipeline.merge import MergeOptions, merge
 
@@ -169,8 +171,10 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
 
 
 def _init_worker(level: int) -> None:
-    """Worker processes log like the parent (prefix, level, stderr)."""
+    """Worker processes log like the parent (prefix, level, stderr) and unwind on SIGTERM
+    (removing their temporaries) when the parent stops them."""
     separate_python_stderr()
+    signal.signal(signal.SIGTERM, raise_terminated)
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter("hdrmerge-cli: %(levelname)s: %(message)s"))
     log.handlers[:] = [handler]
@@ -193,10 +197,13 @@ def _on_processes(n: int, jobs, progress):
                 results.append((futures[fut], res))
                 if progress:
                     progress(1)
-        except KeyboardInterrupt:  # Ctrl-C: no further bracket starts, the running ones stop
+        except BaseException:  # Ctrl-C, SIGTERM/SIGHUP: no further bracket starts, the running ones stop
+            procs = list((getattr(pool, "_processes", None) or {}).values())
             pool.shutdown(wait=False, cancel_futures=True)
-            for proc in list(getattr(pool, "_processes", {}).values()):
+            for proc in procs:
                 proc.terminate()
+            for proc in procs:  # they remove their temporaries; nothing is written after we return
+                proc.join(timeout=30)
             raise
     return results
 
@@ -212,17 +219,23 @@ def _on_dask(address: str, jobs, profile_text, progress):
         raise HdrMergeError(f"cannot reach the Dask scheduler at {address} ({exc})") from None
     with client:
         shared = client.scatter(profile_text, broadcast=True) if profile_text is not None else None
-        futures = {client.submit(merge_one, e["frames"], mo, shared, pure=False, key=f"merge-{Path(e['output']).stem}"): e
-                   for e, mo in jobs}
+        run_id = uuid.uuid4().hex[:12]  # keys unique to this run: two batches never share a task
+        futures = {client.submit(merge_one, e["frames"], mo, shared, pure=False,
+                                 key=f"merge-{run_id}-{i}-{Path(e['output']).stem}"): e
+                   for i, (e, mo) in enumerate(jobs)}
         results = []
-        for fut in dask_completed(futures):
-            try:
-                res = fut.result()
-            except Exception as exc:  # e.g. a worker killed: that bracket fails, the batch goes on
-                res = {"status": "failed", "error": f"the cluster lost this task ({type(exc).__name__}: {exc})"}
-            results.append((futures[fut], res))
-            if progress:
-                progress(1)
+        try:
+            for fut in dask_completed(futures):
+                try:
+                    res = fut.result()
+                except Exception as exc:  # e.g. a worker killed: that bracket fails, the batch goes on
+                    res = {"status": "failed", "error": f"the cluster lost this task ({type(exc).__name__}: {exc})"}
+                results.append((futures[fut], res))
+                if progress:
+                    progress(1)
+        except BaseException:  # Ctrl-C, SIGTERM/SIGHUP: the cluster stops this run's tasks
+            client.cancel(list(futures), force=True)
+            raise
     return results
 
 
