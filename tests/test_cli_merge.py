@@ -356,3 +356,12 @@ def test_outputs_the_tool_cannot_write_faithfully_are_refused(run, tmp_path, jpe
         assert proc.returncode == 1 and words in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1
     assert not list(tmp_path.glob("x*"))
+
+
+def test_a_response_table_that_does_not_cover_the_codes_is_refused(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    csv = tmp_path / "short.csv"
+    csv.write_text("z,linear\n0,0\n100,1\n")
+    proc = run("merge", *frames_of(folder, meta), "--crf", csv, "-o", tmp_path / "x.exr", check=False)
+    assert proc.returncode == 1 and "covers codes 0..100" in proc.stderr and "0..255 (8-bit)" in proc.stderr
+    assert not (tmp_path / "x.exr").exists()

@@ -5,7 +5,9 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, times_option_callback
+from hdrmerge_cli.cli.options import (
+    BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, output_options, times_option_callback,
+)
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
@@ -19,11 +21,11 @@ from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
 @click.option("--method", type=click.Choice(list(CRF_ESTIMATORS)), default="goossens", show_default=True,
               help="goossens: the paper's monotone QP (37) on comparagrams; debevec: Debevec-Malik 1997 least "
                    "squares; robertson: Robertson et al. 2003 iterations.")
-@click.option("--lambda", "smoothing", type=click.FloatRange(min=0),
+@click.option("--lambda", "smoothing", type=FiniteFloatRange(min=0),
               help=f"Smoothness weight of g''. Default per method: goossens {DEFAULT_LAMBDA:g} (normalised: "
                    f"independent of pixel count and bit depth), debevec "
                    f"{CRF_ESTIMATORS['debevec'].smoothing:g} (Debevec-Malik's per-sample scale); robertson has none.")
-@click.option("--coupling", type=click.FloatRange(min=0), default=DEFAULT_COUPLING, show_default=True,
+@click.option("--coupling", type=FiniteFloatRange(min=0), default=DEFAULT_COUPLING, show_default=True,
               help="goossens: weight pulling the channels' curves to one shape where their own data are weak "
                    "(0: independent channels), so neutral shadows stay neutral.")
 @click.option("--samples", type=click.IntRange(min=0),
@@ -34,7 +36,8 @@ from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
                    "re-evaluated with each new CRF until g settles.")
 @click.option("--pair-weight", type=click.Choice(PAIR_WEIGHTS), default="photon", show_default=True,
               help="goossens: the frame-pair factor of (37), for photon- or offset-noise-dominated cameras.")
-@click.option("--bounds", metavar="BOUNDS", help="goossens with --weighting bounded: " + BOUNDS_HELP)
+@click.option("--bounds", metavar="BOUNDS", callback=bounds_option_callback,
+              help="goossens with --weighting bounded: " + BOUNDS_HELP)
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False),
               help="An existing profile JSON whose CRF to replace (its noise model and other entries are kept).")
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),

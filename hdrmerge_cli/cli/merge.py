@@ -9,7 +9,10 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, parse_csv_list, times_option_callback
+from hdrmerge_cli.cli.options import (
+    BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
+    parse_csv_list, times_option_callback,
+)
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
@@ -30,7 +33,7 @@ log = logging.getLogger("hdrmerge_cli")
                    "first frame.  A bad bracket is reported and skipped; the exit status is 1 if any failed.")
 @click.option("-j", "--jobs", default=1, show_default=True, type=click.IntRange(1, 256),
               help="--batch: brackets merged at once, each in its own process.")
-@click.option("--gap", default=DEFAULT_GAP, show_default=True, type=click.FloatRange(0),
+@click.option("--gap", default=DEFAULT_GAP, show_default=True, type=FiniteFloatRange(0),
               help="--batch: largest time (s) between two frames of one bracket.")
 @click.option("--scheduler", metavar="ADDRESS",
               help="--batch: run on the Dask distributed scheduler at ADDRESS (e.g. tcp://host:8786), one task per "
@@ -57,7 +60,7 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats.")
 @click.option("--extra-channels", callback=parse_csv_list, metavar="NAMES",
               help=f"Extra EXR channels, comma-separated: {', '.join(EXTRA_CHANNELS)}.")
-@click.option("--noise", metavar="PARAMS",
+@click.option("--noise", metavar="PARAMS", callback=noise_option_callback,
               help="Noise parameters of (17): sigma_o2=4,alpha=1,beta=0, or per channel 'R:... G:... B:...' "
                    "(code values of the linear signal; electrons for x).")
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False),
@@ -73,11 +76,11 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--irls", type=click.IntRange(0, 50), metavar="N",
               help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing). "
                    "Default: 1 for the ML estimator with a noise model (RAW), else 0.")
-@click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
+@click.option("--k", "k", default=3.0, show_default=True, type=FiniteFloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations (noise-model weights).")
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),
               help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
-@click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
+@click.option("--bounds", metavar="BOUNDS", callback=bounds_option_callback, help=BOUNDS_HELP)
 @click.option("--align", type=click.Choice(ALIGN_MODES), default="off", show_default=True,
               help="Bring hand-held frames onto the middle exposure (OpenCV ECC on exposure-normalised images): "
                    "translation, similarity (also rotation and scale), auto (translation, applied only when a frame "

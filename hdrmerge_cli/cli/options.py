@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 import tomllib
 
@@ -32,36 +33,45 @@ def _set_verbosity(ctx, param, value):
     return value
 
 
+#: largest --config file read (bytes)
+MAX_CONFIG_BYTES = 2**20
+
+
 def _load_config(ctx, param, value):
     """Read a TOML file into the command's defaults: the command line still wins.
 
     Keys are long option names (``weights``, ``times-file``, ``lambda``), at the top
     level or in a table named after the subcommand (``[merge]``)."""
+    from hdrmerge_cli.io.profile import read_text
+
     if value is None:
         return None
     try:
-        with open(value, "rb") as fh:
-            data = tomllib.load(fh)
-    except OSError as exc:
-        raise click.BadParameter(f"{value}: {exc.strerror}", ctx, param) from None
+        data = tomllib.loads(read_text(value, MAX_CONFIG_BYTES))
+    except HdrMergeError as exc:
+        raise click.BadParameter(str(exc), ctx, param) from None
     except tomllib.TOMLDecodeError as exc:
         raise click.BadParameter(f"{value}: not valid TOML ({exc})", ctx, param) from None
+    except RecursionError:
+        raise click.BadParameter(f"{value}: not valid TOML (nested too deeply)", ctx, param) from None
     section = data.get(ctx.info_name, {}) if isinstance(data.get(ctx.info_name), dict) else {}
     top = {k: v for k, v in data.items() if not isinstance(v, dict)}
     merged = top | section
-    names = {}
+    options = {}
     for opt in ctx.command.params:
         if isinstance(opt, click.Option) and opt.name != "config":
-            names[opt.name] = opt.name
+            options[opt.name] = opt
             for flag in opt.opts:
                 if flag.startswith("--"):
-                    names[flag[2:].replace("-", "_")] = opt.name
+                    options[flag[2:].replace("-", "_")] = opt
     defaults = {}
     for key, val in merged.items():
-        name = names.get(key.replace("-", "_"))
-        if name is None:
-            raise click.BadParameter(f"{value}: unknown key {key!r} for '{ctx.info_name}'", ctx, param)
-        defaults[name] = val
+        opt = options.get(key.replace("-", "_"))
+        if opt is None:
+            raise click.BadParameter(f"{value}: unknown key {key[:40]!r} for '{ctx.info_name}'", ctx, param)
+        if isinstance(val, list) and not opt.multiple and opt.nargs == 1:
+            val = ",".join(str(v) for v in val)  # times = [0.01, 0.1] as --times 0.01,0.1
+        defaults[opt.name] = val
     ctx.default_map = (ctx.default_map or {}) | defaults
     return value
 
@@ -104,6 +114,48 @@ def parse_csv_list(ctx, param, value):
 BOUNDS_HELP = ("Upper bounds for the bounded weights on the normalised signal: inv_alpha=0.005,sigma_o2=0.02,beta=0 "
                "(the paper's JPEG values, the default), or delta=W with one of them to solve the other so that the "
                "clipping-safe range is W of full scale.")
+
+
+class FiniteFloatRange(click.FloatRange):
+    """``click.FloatRange`` that also refuses ``nan`` and ``+-inf`` (FloatRange lets nan
+    through any bounds, and inf through open-ended ones).  Same help text as FloatRange."""
+
+    def convert(self, value, param, ctx):
+        rv = super().convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return rv
+
+
+#: any finite float
+FINITE_FLOAT = FiniteFloatRange()
+
+
+def _check_text(parse, value):
+    """Check a text option with ``parse`` as soon as it is read, so that an empty text is
+    an error too (not silently unset); its HdrMergeError, which names the option, is a
+    one-line data error (exit 1) like the later checks of the values.  Passes the text on."""
+    if value is None:
+        return None
+    try:
+        parse(str(value))
+    except HdrMergeError as exc:
+        raise click.ClickException(str(exc)) from None
+    return str(value)
+
+
+def noise_option_callback(ctx, param, value):
+    """``--noise``: checked by :func:`hdrmerge_cli.io.noisespec.parse_noise`."""
+    from hdrmerge_cli.io.noisespec import parse_noise
+
+    return _check_text(parse_noise, value)
+
+
+def bounds_option_callback(ctx, param, value):
+    """``--bounds``: checked by :func:`hdrmerge_cli.io.noisespec.parse_bounds`."""
+    from hdrmerge_cli.io.noisespec import parse_bounds
+
+    return _check_text(parse_bounds, value)
 
 
 def times_option_callback(ctx, param, value):

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import common_options, emit, output_options, times_option_callback
+from hdrmerge_cli.cli.options import FiniteFloatRange, common_options, emit, output_options, times_option_callback
 from hdrmerge_cli.core.sensor import SensorModel
 from hdrmerge_cli.pipeline.simulate import FORMATS, SimulateOptions, simulate
 
@@ -29,7 +29,7 @@ def _size(ctx, param, value):
 @click.option("--size", default="768x512", show_default=True, callback=_size, help="Size of the built-in scene.")
 @click.option("--downscale", default=1, show_default=True, type=click.IntRange(1, 64),
               help="Average the scene over NxN blocks first.")
-@click.option("--scale", default=1.0, show_default=True, type=click.FloatRange(min=0, min_open=True),
+@click.option("--scale", default=1.0, show_default=True, type=FiniteFloatRange(min=0, min_open=True),
               help="Multiply the scene (electrons per second per unit).")
 @click.option("--frames", default=5, show_default=True, type=click.IntRange(1, 64),
               help="Number of exposures when --times is not given (chosen to cover the scene; for 'flat', "
@@ -42,11 +42,11 @@ def _size(ctx, param, value):
               help="DNG (Bayer RAW) or camera-processed JPEG/TIFF/PNG with EXIF.")
 @click.option("--bits", type=click.IntRange(8, 16), help="Bits of the linear A/D converter [default: 14 for DNG, 12 otherwise].")
 @click.option("--black", type=click.IntRange(min=0), help="Black level [default: 2^(bits-5) for DNG, 0 otherwise].")
-@click.option("--alpha", default=0.25, show_default=True, type=click.FloatRange(min=0, min_open=True),
+@click.option("--alpha", default=0.25, show_default=True, type=FiniteFloatRange(min=0, min_open=True),
               help="Squared gain alpha of (17), code values^2 per electron.")
-@click.option("--sigma-o2", default=9.0, show_default=True, type=click.FloatRange(min=0),
+@click.option("--sigma-o2", default=9.0, show_default=True, type=FiniteFloatRange(min=0),
               help="Read-noise variance sigma_o^2 of (17), code values^2 (quantisation adds 1/12).")
-@click.option("--beta", default=0.0, show_default=True, type=click.FloatRange(min=0),
+@click.option("--beta", default=0.0, show_default=True, type=FiniteFloatRange(min=0),
               help="Gain fixed-pattern noise beta of (17).")
 @click.option("--crf", default="srgb", show_default=True, help="Camera response for JPEG/TIFF/PNG (as in merge).")
 @click.option("--out-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,

@@ -7,7 +7,10 @@ import click
 
 import numpy as np
 
-from hdrmerge_cli.cli.options import BOUNDS_HELP, common_options, emit, output_options, times_option_callback
+from hdrmerge_cli.cli.options import (
+    BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
+    times_option_callback,
+)
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.crfspec import resolve_crf
@@ -31,13 +34,14 @@ from hdrmerge_cli.pipeline.merge import (
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False), help="Profile JSON (its CRF is used).")
 @click.option("--bits", default=8, show_default=True, type=click.IntRange(2, 16),
               help="Code values 0..2^bits-1 (with --times; a bracket gives its own).")
-@click.option("--noise", metavar="PARAMS", help="Noise parameters of (17), as in merge (for the paper's weights).")
-@click.option("--prior-rate", type=click.FloatRange(min=0, min_open=True),
+@click.option("--noise", metavar="PARAMS", callback=noise_option_callback,
+              help="Noise parameters of (17), as in merge (for the paper's weights).")
+@click.option("--prior-rate", type=FiniteFloatRange(min=0, min_open=True),
               help="Mean of the exponential irradiance prior, code values per second [default: from the bracket, "
                    "or mid-grey at the middle exposure].")
-@click.option("--k", "k", default=3.0, show_default=True, type=click.FloatRange(0.5, 10),
+@click.option("--k", "k", default=3.0, show_default=True, type=FiniteFloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations.")
-@click.option("--bounds", metavar="BOUNDS", help=BOUNDS_HELP)
+@click.option("--bounds", metavar="BOUNDS", callback=bounds_option_callback, help=BOUNDS_HELP)
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Also draw the curves (PNG/PDF/SVG, by suffix).")
 @output_options
 @common_options

@@ -201,7 +201,12 @@ def choose_crf(frames: list[Frame], spec: str | None) -> CRF:
             log.warning("RAW data is linear: --crf %s is ignored", spec)
         return CRF("linear")
     if spec:
-        return resolve_crf(spec)
+        crf = resolve_crf(spec)
+        n = frames[0].n_codes
+        if crf.table is not None and crf.table.shape[1] != n:
+            raise HdrMergeError(f"{spec}: the response table covers codes 0..{crf.table.shape[1] - 1}, but "
+                                f"{frames[0].path} has codes 0..{n - 1} ({frames[0].bits}-bit)")
+        return crf
     log.warning(
         "%s: no camera response given; assuming sRGB. For better accuracy run "
         "'hdrmerge-cli estimate-crf' on this bracket and pass --crf PROFILE.json",
