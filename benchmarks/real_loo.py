@@ -51,7 +51,7 @@ def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
 
 # ---------------------------------------------------------------- our configurations
 def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | None = None, weights: str = "triangle",
-         estimator: str = "log", noise: str = "none", variance: str = "auto", shared: bool = False, irls: int = 0):
+         estimator: str = "log", noise: str = "none", variance: str = "auto", irls: int = 0):
     """Estimate the response of ``codes`` (our estimate-crf), merge them (our merge core).
     Returns (E per second in units of the normalised linear signal, CRF)."""
     from hdrmerge_cli.core.reconstruct import merge_frames
@@ -59,8 +59,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
 
     log_h = np.log(exposures)
     opts = dict(crf_options or {})
-    crf, _, _ = fit_crf(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts,
-                        shared=shared)
+    crf, _, _ = fit_crf(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts)
     params = None
     if noise == "measured":
         from hdrmerge_cli.core.noise import NoiseParams

@@ -167,12 +167,11 @@ def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: Noise
         return np.ones_like(y)
     if variance == "photon":
         return y
-    extra = 0.0 if code_error is None else code_error
     if variance == "codes":
         return y * y / (1.0 / 12.0 if code_error is None else np.maximum(code_error, 1e-300))
     if noise is None:
         raise HdrMergeError("--variance model needs noise parameters (--noise or a profile)")
-    return y * y / (code_variance(y, noise) + extra)
+    return y * y / (code_variance(y, noise) + (0.0 if code_error is None else code_error))
 
 
 def exposure_tables(
@@ -221,16 +220,18 @@ def exposure_tables(
             cert = np.where((v > 0) & (v < 1), np.maximum(cert, WEIGHT_FLOOR), 0.0)
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
+        # camera-processed codes' own error; a linear sensor's measured read noise already
+        # holds its quantisation
+        code_error = None if crf.is_linear else code_error_variance(lin, wl - b)
         if estimator == "ml":
             y = lin * (wl - b)
             var_y = code_variance(y, chan_noise) if chan_noise is not None else np.maximum(y, 1.0)
-            if not crf.is_linear:  # a linear sensor's measured read noise already holds its 1/12
-                var_y = var_y + code_error_variance(lin, wl - b)
+            if code_error is not None:
+                var_y = var_y + code_error
             w = cert * (exposure * (wl - b)) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
             value = lin / exposure
         else:
-            w = cert * inverse_variance(variance, lin, wl - b, chan_noise,
-                                        None if crf.is_linear else code_error_variance(lin, wl - b))
+            w = cert * inverse_variance(variance, lin, wl - b, chan_noise, code_error)
             with np.errstate(divide="ignore"):
                 value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w

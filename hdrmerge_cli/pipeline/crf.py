@@ -87,16 +87,15 @@ def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, metho
 
 def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: str = "goossens",
             smoothing: float | None = None, samples: int | None = None, options: dict | None = None,
-            rng: np.random.Generator | None = None, shared: bool = False):
+            rng: np.random.Generator | None = None):
     """The inverse response of decoded frames: ``method`` of
-    :data:`~hdrmerge_cli.core.crf_estimate.CRF_ESTIMATORS` per channel.
+    :data:`~hdrmerge_cli.core.crf_estimate.CRF_ESTIMATORS`, the channels in one coupled
+    solve for ``goossens`` (see its ``coupling``), one by one for the others.
 
     codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
     smoothing, samples : None for the method's defaults; options : the method's keywords
     Returns (CRF with a ``(C, n_codes)`` table, the per-channel fits, whether a fit had to
-    be made monotone).  ``shared``: one curve for every channel, fitted to their pooled
-    samples (a camera applies one tone curve to all channels, so a neutral ramp stays
-    neutral), each channel normalised to 1 at full scale as always.
+    be made monotone).
     """
     m = CRF_ESTIMATORS[method]
     rng = rng if rng is not None else np.random.default_rng(0)
@@ -104,10 +103,7 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     options = dict(options or {})
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
-    channels = codes[0].shape[-1]
-    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(channels)]
-    if shared:
-        samples_of = [np.concatenate(samples_of)]
+    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
     if method == "goossens" and len(samples_of) > 1:  # one joint, coupled solve
         fit = m.estimate(samples_of, log_h, n_codes, **options)
         fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]
@@ -119,11 +115,9 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
                  "" if fit.converged else " (not converged)", fit.rows)
     tables, fixed = zip(*(inverse_from_log(f.g) for f in fits))
     changed = any(fixed)
-    tables = list(tables)
     if changed:
         log.warning("the %s fit was not monotone; it was made non-decreasing", method)
-    table = np.stack(tables * (channels if shared else 1))
-    return table_crf(table, f"estimate-crf:{method}"), fits, changed
+    return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
 
 
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
