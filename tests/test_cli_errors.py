@@ -132,3 +132,19 @@ def test_simulate_refuses_to_overwrite(run, tmp_path):
     shutil.rmtree(tmp_path / "s")
     proc = run("simulate", "-o", tmp_path / "t", "--size", "16x16", check=False)
     assert proc.returncode == 1 and "32 x 32" in proc.stderr and not list((tmp_path / "t").glob("*.dng"))
+
+
+def test_messages_say_what_is_wrong(run, tmp_path, dng_bracket, jpeg_bracket):
+    """Data errors read 'hdrmerge-cli: error: ...' (like the logs); an EXR among the
+    inputs is called an EXR, not a bad RAW; a profile on a RAW bracket does not warn about
+    a --crf nobody gave."""
+    folder, meta = jpeg_bracket
+    frames = frames_of(folder, meta)
+    proc = run("merge", folder / "truth.exr", *frames, "--crf", "srgb", "-o", tmp_path / "x.exr", check=False)
+    assert proc.returncode == 1 and proc.stderr.startswith("hdrmerge-cli: error: ")
+    assert "OpenEXR image" in proc.stderr and "RAW" not in proc.stderr.split("(")[0]
+    folder, meta = dng_bracket
+    prof = tmp_path / "cam.json"
+    run("calibrate-noise", *frames_of(folder, meta), "-o", prof)
+    proc = run("merge", *frames_of(folder, meta), "--profile", prof, "-o", tmp_path / "m.exr")
+    assert "--crf" not in proc.stderr and "RuntimeWarning" not in proc.stderr

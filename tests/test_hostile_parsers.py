@@ -95,7 +95,7 @@ def test_cli_refuses_hostile_values_in_one_line(run, tmp_path, jpeg_bracket, nam
     returncode, stderr = _invoke(how, run, argv + ["-o", out])
     assert returncode == code, stderr
     assert "Traceback" not in stderr
-    errors = [ln for ln in stderr.splitlines() if ln.startswith("Error:")]
+    errors = [ln for ln in stderr.splitlines() if ln.startswith(("Error:", "hdrmerge-cli: error:"))]
     assert len(errors) == 1, stderr
     if code == 1:
         assert [ln for ln in stderr.strip().splitlines() if "warning" not in ln] == errors, stderr

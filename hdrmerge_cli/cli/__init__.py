@@ -4,6 +4,7 @@ from __future__ import annotations
 import errno
 import importlib
 import signal
+import warnings
 
 import click
 
@@ -23,6 +24,14 @@ COMMANDS = {
 }
 
 
+class DataError(click.ClickException):
+    """A data error: ``hdrmerge-cli: error: ...`` on one line, exit 1 (usage errors stay
+    click's, exit 2)."""
+
+    def show(self, file=None):
+        click.echo(f"hdrmerge-cli: error: {self.format_message()}", err=True)
+
+
 class _Group(click.Group):
     """Turns data errors into one-line messages with exit code 1 (never a traceback);
     loads subcommands lazily."""
@@ -39,17 +48,17 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except HdrMergeError as exc:
-            raise click.ClickException(str(exc)) from None
+            raise DataError(str(exc)) from None
         except Terminated as exc:
             click.echo(f"hdrmerge-cli: stopped by {signal.Signals(exc.signum).name}; no partial output was left", err=True)
             ctx.exit(128 + exc.signum)
         except MemoryError:
-            raise click.ClickException("out of memory: merge fewer or smaller frames") from None
+            raise DataError("out of memory: merge fewer or smaller frames") from None
         except OSError as exc:
             if exc.errno == errno.EPIPE:  # e.g. `hdrmerge-cli ... --json | head`
                 ctx.exit(0)
             where = f"{exc.filename}: " if exc.filename else ""
-            raise click.ClickException(f"{where}{exc.strerror or exc}") from None
+            raise DataError(f"{where}{exc.strerror or exc}") from None
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -68,6 +77,9 @@ def main():
     from hdrmerge_cli.io.frames import separate_python_stderr
 
     separate_python_stderr()
+    # numpy's RuntimeWarnings (a 0/0 in a masked-out sample) say nothing a user can act on;
+    # results are checked for finiteness before anything is written
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
     for sig in (signal.SIGTERM, signal.SIGHUP):  # handled like Ctrl-C: temporaries removed
         signal.signal(sig, raise_terminated)
     cli(prog_name="hdrmerge-cli")

@@ -13,6 +13,7 @@ from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
     parse_csv_list, times_option_callback,
 )
+from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
@@ -169,4 +170,4 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
     emit(summary, as_json, f"{summary['merged']} bracket(s) merged into {opts.output}, {summary['skipped']} skipped, "
                            f"{summary['failed']} failed")
     if summary["failed"]:
-        raise click.ClickException(f"{summary['failed']} of {len(summary['brackets'])} brackets failed (see above)")
+        raise HdrMergeError(f"{summary['failed']} of {len(summary['brackets'])} brackets failed (see above)")

@@ -10,12 +10,7 @@ import tomllib
 import click
 
 from hdrmerge_cli.core.errors import HdrMergeError
-
-
-class _StderrFormatter(logging.Formatter):
-    def format(self, record):
-        level = "" if record.levelno == logging.INFO else f"{record.levelname.lower()}: "
-        return f"hdrmerge-cli: {level}{record.getMessage()}"
+from hdrmerge_cli.io.logs import StderrFormatter
 
 
 def _set_verbosity(ctx, param, value):
@@ -26,7 +21,7 @@ def _set_verbosity(ctx, param, value):
     logger = logging.getLogger("hdrmerge_cli")
     logger.handlers[:] = []
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(_StderrFormatter())
+    handler.setFormatter(StderrFormatter())
     logger.addHandler(handler)
     logger.setLevel(level)
     logger.propagate = False
@@ -137,10 +132,7 @@ def _check_text(parse, value):
     one-line data error (exit 1) like the later checks of the values.  Passes the text on."""
     if value is None:
         return None
-    try:
-        parse(str(value))
-    except HdrMergeError as exc:
-        raise click.ClickException(str(exc)) from None
+    parse(str(value))  # its HdrMergeError becomes the group's one-line data error
     return str(value)
 
 

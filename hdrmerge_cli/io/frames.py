@@ -163,7 +163,15 @@ def read_frame(path: str | os.PathLike) -> Frame:
         raise HdrMergeError(f"{path}: no such file")
     if not os.access(path, os.R_OK):
         raise HdrMergeError(f"{path}: not readable (permission denied)")
+    if Path(path).suffix.lower() in NOT_FRAMES:
+        raise HdrMergeError(f"{path}: {NOT_FRAMES[Path(path).suffix.lower()]} is not an input frame "
+                            "(frames are RAW files or 8/16-bit JPEG/TIFF/PNG)")
     return _read_raw(path) if is_raw_path(path) else _read_image(path)
+
+
+#: suffixes of files that are never frames (outputs and sidecars), with what they are
+NOT_FRAMES = {".exr": "an OpenEXR image (floating point)", ".hdr": "a Radiance HDR image (floating point)",
+              ".json": "a JSON file", ".xmp": "an XMP sidecar", ".txt": "a text file", ".csv": "a CSV table"}
 
 
 def _oiio_meta(path: str) -> dict:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from hdrmerge_cli.core.errors import HdrMergeError, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
+from hdrmerge_cli.io.logs import StderrFormatter
 from hdrmerge_cli.pipeline.merge import MergeOptions, merge
 
 log = logging.getLogger("hdrmerge_cli")
@@ -176,7 +177,7 @@ def _init_worker(level: int) -> None:
     separate_python_stderr()
     signal.signal(signal.SIGTERM, raise_terminated)
     handler = logging.StreamHandler()
-    handler.setFormatter(logging.Formatter("hdrmerge-cli: %(levelname)s: %(message)s"))
+    handler.setFormatter(StderrFormatter())
     log.handlers[:] = [handler]
     log.setLevel(level)
     log.propagate = False

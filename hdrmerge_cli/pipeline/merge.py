@@ -195,10 +195,11 @@ def default_irls(estimator: str, noise, opts: MergeOptions) -> int:
     return int(estimator == "ml" and bool(noise) and opts.deghost == "off" and not opts.lut)
 
 
-def choose_crf(frames: list[Frame], spec: str | None) -> CRF:
-    """RAW is linear; images use ``spec`` or sRGB with a warning."""
+def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False) -> CRF:
+    """RAW is linear; images use ``spec`` (``--crf``, or the profile's CRF when
+    ``from_profile``) or sRGB with a warning."""
     if frames[0].kind == "raw":
-        if spec and spec != "linear":
+        if spec and spec != "linear" and not from_profile:
             log.warning("RAW data is linear: --crf %s is ignored", spec)
         return CRF("linear")
     if spec:
@@ -240,7 +241,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     frames = read_bracket(paths, opts.times, opts.times_file)
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
-    crf = choose_crf(frames, opts.crf or opts.profile)
+    crf = choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf)
     exposures = exposure_values(frames)
     h_ref = reference_exposure(opts.reference, exposures)
     first = frames[0]
@@ -505,7 +506,8 @@ def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float
     lin = crf.inverse(v) if raw else np.stack([crf.inverse(v[:, c], c) for c in range(v.shape[1])], axis=-1)
     ok = (lin > 0) & (lin < 1)
     if not np.any(ok):
-        raise HdrMergeError(f"{name}: every sample is clipped; cannot estimate the irradiance prior")
+        what = "black" if np.all(lin <= 0) else "clipped" if np.all(lin >= 1) else "black or clipped"
+        raise HdrMergeError(f"{name}: every sample is {what}; cannot estimate the irradiance prior")
     return float(np.mean(lin[ok]) * full / exposure)
 
 
