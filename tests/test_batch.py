@@ -184,3 +184,33 @@ def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_p
     assert sorted(os.listdir(out)) == listing and not any(".part" in n for n in listing)
     assert not [c for c in children if Path(f"/proc/{c}").exists()
                 and "zombie" not in Path(f"/proc/{c}/status").read_text()]
+
+
+def test_a_retried_cluster_task_counts_its_own_earlier_outputs_as_done(tmp_path, dng_bracket):
+    """A task that runs again after its worker died (its outputs already written by this
+    batch) is merged, not failed with 'already exists'; older files are not taken for it."""
+    import os
+    import time
+
+    from hdrmerge_cli.pipeline.batch import merge_one
+    from hdrmerge_cli.pipeline.merge import MergeOptions
+
+    folder, meta = dng_bracket
+    paths = [str(p) for p in frames_of(folder, meta)[:3]]
+    opts = MergeOptions(output=tmp_path / "a.exr")
+    assert merge_one(paths, opts)["status"] == "merged"
+    started = time.time() - 60
+    again = merge_one(paths, opts, None, started)
+    assert again["status"] == "merged" and again["summary"]["retried"]
+    for p in (tmp_path / "a.exr", tmp_path / "a.profile.json"):  # written before this batch began
+        os.utime(p, (started - 10, started - 10))
+    late = merge_one(paths, opts, None, started)
+    assert late["status"] == "failed" and "already exists" in late["error"]
+
+
+def test_no_output_folder_before_the_scheduler_answers(run, tmp_path, shoot):
+    pytest.importorskip("distributed")
+    out = tmp_path / "o"
+    proc = run("merge", "--batch", shoot, "-o", out, "--scheduler", "tcp://127.0.0.1:1", check=False)
+    lines = proc.stderr.strip().splitlines()  # the broken file of the shoot, then the scheduler
+    assert proc.returncode == 1 and "scheduler" in lines[-1] and len(lines) == 2 and not out.exists()

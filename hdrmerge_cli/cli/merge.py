@@ -165,7 +165,7 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
         return
     todo = sum(e["status"] == "planned" for e in entries)
     quiet = logging.getLogger("hdrmerge_cli").level > logging.WARNING
-    with click.progressbar(length=todo, label="merging brackets", file=sys.stderr, hidden=quiet or todo == 0) as bar:
+    with click.progressbar(length=todo, label="merging brackets", file=sys.stderr, hidden=quiet or todo == 0 or not sys.stderr.isatty()) as bar:
         summary = run_batch(bopts, entries, progress=bar.update)
     emit(summary, as_json, f"{summary['merged']} bracket(s) merged into {opts.output}, {summary['skipped']} skipped, "
                            f"{summary['failed']} failed")

@@ -8,6 +8,7 @@ import logging
 import os
 import signal
 import tempfile
+import time
 import uuid
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -18,7 +19,7 @@ from pathlib import Path
 from hdrmerge_cli.core.errors import HdrMergeError, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
-from hdrmerge_cli.pipeline.merge import MergeOptions, merge
+from hdrmerge_cli.pipeline.merge import MergeOptions, default_profile_path, merge
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -119,10 +120,17 @@ def plan(opts: BatchOptions) -> list[dict]:
     return out + bad
 
 
-def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = None) -> dict:
+def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = None,
+              started: float | None = None) -> dict:
     """Merge one bracket; never raises for a bad bracket: returns ``{"status": "failed",
     "error": ...}`` instead.  ``profile_text``: the --profile JSON, sent once to a cluster's
-    workers (their file systems may not hold it)."""
+    workers (their file systems may not hold it).  ``started``: the batch's start time on a
+    cluster, where a task may run again after its worker died: outputs this batch already
+    wrote for it (the EXR and its profile, both newer than ``started``) count as done."""
+    profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(Path(opts.output))
+    if started is not None and all(p.exists() and p.stat().st_mtime >= started for p in (opts.output, profile_out)):
+        return {"status": "merged", "summary": {"output": str(opts.output), "profile": str(profile_out),
+                                                "retried": True}}
     try:
         if profile_text is not None:
             with tempfile.TemporaryDirectory() as tmp:
@@ -147,12 +155,14 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     sent to the workers once).  ``progress(n)`` is called as brackets finish.  Returns the
     batch summary; the caller decides the exit status from ``summary["failed"]``."""
     todo = [e for e in entries if e["status"] == "planned"]
-    if todo:  # nothing to write: no output folder either
-        opts.outdir.mkdir(parents=True, exist_ok=True)
     profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
     jobs = [(e, dataclasses.replace(opts.merge, output=Path(e["output"]), profile_out=None)) for e in todo]
-    if opts.scheduler:
-        results = _on_dask(opts.scheduler, jobs, profile_text, progress)
+    client = _connect(opts.scheduler) if opts.scheduler and jobs else None  # before anything is created
+    if todo:  # nothing to write: no output folder either
+        opts.outdir.mkdir(parents=True, exist_ok=True)
+    if client is not None:
+        with client:
+            results = _on_dask(client, jobs, profile_text, progress)
     elif opts.jobs > 1 and len(jobs) > 1:
         results = _on_processes(opts.jobs, jobs, progress)
     else:
@@ -209,34 +219,45 @@ def _on_processes(n: int, jobs, progress):
     return results
 
 
-def _on_dask(address: str, jobs, profile_text, progress):
+def _connect(address: str):
+    """A Dask client, or a one-line error; distributed's own logging kept off stderr."""
     try:
-        from distributed import Client, as_completed as dask_completed
+        from distributed import Client
     except ImportError:
         raise HdrMergeError("--scheduler needs Dask: pip install 'hdrmerge-cli[cluster]'") from None
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
     try:
-        client = Client(address, timeout="10s")
+        return Client(address, timeout="10s")
     except (OSError, TimeoutError) as exc:
         raise HdrMergeError(f"cannot reach the Dask scheduler at {address} ({exc})") from None
-    with client:
-        shared = client.scatter(profile_text, broadcast=True) if profile_text is not None else None
-        run_id = uuid.uuid4().hex[:12]  # keys unique to this run: two batches never share a task
-        futures = {client.submit(merge_one, e["frames"], mo, shared, pure=False,
-                                 key=f"merge-{run_id}-{i}-{Path(e['output']).stem}"): e
-                   for i, (e, mo) in enumerate(jobs)}
-        results = []
-        try:
-            for fut in dask_completed(futures):
-                try:
-                    res = fut.result()
-                except Exception as exc:  # e.g. a worker killed: that bracket fails, the batch goes on
-                    res = {"status": "failed", "error": f"the cluster lost this task ({type(exc).__name__}: {exc})"}
-                results.append((futures[fut], res))
-                if progress:
-                    progress(1)
-        except BaseException:  # Ctrl-C, SIGTERM/SIGHUP: the cluster stops this run's tasks
-            client.cancel(list(futures), force=True)
-            raise
+
+
+def _on_dask(client, jobs, profile_text, progress):
+    from distributed import as_completed as dask_completed
+
+    shared = client.scatter(profile_text, broadcast=True) if profile_text is not None else None
+    run_id = uuid.uuid4().hex[:12]  # keys unique to this run: two batches never share a task
+    started = time.time()
+    futures = {client.submit(merge_one, e["frames"], mo, shared, started, pure=False,
+                             key=f"merge-{run_id}-{i}-{Path(e['output']).stem}"): e
+               for i, (e, mo) in enumerate(jobs)}
+    results = []
+    try:
+        for fut in dask_completed(futures):
+            try:
+                res = fut.result()
+            except Exception as exc:  # e.g. a worker killed: that bracket fails, the batch goes on
+                res = {"status": "failed", "error": f"the cluster lost this task ({type(exc).__name__}: {exc})"}
+            results.append((futures[fut], res))
+            if progress:
+                progress(1)
+    except Exception as exc:  # the scheduler is gone: one line for each bracket not reported
+        done = {id(e) for e, _ in results}
+        results += [(e, {"status": "failed", "error": f"lost the Dask scheduler ({type(exc).__name__})"})
+                    for e in futures.values() if id(e) not in done]
+    except BaseException:  # Ctrl-C, SIGTERM/SIGHUP: the cluster stops this run's tasks
+        client.cancel(list(futures), force=True)
+        raise
     return results
 
 
