@@ -148,3 +148,14 @@ def test_messages_say_what_is_wrong(run, tmp_path, dng_bracket, jpeg_bracket):
     run("calibrate-noise", *frames_of(folder, meta), "-o", prof)
     proc = run("merge", *frames_of(folder, meta), "--profile", prof, "-o", tmp_path / "m.exr")
     assert "--crf" not in proc.stderr and "RuntimeWarning" not in proc.stderr
+
+
+def test_a_file_name_that_is_not_utf8_is_one_line(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    odd = [os.fsdecode(os.fsencode(tmp_path) + b"/fr\xff_%d.jpg" % k) for k in range(3)]
+    for src, dst in zip(frames_of(folder, meta), odd):
+        shutil.copy(src, dst)
+    for args in (["info", *odd], ["merge", *odd, "--crf", "srgb", "-o", tmp_path / "o.exr"]):
+        proc = run(*args, check=False)
+        assert proc.returncode == 1 and "not valid UTF-8" in proc.stderr and "Traceback" not in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1

@@ -159,6 +159,12 @@ def list_frames(folder: str | os.PathLike) -> list[str]:
 def read_frame(path: str | os.PathLike) -> Frame:
     """Metadata of one frame (RAW or image), validated; raises HdrMergeError."""
     path = str(path)
+    try:
+        path.encode("utf-8")
+    except UnicodeEncodeError:  # bytes the OS allows but the image libraries cannot be given
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise HdrMergeError(f"{shown}: the file name is not valid UTF-8, which the image libraries cannot open; "
+                            "rename the file") from None
     if not os.path.isfile(path):
         raise HdrMergeError(f"{path}: no such file")
     if not os.access(path, os.R_OK):
