@@ -159,3 +159,11 @@ def test_a_file_name_that_is_not_utf8_is_one_line(run, tmp_path, jpeg_bracket):
         proc = run(*args, check=False)
         assert proc.returncode == 1 and "not valid UTF-8" in proc.stderr and "Traceback" not in proc.stderr
         assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_simulate_from_a_scene_too_dark_leaves_no_folder(run, tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    out = tmp_path / "sim"
+    proc = run("simulate", "--scene", frames_of(folder, meta)[0], "-o", out, check=False)
+    assert proc.returncode == 1 and "too dark" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()

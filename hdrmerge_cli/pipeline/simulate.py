@@ -1,6 +1,7 @@
 """simulate: render a bracket from a scene through the sensor model (16)-(18)."""
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -105,6 +106,24 @@ def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
     return scene * opts.scale, name
 
 
+@contextlib.contextmanager
+def _new_folder(out: Path):
+    """Create ``out`` (and parents) for the block; remove it again if the block fails and
+    it was created here and is still empty."""
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        yield out
+    except BaseException:
+        if created and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+#: longest exposure time a simulated frame may need (seconds)
+MAX_TIME = 1e6
+
+
 def simulate(opts: SimulateOptions) -> dict:
     if opts.fmt not in FORMATS:
         raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
@@ -129,6 +148,9 @@ def simulate(opts: SimulateOptions) -> dict:
     if opts.fmt == "dng" and times[0] < 1e-6:
         raise HdrMergeError(f"exposure time {times[0]:.3g} s is shorter than a DNG can store (1e-6 s): "
                             "lower --scale or give longer --times")
+    if times[-1] > MAX_TIME:
+        raise HdrMergeError(f"{scene_name}: exposing it takes {times[-1]:.3g} s (more than {MAX_TIME:g} s): "
+                            "the scene is too dark for the sensor; raise --scale or give --times")
     pattern = gain_pattern(signal.shape, sensor, rng)
 
     out = Path(opts.output_dir)
@@ -136,55 +158,55 @@ def simulate(opts: SimulateOptions) -> dict:
         raise HdrMergeError(f"{out}: exists and is not a folder")
     names = [f"frame_{k:02d}.{opts.fmt}" for k in range(len(times))]
     paths = [out / n for n in names] + [out / "truth.exr", out / "simulation.json"]
-    out.mkdir(parents=True, exist_ok=True)
-    requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
-    times = np.array([stored_time(out, opts.fmt, t) for t in times])
-    t_ref = float(np.exp(np.mean(np.log(times))))
+    with _new_folder(out):  # removed again if the run fails before anything is in it
+        requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
+        times = np.array([stored_time(out, opts.fmt, t) for t in times])
+        t_ref = float(np.exp(np.mean(np.log(times))))
 
-    truth = (np.sqrt(sensor.alpha) * t_ref / sensor.full_scale) * irradiance
-    meta = {
-        "tool": f"hdrmerge-cli {__version__}",
-        "scene": scene_name,
-        "format": opts.fmt,
-        "frames": names,
-        "exposure_times": [float(t) for t in times],
-        "reference_exposure": t_ref,
-        "sensor": sensor.as_dict(),
-        "crf": crf.describe(),
-        "out_bits": out_bits if opts.fmt != "dng" else sensor.bits,
-        "cfa_pattern": CFA_PATTERN if opts.fmt == "dng" else None,
-        "iso": opts.iso,
-        "seed": opts.seed,
-        "truth": "truth.exr",
-        "truth_units": "1.0 = full-scale signal at reference_exposure seconds (the units of 'merge')",
-        "width": int(irradiance.shape[1]),
-        "height": int(irradiance.shape[0]),
-    }
-    saturated = []
-    with atomic_paths(paths, opts.overwrite) as tmps:
-        for k, t in enumerate(times):
-            y = expose(signal, t, sensor, rng, pattern)
-            saturated.append(float(np.mean(y >= sensor.full_scale)))
-            if opts.fmt == "dng":
-                write_dng(
-                    tmps[k], quantise_raw(y, sensor), pattern=CFA_PATTERN, black=sensor.black,
-                    white=sensor.white, exposure_time=requested[k], iso=opts.iso, aperture=opts.aperture,
-                )
-            else:
-                write_ldr(tmps[k], quantise_crf(y, sensor, crf, out_bits), {
-                    "ExposureTime": float(requested[k]), "FNumber": float(opts.aperture),
-                    "Exif:PhotographicSensitivity": int(opts.iso), "Exif:ISOSpeedRatings": int(opts.iso),
-                    "Make": "hdrmerge-cli", "Model": "simulated sensor",
-                })
-            stored = read_frame(tmps[k]).exposure_time
-            if stored is None or abs(stored - t) > 1e-5 * t:
-                raise HdrMergeError(f"{names[k]}: the file stores exposure time {stored}, not {t} (internal error)")
-            log.info("rendered %s (t = %.6g s, %.1f %% saturated)", names[k], t, 100 * saturated[-1])
-        write_exr(tmps[-2], truth.astype(np.float32), ["R", "G", "B"], {
-            "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
-            "hdrmerge:units": meta["truth_units"], "chromaticities": list(REC709_CHROMATICITIES),
-            "ExposureTime": t_ref,
-        })
-        meta["saturated_fraction"] = saturated
-        Path(tmps[-1]).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-    return {"output_dir": str(out), "files": [str(p) for p in paths]} | meta
+        truth = (np.sqrt(sensor.alpha) * t_ref / sensor.full_scale) * irradiance
+        meta = {
+            "tool": f"hdrmerge-cli {__version__}",
+            "scene": scene_name,
+            "format": opts.fmt,
+            "frames": names,
+            "exposure_times": [float(t) for t in times],
+            "reference_exposure": t_ref,
+            "sensor": sensor.as_dict(),
+            "crf": crf.describe(),
+            "out_bits": out_bits if opts.fmt != "dng" else sensor.bits,
+            "cfa_pattern": CFA_PATTERN if opts.fmt == "dng" else None,
+            "iso": opts.iso,
+            "seed": opts.seed,
+            "truth": "truth.exr",
+            "truth_units": "1.0 = full-scale signal at reference_exposure seconds (the units of 'merge')",
+            "width": int(irradiance.shape[1]),
+            "height": int(irradiance.shape[0]),
+        }
+        saturated = []
+        with atomic_paths(paths, opts.overwrite) as tmps:
+            for k, t in enumerate(times):
+                y = expose(signal, t, sensor, rng, pattern)
+                saturated.append(float(np.mean(y >= sensor.full_scale)))
+                if opts.fmt == "dng":
+                    write_dng(
+                        tmps[k], quantise_raw(y, sensor), pattern=CFA_PATTERN, black=sensor.black,
+                        white=sensor.white, exposure_time=requested[k], iso=opts.iso, aperture=opts.aperture,
+                    )
+                else:
+                    write_ldr(tmps[k], quantise_crf(y, sensor, crf, out_bits), {
+                        "ExposureTime": float(requested[k]), "FNumber": float(opts.aperture),
+                        "Exif:PhotographicSensitivity": int(opts.iso), "Exif:ISOSpeedRatings": int(opts.iso),
+                        "Make": "hdrmerge-cli", "Model": "simulated sensor",
+                    })
+                stored = read_frame(tmps[k]).exposure_time
+                if stored is None or abs(stored - t) > 1e-5 * t:
+                    raise HdrMergeError(f"{names[k]}: the file stores exposure time {stored}, not {t} (internal error)")
+                log.info("rendered %s (t = %.6g s, %.1f %% saturated)", names[k], t, 100 * saturated[-1])
+            write_exr(tmps[-2], truth.astype(np.float32), ["R", "G", "B"], {
+                "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
+                "hdrmerge:units": meta["truth_units"], "chromaticities": list(REC709_CHROMATICITIES),
+                "ExposureTime": t_ref,
+            })
+            meta["saturated_fraction"] = saturated
+            Path(tmps[-1]).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+        return {"output_dir": str(out), "files": [str(p) for p in paths]} | meta
