@@ -122,10 +122,6 @@ class FiniteFloatRange(click.FloatRange):
         return rv
 
 
-#: any finite float
-FINITE_FLOAT = FiniteFloatRange()
-
-
 def _check_text(parse, value):
     """Check a text option with ``parse`` as soon as it is read, so that an empty text is
     an error too (not silently unset); its HdrMergeError, which names the option, is a
