@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from hypothesis import given, settings, strategies as st
 
 from conftest import frames_of
-from hdrmerge_cli.cli.options import FINITE_FLOAT, FiniteFloatRange
+from hdrmerge_cli.cli.options import FiniteFloatRange
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.crfspec import read_crf_csv
 from hdrmerge_cli.io.noisespec import NOISE_RANGES, noise_from_profile, parse_bounds, parse_noise
@@ -210,7 +210,7 @@ def test_good_values_still_parse(tmp_path):
 
 @pytest.mark.parametrize("text", ["nan", "inf", "-inf", "1e400"])
 def test_finite_float_option_type(text):
-    for kind in (FINITE_FLOAT, FiniteFloatRange(min=0), FiniteFloatRange(0.5, 10)):
+    for kind in (FiniteFloatRange(), FiniteFloatRange(min=0), FiniteFloatRange(0.5, 10)):
         with pytest.raises(click.BadParameter):
             kind.convert(text, None, None)
     assert FiniteFloatRange(min=0).convert("2.5", None, None) == 2.5
