@@ -81,6 +81,7 @@ import numpy as np
 
 from benchmarks import write_result
 from benchmarks.accuracy import GAMMA, SHORT_SWEEP, crb_log
+from benchmarks.peers import QT, read_exr_rgb, run_tool
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RESULTS = Path(__file__).parent / "results"
@@ -89,8 +90,6 @@ TIMES = ("1/1024", "1/256", "1/64", "1/16")
 BITS = 12
 SCALE = (2**BITS - 1) / 255.0  # 8-bit code units -> 12-bit
 CRB_MAX = 1.0  # compare samples whose bound on Var[log E] is below this
-TIMEOUT = 300  # s, per subprocess
-QT = {"QT_QPA_PLATFORM": "offscreen"}
 
 RAW_OURS = {"defaults": [], "--weights triangle": ["--weights", "triangle"],
             "--weights uniform": ["--weights", "uniform"],
@@ -106,27 +105,10 @@ def cli() -> str:
 
 
 def run(cmd, cwd, stdin=None, stdout=None, env=None) -> float:
-    """Run ``cmd`` (list) in ``cwd``; wall seconds; RuntimeError with stderr's tail on failure."""
+    """:func:`benchmarks.peers.run_tool`, timed: wall seconds."""
     t = time.perf_counter()
-    try:
-        proc = subprocess.run([str(c) for c in cmd], cwd=cwd, stdin=stdin, stdout=stdout or subprocess.DEVNULL,
-                              stderr=subprocess.PIPE, env=dict(os.environ, **(env or {})), timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
-        raise RuntimeError(f"{Path(cmd[0]).name} timed out after {TIMEOUT} s") from None
-    if proc.returncode:
-        tail = proc.stderr.decode(errors="replace").strip().splitlines()[-1:] or [""]
-        raise RuntimeError(f"{Path(cmd[0]).name} exit {proc.returncode}: {tail[0][:200]}")
+    run_tool(cmd, cwd, stdin, stdout or subprocess.DEVNULL, env)
     return time.perf_counter() - t
-
-
-def read_rgb(path) -> np.ndarray:
-    from hdrmerge_cli.io.images import read_exr
-
-    pixels, attrs = read_exr(path)
-    names = list(attrs["channelnames"])
-    if names == ["Y"]:
-        return pixels[..., 0]
-    return pixels[..., [names.index(c) for c in "RGB"]]
 
 
 def read_float_dng(path) -> tuple[np.ndarray, tuple[int, int]]:
@@ -211,7 +193,7 @@ class Bracket:
 
         self.meta, self.folder = meta, folder
         s = meta["sensor"]
-        truth = read_rgb(folder / "truth.exr").astype(np.float64)
+        truth = read_exr_rgb(folder / "truth.exr").astype(np.float64)
         self.truth = mosaic(truth, meta["cfa_pattern"]) if meta["format"] == "dng" else truth
         self.times = np.array(meta["exposure_times"])
         full, t_ref = s["white"] - s["black"], meta["reference_exposure"]
@@ -290,7 +272,7 @@ def pfstools(b: Bracket, work: Path):
         run(["pfshdrcalibrate", "-f", "true.m"], work, stdin=inp, stdout=out)
     with open(work / "hdr.pfs", "rb") as inp:
         run(["pfsout", "pfs.exr"], work, stdin=inp)
-    return read_rgb(work / "pfs.exr"), time.perf_counter() - t, "-f true.m"
+    return read_exr_rgb(work / "pfs.exr"), time.perf_counter() - t, "-f true.m"
 
 
 def luminance(model: str):
@@ -302,7 +284,7 @@ def luminance(model: str):
         seconds = run(["luminance-hdr-cli", "-e", ",".join(f"{np.log2(t):.6f}" for t in b.times), "--hdrModel", model,
                        "--hdrResponseCurve", "from_file", "--inputCameraResponseCurve", "true.csv", "-s", out,
                        *b.meta["paths"]], work, env=QT)
-        return read_rgb(out), seconds, f"--hdrModel {model}"
+        return read_exr_rgb(out), seconds, f"--hdrModel {model}"
     return method
 
 

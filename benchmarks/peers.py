@@ -181,16 +181,25 @@ def _colour_hdri(name, frames, times, workdir):
 # --- command-line peers ------------------------------------------------------------------
 
 
-def _run(cmd, cwd, stdin=None, stdout=subprocess.DEVNULL, env=None):
+#: the environment Qt programs (Luminance HDR, HDRMerge) need without a screen
+QT = {"QT_QPA_PLATFORM": "offscreen"}
+
+
+def run_tool(cmd, cwd, stdin=None, stdout=subprocess.DEVNULL, env=None) -> str:
+    """Run a peer's command ``cmd`` (list) in ``cwd`` with :data:`TIMEOUT`; ``env``: variables
+    added to this process's environment.  Returns its stderr; RuntimeError naming the tool,
+    its exit status and the last line of its stderr when it fails."""
+    cmd = [str(c) for c in cmd]
     try:
         proc = subprocess.run(cmd, cwd=cwd, stdin=stdin, stdout=stdout, stderr=subprocess.PIPE,
-                              env=env, timeout=TIMEOUT)
+                              env=dict(os.environ, **(env or {})), timeout=TIMEOUT)
     except subprocess.TimeoutExpired:
-        raise RuntimeError(f"{cmd[0]} timed out after {TIMEOUT} s") from None
+        raise RuntimeError(f"{Path(cmd[0]).name} timed out after {TIMEOUT} s") from None
+    err = proc.stderr.decode(errors="replace")
     if proc.returncode != 0:
-        tail = proc.stderr.decode(errors="replace").strip()[-1500:]
-        raise RuntimeError(f"{cmd[0]} failed (exit {proc.returncode}): {tail}")
-    return proc.stderr.decode(errors="replace")
+        tail = err.strip().splitlines()[-1:] or [""]
+        raise RuntimeError(f"{Path(cmd[0]).name} failed (exit {proc.returncode}): {tail[0][:200]}")
+    return err
 
 
 def _write_tiffs(frames, workdir):
@@ -203,31 +212,30 @@ def _write_tiffs(frames, workdir):
     return names
 
 
-def _read_exr(path):
-    import OpenImageIO as oiio
+def read_exr_rgb(path) -> np.ndarray:
+    """(H, W, 3) float64 R, G, B of an EXR, by channel name."""
+    from hdrmerge_cli.io.images import read_exr
 
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise RuntimeError(f"{path}: {buf.geterror()}")
-    return buf.get_pixels(oiio.FLOAT)[..., :3].astype(np.float64)
+    pixels, attrs = read_exr(path)
+    names = list(attrs["channelnames"])
+    return pixels[..., [names.index(c) for c in "RGB"]].astype(np.float64)
 
 
 def _luminance(name, frames, times, workdir):
-    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
     start = _time.perf_counter()
     files = _write_tiffs(frames, workdir)
     ev = ",".join(f"{np.log2(t):.6f}" for t in times)
     base = ["luminance-hdr-cli", "-e", ev, "--hdrWeight", "triangular"]
-    _run(base + ["--hdrModel", "robertsonauto", "--outputCameraResponseCurve", "curve.csv",
-                 "-s", "robertson.exr", *files], workdir, env=env)
+    run_tool(base + ["--hdrModel", "robertsonauto", "--outputCameraResponseCurve", "curve.csv",
+                 "-s", "robertson.exr", *files], workdir, env=QT)
     if name == "luminance-debevec":
-        _run(base + ["--hdrModel", "debevec", "--hdrResponseCurve", "from_file",
+        run_tool(base + ["--hdrModel", "debevec", "--hdrResponseCurve", "from_file",
                      "--inputCameraResponseCurve", "curve.csv", "-s", "debevec.exr", *files],
-             workdir, env=env)
-        radiance = _read_exr(workdir / "debevec.exr")
+             workdir, env=QT)
+        radiance = read_exr_rgb(workdir / "debevec.exr")
         seconds = _time.perf_counter() - start
         return radiance, _response_from_radiance(frames, times, radiance), seconds
-    radiance = _read_exr(workdir / "robertson.exr")
+    radiance = read_exr_rgb(workdir / "robertson.exr")
     curve = np.loadtxt(workdir / "curve.csv", delimiter=",", skiprows=1)[:, 1::2]  # Ir, Ig, Ib
     seconds = _time.perf_counter() - start
     bins = np.round(_CODES * (len(curve) - 1) / 255).astype(int)
@@ -240,14 +248,14 @@ def _pfstools(name, frames, times, workdir):
     script = "".join(f"{n} {1.0 / t!r} 1 100 0\n" for n, t in zip(files, times))  # 1/t, f/1, ISO 100
     (workdir / "stack.hdrgen").write_text(script)
     with open(workdir / "stack.pfs", "wb") as out:
-        err = _run(["pfsinhdrgen", "stack.hdrgen"], workdir, stdout=out)
+        err = run_tool(["pfsinhdrgen", "stack.hdrgen"], workdir, stdout=out)
     if err.strip():  # it exits 0 and skips a frame that pfsin cannot read: silent only on success
         raise RuntimeError(f"pfsinhdrgen failed: {err.strip()[-1500:]}")
     with open(workdir / "stack.pfs", "rb") as inp, open(workdir / "hdr.pfs", "wb") as out:
-        _run(["pfshdrcalibrate", "-c", "robertson", "-s", "response.m"], workdir, stdin=inp, stdout=out)
+        run_tool(["pfshdrcalibrate", "-c", "robertson", "-s", "response.m"], workdir, stdin=inp, stdout=out)
     with open(workdir / "hdr.pfs", "rb") as inp:
-        _run(["pfsout", "out.exr"], workdir, stdin=inp)
-    radiance = _read_exr(workdir / "out.exr")
+        run_tool(["pfsout", "out.exr"], workdir, stdin=inp)
+    radiance = read_exr_rgb(workdir / "out.exr")
     mats = _octave_matrices(workdir / "response.m")
     seconds = _time.perf_counter() - start
     response = np.stack([mats[k][:, 2] for k in ("IR", "IG", "IB")])  # log10 | code | response

@@ -134,17 +134,19 @@ class CRFMethod:
     smoothing : default lambda (None: the method has none)
     samples : default number of pixels per channel (None: all of them)
     noise_weighted : whether it takes ``weighting``, ``noise``, ``bounds``, ``pair_weight``
+    joint : whether it takes every channel at once (a list of ``(N, P)`` arrays; ``coupling``)
     """
 
     estimate: object
     smoothing: float | None
     samples: int | None
     noise_weighted: bool = False
+    joint: bool = False
 
 
 #: name -> method; the paper's (37) first
 CRF_ESTIMATORS = {
-    "goossens": CRFMethod(crf_goossens2012, DEFAULT_LAMBDA, None, True),
+    "goossens": CRFMethod(crf_goossens2012, DEFAULT_LAMBDA, None, True, True),
     "debevec": CRFMethod(crf_debevec1997, DEBEVEC_LAMBDA, 1000),
     "robertson": CRFMethod(crf_robertson2003, None, None),
 }

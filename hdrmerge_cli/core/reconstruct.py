@@ -130,7 +130,8 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
 
 def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
     """Variance that the quantisation of the codes adds to the linearised signal
-    ``y = gamma^-1(z) y_full``: a code step is worth ``dy/dz = y_full d gamma^-1 / dz``, and a
+    ``y = gamma^-1(z) y_full``, beside the sensor variance (17) (the paper's (2) maps codes
+    through ``gamma^-1``; its noise model stops at the ADC): a code step is worth ``dy/dz = y_full d gamma^-1 / dz``, and a
     uniform rounding error of one step has variance ``(dy/dz)^2 / 12``.
 
     lin : (N,) ``gamma^-1`` at every stored code value (one channel), in [0, 1]
@@ -142,7 +143,7 @@ def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
 
 def code_error_variance(lin: np.ndarray, y_full: float, tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
     """What a camera-processed code adds to the variance of its linearised value ``y``
-    beyond sensor noise: the quantisation through the inverse response
+    beyond the sensor noise (17), as used in the variance factor of (7): the quantisation through the inverse response
     (:func:`quantisation_variance`) plus the model tolerance ``(tolerance y)^2``.  In the log
     domain of (7) this is ``(d log gamma^-1 / dz)^2 / 12 + tolerance^2``: large for dark codes,
     where the inverse response is steep in log, and never below the tolerance.

@@ -145,15 +145,20 @@ def is_raw_path(path: str | os.PathLike) -> bool:
     return Path(path).suffix.lower() not in IMAGE_EXTENSIONS
 
 
+#: suffixes of files that are never frames (outputs and sidecars), with what they are
+NOT_FRAMES = {".exr": "an OpenEXR image (floating point)", ".hdr": "a Radiance HDR image (floating point)",
+              ".json": "a JSON file", ".xmp": "an XMP sidecar", ".txt": "a text file", ".csv": "a CSV table",
+              ".md": "a Markdown file"}
+
+
 def list_frames(folder: str | os.PathLike) -> list[str]:
     """The frames in ``folder``: every regular, non-hidden file that is not a sidecar or
-    an output of this tool (.json, .xmp, .exr, .txt, .csv), sorted by name."""
+    an output (:data:`NOT_FRAMES`), sorted by name."""
     folder = Path(folder)
     if not folder.is_dir():
         raise HdrMergeError(f"{folder}: not a folder")
-    skip = {".json", ".xmp", ".exr", ".txt", ".csv", ".md"}
     return [str(p) for p in sorted(folder.iterdir())
-            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() not in skip]
+            if p.is_file() and not p.name.startswith(".") and p.suffix.lower() not in NOT_FRAMES]
 
 
 def read_frame(path: str | os.PathLike) -> Frame:
@@ -174,10 +179,6 @@ def read_frame(path: str | os.PathLike) -> Frame:
                             "(frames are RAW files or 8/16-bit JPEG/TIFF/PNG)")
     return _read_raw(path) if is_raw_path(path) else _read_image(path)
 
-
-#: suffixes of files that are never frames (outputs and sidecars), with what they are
-NOT_FRAMES = {".exr": "an OpenEXR image (floating point)", ".hdr": "a Radiance HDR image (floating point)",
-              ".json": "a JSON file", ".xmp": "an XMP sidecar", ".txt": "a text file", ".csv": "a CSV table"}
 
 
 def _oiio_meta(path: str) -> dict:

@@ -90,7 +90,7 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
             rng: np.random.Generator | None = None):
     """The inverse response of decoded frames: ``method`` of
     :data:`~hdrmerge_cli.core.crf_estimate.CRF_ESTIMATORS`, the channels in one coupled
-    solve for ``goossens`` (see its ``coupling``), one by one for the others.
+    solve for a ``joint`` method (goossens: see its ``coupling``), one by one for the others.
 
     codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
     smoothing, samples : None for the method's defaults; options : the method's keywords
@@ -104,11 +104,10 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
     samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
-    if method == "goossens" and len(samples_of) > 1:  # one joint, coupled solve
+    if m.joint:  # one solve of every channel, coupled
         fit = m.estimate(samples_of, log_h, n_codes, **options)
         fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]
     else:
-        options.pop("coupling", None)
         fits = [m.estimate(z, log_h, n_codes, **options) for z in samples_of]
     for c, fit in enumerate(fits):
         log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, method, fit.iterations,
