@@ -167,3 +167,12 @@ def test_simulate_from_a_scene_too_dark_leaves_no_folder(run, tmp_path, jpeg_bra
     proc = run("simulate", "--scene", frames_of(folder, meta)[0], "-o", out, check=False)
     assert proc.returncode == 1 and "too dark" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists()
+
+
+def test_a_profile_that_is_not_json_is_named_as_the_profile(run, tmp_path, jpeg_bracket):
+    """--profile on an EXR: one line naming that file, not an 'unknown CRF' message."""
+    folder, meta = jpeg_bracket
+    proc = run("merge", *frames_of(folder, meta), "--profile", folder / "truth.exr", "-o", tmp_path / "x.exr",
+               check=False)
+    assert proc.returncode == 1 and "truth.exr" in proc.stderr and "unknown CRF" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.exr").exists()

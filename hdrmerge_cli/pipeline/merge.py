@@ -22,12 +22,11 @@ from hdrmerge_cli.core.reconstruct import (
 )
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
-from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.io.atomic import atomic_paths, check_distinct, check_writable
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
 from hdrmerge_cli.io.images import write_exr, write_ldr
-from hdrmerge_cli.io.profile import dumps, new_profile
+from hdrmerge_cli.io.profile import crf_from_json, dumps, load_profile, new_profile
 from hdrmerge_cli.io.times import read_times_file
 from hdrmerge_cli.pipeline import motion
 
@@ -203,7 +202,7 @@ def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False
             log.warning("RAW data is linear: --crf %s is ignored", spec)
         return CRF("linear")
     if spec:
-        crf = resolve_crf(spec)
+        crf = crf_from_json(load_profile(spec)["crf"], spec) if from_profile else resolve_crf(spec)
         n = frames[0].n_codes
         if crf.table is not None and crf.table.shape[1] != n:
             raise HdrMergeError(f"{spec}: the response table covers codes 0..{crf.table.shape[1] - 1}, but "
