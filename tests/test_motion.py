@@ -12,14 +12,19 @@ from hdrmerge_cli.core.scene import procedural_scene
 
 def _two_exposures(shift, size=(256, 384)):
     """Luminance of the built-in scene at two exposures 3 stops apart, the second seeing
-    the scene at x + shift (x right, y down); 8-bit through x^(1/2.2) with noise."""
-    e = procedural_scene(size[0] + 32, size[1] + 32).mean(axis=-1)
+    the scene at x + shift (x right, y down); 8-bit through x^(1/2.2) with noise.  Each
+    frame integrates its pixels: rendered at 4x, warped there and area-averaged (warping
+    sharp edges at the frames' own resolution would blur one frame and not the other)."""
+    e = procedural_scene(4 * (size[0] + 32), 4 * (size[1] + 32)).mean(axis=-1)
     e = e / np.percentile(e, 99)
     rng = np.random.default_rng(1)
     out = []
     for t, (tx, ty) in ((0.1, (0.0, 0.0)), (0.8, shift)):
-        m = np.float32([[1, 0, 16 + tx], [0, 1, 16 + ty]])
-        img = cv2.warpAffine(e.astype(np.float32), m, size[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+        # full-resolution pixel u has its centre at 4 u + 1.5 on the 4x grid
+        m = np.float32([[1, 0, 64 + 4 * tx], [0, 1, 64 + 4 * ty]])
+        img = cv2.warpAffine(e.astype(np.float32), m, (4 * size[1], 4 * size[0]),
+                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        img = img.reshape(size[0], 4, size[1], 4).mean(axis=(1, 3))
         v = np.clip(np.maximum(img, 0) * t + rng.normal(0, 0.002, img.shape), 0, 1)
         out.append((np.rint(v ** (1 / 2.2) * 255) / 255) ** 2.2)
     return out, (0.1, 0.8)
@@ -28,10 +33,80 @@ def _two_exposures(shift, size=(256, 384)):
 def test_ecc_recovers_a_subpixel_shift_between_exposures():
     (a, b), times = _two_exposures((2.3, -1.6))
     lo, hi = align.common_range(times)
-    w = align.estimate_warp(align.log_irradiance(a, times[0], lo, hi), align.log_irradiance(b, times[1], lo, hi))
+    w, rho = align.estimate_warp(align.log_irradiance(a, times[0], lo, hi), align.log_irradiance(b, times[1], lo, hi))
     # the second frame sees the scene at x + shift: it is brought back by sampling it at x - shift
-    np.testing.assert_allclose(w[:, 2], [-2.3, 1.6], atol=0.1)
+    np.testing.assert_allclose(w[:, 2], [-2.3, 1.6], atol=0.15)  # 8-bit clip edges bias it ~0.1 px
     np.testing.assert_allclose(w[:, :2], np.eye(2))
+    assert rho > 0.9
+
+
+def _bracket_pngs(folder, times, warps, size=(300, 400), seed=2):
+    """8-bit PNG frames (x^(1/2.2), noise) of the built-in scene, frame j seeing it through
+    ``warps[j]`` (reference coordinates -> frame coordinates, as ``core.align``); rendered
+    at 4x and area-averaged, like a sensor integrating its pixels."""
+    h, w = size
+    e = procedural_scene(4 * (h + 64), 4 * (w + 64))
+    e = e / np.percentile(e, 99)
+    up = np.diag([4.0, 4.0, 1.0])
+    centre = np.array([[1, 0, 1.5], [0, 1, 1.5], [0, 0, 1.0]])  # pixel u -> 4x grid 4u + 1.5
+    rng = np.random.default_rng(seed)
+    paths = []
+    for j, (t, warp) in enumerate(zip(times, warps)):
+        inv = np.linalg.inv(np.vstack([warp, [0, 0, 1]]))  # frame pixel -> reference (= scene - 32) coordinates
+        inv[:2, 2] += 32
+        m = np.linalg.inv(centre) @ up @ inv @ np.linalg.inv(up) @ centre
+        img = np.stack([cv2.warpAffine(e[..., c].astype(np.float32), m[:2].astype(np.float32), (4 * w, 4 * h),
+                                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP) for c in range(3)], axis=-1)
+        lin = np.maximum(img.reshape(h, 4, w, 4, 3).mean(axis=(1, 3)), 0) * t
+        v = np.clip(lin + rng.normal(0, 1, lin.shape) * np.sqrt(4e-4 * lin + 1e-6), 0, 1)
+        paths.append(folder / f"f{j}.png")
+        cv2.imwrite(str(paths[-1]), np.rint(v ** (1 / 2.2) * 255).astype(np.uint8)[..., ::-1])
+    return paths
+
+
+def _rigid(deg, tx, ty):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, tx], [s, c, ty]])
+
+
+@pytest.mark.parametrize("mode, rotation", [("auto", 0.0), ("similarity", 0.6)])
+def test_alignment_engages_on_a_dark_short_frame(tmp_path, mode, rotation):
+    """Three frames 2.3 stops apart, the short one mostly dark (the reviewer's case): the
+    pair shares well-exposed irradiance on a few per cent of the frame, yet thousands of
+    textured pixels, so the frames are registered and none is left unaligned: within 0.2 px
+    at every corner without rotation; with 0.6 degrees, within 0.6 px and 0.1 degrees (the
+    short frame's narrow shared band limits ECC's rotation to about 0.07 degrees here)."""
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.pipeline.merge import read_bracket
+    from hdrmerge_cli.pipeline.motion import estimate_alignment
+
+    times = [2.0**-2.3, 1.0, 2.0**2.3]
+    truth = [_rigid(rotation, 3.0, -2.0), _rigid(0, 0, 0), _rigid(-rotation, -4.0, 5.0)]
+    frames = read_bracket([str(p) for p in _bracket_pngs(tmp_path, times, truth)], times)
+    short = cv2.imread(str(frames[0].path))
+    assert np.mean(short > 60) < 0.3  # mostly dark
+    out = estimate_alignment(frames, np.array(times), CRF("gamma", 2.2), mode)
+    assert out["applied"] and not out["unaligned"] and min(out["confidence"]) > 0.5
+    for est, true in zip(out["warps"], truth):
+        assert align.corner_distance(est, true, 300, 400) < (0.6 if rotation else 0.2)
+        assert abs(np.degrees(np.arctan2(est[1, 0], est[0, 0]) - np.arctan2(true[1, 0], true[0, 0]))) < 0.1
+
+
+def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, caplog):
+    """A frame with no texture in the shared range cannot be registered: it is named in
+    a warning and left where it is."""
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.pipeline.merge import read_bracket
+    from hdrmerge_cli.pipeline.motion import estimate_alignment
+
+    paths = []
+    for j, v in enumerate((40, 120, 250)):  # flat grey frames
+        paths.append(tmp_path / f"f{j}.png")
+        cv2.imwrite(str(paths[-1]), np.full((64, 96, 3), v, np.uint8))
+    frames = read_bracket([str(p) for p in paths], [0.25, 1.0, 4.0])
+    out = estimate_alignment(frames, np.array([0.25, 1.0, 4.0]), CRF("gamma", 2.2), "auto")
+    assert not out["applied"] and len(out["unaligned"]) == 2
+    assert "textured pixels" in caplog.text or "no irradiance range" in caplog.text
 
 
 def test_warp_algebra():
@@ -151,3 +226,133 @@ def test_samples_shifted_in_from_outside_get_no_weight():
     assert raw.shape == (6, 10) and not raw[:2].any() and not raw[:, 8:].any() and raw[2:, :8].all()
     rgb = covered(frame("image", 3), w, "translation")  # x + 2.7 beyond 9.5 from x = 7
     assert rgb.shape == (6, 30) and not rgb[:, 21:].any() and rgb[3:, :21].all()
+
+
+# ---------------------------------------------------------------- deghosting decision rules (issue 17)
+def _image_frame(name, t, h, w):
+    from hdrmerge_cli.io.frames import Frame
+
+    return Frame(path=name, kind="image", width=w, height=h, exposure_time=t, iso=None, aperture=None, make="",
+                 model="", timestamp=None, bits=8, n_codes=256, black=np.zeros(3), white=np.full(3, 255.0),
+                 channels=3)
+
+
+def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None):
+    """Three 8-bit frames through x^(1/2.2), ``step`` stops apart, of a textured ramp;
+    ``paint``: {frame: (slice, code)} objects seen by one frame only."""
+    yy, xx = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
+    e = (2.0 ** (9 * xx - 8) * (0.6 + 0.3 * np.sin(12 * yy)))[..., None] * np.array([1.0, 0.9, 0.8])
+    times = 2.0 ** (step * np.arange(-1, 2))
+    frames, codes = [], []
+    for k, t in enumerate(times):
+        lin = np.clip(e * t * 4 + rng.normal(0, 0.003, e.shape), 0, 1)
+        z = np.rint(lin ** (1 / 2.2) * 255).astype(np.uint8)
+        if paint and k in paint:
+            where, code = paint[k]
+            z[where] = code
+        frames.append(_image_frame(f"f{k}", float(t), h, w))
+        codes.append(z)
+    return frames, codes, times
+
+
+def _ghosts_of(frames, codes, times, mode="on"):
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.pipeline.motion import find_ghosts
+
+    load = {f.path: c for f, c in zip(frames, codes)}
+    return find_ghosts(frames, np.asarray(times), CRF("gamma", 2.2), None, lambda f: load[f.path], mode)
+
+
+def test_level_scale_keeps_the_false_alarm_rate_when_the_model_underestimates_the_noise():
+    """Monte-Carlo: the noise is 3x what the model says (as with JPEG processing); the
+    measured level scale brings the false-alarm rate back to about p_fa."""
+    rng = np.random.default_rng(11)
+    shape = (400, 600)
+    truth = np.exp(rng.uniform(np.log(0.05), 0.0, shape))
+    s = (0.01 * truth) ** 2
+    xa = truth + rng.normal(0, 3 * 0.01 * truth)
+    x = truth + rng.normal(0, 3 * 0.01 * truth)
+    ok = np.ones(shape, bool)
+    flat = np.zeros(shape, np.float32)
+    saved = deghost.MODEL_TOLERANCE
+    deghost.MODEL_TOLERANCE = 0.0
+    try:
+        raw = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), p_fa=0.01, scale=False)
+        scaled = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), p_fa=0.01)
+    finally:
+        deghost.MODEL_TOLERANCE = saved
+    assert raw.mean() > 0.3
+    assert 0.005 < scaled.mean() < 0.015
+
+
+def test_intensity_matching_does_not_absorb_an_object_alone_at_its_brightness():
+    """A bright patch in a short frame where the anchor reads dark is the only jointly
+    measured sample at its level; the smooth robust curve leaves it out (a bin-by-bin
+    curve mapped it onto the anchor)."""
+    rng = np.random.default_rng(5)
+    xa = np.exp(rng.uniform(np.log(0.01), np.log(0.2), 200_000)).astype(np.float32)
+    x = (xa * 1.05).astype(np.float32)  # 5 % exposure error: absorbed
+    x[:4000] = 0.6  # the object: 2 % of the samples, far above everything else
+    both = np.ones(x.size, bool)
+    m = deghost.match_anchor(x, xa, both)
+    np.testing.assert_allclose(m[4000:], xa[4000:], rtol=0.01)
+    assert np.all(m[:4000] > 0.4)
+
+
+def test_ghost_in_a_non_reference_frame_over_a_dark_reference_region():
+    """The reviewer's case: a bright object (code 160) in the short frame where the
+    reference reads a valid dark value, a mid-grey one in the long frame: both found; a
+    static bracket has nothing rejected."""
+    rng = np.random.default_rng(2)
+    frames, codes, times = _gamma_bracket(rng)
+    static = _ghosts_of(frames, codes, times, "auto")
+    assert max(static["rejected_fraction"]) <= 0.002 and not static["applied"]
+    dark = (slice(60, 100), slice(20, 60))  # the left: dark in the reference
+    assert codes[1][dark].mean() < 60 and codes[0][dark].mean() < 30
+    mid = (slice(60, 110), slice(110, 160))
+    frames, codes, times = _gamma_bracket(np.random.default_rng(2), paint={0: (dark, 160), 2: (mid, 128)})
+    g = _ghosts_of(frames, codes, times, "auto")
+    assert g["applied"]
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    m0 = ghost_weight(g, 0, 160, 200)
+    m2 = ghost_weight(g, 2, 160, 200)
+    assert m0[dark].min() > 0.95 and m2[mid].min() > 0.95
+    assert ghost_weight(g, 1, 160, 200).max() == 0  # the reference is the anchor: never dropped
+    assert m0[:, 120:].max() < 0.05  # far from the object the short frame stays
+
+
+def test_clipped_reference_bounds_a_dark_reading_in_another_frame():
+    """Censoring: where the reference clips, a dark object in the short frame (far below
+    half the reference's clipping level) is dropped."""
+    rng = np.random.default_rng(4)
+    frames, codes, times = _gamma_bracket(rng)
+    bright = (slice(40, 90), slice(176, 200))
+    assert (codes[1][bright] == 255).mean() > 0.9 and 20 < codes[0][bright].mean() < 250
+    frames, codes, times = _gamma_bracket(np.random.default_rng(4), paint={0: (bright, 20)})
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    g = _ghosts_of(frames, codes, times)
+    assert ghost_weight(g, 0, 160, 200)[45:85, 180:196].min() > 0.95
+
+
+def test_feathered_mask_has_no_seam():
+    mask = np.zeros((80, 80), bool)
+    mask[30:50, 30:50] = True
+    soft = deghost.feather(mask, 3.0)
+    assert soft[mask].min() > 0.97 and soft[:5].max() < 0.01
+    assert np.abs(np.diff(soft, axis=1)).max() < 0.2 and np.abs(np.diff(soft, axis=0)).max() < 0.2
+
+
+def test_a_night_frame_with_sparse_lamps_is_not_black():
+    """The 'black' rule counts sites above the noise floor: a frame that is dark but for a
+    few lamps (99th percentile near black) has signal; one of pure noise has none."""
+    from hdrmerge_cli.pipeline.calibrate import _has_signal
+
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 2.0, (600, 800))
+    assert not _has_signal(noise, -64.0, 4000.0)
+    lamps = noise.copy()
+    lamps[100:110, 100:110] = 3000
+    lamps[400:405, 600:640] = 1500
+    assert np.percentile(lamps, 99) < 10 and _has_signal(lamps, -64.0, 4000.0)

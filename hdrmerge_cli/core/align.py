@@ -24,7 +24,17 @@ from hdrmerge_cli.core.errors import HdrMergeError
 COARSE_SIDE = 1024
 #: side of the full-resolution refinement window
 FINE_SIDE = 1024
+#: longest side of the coarsest ECC pyramid level
+PYRAMID_SIDE = 256
 MOTIONS = ("translation", "similarity")
+#: registration needs this many textured pixels off the plateaus in both frames
+MIN_TEXTURED = 400
+#: log-irradiance gradient per pixel (about 10 % contrast) that counts as texture
+TEXTURE_LOG_GRAD = 0.1
+#: largest correction (pixels) ECC may make to the phase-correlation translation
+MAX_REFINE_PX = 3.0
+#: a rotation is kept when it moves some corner of the frame by more than this (pixels)
+ROTATION_PX = 0.25
 
 
 def _cv2():
@@ -36,7 +46,7 @@ def _cv2():
 def log_irradiance(lin: np.ndarray, exposure: float, lo: float, hi: float) -> np.ndarray:
     """``log(clip(lin / exposure, lo, hi))`` as float32: ``lin`` the linearised signal
     (full scale 1), ``[lo, hi]`` the irradiance range to keep (see :func:`common_range`)."""
-    return np.log(np.clip(np.asarray(lin, np.float64) / exposure, lo, hi)).astype(np.float32)
+    return np.log(np.clip(np.asarray(lin, np.float64) / exposure, 0.0, hi) + lo).astype(np.float32)
 
 
 def common_range(exposures, lo_code: float = 0.02, hi_code: float = 0.9) -> tuple[float, float]:
@@ -55,19 +65,6 @@ def block_mean(img: np.ndarray, f: int) -> np.ndarray:
         return img
     h, w = img.shape[0] // f * f, img.shape[1] // f * f
     return img[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
-
-
-def _ecc_similarity(template: np.ndarray, image: np.ndarray, warp: np.ndarray) -> np.ndarray | None:
-    """OpenCV's affine ECC from ``warp``, projected onto the nearest similarity; None when
-    it does not converge."""
-    cv2 = _cv2()
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 200, 1e-6)
-    try:
-        _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), cv2.MOTION_AFFINE, criteria,
-                                        None, 3)
-    except cv2.error:
-        return None
-    return nearest_similarity(found.astype(np.float64))
 
 
 def nearest_similarity(warp: np.ndarray) -> np.ndarray:
@@ -124,52 +121,136 @@ def _phase_shift(template: np.ndarray, image: np.ndarray) -> np.ndarray:
     return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
 
 
-def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
-    h, w = reference.shape
-    f = max(1, -(-max(h, w) // COARSE_SIDE))
-    ref_c, img_c = block_mean(reference, f), block_mean(image, f)
-    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
-    coarse = rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
-    (y0, y1), (x0, x1) = _window(h), _window(w)
-    ref_w, img_w = reference[y0:y1, x0:x1], image[y0:y1, x0:x1]
-    tx, ty = np.rint(coarse[:, 2]).astype(int)  # the image window, pre-shifted by whole pixels
-    sy0, sx0 = int(np.clip(y0 + ty, 0, h - (y1 - y0))), int(np.clip(x0 + tx, 0, w - (x1 - x0)))
-    fine = _phase_shift(ref_w, image[sy0:sy0 + (y1 - y0), sx0:sx0 + (x1 - x0)])
-    fine[:, 2] += (sx0 - x0, sy0 - y0)
-    best = max((fine, shift_warp(coarse, (x0, y0))), key=lambda c: matched(ref_w, img_w, c)[1])
-    return shift_warp(best, (-x0, -y0))
-
-
 def _window(n: int) -> tuple[int, int]:
     """The central :data:`FINE_SIDE` span of ``n`` pixels."""
     start = max(0, (n - FINE_SIDE) // 2)
     return start, min(n, start + FINE_SIDE)
 
 
-def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> np.ndarray:
-    """The warp bringing ``image`` onto ``reference`` (both ``(H, W)`` float32 exposure-
-    invariant images, see :func:`log_irradiance`).
+def off_plateau(img: np.ndarray) -> np.ndarray:
+    """Pixels strictly inside the clipped range of an exposure-invariant image (its
+    plateaus are where one frame of the pair reads dark or clipped), uint8 0/1."""
+    lo, hi = float(img.min()), float(img.max())
+    return ((img > lo + 1e-4) & (img < hi - 1e-4)).astype(np.uint8)
 
-    On images at most :data:`COARSE_SIDE` wide, two starting points compete, no motion and
-    the phase-correlation peak (OpenCV), and the one matching more pixels (:func:`matched`)
-    wins: a bright object crossing a still scene can win the correlation peak, but not the
-    vote of the pixels.  The translation is then refined by phase correlation (sub-pixel
-    peak) at full resolution on a central :data:`FINE_SIDE` window, pre-shifted by the
-    whole-pixel estimate, and kept only if it matches at least as many pixels.
-    ``similarity`` adds ECC's rotation and scale (affine, projected onto the nearest
-    similarity) on that window when it matches more pixels.  Returns ``(2, 3)``."""
+
+def textured_pixels(img: np.ndarray) -> int:
+    """How many pixels off the plateaus carry texture: a log-irradiance gradient (3 x 3
+    box-smoothed, so single-pixel noise does not count) above :data:`TEXTURE_LOG_GRAD`."""
+    cv2 = _cv2()
+    f = max(1, -(-max(img.shape) // COARSE_SIDE))
+    small = block_mean(img, f)
+    smooth = cv2.blur(small, (3, 3))
+    gy, gx = np.gradient(smooth)
+    grad = np.hypot(gx, gy) / f  # per full-resolution pixel
+    return int(np.count_nonzero((grad > TEXTURE_LOG_GRAD) & (off_plateau(small) > 0))) * f * f
+
+
+def ecc_score(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> float:
+    """The enhanced correlation coefficient (Evangelidis and Psarakis 2008) of ``reference``
+    and ``image`` sampled at ``warp`` (OpenCV's ``computeECC``), over a set of pixels that
+    does not depend on the warp beyond the frame's edge: the reference's pixels off its
+    plateaus that the warped image covers.  The image's own plateaus count (misplaced,
+    they fall on the reference's texture).  -1 when too few pixels overlap."""
+    cv2 = _cv2()
+    h, w = reference.shape
+    m = warp.astype(np.float32)
+    flags = cv2.WARP_INVERSE_MAP
+    moved = cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR | flags, borderMode=cv2.BORDER_REPLICATE)
+    inside = cv2.warpAffine(np.ones(image.shape, np.uint8), m, (w, h), flags=cv2.INTER_NEAREST | flags,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mask = inside & off_plateau(reference)
+    if np.count_nonzero(mask) < 16:
+        return -1.0
+    try:
+        return float(cv2.computeECC(reference, moved, mask))
+    except cv2.error:
+        return -1.0
+
+
+def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+    """OpenCV's ECC maximisation from ``warp`` (translation, or rotation + translation for
+    ``similarity``; no pre-smoothing: it biases the optimum where plateaus meet texture), None when it does not converge.  No
+    mask: the plateaus are where either frame of the pair clips, the same irradiance in
+    both, so their edges register like any other (a nearest-neighbour-warped mask biases
+    the sub-pixel optimum by tenths of a pixel)."""
+    cv2 = _cv2()
+    mode = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_EUCLIDEAN
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    try:
+        _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), mode, criteria, None, 1)
+    except cv2.error:
+        return None
+    return found.astype(np.float64)
+
+
+def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+    """ECC coarse to fine: on area-averaged levels (factors 2^k down to 2, the coarsest at
+    most :data:`PYRAMID_SIDE` wide), then at full resolution on the central
+    :data:`FINE_SIDE` window; each level starts from the one before."""
+    levels = []
+    f = 2
+    while max(reference.shape) / f >= 64:
+        levels.append(f)
+        if max(reference.shape) / f <= PYRAMID_SIDE:
+            break
+        f *= 2
+    for f in reversed(levels):
+        c = (f - 1) / 2
+        level = rescale_warp(warp, 1 / f, -c / f)
+        found = _ecc(block_mean(reference, f), block_mean(image, f), level, motion)
+        if found is not None:
+            warp = rescale_warp(found, f, c)
+    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
+    found = _ecc(np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1]),
+                 shift_warp(warp, (x0, y0)), motion)
+    return None if found is None else shift_warp(found, (-x0, -y0))
+
+
+def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """Whole-image translation: the phase-correlation peak (OpenCV, sub-pixel) on area-
+    averaged images against no motion, the one matching more pixels kept (a bright object
+    crossing a still scene can win the correlation peak, but not the vote of the pixels)."""
+    h, w = reference.shape
+    f = max(1, -(-max(h, w) // COARSE_SIDE))
+    ref_c, img_c = block_mean(reference, f), block_mean(image, f)
+    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
+    return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
+
+
+def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> tuple[np.ndarray, float]:
+    """The warp bringing ``image`` onto ``reference`` (both ``(H, W)`` float32 exposure-
+    invariant images, see :func:`log_irradiance`) and its confidence, the enhanced
+    correlation coefficient of the registered pair off the plateaus (1 = identical up to
+    gain and offset; :func:`ecc_score`).
+
+    A coarse translation (:func:`_translation`: phase correlation against no motion, by the
+    vote of the pixels) starts ECC (Evangelidis and Psarakis 2008, ``cv2.findTransformECC``)
+    on a pyramid down to full resolution (:func:`_pyramid_ecc`): every textured pixel of the
+    band an HDR pair shares counts, however small a fraction of the frame it is.  ECC's
+    result stands unless it wandered more than :data:`MAX_REFINE_PX` from the phase
+    correlation's.  ``similarity`` then adds a rotation (ECC's Euclidean model, from
+    the translation) and keeps it only if it correlates better and moves some corner of the
+    frame by more than :data:`ROTATION_PX` (a negligible rotation is not worth resampling
+    for).  Returns ``((2, 3), rho)``."""
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}")
-    translation = _translation(reference, image)
-    if motion == "translation":
-        return translation
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
     ref_w, img_w = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
-    start = shift_warp(translation, (x0, y0))
-    found = _ecc_similarity(ref_w, img_w, start)
-    if found is None or matched(ref_w, img_w, found)[1] <= matched(ref_w, img_w, start)[1]:
-        return translation
-    return shift_warp(found, (-x0, -y0))
+
+    def score(warp):
+        return ecc_score(ref_w, img_w, shift_warp(warp, (x0, y0)))
+
+    best = _translation(reference, image)
+    rho = score(best)
+    refined = _pyramid_ecc(reference, image, best, "translation")
+    if refined is not None and np.max(np.abs(refined[:, 2] - best[:, 2])) <= MAX_REFINE_PX:
+        best, rho = refined, score(refined)
+    if motion == "similarity":
+        rotated = _pyramid_ecc(reference, image, best, "similarity")
+        if rotated is not None and (r := score(rotated)) > rho and corner_distance(rotated, best, *reference.shape) > ROTATION_PX:
+            best, rho = rotated, r
+    return best, rho
 
 
 def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
@@ -179,11 +260,15 @@ def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
     return out
 
 
+def corner_distance(a: np.ndarray, b: np.ndarray, height: int, width: int) -> float:
+    """Largest distance (pixels) between where two warps take a corner of the frame."""
+    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], np.float64)
+    return float(np.max(np.hypot(*(corners @ a.T - corners @ b.T).T)))
+
+
 def warp_size(warp: np.ndarray, height: int, width: int) -> float:
     """Largest displacement (pixels) the warp causes anywhere in the frame."""
-    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], np.float64)
-    moved = corners @ warp.T
-    return float(np.max(np.hypot(*(moved - corners[:, :2]).T)))
+    return corner_distance(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), height, width)
 
 
 def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarray:

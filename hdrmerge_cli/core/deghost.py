@@ -1,45 +1,67 @@
 """Ghost rejection by the noise model (array code).
 
 A frame ``j`` reads at each sample an estimate of the exposure-normalised signal,
-``x_j = gamma^-1(z_j) / h_j`` (full scale 1 at an exposure of 1 s), whose variance the noise
-model predicts: ``s_j = (v(y) / y_full^2 + q(z)) / h_j^2`` with ``v`` the clipping-free
-variance (17)/(21) at ``y = gamma^-1(z) y_full`` and ``q`` the quantisation variance of
-one code step (step^2 / 12).  In a static scene every frame that measures a sample
-estimates the same ``x`` (after :func:`match_anchor` removes what differs globally, and
-with a 1 % model tolerance and half a pixel of registration tolerance along edges); a frame is inconsistent with the *anchor* (the reference frame,
-or where the reference does not measure the sample, the measuring frame nearest to it in
-exposure) when, over the ``k`` samples of a cell (a 2 x 2 CFA period, or a pixel's
-channels) that both measure,
+``x_j = gamma^-1(z_j) / h_j`` (full scale 1 at an exposure of 1 s; the paper's (7) before
+the weighting), whose variance the noise model predicts: ``s_j = (v(y) / y_full^2 +
+q(z)) / h_j^2`` with ``v`` the clipping-free variance (17)/(21) at ``y = gamma^-1(z)
+y_full`` and ``q`` the quantisation variance of one code step (step^2 / 12).  The test
+runs on blocks (means of ``b x b`` cells, :func:`block_size`; their variance is the
+mean variance / b^2), so that large frames cost little.
 
-    T = sum (x_j - x_anchor)^2 / (s_j + s_anchor)  >  chi2_k quantile (1 - p_fa),
+In a static scene every frame that measures a sample estimates the same ``x`` (after
+:func:`match_anchor` removes what differs globally and smoothly, with a 1 % model
+tolerance and half a pixel of registration tolerance along edges); a frame is
+inconsistent with the *anchor* (the reference frame, or where the reference does not
+measure the sample, the measuring frame nearest to it in exposure) when, over the ``k``
+samples of a cell (a block's channels) that both measure,
 
-a chi-square test at false-alarm rate ``p_fa`` per cell.  Rejections are cleaned
-morphologically (an opening removes isolated false alarms, a dilation covers the soft
-edges of moving objects) and the frame is dropped from those cells' average; the anchor
-is never dropped, so the result shows one moment.  Where the reference reads dark or
-clipped it still bounds the signal (:func:`violates_bound`): a frame reading far outside
-that bound is dropped too, and never becomes the anchor.
+    T = sum (x_j - x_anchor)^2 / (lambda (s_j + s_anchor + tolerances))  >  chi2_k quantile (1 - p_fa),
+
+a chi-square test at false-alarm rate ``p_fa`` per cell, where ``lambda >= 1``
+(:func:`level_scale`) is measured on the frame pair itself: what the noise model leaves
+out at each brightness (JPEG compression, in-camera processing), from medians, which a
+moving minority does not move.  Where the reference reads dark or clipped it still
+bounds the signal (censoring, :func:`violates_bound`): a frame reading far outside that
+bound shows another moment and is dropped too, and never becomes the anchor.
+
+Rejections are decided over regions: an opening removes isolated false alarms, connected
+regions smaller than :data:`MIN_BLOB_PX` go, a dilation covers the soft edges of moving
+objects, and the mask is feathered (:func:`feather`), so a frame's weight falls smoothly
+to zero over a moving object (``w (1 - m)``) and no seam separates a region taken from
+one frame from its surround taken from another.  The anchor is never dropped, so the
+result shows one moment.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
 
-from hdrmerge_cli.core.calibrate import equal_count_bins
 from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
 #: false-alarm rate of the per-cell test
 P_FALSE_ALARM = 1e-3
-#: samples the intensity matching of :func:`match_anchor` is fitted on
-FIT_SAMPLES = 1 << 20
+#: samples the intensity matching and the level scale are fitted on
+FIT_SAMPLES = 1 << 18
+#: degree of the polynomial (in log x) of :func:`match_anchor`
+MATCH_DEGREE = 3
+#: smallest robust scale of :func:`robust_poly` (log units)
+MATCH_MIN_SCALE = 0.02
+#: median of chi-square with one degree of freedom
+CHI2_1_MEDIAN = 0.454936
+#: largest variance factor :func:`level_scale` may measure (10x the model's deviation)
+LAMBDA_MAX = 100.0
 #: relative error allowed beyond the noise (residual model error after :func:`match_anchor`)
 MODEL_TOLERANCE = 0.01
 #: registration error allowed (pixels): an edge's contrast times this is not motion
 ALIGN_TOLERANCE_PX = 0.5
 #: how far beyond a dark / clipped reference's bound a reading must be to be motion
 BOUND_FACTOR = 2.0
-#: smallest connected region of rejected cells kept as motion
-MIN_BLOB = 64
+#: smallest connected region of rejected pixels kept as motion (in blocks: at least 8)
+MIN_BLOB_PX = 64
+#: width (Gaussian sigma, pixels; at least 1.5 blocks) of a rejection mask's soft edge
+FEATHER_PX = 4.0
+#: the test runs on at most about this many blocks per frame
+CELL_TARGET = 1 << 20
 #: ``auto`` deghosts when a frame has more than this fraction of its cells rejected
 AUTO_FRACTION = 0.002
 
@@ -58,29 +80,123 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     return lin / exposure, var / exposure**2, valid
 
 
-def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 64) -> np.ndarray:
-    """``x`` mapped onto the anchor's scale: the median log-ratio ``log xa - log x`` in
-    quantile bins of ``log x`` (over samples both measure), interpolated.  It absorbs what
-    is global, not motion: nominal exposure times that are a few per cent off, a camera
-    response that is not exactly the assumed one; medians ignore a moving minority."""
+def block_sum(a: np.ndarray, b: int) -> np.ndarray:
+    """Sum over ``b x b`` blocks of the first two axes of ``a`` (partial blocks dropped)."""
+    if b == 1:
+        return a
+    h, w = a.shape[0] // b, a.shape[1] // b
+    return a[:h * b, :w * b].reshape((h, b, w, b) + a.shape[2:]).sum(axis=(1, 3))
+
+
+def block_size(h: int, w: int, target: int = CELL_TARGET) -> int:
+    """Side (in cells of the frame's own layout) of the blocks the test runs on: the
+    smallest giving at most ``target`` blocks (1 for small frames)."""
+    return max(1, int(np.ceil(np.sqrt(h * w / target))))
+
+
+def _level_bins(values: np.ndarray, bins: int) -> np.ndarray:
+    """Edges of (about) equal-count bins of ``values`` (1-D)."""
+    return np.unique(np.quantile(values, np.linspace(0.0, 1.0, bins + 1)))
+
+
+def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(centres, medians, counts)`` of ``val`` in equal-count bins of ``key``."""
+    edges = _level_bins(key, bins)
+    which = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, max(edges.size - 2, 0))
+    order = np.argsort(which, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=max(edges.size - 1, 1)))])
+    ks, vs = key[order], val[order]
+    c, m, n = [], [], []
+    for b in range(starts.size - 1):
+        lo, hi = starts[b], starts[b + 1]
+        if hi - lo >= 10:
+            c.append(np.median(ks[lo:hi]))
+            m.append(np.median(vs[lo:hi]))
+            n.append(hi - lo)
+    return np.asarray(c), np.asarray(m), np.asarray(n, float)
+
+
+def robust_poly(c: np.ndarray, d: np.ndarray, n: np.ndarray, degree: int = MATCH_DEGREE,
+                iterations: int = 10) -> np.ndarray:
+    """Polynomial coefficients fitted to points ``(c, d)`` with weights ``n`` by iterated
+    Tukey-bisquare re-weighting (start: the weighted median, a constant): an outlying
+    minority of points (a moving object that is alone at its brightness) gets no weight."""
+    order = np.argsort(d)
+    cw = np.cumsum(n[order])
+    coef = np.array([d[order][np.searchsorted(cw, cw[-1] / 2)]])
+    deg = min(degree, max(c.size - 2, 0))
+    for _ in range(iterations):
+        r = d - np.polyval(coef, c)
+        scale = max(1.4826 * np.median(np.abs(r)), MATCH_MIN_SCALE)
+        u = r / (4.685 * scale)
+        w = n * np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        if np.count_nonzero(w) <= deg:
+            break
+        coef = np.polyfit(c, d, deg, w=np.sqrt(w))
+    return coef
+
+
+def _inlier_range(coef: np.ndarray, c: np.ndarray, d: np.ndarray) -> tuple[float, float]:
+    """The range of the points :func:`robust_poly` kept (within 3 robust scales): the fitted
+    curve is clamped to it, so it never overshoots between or beyond its support."""
+    r = d - np.polyval(coef, c)
+    keep = np.abs(r) <= 3 * max(1.4826 * np.median(np.abs(r)), MATCH_MIN_SCALE)
+    return (float(d[keep].min()), float(d[keep].max())) if keep.any() else (0.0, 0.0)
+
+
+def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32) -> np.ndarray:
+    """``x`` mapped onto the anchor's scale: ``x exp(p(log x))`` with ``p`` a low-degree
+    polynomial fitted robustly (:func:`robust_poly`) to the median log-ratio
+    ``log xa - log x`` in equal-count bins of ``log x`` (over samples both measure).  It
+    absorbs what is global and smooth, not motion: nominal exposure times that are a few
+    per cent off (a constant), a camera response that is not exactly the assumed one (a
+    slow curve).  A bin-by-bin curve would also absorb a moving object that is the only
+    thing at its brightness in both frames (e.g. a bright object in the short frame over
+    what the reference sees dark): the robust smooth fit leaves it out."""
     ok = both & (x > 0) & (xa > 0)
     n_ok = np.count_nonzero(ok)
     if n_ok < 10 * bins:
         return x
-    pick = np.flatnonzero(ok)[:: max(1, n_ok // FIT_SAMPLES)]  # a smooth curve: a subsample fits it
+    pick = np.flatnonzero(ok)[:: max(1, n_ok // FIT_SAMPLES)]
     lx = np.log(x.ravel()[pick])
-    d = np.log(xa.ravel()[pick]) - lx
-    edges, order, starts = equal_count_bins(lx, bins)
-    d_sorted, lx_sorted = d[order], lx[order]
-    centres, shifts = [], []
-    for b in range(edges.size - 1):
-        if starts[b + 1] - starts[b] >= 10:
-            centres.append(np.median(lx_sorted[starts[b]:starts[b + 1]]))
-            shifts.append(np.median(d_sorted[starts[b]:starts[b + 1]]))
-    if not centres:
+    c, m, n = _binned_median(lx, np.log(xa.ravel()[pick]) - lx, bins)
+    if c.size == 0:
         return x
+    coef = robust_poly(c, m, n)
+    lo, hi = _inlier_range(coef, c, m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lxx = np.clip(np.log(np.maximum(x, 1e-30)), c[0], c[-1])
+    shift = np.clip(np.polyval(coef.astype(np.float32), lxx), lo, hi)
+    return (x * np.exp(shift)).astype(x.dtype)
+
+
+def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32) -> np.ndarray:
+    """Per sample, the factor ``lambda`` by which the model variance under-predicts the
+    spread of a static scene's differences: ``median(T) / median(chi2_1)`` in equal-count
+    bins of the lower of the two readings (``T`` the per-sample normalised squared
+    difference), at least 1, as a smooth robust curve (:func:`robust_poly` on
+    ``log lambda``) capped at :data:`LAMBDA_MAX`.  What it measures is what the model
+    leaves out (JPEG compression and sharpening, denoising, an unknown noise model).
+    Medians and the robust curve ignore a moving minority; binning by the *lower* reading
+    puts a moving object among static samples of its level (a bright object in a short
+    frame sits at the dark level the anchor reads, a dark one in a long frame at its own),
+    so it cannot make up a bin of its own and raise its own threshold."""
+    lo = np.minimum(x, xa)
+    ok = both & (lo > 0)
+    n_ok = np.count_nonzero(ok)
+    if n_ok < 10 * bins:
+        return np.ones(1, np.float32)
+    pick = np.flatnonzero(ok)[:: max(1, n_ok // FIT_SAMPLES)]
+    c, m, n = _binned_median(np.log(lo.ravel()[pick]), t.ravel()[pick], bins)
+    if c.size == 0:
+        return np.ones(1, np.float32)
+    log_lam = np.log(np.maximum(m / CHI2_1_MEDIAN, 1.0))
+    coef = robust_poly(c, log_lam, n, degree=2)
+    top = min(_inlier_range(coef, c, log_lam)[1], np.log(LAMBDA_MAX))
     with np.errstate(divide="ignore"):
-        return x * np.exp(np.interp(np.log(x), centres, shifts)).astype(x.dtype)
+        key = np.clip(np.log(np.maximum(lo, 1e-30)), c[0], c[-1])
+    lam = np.exp(np.clip(np.polyval(coef.astype(np.float32), key), 0.0, top))
+    return lam.astype(np.float32)
 
 
 def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float = P_FALSE_ALARM) -> np.ndarray:
@@ -132,23 +248,27 @@ def squared_gradient(xa: np.ndarray, layout: str) -> np.ndarray:
 
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
                        valid_a: np.ndarray, grad2: np.ndarray, cell: tuple[int, int],
-                       p_fa: float = P_FALSE_ALARM) -> np.ndarray:
+                       p_fa: float = P_FALSE_ALARM, scale: bool = True) -> np.ndarray:
     """Cells where a frame disagrees with the anchor: all inputs ``(H, W')`` per sample
     (``W' = W * C`` for interleaved channels), ``grad2`` the anchor's squared gradient
-    (:func:`squared_gradient`), ``cell = (ph, pw)`` samples per cell.  The variance of a
-    difference is the noise of both frames, the model tolerance and a registration
-    tolerance of :data:`ALIGN_TOLERANCE_PX` along the gradient.  Returns
-    ``(H // ph, W' // pw)`` bool."""
+    times the squared registration tolerance in its units (:func:`squared_gradient`;
+    pixels: ``ALIGN_TOLERANCE_PX^2 |grad x|^2``), ``cell = (ph, pw)`` samples per cell.
+    The variance of a difference is the noise of both frames, the model tolerance and
+    the registration tolerance along the gradient, times the measured level scale
+    (:func:`level_scale`, with ``scale``).  Returns ``(H // ph, W' // pw)`` bool."""
     both = valid & valid_a
     x = match_anchor(x, xa, both)
-    var = s + sa + (MODEL_TOLERANCE * xa) ** 2 + ALIGN_TOLERANCE_PX**2 * grad2
-    t = np.where(both, (x - xa) ** 2 / np.maximum(var, 1e-30), 0.0)
+    var = s + sa + (MODEL_TOLERANCE * xa) ** 2 + grad2
+    with np.errstate(over="ignore"):
+        t = np.where(both, (x - xa) ** 2 / np.maximum(var, 1e-30), 0.0).astype(np.float32)
+    if scale:
+        t /= level_scale(t, x, xa, both)
     stat = cell_sums(t, *cell)
     k = cell_sums(both.astype(np.int32), *cell)
     return stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
 
 
-def clean(mask: np.ndarray, open_radius: int = 1, min_cells: int = MIN_BLOB, grow: int = 2) -> np.ndarray:
+def clean(mask: np.ndarray, open_radius: int = 1, min_cells: int = MIN_BLOB_PX, grow: int = 2) -> np.ndarray:
     """Morphological clean-up of a rejection mask: an opening and the removal of
     connected regions smaller than ``min_cells`` (isolated false alarms, and the sparse
     ones along edges, go; a moving object is a large connected region), then a dilation by
@@ -170,3 +290,22 @@ def expand(cells: np.ndarray, cell: tuple[int, int], shape: tuple[int, int]) -> 
     full = np.repeat(np.repeat(cells, cell[0], axis=0), cell[1], axis=1)
     pad = ((0, shape[0] - full.shape[0]), (0, shape[1] - full.shape[1]))
     return np.pad(full, pad, mode="edge") if any(p[1] for p in pad) else full
+
+
+def min_blob(block_px: float) -> int:
+    """:data:`MIN_BLOB_PX` in blocks of ``block_px`` pixels a side (at least 8)."""
+    return max(8, int(round(MIN_BLOB_PX / block_px**2)))
+
+
+def feather(mask: np.ndarray, sigma: float) -> np.ndarray:
+    """A soft mask in [0, 1] (float32): the region grown by ``2 sigma`` and blurred by a
+    Gaussian of ``sigma`` (at least 0.98 on the region itself, falling smoothly to 0 about
+    ``4 sigma`` outside it).  Weights ``w (1 - m)`` then fade a frame out over a moving
+    object instead of cutting it off."""
+    if not mask.any():
+        return np.zeros(mask.shape, np.float32)
+    grow = int(np.ceil(2 * sigma))
+    st = ndimage.generate_binary_structure(2, 2)
+    wide = ndimage.binary_dilation(mask, st, iterations=grow) if grow else mask
+    soft = ndimage.gaussian_filter(wide.astype(np.float32), sigma, mode="nearest")
+    return np.maximum(soft, mask, dtype=np.float32)

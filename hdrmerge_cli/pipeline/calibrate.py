@@ -69,29 +69,47 @@ def _usable(frame: Frame, planes) -> str | None:
     inside = np.mean([np.mean((p > lo) & (p < hi)) for _, p, lo, hi in planes])
     if inside < MIN_UNCLIPPED:
         return f"{100 * (1 - inside):.1f} % of its pixels are clipped"
-    top = max(np.percentile(p[::4, ::4], 99) / (hi - max(lo, 0.0)) for _, p, lo, hi in planes)
-    if top < 0.002:
-        return "it is black (no signal above 0.2 % of the range)"
+    if not any(_has_signal(p, lo, hi) for _, p, lo, hi in planes):
+        return "it is black (no signal above its noise floor)"
     return None
+
+
+#: a frame has signal when at least this many of its sites (and this fraction) lie above the noise floor
+MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION = 64, 1e-4
+
+
+def _has_signal(plane: np.ndarray, lo: float, hi: float) -> bool:
+    """Whether a plane holds signal: enough sites (:data:`MIN_SIGNAL_SITES`, a fraction
+    :data:`MIN_SIGNAL_FRACTION`) above its noise floor, 6 robust standard deviations of
+    the darker half of the sites (1.4826 times their median absolute deviation) above
+    black and at least 0.2 % of the range.  A count, not a percentile: a night frame whose
+    99th percentile is near black but whose lamps and windows are bright has signal."""
+    sub = (plane[::2, ::2] if plane.size > 1 << 22 else plane).ravel()
+    med = float(np.median(sub))
+    low = sub[sub <= med]
+    sigma = 1.4826 * float(np.median(np.abs(low - np.median(low)))) if low.size else 0.0
+    floor = max(6 * sigma, 0.002 * (hi - max(lo, 0.0)))
+    above = int(np.count_nonzero(sub > floor))
+    return above >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sub.size)
 
 
 def _read_group(frames: list[Frame], crf, what: str, reduce=None, load=load_codes) -> list[tuple[Frame, list]]:
     """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
     ``frames``; photographs that are all clipped or black are skipped with a warning.
     ``reduce`` picks the sites to keep of each plane as it is read (e.g. :func:`subsample`;
-    usability is then judged on those sites), so a bracket's full-size planes are never
+    usability is judged on the whole planes first), so a bracket's full-size planes are never
     all held at once.  Frames are decoded two at a time (both cores)."""
     # one camera (checked): the CFA layout is read once, not by a second decode per frame
     corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
 
-    def read(f):
+    def read(f):  # usability is judged on the whole frame (sparse lamps may miss a subsample)
         planes = list(channel_planes(f, load(f), crf, corner))
-        return planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]
+        reason = _usable(f, planes) if what == "images" else None
+        return reason, planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]
 
     out = []
     with ThreadPoolExecutor(2) as pool:
-        for f, planes in zip(frames, pool.map(read, frames)):
-            reason = _usable(f, planes) if what == "images" else None
+        for f, (reason, planes) in zip(frames, pool.map(read, frames)):
             if reason:
                 log.warning("%s: skipped, %s", f.path, reason)
             else:

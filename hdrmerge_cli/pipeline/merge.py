@@ -315,12 +315,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         flag_img = np.where((flags == FLAG_SATURATED).any(-1), FLAG_SATURATED, np.where((flags == FLAG_DARK).any(-1), FLAG_DARK, 0))
     wsum = (den if den.ndim == 2 else den.mean(axis=-1)) if "weight" in opts.extra_channels else None
     ghost_img = None
-    if "ghost" in opts.extra_channels:  # frames dropped per pixel
-        ghost_img = np.zeros((first.height, first.width), np.float32)
-        if ghosts and ghosts["applied"]:
-            step = 1 if first.kind == "raw" else first.channels  # a pixel's channels share one decision
-            for m in ghosts["masks"]:
-                ghost_img += motion.deghost.expand(m, ghosts["cell"], (first.height, first.width * step))[:, ::step]
+    if "ghost" in opts.extra_channels:  # frames dropped per pixel (soft: fractions of a frame)
+        ghost_img = motion.ghost_image(ghosts, first.height, first.width)
     names = channels + [c for c in EXTRA_CHANNELS if c in opts.extra_channels]
 
     def strip(y0):

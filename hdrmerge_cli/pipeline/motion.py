@@ -19,8 +19,8 @@ ALIGN_MODES = ("off", "auto", "translation", "similarity")
 DEGHOST_MODES = ("off", "auto", "on")
 #: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
 AUTO_ALIGN_PX = 0.25
-#: a frame pair is registered only when this fraction of pixels is well exposed in both
-MIN_SHARED = 0.2
+#: a registration is kept when its correlation coefficient reaches this
+MIN_CONFIDENCE = 0.3
 
 
 def reference_index(frames: list[Frame]) -> int:
@@ -40,37 +40,50 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
 
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str) -> dict:
-    """Warps bringing every frame onto the reference (``core.align``); ``auto`` measures
-    translations and keeps them only when one exceeds :data:`AUTO_ALIGN_PX`.  Returns
-    ``{"mode", "reference", "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...]}``
-    with warps in the frames' own sample coordinates."""
+    """Warps bringing every frame onto the reference (``core.align``).  ``auto`` registers
+    with rotation too and keeps a frame's rotation only where it beats translation, and
+    applies the warps only when some frame is displaced by more than
+    :data:`AUTO_ALIGN_PX`.  A pair is registered when both frames have
+    :data:`~hdrmerge_cli.core.align.MIN_TEXTURED` textured pixels in the irradiance range
+    they share (however small a fraction of the frame), and the result is kept when its
+    correlation reaches :data:`MIN_CONFIDENCE`.  Returns ``{"mode", "reference",
+    "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
+    "unaligned": [...]}`` with warps in the frames' own sample coordinates and confidence
+    the registration's correlation coefficient to its neighbour (1 for the reference)."""
     ref = reference_index(frames)
-    motion = "translation" if mode == "auto" else mode
+    motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
     images = [_linear(f, load_codes(f), crf) for f in frames]
 
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    unaligned = []
+    unaligned, confidence = [], [1.0] * len(frames)
 
     def step(a: int, b: int) -> np.ndarray:
         """Warp from frame a's coordinates to frame b's (neighbours in exposure); identity
-        when too few pixels are well exposed in both to register them."""
+        when they cannot be registered."""
         y_full = float(np.min(frames[a].white - frames[a].black))
-        lo, hi = exposures[b] / exposures[a], 0.0  # no shared range unless common_range finds one
         try:
             lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=min(0.02, 16.0 / y_full))
         except HdrMergeError:
-            pass
-        ea, eb = images[a] / exposures[a], images[b] / exposures[b]
-        shared = float(np.mean((ea > lo) & (ea < hi) & (eb > lo) & (eb < hi)))
-        if shared < MIN_SHARED:
-            unaligned.append(frames[b].path)
-            log.warning("%s: only %.1f %% of its pixels are well exposed in its neighbour too; left unaligned",
-                        frames[b].path, 100 * shared)
-            return identity
-        w = align.estimate_warp(align.log_irradiance(images[a], exposures[a], lo, hi),
-                                align.log_irradiance(images[b], exposures[b], lo, hi), motion)
-        return align.rescale_warp(w, 2, 0.5) if raw else w  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+            lo = hi = None
+        why = None
+        if lo is not None:
+            ia = align.log_irradiance(images[a], exposures[a], lo, hi)
+            ib = align.log_irradiance(images[b], exposures[b], lo, hi)
+            texture = min(align.textured_pixels(ia), align.textured_pixels(ib))
+            if texture < align.MIN_TEXTURED:
+                why = f"only {texture} textured pixels in the range it shares with its neighbour"
+            else:
+                w, rho = align.estimate_warp(ia, ib, motion)
+                confidence[b] = round(rho, 4)
+                if rho >= MIN_CONFIDENCE:
+                    return align.rescale_warp(w, 2, 0.5) if raw else w  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+                why = f"registration to its neighbour correlates only {rho:.2f}"
+        else:
+            why = "no irradiance range is well exposed in both it and its neighbour"
+        unaligned.append(frames[b].path)
+        log.warning("%s: %s; left unaligned", frames[b].path, why)
+        return identity
 
     # each frame is registered to its neighbour towards the reference (they share the most
     # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1)
@@ -79,13 +92,17 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     for j in list(range(ref + 1, len(frames))) + list(range(ref - 1, -1, -1)):
         prev = j - 1 if j > ref else j + 1
         warps[j] = align.compose(step(prev, j), warps[prev])
+    rotated = any(abs(w[1, 0]) > 1e-9 for w in warps)
+    if mode == "auto" and not rotated:
+        motion = "translation"  # no frame's rotation beat its translation
     sizes = [align.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
     applied = mode != "auto" or max(sizes) > AUTO_ALIGN_PX
     if raw and motion == "translation":  # whole CFA periods only
         applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
     out = {"mode": mode, "motion": motion, "reference": frames[ref].path, "applied": bool(applied),
            "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
-           "largest_displacement_px": [round(s, 3) for s in sizes], "unaligned": unaligned}
+           "largest_displacement_px": [round(s, 3) for s in sizes], "confidence": confidence,
+           "unaligned": unaligned}
     if motion == "similarity":
         out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in warps]
         out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in warps]
@@ -116,70 +133,145 @@ def _samples(codes: np.ndarray) -> np.ndarray:
     return codes.reshape(codes.shape[0], -1)
 
 
-def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams], load, mode: str,
-                p_fa: float = deghost.P_FALSE_ALARM) -> dict:
-    """Per frame, the cells inconsistent with the anchor (``core.deghost``), cleaned.
-    ``noise``: one parameter set per channel (code units).  Returns ``{"mode", "applied",
-    "p_false_alarm", "rejected_fraction": [...], "masks": [(cells) bool ...], "cell"}``;
-    ``auto`` applies the masks only when some frame has more than
-    :data:`~hdrmerge_cli.core.deghost.AUTO_FRACTION` of its cells rejected."""
+def _planes(frame: Frame, codes: np.ndarray, pattern: np.ndarray) -> list[tuple[np.ndarray, int]]:
+    """(2-D plane, table row) per channel: an image's channels, or the four CFA positions
+    of a RAW mosaic (one plane per position, one sample per 2 x 2 period)."""
+    if frame.kind == "raw":
+        return [(codes[dy::2, dx::2], int(pattern[dy, dx])) for dy in (0, 1) for dx in (0, 1)]
+    codes = codes if codes.ndim == 3 else codes[..., None]
+    return [(codes[..., c], c) for c in range(codes.shape[-1])]
+
+
+def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list, b: int,
+                     bounds: bool = False):
+    """One frame's block means ``(h, w, C)``: x, its variance s (mean variance / b^2) and
+    whether every sample of the block measures; with ``bounds`` also what a block whose
+    samples are all dark (> 0: the x of the lowest measuring code) or all clipped (< 0:
+    minus the x of the highest one) bounds, 0 elsewhere."""
+    planes = _planes(frame, codes, pattern)
+    x = s = ok = bound = None
+    n = np.float32(b * b)
+    for c, (plane, row) in enumerate(planes):
+        x_t, s_t, ok_t = tables[row]
+        xs = deghost.block_sum(np.take(x_t, plane, mode="clip"), b)
+        if x is None:
+            shape = xs.shape + (len(planes),)
+            x, s = np.empty(shape, np.float32), np.empty(shape, np.float32)
+            ok = np.empty(shape, bool)
+            bound = np.zeros(shape, np.float32) if bounds else None
+        x[..., c] = xs / n
+        s[..., c] = deghost.block_sum(np.take(s_t, plane, mode="clip"), b) / (n * n)
+        okc = np.take(ok_t, plane, mode="clip")
+        ok[..., c] = deghost.block_sum(okc.astype(np.uint16), b) == b * b if b > 1 else okc
+        if bounds:
+            valid = np.flatnonzero(ok_t)
+            lo_code, hi_code = valid[0], valid[-1]
+            dark = deghost.block_sum((plane < lo_code).astype(np.uint16), b) == b * b
+            clip = deghost.block_sum((plane > hi_code).astype(np.uint16), b) == b * b
+            bound[..., c] = np.where(dark, x_t[lo_code], np.where(clip, -x_t[hi_code], 0.0))
+    return x, s, ok, bound
+
+
+def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
+                mode: str, p_fa: float = deghost.P_FALSE_ALARM) -> dict:
+    """Per frame, the blocks inconsistent with the anchor (``core.deghost``), cleaned and
+    feathered.  ``noise``: one parameter set per channel (code units), or None (the
+    quantisation of the codes alone; :func:`~hdrmerge_cli.core.deghost.level_scale`
+    measures the rest).  Each frame is decoded once; the test runs on block means
+    (:func:`~hdrmerge_cli.core.deghost.block_size`).  Returns ``{"mode", "applied",
+    "p_false_alarm", "rejected_fraction": [...], "masks": [(h, w) uint8 soft masks, 255 =
+    dropped], "block", "covered"}``, masks over blocks of ``block`` x ``block`` pixels
+    (RAW: CFA periods) covering the first ``covered`` = (rows, cols) samples; ``auto``
+    applies them only when some frame has more than
+    :data:`~hdrmerge_cli.core.deghost.AUTO_FRACTION` of its blocks rejected."""
     first = frames[0]
     raw = first.kind == "raw"
-    cell = (2, 2) if raw else (1, first.channels)
     from hdrmerge_cli.pipeline.merge import sample_pattern
 
-    shape = (first.height, first.width) + (() if raw else (first.channels,))
-    rows2 = _samples(channel_index(shape, sample_pattern(first))).astype(np.int32)
-
-    def estimates(k: int, bounds: bool = False):
-        """Frame k's x, s and validity per sample; with ``bounds`` also what its dark or
-        clipped readings bound: > 0 the x of the lowest measuring code (dark), < 0 minus the
-        x of the highest one (clipped), 0 where it measures."""
-        f = frames[k]
-        n = f.n_codes
-        tabs = [deghost.ghost_tables(n, f.black[c], f.white[c], lambda v, c=c: crf.inverse(v, 0 if raw else c),
-                                     exposures[k], noise[min(c, len(noise) - 1)]) for c in range(len(f.black))]
-        x_t, s_t, ok_t = (np.concatenate(col) for col in zip(*tabs))
-        idx = rows2 * np.int32(n) + np.minimum(_samples(load(f)), n - 1).astype(np.int32)
-        x, s, ok = x_t.astype(np.float32)[idx], s_t.astype(np.float32)[idx], ok_t[idx]
-        if not bounds:
-            return x, s, ok
-        low = np.array([t[0][np.flatnonzero(t[2])[0]] for t in tabs], np.float32)
-        high = np.array([t[0][np.flatnonzero(t[2])[-1]] for t in tabs], np.float32)
-        dark = (np.arange(len(x_t)) % n <= np.repeat(np.asarray(f.black), n)) & ~ok_t
-        bound_t = np.where(ok_t, 0.0, np.where(dark, np.repeat(low, n), -np.repeat(high, n))).astype(np.float32)
-        return x, s, ok, bound_t[idx]
-
+    pattern = sample_pattern(first)
+    per_px = 2 if raw else 1  # pixels per cell side of the planes
+    h, w = (first.height // 2, first.width // 2) if raw else (first.height, first.width)
+    b = deghost.block_size(h, w)
     ref = reference_index(frames)
-    bound_r = estimates(ref, bounds=True)[3]
+
+    def tables(k: int) -> list:
+        f = frames[k]
+        out = []
+        for c in range(len(f.black)):
+            nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
+                (0.5 * float(f.white[c] - f.black[c]) / 255.0) ** 2, 1e-12, 0.0)
+            x_t, s_t, ok_t = deghost.ghost_tables(f.n_codes, f.black[c], f.white[c],
+                                                  lambda v, c=c: crf.inverse(v, 0 if raw else c), exposures[k], nz)
+            out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
+        return out
+
+    est = {}
+    for k, f in enumerate(frames):  # one decode per frame; only block means are kept
+        est[k] = _block_estimates(f, load(f), pattern, tables(k), b, bounds=k == ref)
+    bound_r = est[ref][3]
     order = sorted(range(len(frames)), key=lambda k: (abs(np.log(exposures[k] / exposures[ref])), k))
-    xa = sa = None
+    xa = sa = va = source = None
     beyond = {}  # per frame: readings far outside the reference's dark / clipped bound
     for k in order:  # the anchor: the reference where it measures, else the nearest frame consistent with it
-        x, s, ok = estimates(k)
+        x, s, ok, _ = est[k]
         beyond[k] = deghost.violates_bound(x, s, bound_r) & ok
-        ok &= ~beyond[k]
+        ok = ok & ~beyond[k]
         if xa is None:
-            xa, sa, va = x, s, ok
+            xa, sa, va = x.copy(), s.copy(), ok
             source = np.where(ok, k, -1).astype(np.int16)
             continue
         take = ok & ~va
         xa[take], sa[take], source[take] = x[take], s[take], k
         va |= ok
-    grad2 = _samples(deghost.squared_gradient(xa.reshape(shape), "mosaic" if raw else "rgb"))
+    hb, wb, nc = xa.shape
+    reg = (deghost.ALIGN_TOLERANCE_PX / (b * per_px)) ** 2  # the registration tolerance in blocks
+    grad2 = _samples(deghost.squared_gradient(xa, "rgb") * np.float32(reg))
+    sigma = max(1.5, deghost.FEATHER_PX / (b * per_px))
+    min_cells = deghost.min_blob(b * per_px)
     masks, fractions = [], []
     for k in range(len(frames)):
-        x, s, ok = estimates(k)
-        bad = deghost.inconsistent_cells(x, s, ok, xa, sa, va, grad2, cell, p_fa)
-        bad |= deghost.cell_sums(beyond.pop(k), *cell) > 0
-        bad = deghost.clean(bad) & ~(deghost.cell_sums(source == k, *cell) > 0)  # the anchor itself stays
-        masks.append(bad)
+        x, s, ok, _ = est.pop(k)
+        bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
+                                         _samples(va), grad2, (1, nc), p_fa)
+        bad |= beyond.pop(k).any(axis=-1)
+        del x, s, ok
+        bad = deghost.clean(bad, min_cells=min_cells)
+        anchor = (source == k).any(axis=-1)  # the anchor itself stays
+        bad &= ~anchor
         fractions.append(float(bad.mean()))
+        soft = deghost.feather(bad, sigma)
+        soft[anchor] = 0.0
+        masks.append(np.rint(soft * 255).astype(np.uint8))
     applied = mode == "on" or max(fractions) > deghost.AUTO_FRACTION
-    log.info("deghosting: up to %.2f %% of a frame's cells move; %s", 100 * max(fractions),
-             "applied" if applied else "not needed")
-    return {"mode": mode, "applied": bool(applied), "p_false_alarm": p_fa, "cell": cell,
+    log.info("deghosting (blocks of %d px): up to %.2f %% of a frame's blocks move; %s", b * per_px,
+             100 * max(fractions), "applied" if applied else "not needed")
+    return {"mode": mode, "applied": bool(applied), "p_false_alarm": p_fa, "block": b,
+            "covered": [hb * b * per_px, wb * b * per_px],
             "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks}
+
+
+def ghost_weight(ghosts: dict, k: int, height: int, width: int) -> np.ndarray:
+    """Frame ``k``'s soft rejection ``m`` in [0, 1] per pixel ``(height, width)`` float32:
+    its block mask interpolated bilinearly (rows and columns beyond the blocks repeat the
+    last ones)."""
+    import cv2
+
+    m = ghosts["masks"][k]
+    ch, cw = ghosts["covered"]
+    up = cv2.resize(m.astype(np.float32) * np.float32(1 / 255), (cw, ch), interpolation=cv2.INTER_LINEAR)
+    if (ch, cw) != (height, width):
+        up = np.pad(up, ((0, height - ch), (0, width - cw)), mode="edge")
+    return up
+
+
+def ghost_image(ghosts: dict | None, height: int, width: int) -> np.ndarray:
+    """The 'ghost' extra channel: per pixel, the sum over frames of how much each is
+    dropped (0 = none)."""
+    out = np.zeros((height, width), np.float32)
+    if ghosts and ghosts["applied"]:
+        for k in range(len(ghosts["masks"])):
+            out += ghost_weight(ghosts, k, height, width)
+    return out
 
 
 def covered(frame: Frame, warp: np.ndarray, motion: str) -> np.ndarray:
@@ -211,8 +303,9 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
     def weights(k: int, codes: np.ndarray) -> np.ndarray:
         rows = None if pattern is None else channel_index(codes.shape, pattern)
         w = _samples(lookup(tables[k].weight, tables[k].n_codes, codes, rows))
-        if ghosts is not None:
-            w *= ~deghost.expand(ghosts["masks"][k], ghosts["cell"], w.shape)
+        if ghosts is not None and ghosts["masks"][k].any():  # w (1 - m): feathered, no seam
+            keep = 1.0 - ghost_weight(ghosts, k, frames[k].height, frames[k].width)
+            w *= keep if frames[k].kind == "raw" else np.repeat(keep, w.shape[1] // keep.shape[1], axis=1)
         if alignment is not None:
             w *= covered(frames[k], alignment["warps"][k], alignment["motion"])
         return w.reshape(codes.shape).astype(np.float32)
@@ -220,20 +313,13 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
     return weights
 
 
-def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams]:
-    """Noise parameters for the ghost test: given, measured on the bracket, or (failing
-    both) a conservative default with a warning."""
+def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
+    """Noise parameters for the ghost test: the given (or the merge's measured) ones, else
+    None: the test then starts from the codes' quantisation and measures what that leaves
+    out on the frames themselves (:func:`~hdrmerge_cli.core.deghost.level_scale`), which
+    costs nothing like a noise calibration of the whole bracket."""
     if noise:
         from hdrmerge_cli.io.noisespec import per_channel
 
         return per_channel(noise, frames[0].channel_names)
-    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
-
-    try:
-        used, _ = estimate_bracket_noise(frames, crf, load)  # on the aligned frames
-        return [NoiseParams(**used[name]) if name in used else NoiseParams(**next(iter(used.values())))
-                for name in frames[0].channel_names]
-    except HdrMergeError as exc:
-        y_full = float(np.max(frames[0].white) - np.min(frames[0].black))
-        log.warning("could not measure the noise for the ghost test (%s); assuming 1 %% of full scale", exc)
-        return [NoiseParams((0.01 * y_full) ** 2, 1e-12, 0.0)]  # a 1 % read noise, no photon term
+    return None
