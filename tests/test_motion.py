@@ -127,17 +127,27 @@ def test_mosaic_moves_by_whole_cfa_periods_and_clipping_survives_resampling():
     rng = np.random.default_rng(0)
     codes = rng.integers(0, 4000, (12, 16)).astype(np.uint16)
     w = np.array([[1.0, 0.0, 2.7], [0.0, 1.0, -1.2]])  # rounds to (+2, -2): whole periods
-    out = align.apply_warp_mosaic(codes, w, 4095, "translation")
+    out = align.apply_warp_mosaic(codes, w, 4095, True)
     np.testing.assert_array_equal(out[2:, :14], codes[:10, 2:])
     # sites from outside the frame repeat the nearest edge site of the same colour
     np.testing.assert_array_equal(out[:2, :14], codes[:2, 2:])
     np.testing.assert_array_equal(out[2:, 14:], codes[:10, 14:16])
-    huge = align.apply_warp_mosaic(codes, np.array([[1.0, 0, 40.0], [0, 1.0, -30.0]]), 4095, "translation")
+    huge = align.apply_warp_mosaic(codes, np.array([[1.0, 0, 40.0], [0, 1.0, -30.0]]), 4095, True)
     assert huge.shape == codes.shape  # a shift beyond the frame is no crash
     img = np.full((8, 8), 100, np.uint16)
     img[4, 4] = 4095
     moved = align.apply_warp(img, np.array([[1.0, 0, 0.5], [0, 1.0, 0.0]]), 4095)
     assert moved[4, 3] == 4095 and moved[4, 4] == 4095  # half-clipped neighbours read as clipped
+
+
+def test_raw_auto_alignment_resamples_only_when_whole_cfa_periods_leave_an_offset():
+    from hdrmerge_cli.pipeline.motion import whole_periods_suffice
+
+    def shift(tx, ty):
+        return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty]])
+
+    assert whole_periods_suffice([shift(0, 0), shift(4.1, -1.9)])  # 0.1 px off whole periods
+    assert not whole_periods_suffice([shift(0, 0), shift(3.0, 2.0)])  # a whole pixel off: resample
 
 
 def test_ghost_test_false_alarm_rate_and_detection():
@@ -222,9 +232,9 @@ def test_samples_shifted_in_from_outside_get_no_weight():
                      white=np.full(channels, 255.0), channels=channels)
 
     w = np.array([[1.0, 0.0, 2.7], [0.0, 1.0, -1.2]])
-    raw = covered(frame("raw", 4), w, "translation")  # moved by (+2, -2): the last 2 columns, first 2 rows
+    raw = covered(frame("raw", 4), w, True)  # moved by (+2, -2): the last 2 columns, first 2 rows
     assert raw.shape == (6, 10) and not raw[:2].any() and not raw[:, 8:].any() and raw[2:, :8].all()
-    rgb = covered(frame("image", 3), w, "translation")  # x + 2.7 beyond 9.5 from x = 7
+    rgb = covered(frame("image", 3), w, False)  # x + 2.7 beyond 9.5 from x = 7
     assert rgb.shape == (6, 30) and not rgb[:, 21:].any() and rgb[3:, :21].all()
 
 

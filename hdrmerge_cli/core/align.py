@@ -1,18 +1,23 @@
-"""Aligning the frames of a hand-held bracket (array code; OpenCV's ECC registration).
+"""Aligning the frames of a hand-held bracket (array code; OpenCV's phase correlation and
+ECC registration).
 
 Frames differ in exposure, so they are compared in an exposure-invariant form: the
-linearised signal divided by the frame's exposure (an irradiance estimate), clipped to the
-irradiance range *both* frames measure (so clipping and darkness look the same in both),
-in log units.  OpenCV's enhanced-correlation-coefficient maximisation (Evangelidis and
-Psarakis 2008, ``cv2.findTransformECC``), itself invariant to gain and offset, finds the
-warp, first on area-averaged images at most :data:`COARSE_SIDE` pixels wide, then refined
-at full resolution on a central window.
+linearised signal divided by the frame's exposure (an irradiance estimate), limited to the
+irradiance range *both* frames of a pair measure (so clipping and darkness look the same
+in both), in log units (:func:`log_irradiance`).  Registration engages whenever the pair
+shares :data:`MIN_TEXTURED` textured pixels, however small a fraction of the frame that
+is (in an HDR pair the shared band is narrow).  Phase correlation (OpenCV) finds the
+translation on area-averaged images at most :data:`COARSE_SIDE` wide; the enhanced
+correlation coefficient maximisation (Evangelidis and Psarakis 2008,
+``cv2.findTransformECC``, invariant to gain and offset) refines it on a pyramid down to a
+central full-resolution window, and for ``similarity`` adds a rotation (ECC's Euclidean
+model), kept only where it beats the translation.
 
 A warp is a ``(2, 3)`` affine matrix ``W`` mapping reference-frame coordinates ``(x, y)``
 (pixel centres, x to the right) to the frame's own coordinates: the frame is brought onto
 the reference by sampling it at ``W @ (x, y, 1)``.  ``translation`` has ``W = [I | t]``;
-``similarity`` a rotation and uniform scale (OpenCV's affine ECC, projected onto the
-nearest similarity).
+``similarity`` a rotation ``[[cos, -sin], [sin, cos]]`` (scale 1: exposure brackets do not
+zoom) and a translation.
 """
 from __future__ import annotations
 
@@ -24,8 +29,8 @@ from hdrmerge_cli.core.errors import HdrMergeError
 COARSE_SIDE = 1024
 #: side of the full-resolution refinement window
 FINE_SIDE = 1024
-#: longest side of the coarsest ECC pyramid level
-PYRAMID_SIDE = 256
+#: longest side of the coarsest ECC pyramid level (at least)
+PYRAMID_MIN = 64
 MOTIONS = ("translation", "similarity")
 #: registration needs this many textured pixels off the plateaus in both frames
 MIN_TEXTURED = 400
@@ -44,9 +49,14 @@ def _cv2():
 
 
 def log_irradiance(lin: np.ndarray, exposure: float, lo: float, hi: float) -> np.ndarray:
-    """``log(clip(lin / exposure, lo, hi))`` as float32: ``lin`` the linearised signal
-    (full scale 1), ``[lo, hi]`` the irradiance range to keep (see :func:`common_range`)."""
-    return np.log(np.clip(np.asarray(lin, np.float64) / exposure, 0.0, hi) + lo).astype(np.float32)
+    """``log(clip(lin / exposure, 0, hi) + lo)`` as float32: ``lin`` the linearised signal
+    (full scale 1), ``[lo, hi]`` the irradiance range both frames of a pair measure (see
+    :func:`common_range`).  Above ``hi`` a plateau (the longer frame clips there); below
+    ``lo`` a soft floor rather than a hard one, so the noise of the shorter frame's darkest
+    readings is not turned into a biased edge where they meet the floor."""
+    out = np.clip(np.asarray(lin, np.float32) * np.float32(1.0 / exposure), 0.0, np.float32(hi))
+    out += np.float32(lo)
+    return np.log(out, out=out)
 
 
 def common_range(exposures, lo_code: float = 0.02, hi_code: float = 0.9) -> tuple[float, float]:
@@ -64,15 +74,8 @@ def block_mean(img: np.ndarray, f: int) -> np.ndarray:
     if f == 1:
         return img
     h, w = img.shape[0] // f * f, img.shape[1] // f * f
-    return img[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
-
-
-def nearest_similarity(warp: np.ndarray) -> np.ndarray:
-    """The rotation-and-uniform-scale matrix nearest (Frobenius) to ``warp[:, :2]``, same
-    translation."""
-    a = 0.5 * (warp[0, 0] + warp[1, 1])
-    b = 0.5 * (warp[1, 0] - warp[0, 1])
-    return np.array([[a, -b, warp[0, 2]], [b, a, warp[1, 2]]])
+    return _cv2().resize(np.ascontiguousarray(img[:h, :w], np.float32), (w // f, h // f),
+                         interpolation=_cv2().INTER_AREA)  # an integer factor: exactly the block mean
 
 
 def rescale_warp(warp: np.ndarray, f: float, c: float) -> np.ndarray:
@@ -168,7 +171,7 @@ def ecc_score(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> flo
         return -1.0
 
 
-def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str, eps: float = 1e-5) -> np.ndarray | None:
     """OpenCV's ECC maximisation from ``warp`` (translation, or rotation + translation for
     ``similarity``; no pre-smoothing: it biases the optimum where plateaus meet texture), None when it does not converge.  No
     mask: the plateaus are where either frame of the pair clips, the same irradiance in
@@ -176,7 +179,7 @@ def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str)
     the sub-pixel optimum by tenths of a pixel)."""
     cv2 = _cv2()
     mode = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_EUCLIDEAN
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, eps)
     try:
         _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), mode, criteria, None, 1)
     except cv2.error:
@@ -185,20 +188,16 @@ def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str)
 
 
 def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
-    """ECC coarse to fine: on area-averaged levels (factors 2^k down to 2, the coarsest at
-    most :data:`PYRAMID_SIDE` wide), then at full resolution on the central
-    :data:`FINE_SIDE` window; each level starts from the one before."""
-    levels = []
-    f = 2
-    while max(reference.shape) / f >= 64:
-        levels.append(f)
-        if max(reference.shape) / f <= PYRAMID_SIDE:
-            break
-        f *= 2
-    for f in reversed(levels):
+    """ECC coarse to fine: on area-averaged levels (factors 2^k, every level between
+    :data:`PYRAMID_MIN` and :data:`COARSE_SIDE` pixels wide; loosely converged), then at
+    full resolution on the central :data:`FINE_SIDE` window; each level starts from the one
+    before."""
+    side = max(reference.shape)
+    levels = [f for f in (2**k for k in range(1, 16)) if PYRAMID_MIN <= side / f <= COARSE_SIDE]
+    for f in sorted(levels, reverse=True):
         c = (f - 1) / 2
         level = rescale_warp(warp, 1 / f, -c / f)
-        found = _ecc(block_mean(reference, f), block_mean(image, f), level, motion)
+        found = _ecc(block_mean(reference, f), block_mean(image, f), level, motion, eps=1e-4)
         if found is not None:
             warp = rescale_warp(found, f, c)
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
@@ -297,13 +296,13 @@ def _same_colour_index(n: int, shift: int) -> np.ndarray:
     return src
 
 
-def apply_warp_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, motion: str) -> np.ndarray:
-    """Bring a Bayer mosaic ``(H, W)`` onto the reference without mixing colours:
-    ``translation`` shifts it by whole 2 x 2 CFA periods (the translation rounded to even
-    pixels); ``similarity`` resamples each of the four same-colour sub-planes on its own
-    (a site ``(2u + dx, 2v + dy)`` of the sub-plane ``(dy, dx)``).  Sites from outside
-    the frame repeat the nearest same-colour edge site."""
-    if motion == "translation":
+def apply_warp_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, periods: bool) -> np.ndarray:
+    """Bring a Bayer mosaic ``(H, W)`` onto the reference without mixing colours: with
+    ``periods``, shift it by whole 2 x 2 CFA periods (the translation rounded to even
+    pixels, no resampling); otherwise resample each of the four same-colour sub-planes on
+    its own (a site ``(2u + dx, 2v + dy)`` of the sub-plane ``(dy, dx)``; bilinear).  Sites
+    from outside the frame repeat the nearest same-colour edge site."""
+    if periods:
         tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
         return codes[np.ix_(_same_colour_index(codes.shape[0], ty), _same_colour_index(codes.shape[1], tx))]
     out = np.zeros_like(codes)

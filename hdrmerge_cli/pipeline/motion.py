@@ -35,8 +35,10 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
         black = float(np.mean(frame.black))
         return align.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
     full = frame.n_codes - 1.0
-    chans = [crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])]
-    return np.mean(chans, axis=0).astype(np.float32)
+    out = np.zeros(codes.shape[:2], np.float32)
+    for c in range(codes.shape[-1]):  # the inverse response as a table over the stored codes
+        out += crf.inverse(np.arange(frame.n_codes) / full, c).astype(np.float32)[codes[..., c]]
+    return out / codes.shape[-1]
 
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str) -> dict:
@@ -97,9 +99,12 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         motion = "translation"  # no frame's rotation beat its translation
     sizes = [align.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
     applied = mode != "auto" or max(sizes) > AUTO_ALIGN_PX
-    if raw and motion == "translation":  # whole CFA periods only
+    periods = raw and motion == "translation" and (mode == "translation" or whole_periods_suffice(warps))
+    if periods:
         applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
-    out = {"mode": mode, "motion": motion, "reference": frames[ref].path, "applied": bool(applied),
+    resampling = "none" if not raw else "cfa-periods" if periods else "bilinear"
+    out = {"mode": mode, "motion": motion, "resampling": resampling, "reference": frames[ref].path,
+           "applied": bool(applied),
            "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
            "largest_displacement_px": [round(s, 3) for s in sizes], "confidence": confidence,
            "unaligned": unaligned}
@@ -112,18 +117,25 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     return out
 
 
+def whole_periods_suffice(warps) -> bool:
+    """RAW: a translation by whole 2 x 2 CFA periods moves codes without resampling them;
+    ``auto`` resamples each colour's sites (bilinear) instead only when whole periods would
+    leave some frame more than :data:`AUTO_ALIGN_PX` off along either axis."""
+    return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
+
+
 def loader(frames: list[Frame], alignment: dict | None):
     """``frame -> codes``, brought onto the reference when the alignment is applied."""
     if not alignment or not alignment["applied"]:
         return load_codes
     warps = {f.path: w for f, w in zip(frames, alignment["warps"])}
-    motion = alignment["motion"]
+    periods = alignment["resampling"] == "cfa-periods"
 
     def load(frame: Frame) -> np.ndarray:
         codes = load_codes(frame)
         clip = int(np.max(frame.white))
         if frame.kind == "raw":
-            return align.apply_warp_mosaic(codes, warps[frame.path], clip, motion)
+            return align.apply_warp_mosaic(codes, warps[frame.path], clip, periods)
         return align.apply_warp(codes, warps[frame.path], clip)
 
     return load
@@ -207,14 +219,15 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
 
     est = {}
     for k, f in enumerate(frames):  # one decode per frame; only block means are kept
-        est[k] = _block_estimates(f, load(f), pattern, tables(k), b, bounds=k == ref)
+        est[k] = _block_estimates(f, load(f), pattern, tables(k), b, bounds=True)
     bound_r = est[ref][3]
+    clipped = {k: (e[3] < 0).any(axis=-1) for k, e in est.items()}  # blocks clipped in a channel
     order = sorted(range(len(frames)), key=lambda k: (abs(np.log(exposures[k] / exposures[ref])), k))
     xa = sa = va = source = None
     beyond = {}  # per frame: readings far outside the reference's dark / clipped bound
     for k in order:  # the anchor: the reference where it measures, else the nearest frame consistent with it
         x, s, ok, _ = est[k]
-        beyond[k] = deghost.violates_bound(x, s, bound_r) & ok
+        beyond[k] = deghost.violates_bound(x, s, bound_r, adapt=k != ref) & ok
         ok = ok & ~beyond[k]
         if xa is None:
             xa, sa, va = x.copy(), s.copy(), ok
@@ -231,8 +244,11 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     masks, fractions = [], []
     for k in range(len(frames)):
         x, s, ok, _ = est.pop(k)
+        longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
+        excuse = deghost.glare_excuse(clipped[k] if longer > 0 else clipped[ref], longer)
         bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
-                                         _samples(va), grad2, (1, nc), p_fa)
+                                         _samples(va), grad2, (1, nc), p_fa, smooth=True,
+                                         min_change=deghost.MIN_LOG_CHANGE, excuse=excuse)
         bad |= beyond.pop(k).any(axis=-1)
         del x, s, ok
         bad = deghost.clean(bad, min_cells=min_cells)
@@ -274,12 +290,12 @@ def ghost_image(ghosts: dict | None, height: int, width: int) -> np.ndarray:
     return out
 
 
-def covered(frame: Frame, warp: np.ndarray, motion: str) -> np.ndarray:
+def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
     """Which samples of the aligned frame come from inside it, ``(H, W')`` bool (a pixel's
     channels share its value); the others are stand-ins (the edge repeated) and get no
-    weight in the merge."""
+    weight in the merge.  ``periods``: a RAW frame moved by whole CFA periods."""
     h, w = frame.height, frame.width
-    if frame.kind == "raw" and motion == "translation":  # whole CFA periods
+    if frame.kind == "raw" and periods:  # whole CFA periods
         tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
         rows = (np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1)
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
@@ -307,7 +323,7 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
             keep = 1.0 - ghost_weight(ghosts, k, frames[k].height, frames[k].width)
             w *= keep if frames[k].kind == "raw" else np.repeat(keep, w.shape[1] // keep.shape[1], axis=1)
         if alignment is not None:
-            w *= covered(frames[k], alignment["warps"][k], alignment["motion"])
+            w *= covered(frames[k], alignment["warps"][k], alignment["resampling"] == "cfa-periods")
         return w.reshape(codes.shape).astype(np.float32)
 
     return weights
