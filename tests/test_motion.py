@@ -140,6 +140,17 @@ def test_mosaic_moves_by_whole_cfa_periods_and_clipping_survives_resampling():
     assert moved[4, 3] == 4095 and moved[4, 4] == 4095  # half-clipped neighbours read as clipped
 
 
+def test_covered_mask_matches_a_pixelwise_test():
+    h, w = 37, 53
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    for warp in (np.array([[1.0, 0.0, 2.7], [0.0, 1.0, -1.2]]), align.compose(
+            np.array([[np.cos(0.1), -np.sin(0.1), 3.0], [np.sin(0.1), np.cos(0.1), -4.0]]), np.eye(3)[:2]),
+            np.array([[0.0, -1.0, 40.0], [1.0, 0.0, 0.0]])):
+        sx, sy = warp[0, 0] * x + warp[0, 1] * y + warp[0, 2], warp[1, 0] * x + warp[1, 1] * y + warp[1, 2]
+        brute = (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
+        np.testing.assert_array_equal(align.covered_mask(warp, h, w), brute)
+
+
 def test_raw_auto_alignment_resamples_only_when_whole_cfa_periods_leave_an_offset():
     from hdrmerge_cli.pipeline.motion import whole_periods_suffice
 
@@ -366,3 +377,77 @@ def test_a_night_frame_with_sparse_lamps_is_not_black():
     lamps[100:110, 100:110] = 3000
     lamps[400:405, 600:640] = 1500
     assert np.percentile(lamps, 99) < 10 and _has_signal(lamps, -64.0, 4000.0)
+
+
+def _gain_field_case(rng, ghost: bool):
+    """Block estimates of a static frame pair whose ratio varies smoothly over the frame (a
+    vignetting / local-tone-mapping-like gain of up to +-0.25 in log), optionally with a
+    compact object (a 40 x 40 patch, 1.0 in log) in the frame."""
+    h, w = 300, 400
+    yy, xx = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
+    truth = np.exp(rng.uniform(np.log(0.05), np.log(0.8), (h, w, 3))).astype(np.float32)
+    gain = 0.25 * np.cos(2.5 * xx + 1.0) * np.sin(2.0 * yy + 0.5)  # smooth, 0.25 at most
+    sd = 0.01
+    xa = truth * np.exp(rng.normal(0, sd, truth.shape))
+    x = truth * np.exp(gain[..., None] + rng.normal(0, sd, truth.shape))
+    if ghost:
+        x[120:160, 200:240] *= np.e
+    x, xa = x.reshape(h, -1).astype(np.float32), xa.reshape(h, -1).astype(np.float32)
+    s = ((sd * xa) ** 2).astype(np.float32)
+    ok = np.ones(x.shape, bool)
+    return x, s, ok, xa, np.zeros(x.shape, np.float32)
+
+
+def test_smooth_gain_field_is_not_motion_but_a_compact_object_over_it_is():
+    """A static pair differing by a smooth spatial gain (tone mapping, vignetting): the plain
+    chi-square test rejects much of it; with the smooth ratio field and the minimum log
+    change nothing is rejected.  A compact object over the same field still is."""
+    rng = np.random.default_rng(21)
+    x, s, ok, xa, flat = _gain_field_case(rng, ghost=False)
+    plain = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), scale=False))
+    assert plain.mean() > 0.05  # the noise model alone calls the gain motion
+    new = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), smooth=True,
+                                     min_change=deghost.MIN_LOG_CHANGE)
+    assert deghost.clean(new).mean() <= 0.002
+    x, s, ok, xa, flat = _gain_field_case(np.random.default_rng(22), ghost=True)
+    new = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), smooth=True,
+                                                   min_change=deghost.MIN_LOG_CHANGE))
+    assert new[125:155, 205:235].mean() > 0.95
+    outside = np.ones(new.shape, bool)
+    outside[110:170, 190:250] = False
+    assert new[outside].mean() <= 0.002
+
+
+def test_glare_near_the_clipped_highlights_of_the_longer_frame_is_not_motion():
+    """The longer frame reads brighter around its clipped highlights (glare): excused in
+    that direction only; a darker object there is still found."""
+    clipped = np.zeros((100, 100), bool)
+    clipped[40:60, 40:60] = True
+    e = deghost.glare_excuse(clipped, +1)
+    assert e[50, 63] == 1 and e[5, 5] == 0  # reach: 5 % of 100 cells
+    assert not deghost.glare_excuse(clipped, 0).any()
+    rng = np.random.default_rng(23)
+    xa = rng.uniform(0.2, 0.4, (100, 300)).astype(np.float32)
+    s = np.full(xa.shape, 1e-6, np.float32)
+    ok = np.ones(xa.shape, bool)
+    x = xa.copy()
+    x[36:40, 126:174] *= 2.0  # brighter next to the highlight: glare
+    x[60:64, 126:174] *= 0.3  # darker next to it: an object
+    x[80:84, 126:174] *= 2.0  # brighter, but beyond the glare's reach
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros_like(xa), (1, 3),
+                                     min_change=deghost.MIN_LOG_CHANGE, excuse=e)
+    assert not bad[36:40, 42:58].any() and bad[60:64, 42:58].all() and bad[80:84, 42:58].all()
+
+
+def test_dark_bound_adapts_to_a_crushed_toe_but_still_finds_a_bright_object():
+    """A JPEG tone curve crushes to code 0 values up to 4x the assumed lowest code: the
+    adapted dark bound accepts them; a reading 50x beyond still violates it."""
+    rng = np.random.default_rng(24)
+    bound = np.full(10_000, 0.01, np.float32)
+    x = rng.uniform(0.0, 0.04, 10_000).astype(np.float32)
+    x[:200] = 0.5
+    s = np.full(x.shape, 1e-8, np.float32)
+    fixed = deghost.violates_bound(x, s, bound)
+    adapted = deghost.violates_bound(x, s, bound, adapt=True)
+    assert fixed[200:].mean() > 0.3 and adapted[200:].mean() < 0.01
+    assert adapted[:200].all()

@@ -278,12 +278,32 @@ def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarra
     cv2 = _cv2()
     h, w = codes.shape[:2]
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    out = cv2.warpAffine(codes.astype(np.float32), warp, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-    clipped = cv2.warpAffine((codes >= clip_code).astype(np.float32), warp, (w, h), flags=flags,
-                             borderMode=cv2.BORDER_REPLICATE)
-    out = np.rint(out)
-    out[clipped > 0] = clip_code
-    return out.reshape(codes.shape).astype(codes.dtype)
+    m = np.asarray(warp, np.float32)
+    # OpenCV interpolates 8/16-bit codes in fixed point and rounds: no float copy of the frame
+    out = cv2.warpAffine(np.ascontiguousarray(codes), m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    clipped = cv2.warpAffine((codes >= clip_code).view(np.uint8) * np.uint8(255), m, (w, h), flags=flags,
+                             borderMode=cv2.BORDER_REPLICATE)  # 255: any share of a clipped code survives
+    out = out.reshape(codes.shape)
+    out[clipped.reshape(codes.shape) > 0] = clip_code
+    return out
+
+
+def covered_mask(warp: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Which reference pixels ``(x, y)`` the warp takes inside the frame (``W @ (x, y, 1)``
+    within half a pixel of its edge), ``(height, width)`` bool.  The set is convex: each
+    row's pixels inside form one interval, found from the four edge inequalities."""
+    y = np.arange(height, dtype=np.float64)
+    lo, hi = np.full(height, -np.inf), np.full(height, np.inf)
+    for row, size in ((warp[0], width), (warp[1], height)):  # -0.5 <= p x + q(y) <= size - 0.5
+        p, q = row[0], row[1] * y + row[2]
+        if abs(p) < 1e-12:
+            ok = (q >= -0.5) & (q <= size - 0.5)
+            lo[~ok], hi[~ok] = np.inf, -np.inf
+            continue
+        a, b = (-0.5 - q) / p, (size - 0.5 - q) / p
+        lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
+    x = np.arange(width, dtype=np.float64)
+    return (x[None, :] >= lo[:, None] - 1e-9) & (x[None, :] <= hi[:, None] + 1e-9)
 
 
 def _same_colour_index(n: int, shift: int) -> np.ndarray:

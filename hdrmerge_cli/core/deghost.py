@@ -56,6 +56,8 @@ MODEL_TOLERANCE = 0.01
 ALIGN_TOLERANCE_PX = 0.5
 #: how far beyond a dark / clipped reference's bound a reading must be to be motion
 BOUND_FACTOR = 2.0
+#: quantile of a static scene's readings against a dark / clipped bound (``violates_bound(adapt=True)``)
+BOUND_QUANTILE = 0.9
 #: smallest connected region of rejected pixels kept as motion (in blocks: at least 8)
 MIN_BLOB_PX = 64
 #: width (Gaussian sigma, pixels; at least 1.5 blocks) of a rejection mask's soft edge
@@ -64,6 +66,17 @@ FEATHER_PX = 4.0
 CELL_TARGET = 1 << 20
 #: ``auto`` deghosts when a frame has more than this fraction of its cells rejected
 AUTO_FRACTION = 0.002
+#: smallest change (|mean log ratio| of a cell's channels, after the corrections) that can be
+#: motion: in-camera tone mapping, glare and a response unlike the assumed one differ by a
+#: few tenths at most between static frames, a moving object usually by much more
+MIN_LOG_CHANGE = 0.3
+#: tiles across the longer side of the frame for :func:`smooth_ratio_field`
+FIELD_TILES = 16
+#: largest |log ratio| :func:`smooth_ratio_field` absorbs
+FIELD_MAX = 0.5
+#: glare reach (fraction of the frame's longer side): within it of a clipped region of the
+#: longer exposure of a pair, that frame reading brighter is not motion (:func:`glare_excuse`)
+GLARE_REACH = 0.05
 
 
 def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: float,
@@ -199,21 +212,32 @@ def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, 
     return lam.astype(np.float32)
 
 
-def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float = P_FALSE_ALARM) -> np.ndarray:
+def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float = P_FALSE_ALARM,
+                   adapt: bool = False) -> np.ndarray:
     """Where the reference does not measure a sample it still bounds it: a dark reading
     says ``x <= bound`` (``bound > 0``, the x of its lowest measuring code), a clipped one
     ``x >= -bound`` (``bound < 0``).  True where a frame's reading is beyond that bound by
     more than :data:`BOUND_FACTOR` and the one-sided ``p_fa`` quantile of its noise: it
     shows another moment (e.g. a moving object where the reference saw dark background).
-    The factor absorbs camera-response errors, which are largest far from mid-grey."""
+    The factor absorbs camera-response errors, which are largest far from mid-grey.  With
+    ``adapt`` the bounds are also measured on the frame: a JPEG's tone curve may crush to
+    code 0 (or clip) values far beyond what the assumed response puts at the lowest (highest)
+    measuring code, so a dark bound is raised to the :data:`BOUND_QUANTILE` quantile of
+    ``x / bound`` over the samples it bounds: a static scene is then within it, a moving
+    minority still beyond it (clipped bounds are kept: a moving object may fill a small
+    clipped region)."""
     from scipy.stats import norm
 
     out = np.zeros(x.shape, bool)
     where = np.flatnonzero(bound)  # only where the reference reads dark or clipped
     xb, bb = x.ravel()[where], bound.ravel()[where]
     k = np.float32(norm.isf(p_fa)) * np.sqrt(s.ravel()[where])
-    out.ravel()[where] = ((bb > 0) & (xb - k > bb * np.float32(BOUND_FACTOR))) | (
-        (bb < 0) & (xb + k < -bb / np.float32(BOUND_FACTOR)))
+    up, down = np.float32(BOUND_FACTOR), np.float32(BOUND_FACTOR)
+    if adapt:
+        dark = (bb > 0) & (xb > 0)
+        if np.count_nonzero(dark) >= 100:
+            up *= np.float32(max(1.0, np.quantile(xb[dark] / bb[dark], BOUND_QUANTILE)))
+    out.ravel()[where] = ((bb > 0) & (xb - k > bb * up)) | ((bb < 0) & (xb + k < -bb / down))
     return out
 
 
@@ -246,18 +270,73 @@ def squared_gradient(xa: np.ndarray, layout: str) -> np.ndarray:
     return (gy * gy + gx * gx).astype(np.float32)
 
 
+def smooth_ratio_field(r: np.ndarray, ok: np.ndarray, nc: int, tiles: int = FIELD_TILES,
+                       limit: float = FIELD_MAX) -> np.ndarray:
+    """A smooth, low-frequency field of the log ratio ``r`` (``(H, W * nc)`` per sample, used
+    where ``ok``): per-tile medians over about ``tiles`` tiles across the longer side (tiles
+    with under 10 % usable samples take their nearest neighbour's), a 3 x 3 median across
+    tiles (a moving object filling most of one tile does not make its value), clipped to
+    ``+-limit`` and interpolated bilinearly.  Dividing it out absorbs what varies slowly
+    over the frame (vignetting, in-camera local tone mapping, broad glare) while a compact
+    object with sharp edges stays."""
+    h, w = r.shape[0], r.shape[1] // nc
+    t = max(8, int(np.ceil(max(h, w) / tiles)))
+    gh, gw = -(-h // t), -(-w // t)
+    grid = np.full((gh, gw), np.nan, np.float32)
+    rr = np.where(ok, r, np.nan).reshape(h, w, nc)
+    for i in range(gh):
+        for j in range(gw):
+            v = rr[i * t:(i + 1) * t, j * t:(j + 1) * t].ravel()
+            v = v[np.isfinite(v)]
+            if v.size >= 0.1 * t * t:
+                grid[i, j] = np.median(v)
+    if np.all(np.isnan(grid)):
+        return np.zeros(r.shape, np.float32)
+    idx = ndimage.distance_transform_edt(np.isnan(grid), return_distances=False, return_indices=True)
+    grid = np.clip(ndimage.median_filter(grid[tuple(idx)], 3, mode="nearest"), -limit, limit)
+    import cv2
+
+    f = cv2.resize(grid, (gw * t, gh * t), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    return np.repeat(f, nc, axis=1)
+
+
+def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH) -> np.ndarray:
+    """Per cell, the sign of a difference (frame minus anchor) that is not motion: ``sign``
+    (+1: the frame is the longer exposure and may read brighter; -1: the anchor is) within
+    ``reach`` times the longer side of the cells ``clipped`` in the longer exposure (veiling
+    glare and blooming around clipped highlights grow with exposure), 0 elsewhere."""
+    if not clipped.any() or not sign:
+        return np.zeros(clipped.shape, np.int8)
+    d = ndimage.distance_transform_edt(~clipped)
+    return np.where(d <= reach * max(clipped.shape), np.int8(sign), np.int8(0))
+
+
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
                        valid_a: np.ndarray, grad2: np.ndarray, cell: tuple[int, int],
-                       p_fa: float = P_FALSE_ALARM, scale: bool = True) -> np.ndarray:
+                       p_fa: float = P_FALSE_ALARM, scale: bool = True, smooth: bool = False,
+                       min_change: float = 0.0, excuse: np.ndarray | None = None) -> np.ndarray:
     """Cells where a frame disagrees with the anchor: all inputs ``(H, W')`` per sample
     (``W' = W * C`` for interleaved channels), ``grad2`` the anchor's squared gradient
     times the squared registration tolerance in its units (:func:`squared_gradient`;
     pixels: ``ALIGN_TOLERANCE_PX^2 |grad x|^2``), ``cell = (ph, pw)`` samples per cell.
     The variance of a difference is the noise of both frames, the model tolerance and
     the registration tolerance along the gradient, times the measured level scale
-    (:func:`level_scale`, with ``scale``).  Returns ``(H // ph, W' // pw)`` bool."""
+    (:func:`level_scale`, with ``scale``).  With ``smooth`` the frame is also divided by
+    :func:`smooth_ratio_field` (``pw`` the channels per cell); a cell is then kept only
+    where its mean log ratio exceeds ``min_change`` in size and, where ``excuse``
+    (:func:`glare_excuse`, per cell) is non-zero, does not have its sign.  Returns
+    ``(H // ph, W' // pw)`` bool."""
     both = valid & valid_a
     x = match_anchor(x, xa, both)
+    r = None
+    if smooth or min_change > 0 or excuse is not None:
+        pos = both & (x > 0) & (xa > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(pos, np.log(np.maximum(x, 1e-30) / np.maximum(xa, 1e-30)), 0.0).astype(np.float32)
+        if smooth:
+            f = smooth_ratio_field(r, pos, cell[1])
+            x = x * np.exp(-f).astype(np.float32)
+            r = np.where(pos, r - f, 0.0).astype(np.float32)
     var = s + sa + (MODEL_TOLERANCE * xa) ** 2 + grad2
     with np.errstate(over="ignore"):
         t = np.where(both, (x - xa) ** 2 / np.maximum(var, 1e-30), 0.0).astype(np.float32)
@@ -265,7 +344,14 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         t /= level_scale(t, x, xa, both)
     stat = cell_sums(t, *cell)
     k = cell_sums(both.astype(np.int32), *cell)
-    return stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
+    bad = stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
+    if r is not None and (min_change > 0 or excuse is not None):
+        rm = cell_sums(r, *cell) / np.maximum(cell_sums(pos.astype(np.int32), *cell), 1)
+        if min_change > 0:
+            bad &= np.abs(rm) > min_change
+        if excuse is not None:
+            bad &= ~(excuse * rm > 0)
+    return bad
 
 
 def clean(mask: np.ndarray, open_radius: int = 1, min_cells: int = MIN_BLOB_PX, grow: int = 2) -> np.ndarray:

@@ -34,11 +34,16 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     if frame.kind == "raw":
         black = float(np.mean(frame.black))
         return align.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
-    full = frame.n_codes - 1.0
-    out = np.zeros(codes.shape[:2], np.float32)
-    for c in range(codes.shape[-1]):  # the inverse response as a table over the stored codes
-        out += crf.inverse(np.arange(frame.n_codes) / full, c).astype(np.float32)[codes[..., c]]
-    return out / codes.shape[-1]
+    # the inverse response as a table over the stored codes
+    v = np.arange(frame.n_codes) / (frame.n_codes - 1.0)
+    lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
+    if codes.dtype == np.uint8:  # OpenCV's table lookup, all channels in one pass
+        import cv2
+
+        lin = cv2.LUT(codes, lut[None])
+    else:
+        lin = np.stack([lut[codes[..., c], c] for c in range(codes.shape[-1])], axis=-1)
+    return lin.mean(axis=-1, dtype=np.float32)
 
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str) -> dict:
@@ -55,7 +60,13 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     ref = reference_index(frames)
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
-    images = [_linear(f, load_codes(f), crf) for f in frames]
+    held: dict[int, np.ndarray] = {}  # the registration images of the pair at hand, no more
+
+    def image(k: int) -> np.ndarray:
+        if k not in held:
+            held.pop(next((j for j in held if j not in (k - 1, k + 1)), None), None)
+            held[k] = _linear(frames[k], load_codes(frames[k]), crf)
+        return held[k]
 
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
     unaligned, confidence = [], [1.0] * len(frames)
@@ -70,8 +81,8 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
             lo = hi = None
         why = None
         if lo is not None:
-            ia = align.log_irradiance(images[a], exposures[a], lo, hi)
-            ib = align.log_irradiance(images[b], exposures[b], lo, hi)
+            ia = align.log_irradiance(image(a), exposures[a], lo, hi)
+            ib = align.log_irradiance(image(b), exposures[b], lo, hi)
             texture = min(align.textured_pixels(ia), align.textured_pixels(ib))
             if texture < align.MIN_TEXTURED:
                 why = f"only {texture} textured pixels in the range it shares with its neighbour"
@@ -300,10 +311,7 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
         rows = (np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1)
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
         return rows[:, None] & cols[None, :]
-    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
-    sx = warp[0, 0] * x + warp[0, 1] * y + warp[0, 2]
-    sy = warp[1, 0] * x + warp[1, 1] * y + warp[1, 2]
-    inside = (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
+    inside = align.covered_mask(warp, h, w)
     return inside if frame.kind == "raw" else np.repeat(inside, frame.channels, axis=1)
 
 
