@@ -237,8 +237,14 @@ def test_merge_frames_irls_recovers_a_noise_free_irradiance():
                                     irls_iterations=3)
         ok = flag == FLAG_OK
         assert ok.mean() > 0.99
+        err = np.abs(np.log(out[ok] * 4095 / e[ok]))
         # out is E / 4095 per second; half a code at >= 100 codes is 0.005 (measured 0.0060 both)
-        assert np.max(np.abs(np.log(out[ok] * 4095 / e[ok]))) < 0.008
+        # away from the clip; ML reads a clipped frame as censored (y > 4094.5 with the model's
+        # sd ~64 codes), which these noise-free codes just above full scale do not fit: there
+        # it may move by a fraction of the unclipped frame's model sd (5 %; measured 0.021)
+        near = np.any([np.abs(e * t - 4095) < 3 * np.sqrt(1 + 4095) for t in times], axis=0)[ok]
+        assert np.max(err[~near] if estimator == "ml" else err) < 0.008
+        assert np.max(err) < 0.03
 
 
 def test_codes_above_the_table_read_as_clipped():
@@ -287,3 +293,55 @@ def test_code_error_variance_in_the_log_domain():
     codes = np.arange(10, 250)
     y = lin[codes] * full
     np.testing.assert_allclose(c[codes] / y**2, (p / codes) ** 2 / 12 + 1e-4, rtol=0.01)
+
+
+def _censored_ml(codes, times, full, p):
+    """Independent float64 solution of the censored (Tobit) quasi-likelihood equation of one
+    sample: readings below full scale as N(mu_j, v(mu_j)) means, readings at full scale as
+    ``y > full - 1/2``; ``mu_j = t_j E``, ``v = sigma_o2 + sqrt(alpha) mu``; by brentq."""
+    from scipy.optimize import brentq
+    from scipy.stats import norm
+
+    def score(log_mu_unit):
+        e = np.exp(log_mu_unit)
+        out = 0.0
+        for z, t in zip(codes, times):
+            mu = e * t
+            v = p.sigma_o2 + np.sqrt(p.alpha) * mu
+            if z >= full:
+                a = (full - 0.5 - mu) / np.sqrt(v)
+                out += t * np.exp(norm.logpdf(a) - norm.logsf(a)) / np.sqrt(v)
+            elif z > 0:
+                out += t * (z - mu) / v
+        return out
+
+    return np.exp(brentq(score, np.log(10.0), np.log(1e5), xtol=1e-12))
+
+
+def test_ml_irls_treats_clipped_readings_as_censored():
+    """Near saturation the ML estimator's re-weighting reads a clipped frame as 'above full
+    scale' (censored_terms): converged, it solves the censored likelihood equation of an
+    independent scipy computation, and on noisy brackets around the clipping level its rms
+    log error is lower than the one-pass tables' (which drop the clipped readings)."""
+    from hdrmerge_cli.core.reconstruct import merge_frames
+
+    full, p = 4095, NoiseParams(sigma_o2=400.0, alpha=16.0)
+    times = [1.0, 4.0]
+    rng = np.random.default_rng(3)
+    e = np.repeat(np.linspace(800.0, 1400.0, 7), 3000)  # frame 2 at 3200..5600 codes: partly clipped
+    frames = [np.clip(np.rint(t * e + rng.normal(0, np.sqrt(p.sigma_o2 + np.sqrt(p.alpha) * t * e))), 0,
+                      full).astype(np.uint16).reshape(1, -1) for t in times]
+    kw = dict(noise=[p], estimator="ml")
+    out, flag, _ = merge_frames(frames, times, CRF("linear"), 0.0, float(full), "uniform", irls_iterations=30, **kw)
+    assert (flag == FLAG_OK).all()
+    est = out.ravel() * full  # codes per unit time
+    pick = rng.choice(e.size, 40, replace=False)
+    ref = np.array([_censored_ml([f.ravel()[i] for f in frames], times, full, p) for i in pick])
+    assert np.max(np.abs(np.log(est[pick] / ref))) < 1e-3
+    one, _, _ = merge_frames(frames, times, CRF("linear"), 0.0, float(full), "uniform", **kw)
+    for level in np.unique(e):  # rms log error, converged vs one pass without the clipped readings
+        m = e == level
+        new, old = (np.sqrt(np.mean(np.log(x[m] / level) ** 2)) for x in (est, one.ravel() * full))
+        assert new <= old * 1.005
+        if abs(level * times[1] - full) < 2 * np.sqrt(p.sigma_o2 + 4 * full):  # frame 2 partly clipped
+            assert new < 0.93 * old  # measured 0.0357 vs 0.0388 (E = 1000), 0.0490 vs 0.0628 (1100)

@@ -51,6 +51,8 @@ class ExposureTables:
     fallback_log : ``log(max(gamma^-1(z), half a code) / h)``, used where no frame has weight
     above_mid : bool, ``z > z_max / 2``: a pixel above mid-scale in the shortest frame and
         unmeasured everywhere is taken as saturated, otherwise as dark
+    saturated : bool, ``z >= z_max``: a reading clipped at full scale (censored), which the
+        ML estimator's re-weighting passes use (:func:`censored_terms`)
     """
 
     weight: np.ndarray
@@ -60,6 +62,7 @@ class ExposureTables:
     n_codes: int
     value: np.ndarray | None = None
     certainty: np.ndarray | None = None
+    saturated: np.ndarray | None = None
 
 
 def table_size(white, n_codes: int) -> int:
@@ -236,11 +239,11 @@ def exposure_tables(
             with np.errstate(divide="ignore"):
                 value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
-        rows.append((w, w * value, fallback, v > 0.5, value, cert))
-    w, wv, fb, hi, val, cert = (np.concatenate(col) for col in zip(*rows))
+        rows.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
+    w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*rows))
     return ExposureTables(
         w.astype(np.float32), wv.astype(np.float32), fb.astype(np.float32), hi, n_codes,
-        val.astype(np.float32), cert.astype(np.float32),
+        val.astype(np.float32), cert.astype(np.float32), sat,
     )
 
 
@@ -299,6 +302,37 @@ def noise_maps(shape: tuple[int, ...], params: list[NoiseParams], pattern: np.nd
 IRLS_TOLERANCE = 1e-3
 
 
+def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps) -> tuple[np.ndarray, np.ndarray]:
+    """A reading clipped at full scale in the ML estimator's re-weighting: the censored
+    observation ``y > y_full - 1/2`` (the top code's lower edge) of ``y ~ N(mu, v(mu))``,
+    ``mu = E h y_full``, as a pseudo-observation ``(weight, value)`` of the weighted mean,
+    so that one pass is a Fisher-scoring (Newton) step on the censored likelihood.
+
+    With ``a = (y_full - 1/2 - mu) / sd`` and the inverse Mills ratio
+    ``lam = phi(a) / Phi(-a)``, the censored log-likelihood ``log Phi(-a)`` has score
+    ``k lam / sd`` and observed information ``k^2 lam (lam - a) / sd^2`` in ``E``
+    (``k = h y_full``; the dependence of ``sd`` on ``mu`` is neglected).  Weight = that
+    information, value = ``E + score / information = E + sd / (k (lam - a))``: at a fixed point
+    the weighted mean solves the censored likelihood equation, where dropping the clipped
+    readings (the tables' weight 0) biases a sample near saturation low (its unclipped
+    readings are the truncated lower part of their distribution) and ignores that the
+    clipped frames saw more than full scale.  A reading far above full scale carries no
+    information and gets weight ~0.  Returns float32 ``(weight, value)`` like ``log_e``."""
+    from scipy.special import log_ndtr
+
+    s_o2, sqrt_a, b_a = (np.asarray(m, np.float64) for m in noise_maps)
+    k = float(exposure) * float(y_full)
+    e = np.exp(np.asarray(log_e, np.float64))
+    mu = e * k
+    sd = np.sqrt(np.maximum(s_o2 + sqrt_a * mu + b_a * mu * mu, 1e-12))
+    a = (y_full - 0.5 - mu) / sd
+    lam = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_ndtr(-a))
+    gap = np.maximum(lam - a, 1e-12)  # > 0 always; lam - a -> 1/a for large a
+    weight = k * k * lam * gap / (sd * sd)
+    value = e + sd / (k * gap)
+    return weight.astype(np.float32), value.astype(np.float32)
+
+
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, maps,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE):
     """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
@@ -314,10 +348,24 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     rows = channel_index(log_e.shape, pattern)
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern)
+        cen_num = cen_den = None  # ML: the clipped readings as censored observations (censored_terms)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
             w = irls_weights(lookup(tab.certainty, tab.n_codes, codes, rows), log_e, h, y_full[k], maps, linear)
             acc.add(codes, tab, last=k == len(tables) - 1, weight=w)
+            if linear and tab.saturated is not None:
+                sat = lookup(tab.saturated, tab.n_codes, codes, rows)
+                if sat.any():
+                    if cen_num is None:
+                        cen_num, cen_den = np.zeros(log_e.shape, np.float32), np.zeros(log_e.shape, np.float32)
+                    cw, cv = censored_terms(log_e[sat], h, y_full[k], [np.broadcast_to(m, log_e.shape)[sat]
+                                                                       for m in maps])
+                    cen_num[sat] += cw * cv
+                    cen_den[sat] += cw
+        if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
+            measured = acc.den > 0  # clipped in every frame has no finite ML estimate and keeps its flag
+            acc.num[measured] += cen_num[measured]
+            acc.den[measured] += cen_den[measured]
         new, flags = acc.finish(linear)
         den = acc.den
         change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
