@@ -14,7 +14,14 @@ and the scenes of ../shared/data/hdr, through the same code as the CLI:
   on the bracket itself (no profile), and with photon-noise weights only.
 
 Relative errors are against sigma_o^2 + 1/12 (the quantisation the model lumps in),
-alpha, and beta (when beta > 0).  "model picked" is the fraction of runs where the
+alpha, and beta (when beta > 0).  Next to them, what the bracket allows: the Cramer-Rao
+standard error of sigma_o^2 and alpha from the exposure contrasts of every pixel
+(``core.calibrate.achievable_errors``, at the true parameters, every pixel's irradiance
+unknown), and the error in units of that standard error (an efficient estimator gives
+a median of 0.67 and a 90th percentile of 1.64): a large error with a small ratio is a
+parameter the bracket does not identify, a large ratio an estimator failure.  "target
+reachable" is the fraction of channels where 1.64 standard errors fit in the issue's
+target (sigma_o^2 5 %, alpha 2 %), "within target" where the error does.  "model picked" is the fraction of runs where the
 F-test (bracket) or z-test (flats) kept beta exactly when it is > 0.  Also the fit on the
 real DNG of ../shared/data/raw.
 
@@ -30,10 +37,13 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import write_result
+from hdrmerge_cli.core.calibrate import achievable_errors, exposure_ratio
 from hdrmerge_cli.core.color import mosaic
+from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.pipeline.calibrate import CalibrateOptions, calibrate_noise
+from hdrmerge_cli.io.frames import read_frame
+from hdrmerge_cli.pipeline.calibrate import CalibrateOptions, _by_channel, _read_group, calibrate_noise
 from hdrmerge_cli.pipeline.merge import MergeOptions, merge
 from hdrmerge_cli.pipeline.simulate import SimulateOptions, load_scene, simulate
 
@@ -42,6 +52,27 @@ GAINS = (0.25, 0.5, 1.0, 2.0, 4.0)
 SIGMAS = (1.0, 2.0, 4.0, 8.0, 16.0)
 PRNU2 = 1e-4  # beta / alpha
 CHANNELS = ("R", "G", "B", "G2")
+TARGETS = {"sigma_o2": 0.05, "alpha": 0.02}  # issue 15 item 7
+
+
+def achievable(frames: list[str], truth: dict) -> dict[str, dict]:
+    """{channel: {"sigma_o2", "alpha"}}: Cramer-Rao relative standard errors of the
+    bracket's exposure contrasts at the true parameters (the frames read as calibrate-noise
+    reads them, the ratios measured as it measures them)."""
+    read = _read_group(sorted((read_frame(f) for f in frames), key=lambda f: f.exposure_time or 0.0), None, "images")
+    coef = (truth["sigma_o2"], np.sqrt(truth["alpha"]))
+    out = {}
+    for ch, items in _by_channel(read).items():
+        planes, lo, hi = [p for p, *_ in items], items[0][1], items[0][2]
+        ratios = []
+        for s, g in zip(planes[:-1], planes[1:]):
+            try:
+                ratios.append(exposure_ratio(s, g, lo, hi))
+            except HdrMergeError:
+                ratios.append(None)
+        se0, sea = achievable_errors(planes, lo, hi, ratios, coef)
+        out[ch] = {"sigma_o2": se0 / truth["sigma_o2"], "alpha": sea / truth["alpha"]}
+    return out
 
 
 def scenes(quick: bool) -> dict[str, tuple[str, float]]:
@@ -76,6 +107,7 @@ def run_config(scene: str, scale: float, gain: float, sigma_o: float, beta_on: b
     s = calibrate_noise(frames, CalibrateOptions(output=tmp / "n.json", overwrite=True))
     out["bracket_seconds"] = time.perf_counter() - t0
     out["bracket"] = s["noise"]["ISO100"]
+    out["achievable"] = achievable(frames, truth)
     simulate(SimulateOptions(output_dir=tmp / "d", scene="dark", width=512, height=512, frames=4, sensor=sensor,
                              overwrite=True, seed=2))
     simulate(SimulateOptions(output_dir=tmp / "f", scene="flat", scale=1000.0, width=512, height=512, frames=6,
@@ -90,6 +122,7 @@ def run_config(scene: str, scale: float, gain: float, sigma_o: float, beta_on: b
         merge(frames, MergeOptions(**common, **extra))
         out[f"psnr_{label}"] = log_psnr(read_exr(tmp / "m.exr")[0][..., 0], t_mosaic)
     out["truth"] = truth
+    out["config"] = {"sqrt_alpha": gain, "sigma_o": sigma_o, "beta": beta_on}
     return out
 
 
@@ -101,6 +134,14 @@ def rel_errors(results, source, key):
         for ch in CHANNELS:
             errs.append(abs(r[source][ch][key] / r["truth"][key] - 1))
     return np.array(errs)
+
+
+def achievable_cells(results, key):
+    """(achievable relative s.e., |error| / s.e., fraction reachable, fraction within) of
+    the one-bracket estimates, over configurations and channels."""
+    se = np.array([r["achievable"][ch][key] for r in results for ch in CHANNELS])
+    err = rel_errors(results, "bracket", key)
+    return se, err / se, np.mean(1.645 * se <= TARGETS[key]), np.mean(err <= TARGETS[key])
 
 
 def picks(results, source):
@@ -143,8 +184,13 @@ def main(quick: bool = False, out: Path | None = None) -> str:
              "| scene | source | sigma_o^2 | alpha | beta (beta > 0) | model picked | merge PSNR true / measured / "
              "photon only (dB) |", "|---|---|---|---|---|---|---|"]
 
-    def cell(e):
-        return f"{np.median(e):.1%} ({np.percentile(e, 90):.1%})" if e.size else "-"
+    def cell(e, fmt=".1%"):
+        return f"{np.median(e):{fmt}} ({np.percentile(e, 90):{fmt}})" if e.size else "-"
+
+    table2 = ["", "One bracket against what it allows (Cramer-Rao standard error of the exposure contrasts, "
+              "median (90th percentile)):", "",
+              "| scene | s.e. sigma_o^2 | error / s.e. | target reachable / within (5 %) | s.e. alpha | error / s.e. | "
+              "target reachable / within (2 %) |", "|---|---|---|---|---|---|---|"]
 
     for name, rs in list(per_scene.items()) + [("all", every)]:
         psnr = " / ".join(f"{np.mean([r[f'psnr_{k}'] for r in rs]):.2f}" for k in ("true", "measured", "photon"))
@@ -152,6 +198,21 @@ def main(quick: bool = False, out: Path | None = None) -> str:
             lines.append(f"| {name} | {label} | {cell(rel_errors(rs, source, 'sigma_o2'))} | "
                          f"{cell(rel_errors(rs, source, 'alpha'))} | {cell(rel_errors(rs, source, 'beta'))} | "
                          f"{picks(rs, source):.0%} | {psnr if source == 'bracket' else ''} |")
+        row = [name]
+        for key in ("sigma_o2", "alpha"):
+            se, z, reach, within = achievable_cells(rs, key)
+            row += [cell(se), cell(z, ".2f"), f"{reach:.0%} / {within:.0%}"]
+        table2.append("| " + " | ".join(row) + " |")
+    lines += table2
+    worst = sorted(((abs(r["bracket"][ch]["sigma_o2"] / r["truth"]["sigma_o2"] - 1), name, r, ch)
+                    for name, rs in per_scene.items() for r in rs for ch in CHANNELS), key=lambda w: -w[0])[:8]
+    lines += ["", "Largest one-bracket sigma_o^2 errors:", "",
+              "| scene | sqrt(alpha) | sigma_o | beta > 0 | channel | error | s.e. | error / s.e. |",
+              "|---|---|---|---|---|---|---|---|"]
+    for e, name, r, ch in worst:
+        se = r["achievable"][ch]["sigma_o2"]
+        lines.append(f"| {name} | {r['config']['sqrt_alpha']:g} | {r['config']['sigma_o']:g} | "
+                     f"{'yes' if r['config']['beta'] else 'no'} | {ch} | {e:.1%} | {se:.1%} | {e / se:.1f} |")
     cost = np.array([r["psnr_true"] - r["psnr_measured"] for r in every])
     lines += ["", f"Cost of not knowing the camera (true minus measured-on-the-bracket PSNR): mean {cost.mean():+.3f} dB, "
               f"worst {cost.max():+.3f} dB.  Bracket calibration time (5 frames, incl. decoding): median "

@@ -18,6 +18,16 @@ Two kinds of measurement feed the same fit, as rows of a linear model in ``c``:
   ``d = y_long - r y_short`` cancels the scene (texture included) and the gain FPN, which
   is the same in both frames, so ``Var[d] = c0 (1 + r^2) + c1 mu_long (1 + r)``, rows
   ``[1 + r^2, mu (1 + r), 0]``.  This is the photon-transfer idea applied to a bracket.
+  Since the scene cancels, every unclipped pixel counts (not only flat windows away from
+  clipped pixels): per pixel ``d^2``, binned by an estimate of the pixel's mean whose
+  noise is independent of the pair's (another frame, scaled), with the bin's mean taken
+  from the pixels' own long-frame values.  Binning by the pair's own noisy values would
+  shift each bin's mean by about the noise variance times the log-slope of the scene's
+  histogram, an error that the fit multiplies into sigma_o^2 when photon noise dominates.
+
+What a bracket can tell at best is :func:`achievable_errors` (the Cramer-Rao bound of the
+per-pixel exposure contrasts, every pixel's irradiance unknown): with strong photon noise
+and few dark pixels, sigma_o^2 is not identified, whatever the estimator.
 
 A single bracket cannot tell gain FPN from static scene texture (both are per-pixel,
 static and proportional to the signal); only flat fields can (:mod:`photon_transfer`).
@@ -45,6 +55,16 @@ LAPLACE_GAIN = 20.0
 #: of the Laplacian of the predicted noise (white noise exceeds 5.5 sd in 49 samples with
 #: probability 2e-6, so flat windows are kept whatever their noise draw)
 TEXTURE_SIGMAS = 5.5
+
+#: frames with more than this fraction of pixels clipped at black (camera-processed
+#: images, which cut the noise at 0; RAW keeps values below black) use the windowed pair
+#: statistics, which drop every window touching a clipped pixel, instead of the per-pixel
+#: ones, whose dark pixels would have their noise cut
+BLACK_CLIPPED = 1e-3
+
+#: exposure-pair pixels whose squared difference exceeds this many predicted standard
+#: deviations (of a first fit) are outliers (hot pixels, motion)
+OUTLIER_SIGMAS = 8.0
 
 
 @dataclass
@@ -148,6 +168,139 @@ def pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo: float
     var = (ndimage.uniform_filter(d * d, window, mode="reflect") - dm * dm) * (n / (n - 1.0))
     ok = _valid([s, g], lo, hi, window)
     return WindowStats(mean[ok], var[ok], np.zeros(np.count_nonzero(ok)), float(n - 1))
+
+
+@dataclass
+class PixelPairs:
+    """Per-pixel exposure-pair measurements of one pair (ratio ``ratio``), each (N,):
+    ``long`` (the pixel's value in the longer frame, an unbiased estimate of its mean),
+    ``dsq`` (the squared difference ``(long - ratio * short)^2``, an unbiased estimate of
+    its variance) and ``key``, an estimate of the pixel's mean whose noise is independent
+    of both frames' (another frame of the bracket, or the neighbours), used to bin;
+    ``key_scale`` the factor ``s`` by which the key's variance is ``s^2 c0 + s c1 key``
+    (a frame scaled by ``s``; the 8-neighbour mean has ``s^2 = s = 1/8`` nearly)."""
+
+    long: np.ndarray
+    dsq: np.ndarray
+    key: np.ndarray
+    ratio: float
+    key_scale: np.ndarray | None = None
+
+    def subset(self, keep: np.ndarray) -> "PixelPairs":
+        return PixelPairs(self.long[keep], self.dsq[keep], self.key[keep], self.ratio,
+                          None if self.key_scale is None else self.key_scale[keep])
+
+    def unclipped(self, coef, lo: float, hi: float, sigmas: float = 4.0) -> np.ndarray:
+        """Pixels whose mean in both frames (from the key, give or take ``sigmas`` of its
+        noise under the model ``coef``) lies ``sigmas`` noise standard deviations inside
+        ``(lo, hi)``: their noise is not cut by the clipping (in the short frame, scaled up
+        by the ratio, a cut at black weighs heavily)."""
+        c0, c1 = float(coef[0]), float(coef[1])
+        k = np.maximum(self.key, 0.0)
+        sc = np.ones_like(k) if self.key_scale is None else self.key_scale
+        key_sd = np.sqrt(sc * sc * c0 + sc * c1 * k)
+        ok = np.ones(k.shape, bool)
+        for scale in (1.0, 1.0 / self.ratio):  # the long frame, the short frame
+            reach = sigmas * (scale * key_sd + np.sqrt(c0 + c1 * scale * k))
+            ok &= (scale * self.key + reach < hi) & (scale * self.key - reach > lo)
+        return ok
+
+
+def _chain_gains(ratios: list, k: int) -> np.ndarray:
+    """Exposure of each frame relative to frame ``k`` from the consecutive ``ratios``
+    (None: not measured), NaN for frames not linked to ``k`` by measured ratios."""
+    gains = np.full(len(ratios) + 1, np.nan)
+    gains[k] = 1.0
+    for j in range(k, len(ratios)):
+        if ratios[j] is None:
+            break
+        gains[j + 1] = gains[j] * ratios[j]
+    for j in range(k - 1, -1, -1):
+        if ratios[j] is None:
+            break
+        gains[j] = gains[j + 1] / ratios[j]
+    return gains
+
+
+def selection_keys(planes: list[np.ndarray], gains: np.ndarray, k: int, lo: float,
+                   hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """For the pair of frames ``k`` and ``k + 1`` of ``planes`` (sorted by exposure,
+    ``gains[j]`` the exposure of frame ``j`` relative to frame 0): per pixel, an estimate
+    of the mean of frame ``k + 1`` whose noise is independent of both frames': the longest
+    other frame unclipped there if longer than ``k + 1`` (scaled down, its noise shrinks),
+    else the nearest shorter one unclipped there, scaled up, else the mean of the pixel's
+    8 neighbours in frame ``k + 1``.
+
+    Binning by a noisy estimate of the mean and using the same estimate as the bin's
+    abscissa biases the abscissa (regression to the mean of the scene's histogram, by
+    about the noise variance times the histogram's log-slope), which a variance fit turns
+    into an error in sigma_o^2 many times its size when the photon noise dominates.
+    Binning by an independent key and averaging the pixel's own value does not.  Returns
+    the keys and their scale factors (:class:`PixelPairs`)."""
+    key = ndimage.correlate(np.asarray(planes[k + 1], np.float64), _NEIGHBOURS, mode="reflect")
+    scale = np.full(key.shape, 1.0 / 8.0)
+    found = np.zeros(key.shape, bool)
+    # the least noisy first: longer frames scaled down (the longest unclipped), then shorter
+    others = list(range(len(planes) - 1, k + 1, -1)) + list(range(k - 1, -1, -1))
+    for j in others:
+        if not np.isfinite(gains[j]):
+            continue
+        y = np.asarray(planes[j], np.float64)
+        use = ~found & (y > lo) & (y < hi)
+        key[use] = y[use] * (gains[k + 1] / gains[j])
+        scale[use] = gains[k + 1] / gains[j]
+        found |= use
+    return key, scale
+
+
+def pixel_pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo: float, hi: float,
+                          key: np.ndarray, key_scale: np.ndarray | None = None) -> PixelPairs:
+    """:class:`PixelPairs` of two frames (H, W) of one static scene over the pixels
+    unclipped in both (``lo < y < hi``) whose ``key`` lies below 90 % of the range (a
+    pixel whose mean is near the white level has its noise cut by the clipping; once a
+    noise model is known, :meth:`PixelPairs.unclipped` draws that line exactly).  Scene
+    texture and gain FPN cancel in ``d = long - ratio * short``, and by (17) for each
+    frame ``E[d^2] = sigma_o^2 (1 + r^2) + sqrt(alpha) mu (1 + r)``: every unclipped pixel
+    counts, flat or not, next to a clipped one or not."""
+    s = np.asarray(short, np.float64)
+    g = np.asarray(long, np.float64)
+    top = max(lo, 0.0) + 0.9 * (hi - max(lo, 0.0))
+    ok = (s > lo) & (g < hi) & (g > lo) & (s < hi) & (key < top)
+    d = g[ok] - ratio * s[ok]
+    return PixelPairs(g[ok], d * d, np.asarray(key, np.float64)[ok], float(ratio),
+                      None if key_scale is None else np.asarray(key_scale, np.float64)[ok])
+
+
+def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None) -> VariancePoints:
+    """Exposure-pair rows ``[1 + r^2, mu (1 + r), 0]``: pixels binned by ``pp.key``, per
+    bin the mean of ``long`` (mu) and of ``dsq`` (the variance; each pixel one degree of
+    freedom, so ``count`` is the bin's degrees of freedom).  The bins hold equal counts,
+    which suits the gain (each pixel tells about as much of it); given a noise model
+    ``coef``, half of them instead hold equal shares of the information about sigma_o^2
+    (each pixel's ``1 / Var[d]^2``), so that the few dark pixels that fix the read noise
+    under strong photon noise keep their own bins instead of being pooled with brighter
+    ones (which loses their leverage, not their mean)."""
+    n = pp.key.size
+    if n < bins * min_count:
+        bins = max(n // min_count, 0)
+    if bins < 1:
+        return variance_points([], [], [], pp.ratio)
+    if coef is None:
+        edges = np.quantile(pp.key, np.linspace(0, 1, bins + 1))
+    else:
+        order = np.argsort(pp.key)
+        ks = pp.key[order]
+        pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * np.maximum(ks, 0.0)
+        cw = np.cumsum(1.0 / np.maximum(pred, 1e-12) ** 2)
+        at = np.searchsorted(cw, cw[-1] * np.linspace(0, 1, bins // 2 + 1)[1:-1])
+        edges = np.concatenate([np.quantile(pp.key, np.linspace(0, 1, bins - bins // 2 + 1)), ks[at]])
+    edges = np.unique(edges)
+    which = np.clip(np.searchsorted(edges, pp.key, side="right") - 1, 0, edges.size - 2)
+    cnt = np.bincount(which, minlength=edges.size - 1).astype(np.float64)
+    mu = np.bincount(which, pp.long, minlength=edges.size - 1)
+    v = np.bincount(which, pp.dsq, minlength=edges.size - 1)
+    use = cnt >= min_count
+    return variance_points(mu[use] / cnt[use], v[use] / cnt[use], cnt[use], pp.ratio)
 
 
 def texture_limit(mean: np.ndarray, coef: np.ndarray) -> np.ndarray:
@@ -316,8 +469,67 @@ def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
                     int(points.mean.size), float(f_stat), p, float(np.sqrt(np.mean(rel**2))), points)
 
 
+def pair_information(planes: list[np.ndarray], lo: float, hi: float, ratios: list, coef) -> np.ndarray:
+    """Fisher information (2, 2) about ``(c0, c1) = (sigma_o^2, sqrt(alpha))`` in the
+    exposure contrasts of a bracket: the most any estimator can learn about them without
+    assuming anything about the scene (every pixel's irradiance a free parameter).
+
+    planes : frames (H, W) sorted by exposure; ratios : the exposure ratios of consecutive
+    frames (None where not measured: the bracket splits there); coef : the true (or
+    fitted) ``(c0, c1, ...)``.  Per pixel, the frames ``k`` where it is unclipped
+    (``lo < y_k < hi``) are independent Gaussians ``y_k ~ N(g_k mu, v_k)``, ``g_k`` the
+    exposure relative to the pixel's reference frame, ``v_k = c0 + c1 g_k mu``; the
+    scene term ``mu`` is removed by restricting to contrasts (REML), whose information is
+    ``I_ij = 1/2 tr(P D_i P D_j)`` with ``P = V^-1 - V^-1 g (g' V^-1 g)^-1 g' V^-1`` and
+    ``D_0 = I``, ``D_1 = diag(g mu)`` (Harville 1977).  ``mu`` is taken from the pixel's
+    longest unclipped frame (its noise changes the information only to second order).
+    Gain FPN is proportional to the signal in every frame, so it lies in ``g`` and does
+    not enter.  A Gaussian approximation: a pixel of a few photons has heavier tails
+    than the Gaussian of its variance."""
+    c0, c1 = float(coef[0]), float(coef[1])
+    info = np.zeros((2, 2))
+    segments, start = [], 0
+    for k, r in enumerate(list(ratios) + [None]):
+        if r is None:
+            segments.append((start, k + 1))
+            start = k + 1
+    for a, b in segments:
+        if b - a < 2:
+            continue
+        g = np.concatenate([[1.0], np.cumprod(np.asarray(ratios[a:b - 1], np.float64))])
+        y = np.stack([np.asarray(p, np.float64).ravel() for p in planes[a:b]])
+        ok = (y > lo) & (y < hi)
+        last = (b - a - 1) - np.argmax(ok[::-1], axis=0)  # longest unclipped frame
+        x = np.maximum(y[last, np.arange(y.shape[1])] / g[last], 0.0)
+        m = g[:, None] * x[None]
+        w = np.where(ok, 1.0 / np.maximum(c0 + c1 * m, 1e-12), 0.0)  # V^-1, 0 where clipped
+        wg = w * g[:, None]
+        s = np.sum(wg * g[:, None], axis=0)
+        s = np.where(s > 0, s, np.inf)
+        d = (ok.astype(np.float64), np.where(ok, m, 0.0))
+        for k in range(b - a):
+            for j in range(b - a):
+                pkj = (w[k] if k == j else 0.0) - wg[k] * wg[j] / s
+                pkj2 = pkj * pkj
+                for u in range(2):
+                    for v in range(2):
+                        info[u, v] += 0.5 * np.dot(d[u][k] * pkj2, d[v][j])
+    return info
+
+
+def achievable_errors(planes: list[np.ndarray], lo: float, hi: float, ratios: list, coef) -> tuple[float, float]:
+    """Cramer-Rao standard errors ``(sigma_o^2, alpha)`` from :func:`pair_information`
+    (``alpha = c1^2``, so its error is ``2 c1`` times that of ``c1``); inf when the
+    bracket holds no contrast (one frame, or nothing unclipped in two)."""
+    info = pair_information(planes, lo, hi, ratios, coef)
+    if np.linalg.det(info) <= 0:
+        return float("inf"), float("inf")
+    cov = np.linalg.inv(info)
+    return float(np.sqrt(cov[0, 0])), float(2 * abs(coef[1]) * np.sqrt(cov[1, 1]))
+
+
 def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int = 7, bins: int = 64,
-                   pairs: bool = True, p_threshold: float = 0.01) -> tuple[NoiseFit, list[float]]:
+                   pairs: bool = True, p_threshold: float = 0.01, pair_bins: int = 128) -> tuple[NoiseFit, list[float]]:
     """Noise parameters of (17) for one channel from frames of one scene at one ISO.
 
     planes : list of (H, W) float arrays, linear values (code values above black),
@@ -325,7 +537,10 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     lo, hi : values at or beyond which a pixel is clipped.
     pairs : use the exposure pairs of consecutive frames (needs a static scene).
 
-    With exposure pairs (texture-free), sigma_o^2 and alpha come from the pairs alone, and
+    With exposure pairs (texture-free; per pixel, :func:`pixel_pair_statistics`, or per
+    window when the frames are clipped at black, see :data:`BLACK_CLIPPED`; a first fit,
+    then without the pixels the clipping or outliers affect), sigma_o^2 and alpha come
+    from the pairs alone, and
     beta (with its F-test) from the local statistics of every frame, binned after
     rejecting windows whose Laplacian exceeds :data:`TEXTURE_SIGMAS` noise standard
     deviations of the pairs' model.  Without pairs (one frame, or frames too far apart)
@@ -334,17 +549,42 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     the measured exposure ratios of the pairs used."""
     local = [window_statistics(p, lo, hi, window) for p in planes]
     pair_points, ratios = [], []
-    if pairs:
+    if pairs and len(planes) > 1:
+        measured = []
         for s, g in zip(planes[:-1], planes[1:]):
             try:
-                r = exposure_ratio(s, g, lo, hi)
+                measured.append(exposure_ratio(s, g, lo, hi))
             except HdrMergeError:
+                measured.append(None)
+        per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
+        pixel_pairs, first_points = [], []
+        for k, r in enumerate(measured):
+            if r is None or r <= 1.05:
                 continue
-            pts = binned_variance(pair_statistics(s, g, r, lo, hi, window), ratio=r, bins=max(bins // 2, 4),
-                                  robust=False)
-            if r > 1.05 and pts.mean.size >= 4:
-                pair_points.append(pts)
+            if not per_pixel:  # windows that touch no clipped pixel
+                pts = binned_variance(pair_statistics(planes[k], planes[k + 1], r, lo, hi, window), ratio=r,
+                                      bins=max(bins // 2, 4), robust=False)
+                if pts.mean.size >= 4:
+                    pair_points.append(pts)
+                    ratios.append(r)
+                continue
+            pp = pixel_pair_statistics(planes[k], planes[k + 1], r, lo, hi,
+                                       *selection_keys(planes, _chain_gains(measured, k), k, lo, hi))
+            first = binned_pairs(pp, pair_bins)
+            if first.mean.size >= 4:
+                pixel_pairs.append(pp)
+                first_points.append(first)
                 ratios.append(r)
+        if pixel_pairs:
+            # a first fit, then without the pixels whose noise the clipping may cut (by the
+            # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
+            # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
+            coef = fit_noise_model(VariancePoints.concat(first_points), p_threshold).coef
+            for pp in pixel_pairs:
+                mu = np.maximum(np.maximum(pp.key, pp.long), 0.0)
+                pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * mu
+                keep = pp.unclipped(coef, lo, hi) & (pp.dsq <= OUTLIER_SIGMAS**2 * pred)
+                pair_points.append(binned_pairs(pp.subset(keep), pair_bins, coef=coef))
     pooled = WindowStats.concat(local)
     if not pair_points:
         first = fit_noise_model(binned_variance(pooled, bins=bins), p_threshold).coef
