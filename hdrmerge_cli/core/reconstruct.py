@@ -258,13 +258,22 @@ def channel_index(shape: tuple[int, ...], pattern: np.ndarray | None) -> np.ndar
     return tiled.reshape(shape)
 
 
-def lookup(table: np.ndarray, n_codes: int, codes: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+def lookup(table: np.ndarray, n_codes: int, codes: np.ndarray, pattern: np.ndarray | None) -> np.ndarray:
     """Per-sample values of a flattened ``(C * N,)`` table (an :class:`ExposureTables`
-    field): row ``rows`` (:func:`channel_index`; None: row 0), entry ``codes``; codes above
-    the table read its last (clipped) entry, as the fused kernels do."""
+    field), shape of ``codes``: the sample's table row from ``pattern`` tiled over
+    ``(H, W)`` or ``(H, W * C)`` (as :func:`channel_index`; None: row 0), entry ``codes``;
+    codes above the table read its last (clipped) entry, as the fused kernels do.  One
+    strided gather per pattern cell: no per-sample index array."""
     per_row = table.reshape(-1, n_codes)
-    z = np.minimum(codes, n_codes - 1)
-    return per_row[0][z] if rows is None else per_row[rows, z]
+    if pattern is None:
+        return per_row[0][np.minimum(codes, n_codes - 1)]
+    flat = codes.reshape(_rows_cols(codes.shape))
+    out = np.empty(flat.shape, per_row.dtype)
+    ph, pw = pattern.shape
+    for i in range(ph):
+        for j in range(pw):
+            out[i::ph, j::pw] = per_row[pattern[i, j]][np.minimum(flat[i::ph, j::pw], n_codes - 1)]
+    return out.reshape(codes.shape)
 
 
 def _rows_cols(shape):
@@ -300,6 +309,10 @@ def noise_maps(shape: tuple[int, ...], params: list[NoiseParams], pattern: np.nd
 
 #: IRLS stops when no measured sample's log-irradiance moves more than this
 IRLS_TOLERANCE = 1e-3
+
+
+#: clipped readings whose estimate is this many noise sds above full scale are not censored terms
+CENSORED_SDS = 8.0
 
 
 def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps) -> tuple[np.ndarray, np.ndarray]:
@@ -345,16 +358,20 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     """
     flags = den = None
     change = np.inf
-    rows = channel_index(log_e.shape, pattern)
+    max_maps = [float(np.max(m)) for m in maps]
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern)
         cen_num = cen_den = None  # ML: the clipped readings as censored observations (censored_terms)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
-            w = irls_weights(lookup(tab.certainty, tab.n_codes, codes, rows), log_e, h, y_full[k], maps, linear)
+            w = irls_weights(lookup(tab.certainty, tab.n_codes, codes, pattern), log_e, h, y_full[k], maps, linear)
             acc.add(codes, tab, last=k == len(tables) - 1, weight=w)
             if linear and tab.saturated is not None:
-                sat = lookup(tab.saturated, tab.n_codes, codes, rows)
+                sat = lookup(tab.saturated, tab.n_codes, codes, pattern)
+                # a clipped reading whose current estimate lies more than CENSORED_SDS noise
+                # sds above full scale carries no information (weight ~ phi(8)): skipped
+                sd_full = np.sqrt(max_maps[0] + max_maps[1] * y_full[k] + max_maps[2] * y_full[k] ** 2)
+                sat &= log_e < np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * sd_full) / (h * y_full[k])))
                 if sat.any():
                     if cen_num is None:
                         cen_num, cen_den = np.zeros(log_e.shape, np.float32), np.zeros(log_e.shape, np.float32)
