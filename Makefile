@@ -6,15 +6,28 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 DEMO ?= demo
 
-.PHONY: install demo test man bench clean
+.PHONY: install warm demo test man bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(MAKE) --no-print-directory warm
 	touch $(STAMP)
 
 install: $(STAMP)
+
+## Compile and cache the numba kernels (merge of a tiny RAW, JPEG and 16-bit TIFF bracket), so that a
+## user's first merge does not pay for compilation; run again after editing a kernel.
+warm:
+	@tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && export HDRMERGE_CLI_CACHE_DIR="$$tmp/cache" && \
+	$(BIN)/hdrmerge-cli simulate -o "$$tmp/raw" --size 96x64 --frames 3 -q && \
+	$(BIN)/hdrmerge-cli merge "$$tmp"/raw/frame_*.dng -o "$$tmp/raw.exr" -q && \
+	$(BIN)/hdrmerge-cli simulate -o "$$tmp/jpg" --format jpg --size 96x64 --frames 3 -q && \
+	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --crf srgb -q && \
+	$(BIN)/hdrmerge-cli simulate -o "$$tmp/tif" --format tif --out-bits 16 --size 96x64 --frames 3 -q && \
+	$(BIN)/hdrmerge-cli merge "$$tmp"/tif/frame_*.tif -o "$$tmp/tif.exr" --crf srgb -q && \
+	echo "numba kernels compiled and cached"
 
 ## Render a bracket with the built-in scene and merge it.
 demo: $(STAMP)

@@ -8,3 +8,15 @@ def write_result(out: Path, lines: list[str]) -> str:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     return text
+
+
+def revision() -> str:
+    """The git revision measured (``-dirty``: uncommitted changes), or "unknown"."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).parent, text=True,
+                             capture_output=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        out = ""
+    return out or "unknown"

@@ -6,12 +6,15 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# merges measure noise afresh: no per-camera cache from the user's home or another test
+os.environ["HDRMERGE_CLI_CACHE_DIR"] = tempfile.mkdtemp(prefix="hdrmerge-cli-test-cache-")
 needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"shared test data not found at {SHARED}")
 
 

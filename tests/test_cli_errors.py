@@ -73,9 +73,13 @@ def test_missing_exposure_time_suggests_times(run, tmp_path):
     _fails(run, tmp_path, a, _jpeg(tmp_path / "b.jpg"), expect=["a.png", "--times"])
 
 
-def test_equal_exposure_times(run, tmp_path):
-    a, b = _jpeg(tmp_path / "a.jpg"), _jpeg(tmp_path / "b.jpg", value=120)
-    _fails(run, tmp_path, a, b, expect=["same exposure"])
+def test_equal_exposure_times_are_merged_and_a_disagreement_is_named(run, tmp_path):
+    """Two frames of one exposure are a burst: merged (issue 18), with a warning when their
+    content disagrees beyond the noise (here a whole stop brighter: the exposure changed)."""
+    a, b = _jpeg(tmp_path / "a.jpg", size=(64, 64)), _jpeg(tmp_path / "b.jpg", value=120, size=(64, 64))
+    proc = run("merge", a, b, "-o", tmp_path / "out.exr", "--crf", "srgb", check=False)
+    assert proc.returncode == 0 and (tmp_path / "out.exr").exists(), proc.stderr
+    assert "b.jpg" in proc.stderr and "warning" in proc.stderr
 
 
 def test_wrong_number_of_times(run, tmp_path):

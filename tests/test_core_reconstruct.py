@@ -260,8 +260,19 @@ def test_codes_above_the_table_read_as_clipped():
     codes = np.array([[2048, 4095, 60000]], np.uint16)
     np.testing.assert_array_equal(reconstruct.lookup(tab.weight, 4096, codes, None), tab.weight[[[2048, 4095, 4095]]])
     two = np.concatenate([tab.weight, 2 * tab.weight])  # a second table row
-    rows = np.array([[0, 1, 1]])
-    np.testing.assert_array_equal(reconstruct.lookup(two, 4096, codes, rows), [[tab.weight[2048], *2 * tab.weight[[4095, 4095]]]])
+    pattern = np.array([[0, 1, 1]])
+    np.testing.assert_array_equal(reconstruct.lookup(two, 4096, codes, pattern),
+                                  [[tab.weight[2048], *2 * tab.weight[[4095, 4095]]]])
+
+
+@pytest.mark.parametrize("shape, pattern", [((6, 8), np.array([[0, 1], [2, 3]])), ((5, 7, 3), np.array([[0, 1, 2]]))])
+def test_lookup_by_pattern_matches_a_per_sample_index(shape, pattern):
+    rng = np.random.default_rng(3)
+    table = rng.random(4 * 256).astype(np.float32)
+    codes = rng.integers(0, 300, shape).astype(np.uint16)  # some above the table
+    rows = reconstruct.channel_index(shape, pattern)
+    expected = table.reshape(4, 256)[rows, np.minimum(codes, 255)]
+    np.testing.assert_array_equal(reconstruct.lookup(table, 256, codes, pattern), expected)
 
 
 @pytest.mark.parametrize("crf", [CRF("srgb"), CRF("gamma", 2.5), CRF("linear")])

@@ -23,6 +23,21 @@ COMMANDS = {
     "simulate": "simulate",
 }
 
+#: each command's one-line summary (the first paragraph of its docstring) for the group's
+#: --help, which then imports no command module (numpy, numba, scipy...); a test checks
+#: these against the commands' own help so they cannot drift
+SUMMARIES = {
+    "calibrate-noise": "Fit the sensor noise model Var[y] = sigma_o^2 + alpha x + beta x^2 (17) per ISO and channel.",
+    "estimate-crf": "Estimate the inverse camera response g(z) = log gamma^-1(z) of a bracket of JPEG/TIFF/PNG "
+                    "frames and write it to a profile JSON for 'merge --crf' or 'merge --profile'.",
+    "merge": "Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.",
+    "weights-lut": "Tabulate a weighting function per exposure: one row per code value z, one column per exposure "
+                   "(and channel, for a per-channel CRF or noise), values in [0, 1].  'merge --lut' reuses the "
+                   "table so batch runs skip rebuilding it.",
+    "info": "Describe frames IMAGES and whether they cover the scene as a bracket.",
+    "simulate": "Render a bracket from a scene through the paper's sensor model (16)-(18).",
+}
+
 
 class DataError(click.ClickException):
     """A data error: ``hdrmerge-cli: error: ...`` on one line, exit 1 (usage errors stay
@@ -44,7 +59,20 @@ class _Group(click.Group):
             return None
         return importlib.import_module(f"hdrmerge_cli.cli.{COMMANDS[name]}").command
 
+    def format_commands(self, ctx, formatter):
+        """The command list of --help from :data:`SUMMARIES`, without importing the commands."""
+        limit = formatter.width - 6 - max(map(len, COMMANDS))
+        rows = [(name, click.Command(name, help=SUMMARIES[name]).get_short_help_str(limit)) for name in COMMANDS]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
     def invoke(self, ctx):
+        if _RUN_FROM_MAIN:
+            # here, not in main(): the group's own --help/--version exit before this and
+            # so never import io.frames (numpy)
+            from hdrmerge_cli.io.frames import separate_python_stderr
+
+            separate_python_stderr()
         try:
             return super().invoke(ctx)
         except HdrMergeError as exc:
@@ -73,10 +101,14 @@ def cli():
     """
 
 
-def main():
-    from hdrmerge_cli.io.frames import separate_python_stderr
+#: set by :func:`main` (the installed command), not by click's test runner, whose captured
+#: stderr must stay in place
+_RUN_FROM_MAIN = False
 
-    separate_python_stderr()
+
+def main():
+    global _RUN_FROM_MAIN
+    _RUN_FROM_MAIN = True
     # numpy's RuntimeWarnings (a 0/0 in a masked-out sample) say nothing a user can act on;
     # results are checked for finiteness before anything is written
     warnings.filterwarnings("ignore", category=RuntimeWarning)

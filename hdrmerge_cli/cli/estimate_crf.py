@@ -6,11 +6,13 @@ from pathlib import Path
 import click
 
 from hdrmerge_cli.cli.options import (
-    BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, output_options, times_option_callback,
+    BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, output_options, TIMES_HELP,
+    times_or_estimate_callback,
 )
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
 
 
@@ -42,8 +44,8 @@ from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
               help="An existing profile JSON whose CRF to replace (its noise model and other entries are kept).")
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),
               help="Also draw g(z) per channel with each frame's data points (PNG/PDF/SVG).")
-@click.option("--times", callback=times_option_callback, metavar="T1,T2,...",
-              help="Exposure times in seconds, in the order of IMAGES; overrides EXIF.")
+@click.option("--times", callback=times_or_estimate_callback, metavar="T1,T2,...|estimate",
+              help=TIMES_HELP + "  The response is then fitted with the estimates (alternating, at most 3 rounds).")
 @click.option("--times-file", type=click.Path(exists=True, dir_okay=False), help="Lines 'name seconds'.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed of the pixel sampling.")
 @click.option("--force", is_flag=True, help="Fit a CRF even for RAW (linear) input.")
@@ -57,8 +59,9 @@ def command(images, output, method, smoothing, coupling, samples, weighting, pai
 
     RAW input is linear and gets an identity CRF unless --force.
     """
-    if times is not None and times_file:
-        raise click.UsageError("give either --times or --times-file, not both")
+    if times is not None and times != ESTIMATE and times_file:
+        raise click.UsageError("give either --times or --times-file, not both (--times estimate may take the labels "
+                               "from --times-file)")
     if output is None and profile is None:
         raise click.UsageError("give -o/--output, or --profile to update a profile in place")
     if method != "goossens" and (weighting or bounds or pair_weight != "photon" or coupling != DEFAULT_COUPLING):

@@ -11,13 +11,15 @@ import click
 
 from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
-    parse_csv_list, times_option_callback,
+    TIMES_HELP, parse_csv_list, times_or_estimate_callback,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
 from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
+from hdrmerge_cli.io.images import EXR_COMPRESSIONS
 from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
 from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
@@ -51,14 +53,20 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--crf", metavar="CRF",
               help="Camera response of JPEG/TIFF/PNG input: linear, srgb, gamma:G, a CSV table (z, linear) "
                    "or a profile JSON [default: srgb, with a warning].  RAW input is linear.")
-@click.option("--times", callback=times_option_callback, metavar="T1,T2,...",
-              help="Exposure times in seconds, in the order of IMAGES (e.g. 1/100,1/25,0.5); overrides EXIF.")
+@click.option("--times", callback=times_or_estimate_callback, metavar="T1,T2,...|estimate", help=TIMES_HELP)
 @click.option("--times-file", type=click.Path(exists=True, dir_okay=False),
-              help="File of lines 'name seconds' giving each image's exposure time.")
+              help="File of lines 'name seconds' giving each image's exposure time (with --times estimate: the "
+                   "labels that set the scale).")
 @click.option("--reference", default="geomean", show_default=True, metavar="REF",
               help="Exposure (s) whose full-scale signal is 1.0 in the output: geomean, shortest, longest or seconds.")
 @click.option("--cfa", is_flag=True, help="RAW: write the merged mosaic (channel Y, camera-native, no demosaic).")
 @click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats.")
+@click.option("--compression", type=click.Choice(list(EXR_COMPRESSIONS)), default="auto", show_default=True,
+              help="OpenEXR compression: " + "; ".join(f"{k}: {v}" for k, v in EXR_COMPRESSIONS.items()) + ".")
+@click.option("--no-cache", "no_cache", is_flag=True,
+              help="Measure the noise on this bracket even if an earlier merge of the same camera and ISO stored it "
+                   "in the per-camera cache ($HDRMERGE_CLI_CACHE_DIR, else $XDG_CACHE_HOME/hdrmerge-cli, else "
+                   "~/.cache/hdrmerge-cli: noise.json), and store nothing there.")
 @click.option("--extra-channels", callback=parse_csv_list, metavar="NAMES",
               help=f"Extra EXR channels, comma-separated: {', '.join(EXTRA_CHANNELS)}.")
 @click.option("--noise", metavar="PARAMS", callback=noise_option_callback,
@@ -97,12 +105,15 @@ log = logging.getLogger("hdrmerge_cli")
 @output_options
 @common_options
 def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_run, profile_out, weights, crf, times,
-            times_file, reference, cfa, half, extra_channels, noise, profile, variance, estimator, irls, k, lut, bounds,
-            align, deghost, preview, preview_size, overwrite, as_json):
+            times_file, reference, cfa, half, compression, no_cache, extra_channels, noise, profile, variance,
+            estimator, irls, k, lut, bounds, align, deghost, preview, preview_size, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
-    --times or --times-file is given.  Output values are scene-linear: 1.0 is the
+    --times or --times-file is given.  Each label is checked against the frames (the
+    ratio of neighbour frames on the pixels both expose well): a warning names a frame
+    whose label is more than 1/3 EV off; --times estimate merges with the estimates.
+    Output values are scene-linear: 1.0 is the
     clipping level of an exposure of --reference seconds (stated in the EXR header).
     Pixels clipped or dark in every frame get a finite bound (flagged in the 'clipped'
     channel: 1 saturated, -1 dark).  The camera profile used is written beside the EXR.
@@ -110,13 +121,15 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
     With --batch DIR, every bracket of a folder is merged into -o OUTDIR (see --jobs,
     --scheduler, --skip-existing, --dry-run); the other options apply to each bracket.
     """
-    if times is not None and times_file:
-        raise click.UsageError("give either --times or --times-file, not both")
+    if times is not None and times != ESTIMATE and times_file:
+        raise click.UsageError("give either --times or --times-file, not both (--times estimate may take the labels "
+                               "from --times-file)")
     opts = MergeOptions(
         output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
         noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
         preview=preview, preview_size=preview_size, align=align, deghost=deghost,
+        compression=compression, noise_cache=not no_cache,
     )
     given = _given(click.get_current_context())
     if "preview_size" in given and preview is None:
@@ -146,7 +159,7 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
 
     if images:
         raise click.UsageError("give either IMAGES or --batch DIR, not both")
-    if opts.times is not None or opts.profile_out is not None or opts.preview is not None:
+    if opts.times not in (None, ESTIMATE) or opts.profile_out is not None or opts.preview is not None:
         raise click.UsageError("--times, --profile-out and --preview name one bracket's files; with --batch use "
                                "--times-file, and the profiles are named after each EXR")
     if opts.output.exists() and not opts.output.is_dir():

@@ -157,3 +157,18 @@ def times_option_callback(ctx, param, value):
         return parse_times(str(value))
     except HdrMergeError as exc:
         raise click.BadParameter(str(exc), ctx, param) from None
+
+
+def times_or_estimate_callback(ctx, param, value):
+    """``--times``: exposure times as :func:`times_option_callback`, or the word
+    ``estimate`` (exposures measured on the frames, the labels giving the scale)."""
+    from hdrmerge_cli.io.times import ESTIMATE
+
+    if isinstance(value, str) and value.strip().lower() == ESTIMATE:
+        return ESTIMATE
+    return times_option_callback(ctx, param, value)
+
+
+TIMES_HELP = ("Exposure times in seconds, in the order of IMAGES (e.g. 1/100,1/25,0.5); overrides EXIF.  'estimate': "
+              "measure the exposures on the frames (neighbour ratios of the pixels both expose well, chained from a "
+              "reference frame whose label, from EXIF or --times-file, sets the scale).")

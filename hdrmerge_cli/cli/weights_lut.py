@@ -59,7 +59,7 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
     opts = MergeOptions(output=output, noise=noise, profile=profile, crf=crf)
     if images:
         frames = read_bracket(list(images))
-        if frames[0].kind == "raw":
+        if frames[0].kind in ("raw", "linear"):
             raise HdrMergeError(f"{frames[0].path}: RAW brackets have per-file black levels; give --times and --bits")
         exposures, n_codes = list(exposure_values(frames)), frames[0].n_codes
         curve = choose_crf(frames, spec)

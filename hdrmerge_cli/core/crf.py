@@ -14,16 +14,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdrmerge_cli.core.color import quiet_import
+from hdrmerge_cli.core.color import srgb_eotf, srgb_eotf_inverse
 from hdrmerge_cli.core.errors import HdrMergeError
 
 
 def _srgb_decode(v):
-    return np.asarray(quiet_import("colour.models").eotf_sRGB(v), dtype=np.float64)
+    return np.asarray(srgb_eotf(v), dtype=np.float64)
 
 
 def _srgb_encode(x):
-    return np.asarray(quiet_import("colour.models").eotf_inverse_sRGB(x), dtype=np.float64)
+    return np.asarray(srgb_eotf_inverse(x), dtype=np.float64)
 
 
 #: name -> (forward gamma: x -> v, inverse gamma^-1: v -> x, takes a parameter)
@@ -45,11 +45,14 @@ class CRF:
 
     table : (C, N) float64 or None
         ``gamma^-1`` at each of the ``N`` code values, per channel, monotone, in [0, 1].
+    assumed : a default nobody vouched for (no response given: sRGB assumed), not a
+        response the user or a measurement supplied
     """
 
     name: str
     param: float | None = None
     table: np.ndarray | None = field(default=None, compare=False, repr=False)
+    assumed: bool = field(default=False, compare=False)
 
     @property
     def is_linear(self) -> bool:

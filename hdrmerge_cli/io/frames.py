@@ -26,11 +26,19 @@ IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".tif", ".tiff", ".png"}
 class Frame:
     """One frame of a bracket (metadata; pixels via :func:`load_codes`).
 
-    kind : "raw" (CFA mosaic, linear) or "image" (camera-processed, interleaved channels)
-    black, white : (C,) per table channel, in stored code values; C = 4 raw colours for
-        RAW (LibRaw's order, see ``channel_colors``), the image channels otherwise
+    kind : "raw" (CFA mosaic, linear), "linear" (linear RGB from a RAW container, already
+        demosaiced: a LinearRaw DNG; decoded as interleaved channels like an image, black
+        subtracted and scaled to the full 16-bit range, see :func:`load_codes`) or "image"
+        (camera-processed, interleaved channels)
+    black, white : (C,) per table channel, in the code values :func:`load_codes` returns;
+        C = 4 raw colours for RAW (LibRaw's order, see ``channel_colors``), the image
+        channels otherwise
     n_codes : size of the stored code range (2^8 or 2^16)
     bits : significant bits of the stored values
+    orientation : EXIF orientation (1 = upright, 6 = rotate 90 degrees clockwise to view,
+        8 = counter-clockwise, 3 = 180; 2, 4, 5, 7 mirrored), from EXIF or LibRaw's flip
+    file_levels : the file's own (black per channel, white) when they differ from
+        ``black``/``white`` (a "linear" frame's codes are rescaled on decoding)
     """
 
     path: str
@@ -52,6 +60,8 @@ class Frame:
     channel_colors: str = "RGB"
     white_balance: np.ndarray = field(default_factory=lambda: np.ones(3))
     color_matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
+    orientation: int = 1
+    file_levels: tuple | None = None
 
     @property
     def name(self) -> str:
@@ -74,7 +84,19 @@ class Frame:
             return self.model.strip()
         return f"{self.make} {self.model}".strip()
 
+    @property
+    def data_format(self) -> str:
+        """What the file holds, for ``info`` ("Bayer RGGB mosaic, 14-bit", ...)."""
+        if self.kind == "raw":
+            return f"Bayer {self.cfa_pattern} mosaic, {self.bits}-bit"
+        if self.kind == "linear":
+            what = "linear RGB" if self.channels == 3 else "linear monochrome"
+            dng = " (LinearRaw DNG)" if Path(self.path).suffix.lower() == ".dng" else ""
+            return f"{what}{dng}, demosaiced, {self.bits}-bit"
+        return f"{self.bits}-bit {'RGB' if self.channels == 3 else 'grey'} image"
+
     def summary(self) -> dict:
+        black, white = (self.black, self.white) if self.file_levels is None else self.file_levels
         return {
             "path": self.path,
             "exposure_time": self.exposure_time,
@@ -82,9 +104,11 @@ class Frame:
             "aperture": self.aperture,
             "camera": self.camera,
             "kind": self.kind,
+            "format": self.data_format,
+            "orientation": self.orientation,
             "bits": self.bits,
-            "black": [float(b) for b in self.black],
-            "white": [float(w) for w in self.white],
+            "black": [float(b) for b in np.atleast_1d(black)],
+            "white": [float(w) for w in np.atleast_1d(white)],
         }
 
 
@@ -194,45 +218,77 @@ def _oiio_meta(path: str) -> dict:
     return meta
 
 
+#: LibRaw's ``flip`` (dcraw's code) -> the EXIF orientation it came from
+LIBRAW_FLIP_TO_EXIF = {0: 1, 1: 2, 2: 4, 3: 3, 4: 5, 5: 8, 6: 6, 7: 7}
+
+
 def _read_raw(path: str) -> Frame:
+    """A RAW file's metadata.  Bayer mosaics are kind "raw"; linear RGB data (LinearRaw
+    DNGs, and other already demosaiced data LibRaw hands over as 3 colours per pixel) kind
+    "linear"; what cannot be merged (X-Trans, 4-colour sensors) is refused with what it is."""
     import rawpy
 
+    raw = rawpy.RawPy()
     try:
-        with _quiet_c_stderr(), rawpy.imread(path) as raw:
+        with _quiet_c_stderr():
+            raw.open_file(path)
+            num_colors = raw.num_colors  # known before unpacking: refuse at once
+            if num_colors not in (1, 3):
+                raise HdrMergeError(f"{path}: a {num_colors}-colour sensor ({raw.color_desc.decode('ascii', 'replace')} "
+                                    "filters); only Bayer RGB mosaics and linear RGB RAW data are supported")
+            pattern = raw.raw_pattern  # unpacks
+            raw_type = raw.raw_type
             sizes = raw.sizes
             black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
             white = float(raw.white_level)
-            pattern = np.asarray(raw.raw_pattern)
             colors = raw.color_desc.decode("ascii", "replace")
             wb = np.asarray(raw.camera_whitebalance, dtype=np.float64)
             daylight = np.asarray(raw.daylight_whitebalance, dtype=np.float64)
             matrix = np.asarray(raw.color_matrix, dtype=np.float64)[:, :3]
             other = raw.other
-            num_colors = raw.num_colors
     except rawpy.LibRawError as exc:
-        raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
-    if pattern is None or pattern.shape != (2, 2) or num_colors != 3:
-        raise HdrMergeError(f"{path}: only Bayer RAW files are supported (this sensor's pattern is not 2 x 2 RGB)")
-    cfa = "".join(colors[i] for i in pattern.ravel())
+        raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc, path)})") from None
+    finally:
+        raw.close()
+    pattern = None if pattern is None else np.asarray(pattern)
+    if raw_type == rawpy.RawType.Stack or (num_colors == 1 and (pattern is None or pattern.size == 1)):
+        kind, channels = "linear", 3 if raw_type == rawpy.RawType.Stack else 1
+    elif pattern is not None and pattern.shape == (6, 6):
+        raise HdrMergeError(f"{path}: a Fujifilm X-Trans RAW file (6 x 6 colour filter), which cannot be merged: only "
+                            "Bayer (2 x 2) mosaics and linear RGB RAW data are supported; convert it to a linear "
+                            "(demosaiced) DNG first, e.g. with Adobe DNG Converter")
+    elif pattern is None or pattern.shape != (2, 2) or num_colors != 3:
+        shape = "no" if pattern is None else f"a {pattern.shape[0]} x {pattern.shape[1]}"
+        raise HdrMergeError(f"{path}: a RAW file with {shape} colour filter pattern and {num_colors} colours, which "
+                            "cannot be merged: only Bayer (2 x 2 RGB) mosaics and linear RGB RAW data are supported")
+    else:
+        kind, channels = "raw", 4
     if white <= black.max():
         raise HdrMergeError(f"{path}: white level {white:g} is not above the black level {black.max():g}")
     meta = _oiio_meta(path)
     ts = other.timestamp
     stamp = ts.isoformat() if isinstance(ts, _dt.datetime) and ts.year > 1970 else None
     bits = int(np.ceil(np.log2(white + 1)))
-    return Frame(
-        path=path, kind="raw", width=sizes.width, height=sizes.height,
+    common = dict(
+        path=path, kind=kind, width=sizes.width, height=sizes.height,
         exposure_time=_positive(other.shutter_speed),
         iso=_positive(other.iso_speed) or _image_iso(meta),
         aperture=_positive(other.aperture), make=str(meta.get("Make") or ""),
         model=str(meta.get("Model") or ""), timestamp=stamp, bits=bits, n_codes=65536,
-        black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors,
         white_balance=_white_balance(wb, daylight), color_matrix=_matrix_or_identity(matrix),
+        orientation=LIBRAW_FLIP_TO_EXIF.get(int(sizes.flip), 1),
     )
+    if kind == "linear":  # decoded as codes (black 0, white 65535): see load_codes
+        return Frame(**common, black=np.zeros(channels), white=np.full(channels, 65535.0), channels=channels,
+                     channel_colors="RGB" if channels == 3 else "Y", file_levels=(black[:channels], white))
+    cfa = "".join(colors[i] for i in pattern.ravel())
+    return Frame(**common, black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors)
 
 
-def _libraw_reason(exc) -> str:
+def _libraw_reason(exc, path: str | None = None) -> str:
     name = type(exc).__name__
+    if name == "LibRawFileUnsupportedError" and path and Path(path).suffix.lower() == ".x3f":
+        return "a Sigma Foveon X3F file, which LibRaw does not read; convert it to a linear DNG first"
     return {
         "LibRawIOError": "unreadable or truncated data",
         "LibRawFileUnsupportedError": "unsupported file format",
@@ -274,6 +330,7 @@ def _read_image(path: str) -> Frame:
     white = 2.0**container - 1
     iso = _image_iso({k: spec.getattribute(k) for k in ("Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings")})
     stamp = spec.getattribute("Exif:DateTimeOriginal") or spec.getattribute("DateTime")
+    orientation = spec.get_int_attribute("Orientation", 1)
     return Frame(
         path=path, kind="image", width=spec.width, height=spec.height,
         exposure_time=_positive(spec.getattribute("ExposureTime")), iso=iso,
@@ -281,6 +338,7 @@ def _read_image(path: str) -> Frame:
         model=str(spec.getattribute("Model") or ""), timestamp=str(stamp) if stamp else None,
         bits=bits, n_codes=2**container, black=np.zeros(channels), white=np.full(channels, white),
         channels=channels, channel_colors="RGB"[:channels] if channels == 3 else "Y",
+        orientation=orientation if 1 <= orientation <= 8 else 1,
     )
 
 
@@ -302,15 +360,20 @@ def _oiio_reason(message: str) -> str:
 
 def load_codes(frame: Frame) -> np.ndarray:
     """Decode the stored code values: ``(H, W)`` uint16 for RAW (visible area, before
-    black-level subtraction), ``(H, W, C)`` uint8/uint16 for images."""
-    if frame.kind == "raw":
+    black-level subtraction), ``(H, W, C)`` uint8/uint16 for images and for linear RAW
+    data, whose codes are returned with the file's black level subtracted and scaled to
+    0..65535 at its white level (so the linear frame reads like a linear 16-bit TIFF:
+    black 0, clipping at 65535)."""
+    if frame.kind in ("raw", "linear"):
         import rawpy
 
         try:
             with _quiet_c_stderr(), rawpy.imread(frame.path) as raw:
                 codes = raw.raw_image_visible.copy()
         except rawpy.LibRawError as exc:
-            raise HdrMergeError(f"{frame.path}: not a readable RAW file ({_libraw_reason(exc)})") from None
+            raise HdrMergeError(f"{frame.path}: not a readable RAW file ({_libraw_reason(exc, frame.path)})") from None
+        if frame.kind == "linear":
+            return linear_codes(codes, frame)
         return codes
     import OpenImageIO as oiio
 
@@ -329,6 +392,25 @@ def load_codes(frame: Frame) -> np.ndarray:
     return pixels
 
 
+def linear_codes(stored: np.ndarray, frame: Frame) -> np.ndarray:
+    """A linear frame's ``(H, W, C)`` uint16 codes from LibRaw's visible ``(H, W, 4)`` colour
+    stack (or ``(H, W)`` monochrome data): ``(stored - black) * 65535 / (white - black)``
+    per channel, rounded and clipped to 0..65535 (values at or above the white level clip)."""
+    data = stored[..., : frame.channels] if stored.ndim == 3 else stored[..., None]
+    if data.shape[-1] != frame.channels:
+        raise HdrMergeError(f"{frame.path}: decoded {data.shape[-1]} colour channels, expected {frame.channels}")
+    black, white = frame.file_levels
+    black = np.asarray(black, np.float32)[: frame.channels]
+    out = np.empty(data.shape, np.uint16)
+    for c in range(frame.channels):
+        scale = np.float32(65535.0 / (float(white) - float(black[c])))
+        v = (data[..., c].astype(np.float32) - black[c]) * scale
+        np.rint(v, out=v)
+        np.clip(v, 0, 65535, out=v)
+        out[..., c] = v
+    return out
+
+
 def raw_channel_map(path: str) -> np.ndarray:
     """LibRaw's raw colour index (0..3) of every visible site, ``(H, W)`` uint8."""
     import rawpy
@@ -337,4 +419,4 @@ def raw_channel_map(path: str) -> np.ndarray:
         with _quiet_c_stderr(), rawpy.imread(path) as raw:
             return raw.raw_colors_visible.astype(np.uint8)
     except rawpy.LibRawError as exc:
-        raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
+        raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc, path)})") from None

@@ -1,4 +1,5 @@
-"""Writing Bayer DNG files (pidng) that LibRaw reads back bit-exactly."""
+"""Writing DNG files (pidng) that LibRaw reads back bit-exactly: Bayer mosaics and
+LinearRaw (demosaiced linear RGB)."""
 from __future__ import annotations
 
 import os
@@ -33,8 +34,8 @@ def write_dng(
     ``xyz_to_camera`` is the DNG ColorMatrix1 (D65); the default makes the camera's
     native RGB equal to linear Rec.709, so LibRaw's camera -> sRGB matrix is identity.
     """
-    from pidng.core import RAW2DNG, DNGTags, Tag
-    from pidng.defs import CalibrationIlluminant, CFAPattern, DNGVersion, Orientation, PhotometricInterpretation
+    from pidng.core import DNGTags, Tag
+    from pidng.defs import CalibrationIlluminant, CFAPattern, Orientation, PhotometricInterpretation
 
     if xyz_to_camera is None:
         from hdrmerge_cli.core.color import quiet_import
@@ -57,6 +58,67 @@ def write_dng(
     tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])
     tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
     tags.set(Tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]])
+    _finish_dng(tags, path, np.ascontiguousarray(mosaic, dtype=np.uint16), exposure_time, iso, aperture, make, model)
+
+
+#: DNG PhotometricInterpretation of demosaiced linear data (DNG 1.4 specification)
+LINEAR_RAW = 34892
+
+
+def write_linear_dng(
+    path: str,
+    pixels: np.ndarray,
+    *,
+    black: int,
+    white: int,
+    exposure_time: float,
+    iso: int | None = None,
+    aperture: float | None = None,
+    make: str = "hdrmerge-cli",
+    model: str = "simulated linear camera",
+    xyz_to_camera: np.ndarray | None = None,
+    as_shot_neutral=(1.0, 1.0, 1.0),
+    orientation: int = 1,
+) -> None:
+    """Write ``(H, W, 3)`` (or ``(H, W)`` monochrome) uint16 linear camera RGB as an
+    uncompressed LinearRaw DNG (PhotometricInterpretation 34892), the already demosaiced
+    data DNG converters and some cameras write; LibRaw reads it back bit-exactly as a
+    colour stack.  ``as_shot_neutral``: the camera RGB of white (AsShotNeutral; LibRaw's
+    as-shot white balance is its inverse); ``orientation``: the EXIF orientation tag."""
+    from pidng.core import DNGTags, Tag
+    from pidng.defs import CalibrationIlluminant
+
+    if xyz_to_camera is None:
+        from hdrmerge_cli.core.color import quiet_import
+
+        xyz_to_camera = quiet_import("colour").RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB
+    pixels = np.ascontiguousarray(pixels, dtype=np.uint16)
+    h, w = pixels.shape[:2]
+    samples = 1 if pixels.ndim == 2 else pixels.shape[2]
+    tags = DNGTags()
+    tags.set(Tag.ImageWidth, w)
+    tags.set(Tag.ImageLength, h)
+    tags.set(Tag.TileWidth, w)
+    tags.set(Tag.TileLength, h)
+    tags.set(Tag.Orientation, int(orientation))
+    tags.set(Tag.PhotometricInterpretation, LINEAR_RAW)
+    tags.set(Tag.SamplesPerPixel, samples)
+    tags.set(Tag.BitsPerSample, [16] * samples)
+    tags.set(Tag.BlackLevel, int(black))
+    tags.set(Tag.WhiteLevel, int(white))
+    if samples == 3:
+        tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])
+        tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
+        tags.set(Tag.AsShotNeutral, [rational(v, 10000) for v in as_shot_neutral])
+    _finish_dng(tags, path, pixels, exposure_time, iso, aperture, make, model)
+
+
+def _finish_dng(tags, path: str, pixels: np.ndarray, exposure_time: float, iso, aperture, make: str,
+                model: str) -> None:
+    """The exposure and camera tags every DNG written here carries, then the file (pidng)."""
+    from pidng.core import RAW2DNG, Tag
+    from pidng.defs import DNGVersion
+
     tags.set(Tag.ExposureTime, [rational(exposure_time)])
     if iso:
         tags.set(Tag.PhotographicSensitivity, [int(iso)])
@@ -70,6 +132,6 @@ def write_dng(
     writer = RAW2DNG()
     writer.options(tags, path="", compress=False)
     base, ext = os.path.splitext(path)
-    writer.convert(np.ascontiguousarray(mosaic, dtype=np.uint16), filename=base)
+    writer.convert(pixels, filename=base)
     if ext.lower() != ".dng":  # pidng always appends .dng
         os.replace(base + ".dng", path)

@@ -78,3 +78,29 @@ def read_times_file(path: str) -> dict[str, float]:
             raise HdrMergeError(f"{path}:{n}: {exc}") from None
         lines_of[name] = n
     return times
+
+
+#: ``--times estimate``: exposures measured on the frames (labels give the absolute scale)
+ESTIMATE = "estimate"
+
+
+def apply_times(frames, times, times_file: str | None = None) -> None:
+    """Set each frame's ``exposure_time`` from ``--times`` (a list in the order of the
+    frames; the word ``estimate`` leaves the labels as they are) or ``--times-file``
+    (lines ``name seconds``), in place; a frame still without a time is an error."""
+    if times is not None and times != ESTIMATE:
+        if len(times) != len(frames):
+            raise HdrMergeError(f"--times gives {len(times)} values for {len(frames)} frames")
+        for f, t in zip(frames, times):
+            f.exposure_time = t
+    if times_file is not None:
+        table = read_times_file(times_file)
+        for f in frames:
+            if f.name not in table:
+                raise HdrMergeError(f"{f.path}: not listed in the times file {times_file}")
+            f.exposure_time = table[f.name]
+    for f in frames:
+        if f.exposure_time is None:
+            hint = ("--times estimate needs one labelled frame for the scale: give the times with --times-file"
+                    if times == ESTIMATE else "give them with --times or --times-file")
+            raise HdrMergeError(f"{f.path}: no exposure time in the file's metadata ({hint})")

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
+import numpy as np
+
 from hdrmerge_cli.core.errors import HdrMergeError, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
@@ -25,6 +27,13 @@ log = logging.getLogger("hdrmerge_cli")
 
 #: default largest capture-time gap (s) inside one bracket (HDRMerge's -g default)
 DEFAULT_GAP = 3.0
+#: exposure times within this many stops count as the same setting (cameras round the
+#: times they record; bracket steps are 1/3 stop or more)
+SAME_SETTING_STOPS = 1 / 6
+#: an ascending exposure sequence of at least :data:`RESTART_MIN_FRAMES` frames that falls
+#: back by this many stops or more has restarted (the next AEB sequence)
+RESTART_FALL_STOPS = 2.0
+RESTART_MIN_FRAMES = 3
 
 
 def capture_seconds(stamp: str | None) -> float | None:
@@ -46,9 +55,10 @@ def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[F
 
     Frames of different cameras or image layouts (a RAW + JPEG folder) go to separate
     brackets.  Within one layout a new bracket starts at a frame taken more than ``gap``
-    seconds after the bracket's last frame (when both have timestamps), or whose exposure
-    time repeats one already in the bracket (the camera's exposure sequence started
-    again)."""
+    seconds after the bracket's last frame (when both have timestamps), or where the
+    camera's exposure sequence started again (:func:`restarts`): its exposure time repeats
+    an earlier one of the bracket, or an ascending sequence falls back by a couple of
+    stops.  Frames repeating the previous frame's time (a burst) stay together."""
     def key(f):
         t = capture_seconds(f.timestamp)
         return (t if t is not None else float("-inf"), Path(f.path).name)
@@ -63,7 +73,7 @@ def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[F
         new = (
             current is None
             or (t is not None and last_t is not None and t - last_t > gap)
-            or any(_same_time(f.exposure_time, g.exposure_time) for g in current)
+            or restarts(current, f)
         )
         if new:
             open_group[f.layout] = len(groups)
@@ -74,7 +84,30 @@ def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[F
 
 
 def _same_time(a, b) -> bool:
-    return a is not None and b is not None and abs(a - b) <= 1e-6 * max(a, b)
+    return a is not None and b is not None and abs(np.log2(a / b)) <= SAME_SETTING_STOPS
+
+
+def restarts(current: list[Frame], f: Frame) -> bool:
+    """Whether frame ``f`` starts a new exposure sequence after the bracket ``current``:
+
+    - its exposure time repeats one of the bracket (within :data:`SAME_SETTING_STOPS`,
+      the rounding of recorded times) other than the previous frame's (repeating the
+      previous frame's time is a burst, which merges); or
+    - the bracket so far is an ascending sequence of at least :data:`RESTART_MIN_FRAMES`
+      frames and ``f`` falls back from its last frame by :data:`RESTART_FALL_STOPS` or
+      more (AEB restarting, even when the new sequence's times differ slightly from the
+      last one's).  Centre-out orders (0, -, +, --, ++) never ascend from their start, so
+      their falls do not split them."""
+    t, prev = f.exposure_time, current[-1].exposure_time
+    if t is None:
+        return False
+    if not _same_time(t, prev) and any(_same_time(t, g.exposure_time) for g in current[:-1]):
+        return True
+    times = [g.exposure_time for g in current]
+    if len(times) < RESTART_MIN_FRAMES or any(x is None for x in times):
+        return False
+    ascending = all(np.log2(b / a) > SAME_SETTING_STOPS for a, b in zip(times, times[1:]))
+    return ascending and np.log2(prev / t) >= RESTART_FALL_STOPS - SAME_SETTING_STOPS
 
 
 @dataclass

@@ -299,7 +299,7 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
 def _choose_crf(first: Frame, opts: CalibrateOptions, base: dict | None):
     """RAW is linear; JPEG/TIFF/PNG need their response: --crf (as merge reads it), else
     the profile's; no sRGB guess, since the noise would be measured on a wrong scale."""
-    if first.kind == "raw" or opts.crf:
+    if first.kind in ("raw", "linear") or opts.crf:
         return choose_crf([first], opts.crf)
     if base is not None:
         return crf_from_json(base["crf"])

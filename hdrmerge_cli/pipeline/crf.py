@@ -19,12 +19,14 @@ from hdrmerge_cli.io.frames import load_codes
 from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
+from hdrmerge_cli.io.times import ESTIMATE
+from hdrmerge_cli.pipeline import exposures as exposures_mod
 from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
 
 #: fewest pixels that two consecutive frames must both expose (neither code clipped)
-MIN_OVERLAP = 50
+MIN_OVERLAP = exposures_mod.MIN_OVERLAP
 
 
 @dataclass
@@ -43,32 +45,6 @@ class CRFOptions:
     plot: Path | None = None
     overwrite: bool = False
     coupling: float = DEFAULT_COUPLING  # goossens: channel coupling of the joint solve
-
-
-def check_brightness_order(frames, codes) -> None:
-    """Frames must get brighter with exposure: name the first pair that does not."""
-    means = [float(np.mean(c)) for c in codes]
-    for k in range(1, len(frames)):
-        if means[k] + 0.5 < means[k - 1]:
-            raise HdrMergeError(
-                f"{frames[k].path}: darker (mean code {means[k]:.1f}) than the shorter exposure "
-                f"{frames[k - 1].path} ({means[k - 1]:.1f}); check the exposure times"
-            )
-
-
-def check_overlap(frames, codes, n_codes: int) -> None:
-    """Consecutive frames must share pixels that neither clips, or g cannot be chained."""
-    unclipped = None
-    for k in range(len(frames)):
-        prev, unclipped = unclipped, codes[k] - np.array(1, codes[k].dtype) < n_codes - 2  # 0 < z < n - 1
-        if prev is None:
-            continue
-        both = np.count_nonzero(prev & unclipped)
-        if both < MIN_OVERLAP:
-            raise HdrMergeError(
-                f"{frames[k].path}: only {both} pixels are unclipped both here and in {frames[k - 1].path} "
-                f"(need {MIN_OVERLAP}); the exposures are too far apart to estimate a CRF"
-            )
 
 
 def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, method: str, rng) -> np.ndarray:
@@ -134,9 +110,9 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     frames = read_bracket(list(paths), opts.times, opts.times_file)
     first = frames[0]
     smoothing = method.smoothing if opts.smoothing is None else opts.smoothing
-    samples = method.samples if opts.samples is None else opts.samples
-    fits, changed, points = [], False, None
-    if first.kind == "raw" and not opts.force:
+    n_samples = method.samples if opts.samples is None else opts.samples
+    fits, changed, points, exposure_check = [], False, None, None
+    if first.kind in ("raw", "linear") and not opts.force:
         log.info("RAW data is linear: no CRF to estimate; writing an identity (linear) CRF (use --force to fit one)")
         crf = CRF("linear")
     else:
@@ -144,21 +120,41 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
             raise HdrMergeError(f"{first.path}: estimating a CRF needs at least two exposures")
         with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
             codes = list(pool.map(load_codes, frames))
+        by_frame = {id(f): c for f, c in zip(frames, codes)}
+        samples = exposures_mod.sample_frames(frames, lambda f: by_frame[id(f)])
+        del by_frame
         if first.kind == "raw":
             codes = [c[..., None] for c in codes]
-        check_brightness_order(frames, codes)
-        check_overlap(frames, codes, first.n_codes)
-        log_h = np.log(exposure_values(frames))
+        exposures_mod.check_order(frames, samples)  # robust statistics, constant borders off
+        exposures_mod.check_overlap(frames, samples)
+        labels = exposure_values(frames)
+        log_h = np.log(labels)
         options = {}
         if method.noise_weighted:
             options.update(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
                            coupling=opts.coupling, **({"weighting": opts.weighting} if opts.weighting else {}))
-        crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, samples, options,
+        crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, n_samples, options,
                                      np.random.default_rng(opts.seed))
+        # the labels checked through the fitted response (the comparagrams the fit used);
+        # --times estimate: refit with the estimates, until they settle (at most 3 rounds)
+        est = exposures_mod.estimate(frames, labels, samples, crf)
+        for _ in range(3 if opts.times == ESTIMATE else 0):
+            new_log_h = est.log_h
+            crf, fits, changed = fit_crf(codes, new_log_h, first.n_codes, opts.method, smoothing, n_samples, options,
+                                         np.random.default_rng(opts.seed))
+            est = exposures_mod.estimate(frames, labels, samples, crf)
+            moved = float(np.max(np.abs(est.log_h - new_log_h))) / np.log(2)
+            log_h = new_log_h
+            if moved < 0.01:
+                break
+        exposures_mod.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
+                                       else "; estimate-crf --times estimate fits with the estimates")
+        exposure_check = exposures_mod.report(frames, labels, est,
+                                              "estimates" if opts.times == ESTIMATE else "labels", crf)
         points = (codes, log_h)
-    details = {"method": opts.method, "channels": first.channel_colors if first.kind != "raw" else "linear"}
+    details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}
     if fits:
-        details |= {"lambda": smoothing, "samples": samples or "all",
+        details |= {"lambda": smoothing, "samples": n_samples or "all",
                     "iterations": [f.iterations for f in fits], "converged": all(f.converged for f in fits)}
         if method.noise_weighted:
             details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
@@ -177,7 +173,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     save_profile(output, profile, opts.overwrite or updating)
     return {
         "output": str(output), "method": opts.method, "frames": [f.summary() for f in frames],
-        "crf": crf.describe(), "made_monotone": changed, **{k: v for k, v in details.items() if k != "method"},
+        "crf": crf.describe(), "made_monotone": changed, "exposure_check": exposure_check, **{k: v for k, v in details.items() if k != "method"},
         "seconds": round(time.perf_counter() - t0, 4),
     }
 

@@ -7,16 +7,20 @@ import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
+from hdrmerge_cli.io.times import apply_times
+from hdrmerge_cli.pipeline import exposures as exposures_mod
 from hdrmerge_cli.pipeline.merge import _fmt_time, exposure_values, sample_pattern
 
 
-def bracket_info(paths) -> dict:
+def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str | None = None) -> dict:
     """Per frame: camera, exposure time, ISO, bit depth, black/white levels and the
     fractions of clipped and dark samples (:func:`~hdrmerge_cli.core.coverage.clip_classes`);
     for the bracket (frames of one layout with exposure times): whether some frame measures
     every pixel (:class:`~hdrmerge_cli.core.coverage.Coverage`) and what to add if not.
     Frames are decoded two at a time; one decoded frame per thread is held."""
     frames = [read_frame(p) for p in paths]
+    if times is not None or times_file is not None:  # as merge and estimate-crf take them
+        apply_times(frames, times, times_file)
     timed = all(f.exposure_time for f in frames)
     if timed:  # shortest exposure (time x ISO gain, as merge sorts) first, as "too bright" needs
         frames = [frames[i] for i in np.argsort(exposure_values(frames), kind="stable")]
@@ -34,7 +38,35 @@ def bracket_info(paths) -> dict:
             if coverage is not None:
                 coverage.add(clipped, dark)
             del clipped, dark
-    return {"frames": rows, "bracket": _bracket_summary(frames, coverage, timed)}
+    out = {"frames": rows, "bracket": _bracket_summary(frames, coverage, timed)}
+    if comparable and len(frames) > 1:
+        out["exposure_estimates"] = _estimates(frames, crf_spec)
+        for row, est in zip(rows, out["exposure_estimates"]["frames"]):
+            row["estimated_exposure_time"] = est["estimate_seconds"]
+    return out
+
+
+def _estimates(frames: list[Frame], crf_spec: str | None) -> dict:
+    """The exposures measured on the frames (as merge checks them), through ``crf_spec``
+    (``--crf``; a profile JSON's CRF) or, for images without it, a response fitted on the
+    bracket; a label more than 1/3 EV off is also a warning."""
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.io.crfspec import resolve_crf
+    from hdrmerge_cli.io.profile import crf_from_json, load_profile
+
+    if frames[0].kind in ("raw", "linear"):
+        crf = CRF("linear")
+    elif crf_spec:
+        crf = (crf_from_json(load_profile(crf_spec)["crf"], crf_spec) if crf_spec.lower().endswith(".json")
+               else resolve_crf(crf_spec))
+    else:
+        crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
+    exposures = exposure_values(frames)
+    s = exposures_mod.sample_frames(frames)
+    exposures_mod.check_order(frames, s)
+    est, used = exposures_mod.estimate_with_response(frames, exposures, s, crf)
+    exposures_mod.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates")
+    return exposures_mod.report(frames, exposures, est, "labels", used)
 
 
 def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:
@@ -67,7 +99,7 @@ def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool
 def format_info(summary: dict) -> str:
     """The human-readable table of :func:`bracket_info` (one line per frame, then the
     bracket)."""
-    head = ("file", "camera", "exposure", "ISO", "bits", "black", "white", "clipped", "dark")
+    head = ("file", "camera", "exposure", "estimate", "ISO", "bits", "black", "white", "clipped", "dark")
     lines = []
     for r in summary["frames"]:
         black = sorted(set(r["black"]))
@@ -75,6 +107,7 @@ def format_info(summary: dict) -> str:
         lines.append((
             r["path"].rsplit("/", 1)[-1], r["camera"] or "-",
             _fmt_time(r["exposure_time"]) if r["exposure_time"] else "-",
+            _fmt_time(r["estimated_exposure_time"]) if r.get("estimated_exposure_time") else "-",
             f"{r['iso']:g}" if r["iso"] else "-", str(r["bits"]),
             "/".join(f"{b:g}" for b in black), "/".join(f"{w:g}" for w in white),
             f"{100 * r['clipped_fraction']:.2f} %", f"{100 * r['dark_fraction']:.2f} %",

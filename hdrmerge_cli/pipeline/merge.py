@@ -13,6 +13,7 @@ import numpy as np
 
 from hdrmerge_cli import __version__
 from hdrmerge_cli.core.color import REC709_CHROMATICITIES, bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
@@ -25,10 +26,11 @@ from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_no
 from hdrmerge_cli.io.atomic import atomic_paths, check_distinct, check_writable
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map, read_frame
-from hdrmerge_cli.io.images import write_exr, write_ldr
+from hdrmerge_cli.io.images import exr_compression, write_exr, write_ldr
 from hdrmerge_cli.io.profile import crf_from_json, dumps, load_profile, new_profile
-from hdrmerge_cli.io.times import read_times_file
+from hdrmerge_cli.io.times import ESTIMATE, apply_times
 from hdrmerge_cli.pipeline import motion
+from hdrmerge_cli.pipeline.exposures import SampleTee, resolve_exposures
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -66,6 +68,10 @@ class MergeOptions:
     preview_size: int = 2048
     align: str = "off"
     deghost: str = "off"
+    #: read/store bracket noise measurements in the per-camera cache (``--no-cache``: off)
+    noise_cache: bool = True
+    #: OpenEXR compression (a key of :data:`hdrmerge_cli.io.images.EXR_COMPRESSIONS`)
+    compression: str = "auto"
 
 
 #: file types ``--preview`` writes (by suffix)
@@ -77,25 +83,15 @@ def default_profile_path(output: Path) -> Path:
 
 
 # ---------------------------------------------------------------- bracket checks
-def read_bracket(paths: list[str], times: list[float] | None = None, times_file: str | None = None) -> list[Frame]:
-    """Read and check the frames' metadata; apply user exposure times; sort by exposure."""
+def read_bracket(paths: list[str], times: list[float] | None = None, times_file: str | None = None,
+                 equal_ok: bool = False) -> list[Frame]:
+    """Read and check the frames' metadata; apply user exposure times; sort by exposure.
+    Frames of equal exposure are refused unless ``equal_ok`` (merge averages them; a
+    response or weight table needs distinct exposures)."""
     if not paths:
         raise HdrMergeError("no input frames given")
     frames = [read_frame(p) for p in paths]
-    if times is not None:
-        if len(times) != len(frames):
-            raise HdrMergeError(f"--times gives {len(times)} values for {len(frames)} frames")
-        for f, t in zip(frames, times):
-            f.exposure_time = t
-    if times_file is not None:
-        table = read_times_file(times_file)
-        for f in frames:
-            if f.name not in table:
-                raise HdrMergeError(f"{f.path}: not listed in the times file {times_file}")
-            f.exposure_time = table[f.name]
-    for f in frames:
-        if f.exposure_time is None:
-            raise HdrMergeError(f"{f.path}: no exposure time in the file's metadata (give them with --times or --times-file)")
+    apply_times(frames, times, times_file)  # "estimate": labels here, estimates after decoding
     first = frames[0]
     for f in frames[1:]:
         for what, a, b in (
@@ -113,23 +109,47 @@ def read_bracket(paths: list[str], times: list[float] | None = None, times_file:
     order = np.argsort(exposures, kind="stable")
     frames = [frames[i] for i in order]
     exposures = exposures[order]
-    for k in range(1, len(frames)):
+    # merge averages frames of equal exposure (bursts, repeated brackets: noise variance
+    # / N) and checks that they agree (_check_repeats)
+    for k in range(1, len(frames) * (not equal_ok)):
         if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             raise HdrMergeError(
                 f"{frames[k].path}: same exposure ({_fmt_time(frames[k].exposure_time)}) as {frames[k - 1].path}; "
-                "a bracket needs different exposures (check --times)"
+                "this needs different exposures (check --times)"
             )
+    apertures = sorted({f.aperture for f in frames if f.aperture})
+    if len(apertures) > 1:
+        log.warning("%s: apertures differ between frames (f/%g .. f/%g): the exposures count them (f-number "
+                    "squared), but the depth of field changes between frames", frames[0].path, apertures[0],
+                    apertures[-1])
     return frames
 
 
+def equal_exposure_groups(exposures) -> list[list[int]]:
+    """Indices of runs of frames (sorted by exposure) whose exposures agree within
+    :data:`EQUAL_EXPOSURE_RTOL`, each run of two or more frames."""
+    groups, run = [], [0]
+    for k in range(1, len(exposures)):
+        if exposures[k] <= exposures[run[0]] * (1 + EQUAL_EXPOSURE_RTOL):
+            run.append(k)
+        else:
+            groups, run = groups + [run] * (len(run) > 1), [k]
+    return groups + [run] * (len(run) > 1)
+
+
 def exposure_values(frames: list[Frame]) -> np.ndarray:
-    """``h_j``: exposure time times ISO / ISO of the first frame when every frame has an
-    ISO and they differ (the gain ``sqrt(alpha_j)`` of (1)); else the exposure time."""
-    t = np.array([f.exposure_time for f in frames], dtype=np.float64)
+    """``h_j``: the exposure time, times ISO / ISO of the first frame (the gain
+    ``sqrt(alpha_j)`` of (1)), times (f-number of the first frame / f-number)^2 (the light
+    the aperture lets through).  A factor counts only when every frame states it; with
+    equal ISOs and apertures ``h_j`` is the exposure time in seconds."""
+    h = np.array([f.exposure_time for f in frames], dtype=np.float64)
     isos = [f.iso for f in frames]
-    if all(isos) and len(set(isos)) > 1:
-        return t * np.array(isos, dtype=np.float64) / isos[0]
-    return t
+    if all(isos):
+        h = h * np.array(isos, dtype=np.float64) / isos[0]
+    apertures = [f.aperture for f in frames]
+    if all(apertures):
+        h = h * (apertures[0] / np.array(apertures, dtype=np.float64)) ** 2
+    return h
 
 
 def _fmt(v) -> str:
@@ -197,7 +217,7 @@ def default_irls(estimator: str, noise, opts: MergeOptions) -> int:
 def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False) -> CRF:
     """RAW is linear; images use ``spec`` (``--crf``, or the profile's CRF when
     ``from_profile``) or sRGB with a warning."""
-    if frames[0].kind == "raw":
+    if frames[0].kind in ("raw", "linear"):
         if spec and spec != "linear" and not from_profile:
             log.warning("RAW data is linear: --crf %s is ignored", spec)
         return CRF("linear")
@@ -213,7 +233,7 @@ def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False
         "'hdrmerge-cli estimate-crf' on this bracket and pass --crf PROFILE.json",
         frames[0].path,
     )
-    return CRF("srgb")
+    return CRF("srgb", assumed=True)
 
 
 # ---------------------------------------------------------------- the merge
@@ -224,6 +244,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     for extra in opts.extra_channels:
         if extra not in EXTRA_CHANNELS:
             raise HdrMergeError(f"unknown extra channel {extra!r} (choose from {', '.join(EXTRA_CHANNELS)})")
+    exr_compression(opts.compression, opts.half)  # an unknown name fails before any work
     output = Path(opts.output)
     profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(output)
     if output.suffix.lower() != ".exr":
@@ -237,7 +258,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     inputs = list(paths) + [p for p in (opts.profile, opts.lut, opts.times_file, opts.crf)
                             if p and Path(p).is_file()]
     check_distinct([output, profile_out] + ([opts.preview] if opts.preview is not None else []), inputs)
-    frames = read_bracket(paths, opts.times, opts.times_file)
+    frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True)
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
     crf = choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf)
@@ -251,16 +272,29 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align)
         timings["align"] = time.perf_counter() - t1
     load = motion.loader(frames, alignment)
+    # labels checked against the frames (a warning per label off by > 1/3 EV), or replaced
+    # (--times estimate: before the merge, on a pass of its own; otherwise checked after it
+    # on samples of the frames the merge decodes anyway)
+    tee = None
+    if opts.times == ESTIMATE:
+        frames, exposures, exposure_check = resolve_exposures(frames, exposures, crf, load, True)
+        h_ref = reference_exposure(opts.reference, exposures)
+    else:
+        load = tee = SampleTee(frames, load)
+    load, repeats, seen = _watch_repeats(load, frames, exposures)
+    if opts.cfa and first.kind == "linear":
+        log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", first.path)
+    orientation = output_orientation(frames)
     estimated = None
     estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first, crf)
     weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
     # RAW: always measured (the ML default needs it); images only where the options ask for
     # a noise model (their default, the log estimator with code-error variances, does not)
     needs_noise = (opts.variance == "model" or (weights in NOISE_MODEL_WEIGHTS and weights != "bounded")
-                   or bool(opts.irls) or estimator == "ml" or (opts.variance == "auto" and first.kind == "raw"))
+                   or bool(opts.irls) or estimator == "ml" or (opts.variance == "auto" and first.kind in ("raw", "linear")))
     if noise is None and needs_noise and not opts.lut:
         t1 = time.perf_counter()
-        noise, estimated = _estimate_noise(frames, crf, load)
+        noise, estimated = _estimate_noise(frames, crf, load, cache=opts.noise_cache)
         timings["noise_estimate"] = time.perf_counter() - t1
     variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf)
     if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
@@ -293,6 +327,11 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
                                                  None if n_irls else h_ref, load,
                                                  motion.sample_weights(tables, pattern, frames, ghosts, alignment))
     timings.update(timings_stream)
+    if tee is not None:
+        t0 = time.perf_counter()
+        exposure_check = resolve_exposures(frames, exposures, crf, samples=tee.samples(frames))[2]
+        timings["exposure_check"] = time.perf_counter() - t0
+    repeat_report = _check_repeats(repeats, seen, frames, crf)
     iterations = 0
     if n_irls:
         t0 = time.perf_counter()
@@ -327,6 +366,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
             rgb = _raw_to_rec709_rows(result, first, y0, y1)
         else:
             rgb = result[y0:y1].reshape(y1 - y0, first.width, -1)
+            if first.kind == "linear" and first.channels == 3:  # demosaiced camera RGB
+                rgb = camera_to_rec709(rgb * first.white_balance.astype(np.float32), first.color_matrix)
         planes = [rgb]
         if "clipped" in opts.extra_channels:
             planes.append(flag_img[y0:y1, :, None].astype(np.float32))
@@ -355,7 +396,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         "hdrmerge:referenceExposure": h_ref,
         "hdrmerge:units": (
             "scene-linear; 1.0 = the full-scale (clipping) signal of an exposure of "
-            "hdrmerge:referenceExposure seconds" + ("" if first.kind != "raw" or opts.cfa else ", after white balance (green = 1)")
+            "hdrmerge:referenceExposure seconds" + (", after white balance (green = 1)" if (
+                first.kind == "raw" and not opts.cfa) or (first.kind == "linear" and first.channels == 3) else "")
         ),
         "hdrmerge:weights": weights,
         "hdrmerge:estimator": estimator,
@@ -372,6 +414,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         attrs["chromaticities"] = list(REC709_CHROMATICITIES)
     if first.kind == "raw" and opts.cfa:
         attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
+    if orientation != 1:  # the pixels stay in sensor order; viewers rotate by the header
+        attrs["Orientation"] = orientation
 
     t0 = time.perf_counter()
     strips = prefetched(strip, range(0, first.height, STRIP_ROWS))
@@ -382,10 +426,11 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         strips = _tee_preview(strips, preview, len(channels))
     outputs = [output, profile_out] + ([opts.preview] if preview else [])
     with atomic_paths(outputs, opts.overwrite, inputs) as tmps:
-        write_exr(tmps[0], strips, names, attrs, half=opts.half, size=(first.height, first.width))
+        write_exr(tmps[0], strips, names, attrs, half=opts.half, size=(first.height, first.width),
+                  compression=opts.compression)
         Path(tmps[1]).write_text(profile_text, encoding="utf-8")
         if preview:
-            rgb = preview.result()
+            rgb = upright(preview.result(), orientation)
             write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
     timings["color_and_write"] = time.perf_counter() - t0
 
@@ -396,12 +441,17 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
         **({"preview": str(opts.preview)} if preview else {}),
         "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(frames, exposures)],
         "reference_exposure": h_ref,
+        "exposure_check": exposure_check,
+        "orientation": orientation,
+        **({"equal_exposures": repeat_report} if repeat_report else {}),
         "weights": weights,
         "estimator": estimator,
         "variance": variance,
         "irls_iterations": iterations,
         "noise": noise_used,
-        "noise_source": ("measured on the bracket (calibrate-noise fast path)" if estimated
+        "noise_source": (f"measured earlier on the same camera and ISO (cache {estimated['cached']['file']})"
+                         if estimated and "cached" in estimated
+                         else "measured on the bracket (calibrate-noise fast path)" if estimated
                          else "given (--noise or --profile)" if noise_used else None),
         "prior_rate": prior,
         "bounds": list(bounds) if bounds else None,
@@ -417,6 +467,93 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
            if ghosts else {}),
         "timing_seconds": {k: round(v, 4) for k, v in timings.items()},
     }
+
+
+def output_orientation(frames: list[Frame]) -> int:
+    """The EXIF orientation of the output: the frames' (the first frame's, with a
+    warning, when they differ)."""
+    values = sorted({f.orientation for f in frames})
+    if len(values) > 1:
+        log.warning("%s: the frames' orientations differ (EXIF %s); the output takes the first frame's (%d)",
+                    frames[0].path, ", ".join(map(str, values)), frames[0].orientation)
+    return frames[0].orientation
+
+
+def upright(image: np.ndarray, orientation: int) -> np.ndarray:
+    """An ``(H, W, ...)`` image stored with EXIF ``orientation``, as it is meant to be seen
+    (6: rotated 90 degrees clockwise, 8: counter-clockwise, 3: 180; 2, 4, 5, 7 mirrored)."""
+    return {
+        2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+        5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
+        8: lambda a: np.rot90(a, 1),
+    }.get(orientation, lambda a: a)(image)
+
+
+#: samples (about) of each equal-exposure frame kept to check that the frames agree
+REPEAT_SAMPLES = 1 << 18
+
+
+def _watch_repeats(load, frames: list[Frame], exposures: np.ndarray):
+    """Frames of equal exposure (:func:`equal_exposure_groups`) are merged; to check that
+    they agree, a loader that keeps an even subsample of their codes as the merge decodes
+    them (no extra decode).  Returns (loader, groups, {id(frame): subsample})."""
+    groups = equal_exposure_groups(exposures)
+    seen: dict[int, np.ndarray] = {}
+    if not groups:
+        return load, groups, seen
+    watched = {id(frames[i]) for g in groups for i in g}
+    h, w = frames[0].height, frames[0].width
+    step = 2 * max(1, int(np.ceil(np.sqrt(h * w / REPEAT_SAMPLES) / 2)))  # even: one CFA colour
+
+    def watching(frame):
+        codes = load(frame)
+        if id(frame) in watched:
+            seen[id(frame)] = codes[::step, ::step].copy()
+        return codes
+
+    return watching, groups, seen
+
+
+def _linear_sample(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
+    """Linear values (1 = full scale) of a frame's codes (RAW: one CFA colour, mean black)."""
+    if frame.kind == "raw":
+        black = float(np.mean(frame.black))
+        return (codes.astype(np.float64) - black) / (float(np.max(frame.white)) - black)
+    full = frame.n_codes - 1.0
+    return np.stack([crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])], axis=-1)
+
+
+def _check_repeats(groups, seen, frames: list[Frame], crf: CRF) -> list[dict]:
+    """Each frame of an equal-exposure group against the group's first: a warning when
+    they disagree beyond the noise (:func:`~hdrmerge_cli.core.repeats.compare_repeat`): a
+    changed exposure, or content (motion).  Returns the comparisons for ``--json``."""
+    from hdrmerge_cli.core.repeats import compare_repeat
+
+    report = []
+    for g in groups:
+        a = frames[g[0]]
+        for k in g[1:]:
+            b = frames[k]
+            if id(a) not in seen or id(b) not in seen:
+                continue
+            za, zb = seen[id(a)], seen[id(b)]
+            check = compare_repeat(za, zb, _linear_sample(a, za, crf), _linear_sample(b, zb, crf))
+            entry = {"frames": [a.path, b.path], "exposure_time": b.exposure_time}
+            if check is None:
+                report.append(entry | {"compared": False})
+                continue
+            report.append(entry | {"compared": True, "ratio_ev": round(check.ratio_ev, 4),
+                                   "outlier_fraction": check.outliers, "samples": check.samples})
+            if check.exposure_changed:
+                log.warning("%s: the same exposure (%s) as %s by its metadata, but %.2f stops %s: the exposure "
+                            "changed between them (check the metadata or give --times)", b.path,
+                            _fmt_time(b.exposure_time), a.name, abs(check.ratio_ev),
+                            "brighter" if check.ratio_ev > 0 else "darker")
+            elif check.content_differs:
+                log.warning("%s: the same exposure as %s, but %.1f %% of the pixels differ beyond the noise (motion "
+                            "between the frames?); consider --align auto or --deghost auto", b.path, a.name,
+                            100 * check.outliers)
+    return report
 
 
 #: largest finite value and smallest normal value of the output types
@@ -441,10 +578,25 @@ def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float) ->
                             + (" or drop --half" if half else ""))
 
 
-def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes):
+def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True):
     """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
     code, fast path; for images on the signal linearised by ``crf``); on failure fall back
-    to photon-noise weights."""
+    to photon-noise weights.  With ``cache``, an earlier merge's measurement of the same
+    camera and ISO is read from the per-camera cache (:mod:`hdrmerge_cli.io.noisecache`)
+    instead, and a new measurement is stored there."""
+    from hdrmerge_cli.io import noisecache
+
+    key = noisecache.cache_key(frames[0], crf.describe()) if cache else None
+    hit = noisecache.lookup(key)
+    if hit is not None:
+        used = hit["used"]
+        log.info("noise of %s from the cache %s: %s", key, noisecache.cache_file(),
+                 ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+        cached = {"file": str(noisecache.cache_file()), "key": key, "date": hit.get("date"),
+                  "measured_on": hit.get("inputs")}
+        return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, (hit.get("estimated_from_bracket") or {}) | {
+            "cached": cached}
+
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
     try:
@@ -454,6 +606,8 @@ def _estimate_noise(frames: list[Frame], crf: CRF, load=load_codes):
         return None, None
     log.info("noise measured on the bracket: %s",
              ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+    if key is not None and noisecache.store(key, used, entries, [f.path for f in frames]):
+        log.debug("noise of %s stored in %s", key, noisecache.cache_file())
     return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
 
 
@@ -634,7 +788,16 @@ STRIP_HALO = 4
 
 def _raw_to_rec709_rows(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
     """Rows ``y0:y1`` of the Rec.709 image: white balance (green = 1) per CFA colour,
-    demosaic (with a halo of rows, so strips join seamlessly), camera matrix."""
+    demosaic (Malvar-He-Cutler, reading the rows around the strip, so strips join
+    seamlessly), camera matrix; one compiled pass that releases the GIL (strips run on the
+    prefetch threads, one per core).  :func:`_raw_to_rec709_rows_reference` is the same
+    arithmetic through colour-demosaicing (the tests compare the two)."""
+    return raw_to_rgb_rows(mosaic, frame.cfa_pattern, frame.white_balance, frame.color_matrix, y0, y1)
+
+
+def _raw_to_rec709_rows_reference(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
+    """The reference of :func:`_raw_to_rec709_rows`: NumPy white balance, colour-demosaicing's
+    Malvar (2004) on the strip with a halo of rows, the camera matrix."""
     a, b = max(0, y0 - STRIP_HALO), min(mosaic.shape[0], y1 + STRIP_HALO)
     part = mosaic[a:b]
     colors = bayer_channels(frame.cfa_pattern, part.shape)  # a is even: same CFA phase as row 0

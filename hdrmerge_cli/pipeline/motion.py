@@ -10,7 +10,7 @@ from hdrmerge_cli.core import align, deghost
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.core.reconstruct import channel_index, lookup
+from hdrmerge_cli.core.reconstruct import lookup
 from hdrmerge_cli.io.frames import Frame, load_codes
 
 log = logging.getLogger("hdrmerge_cli")
@@ -325,8 +325,7 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
         return None
 
     def weights(k: int, codes: np.ndarray) -> np.ndarray:
-        rows = None if pattern is None else channel_index(codes.shape, pattern)
-        w = _samples(lookup(tables[k].weight, tables[k].n_codes, codes, rows))
+        w = _samples(lookup(tables[k].weight, tables[k].n_codes, codes, pattern))
         if ghosts is not None and ghosts["masks"][k].any():  # w (1 - m): feathered, no seam
             keep = 1.0 - ghost_weight(ghosts, k, frames[k].height, frames[k].width)
             w *= keep if frames[k].kind == "raw" else np.repeat(keep, w.shape[1] // keep.shape[1], axis=1)

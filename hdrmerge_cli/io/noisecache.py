@@ -1,0 +1,114 @@
+"""Per-camera cache of the noise parameters that ``merge`` measures on a bracket.
+
+A bracket merged without ``--noise``/``--profile`` has the noise model (17) measured on
+itself (the calibrate-noise fast path, about a second at 24 MP).  The parameters belong to
+the camera at an ISO, not to the scene, so the first merge of a camera and ISO stores them
+here and later merges of that camera and ISO read them back instead of measuring again.
+
+Location: ``$HDRMERGE_CLI_CACHE_DIR/noise.json`` if that variable is set, else
+``$XDG_CACHE_HOME/hdrmerge-cli/noise.json`` (``~/.cache/hdrmerge-cli/noise.json`` when
+``XDG_CACHE_HOME`` is unset).  ``merge --no-cache`` neither reads nor writes it; deleting the
+file forgets every entry.  A damaged or foreign file is ignored (and replaced on the next
+store), never an error.
+
+Key: make, model, ISO, the kind of data and its code scale (RAW: black and white levels, so
+a camera's 12- and 14-bit modes stay apart; images: bit depth and the response curve the
+signal was linearised with).  Frames without make, model or ISO are not cached, nor are
+simulated ones (``hdrmerge-cli simulate``: its sensor is whatever the options made it).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import tempfile
+from pathlib import Path
+
+SCHEMA = 1
+ENV_DIR = "HDRMERGE_CLI_CACHE_DIR"
+#: ``Make`` of the frames ``simulate`` writes (never cached)
+SIMULATED_MAKE = "hdrmerge-cli"
+
+
+def cache_dir() -> Path:
+    """The folder of the cache (see the module docstring)."""
+    if os.environ.get(ENV_DIR):
+        return Path(os.environ[ENV_DIR])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "hdrmerge-cli"
+
+
+def cache_file() -> Path:
+    return cache_dir() / "noise.json"
+
+
+def _num(x) -> str:
+    return f"{float(x):g}"
+
+
+def cache_key(frame, crf_description: str | None = None) -> str | None:
+    """The cache key of a bracket's first frame, or ``None`` when it cannot be cached."""
+    make, model = (frame.make or "").strip(), (frame.model or "").strip()
+    if not make or not model or not frame.iso or make == SIMULATED_MAKE:
+        return None
+    parts = [make, model, f"iso={_num(frame.iso)}", frame.kind]
+    if frame.kind == "raw":
+        parts += ["black=" + ",".join(_num(b) for b in frame.black), "white=" + ",".join(_num(w) for w in frame.white)]
+    else:
+        parts += [f"bits={frame.bits}", f"crf={crf_description}"]
+    return " | ".join(parts)
+
+
+def _load(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA or not isinstance(data.get("entries"), dict):
+        return {}
+    return data["entries"]
+
+
+def lookup(key: str | None) -> dict | None:
+    """The stored entry (``{"used": {channel: {sigma_o2, alpha, beta}}, "estimated_from_bracket":
+    ..., "inputs": [...], "date": ...}``) or ``None``."""
+    if key is None:
+        return None
+    entry = _load(cache_file()).get(key)
+    try:
+        used = {str(ch): {k: float(p[k]) for k in ("sigma_o2", "alpha", "beta")} for ch, p in entry["used"].items()}
+    except (TypeError, KeyError, ValueError, AttributeError):
+        return None
+    return entry | {"used": used}
+
+
+def store(key: str | None, used: dict, estimated: dict | None, inputs: list[str]) -> Path | None:
+    """Add (or replace) one entry; written to a temporary file and renamed, so concurrent
+    merges (``--batch -j``) never leave a torn file (the last writer wins).  Returns the
+    file, or ``None`` if it could not be written (a read-only home: no cache, no error)."""
+    if key is None:
+        return None
+    path = cache_file()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        entries = _load(path)
+        entries[key] = {"used": used, "estimated_from_bracket": estimated, "inputs": [str(p) for p in inputs],
+                        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+        fd, tmp = tempfile.mkstemp(prefix=".noise.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                json.dump({"schema": SCHEMA, "entries": entries}, fh, indent=1, sort_keys=True)
+            os.replace(tmp, path)
+        except BaseException:
+            _unlink_quietly(tmp)
+            raise
+    except OSError:
+        return None
+    return path
+
+
+def _unlink_quietly(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass

@@ -1,0 +1,342 @@
+"""Exposure labels checked against the frames (and, on request, replaced by estimates),
+and the order and overlap checks that read real frames.
+
+The numerics are :mod:`hdrmerge_cli.core.exposure`; here the frames are decoded,
+subsampled (CFA cells kept whole), normalised to ``v = (z - black) / (white - black)``,
+cut to the pixels worth comparing (constant borders off, clipped and noise-floor codes
+off) and linearised through the response in use.
+"""
+from __future__ import annotations
+
+import logging
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.exposure import (
+    LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, border_mask, comparagram, constant_border, estimate_exposures,
+    order_test, response_from_comparagrams, robust_log_ratio,
+)
+from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map
+
+log = logging.getLogger("hdrmerge_cli")
+
+#: samples per frame the checks and estimates read (an even subsample of the frame)
+MAX_SAMPLES = 1 << 18
+#: well-exposed range of v (normalised codes) whose ratios are trusted: linear data
+#: (RAW, a linear response) and a verified response (a table: a profile or CSV)
+RANGE_LINEAR = (0.01, 0.9)
+RANGE_VERIFIED = (0.04, 0.94)
+#: an unverified named response (sRGB assumed, gamma:G): the mid range only
+RANGE_UNVERIFIED = (0.1, 0.9)
+#: above a frame's own floor (its 0.5th percentile of v, per channel) by at least this:
+#: frames at the noise floor (film fog, a scanner's black) give no ratios
+FLOOR_MARGIN = 0.03
+#: spread (in v) of a line constant in every frame: a scan border
+BORDER_TOL = 0.03
+#: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
+MIN_OVERLAP = 50
+
+
+@dataclass
+class Samples:
+    """Frames decoded, subsampled and normalised: ``v`` per frame ``(H', W', C)`` float32
+    (C = 1 for a RAW mosaic, every site normalised by its own black and white levels);
+    ``inside``: (H', W') pixels off the constant borders; ``step``: the subsampling."""
+
+    v: list[np.ndarray]
+    inside: np.ndarray
+    border: tuple[int, int, int, int]
+    step: int
+    codes_step: float  # one code value in units of v
+
+
+def _subsample_index(n: int, step: int, raw: bool) -> np.ndarray:
+    idx = np.arange(n)
+    return idx[(idx // 2) % step == 0] if raw else idx[::step]
+
+
+def normalise(frame: Frame, codes: np.ndarray, step: int = 1, cell: np.ndarray | None = None) -> np.ndarray:
+    """``v = (z - black) / (white - black)`` of a frame's codes, subsampled by ``step``
+    (RAW: whole 2 x 2 cells, each site with its own levels; ``cell`` its colour indices)."""
+    raw = codes.ndim == 2
+    ys = _subsample_index(codes.shape[0], step, raw)
+    xs = _subsample_index(codes.shape[1], step, raw)
+    z = codes[np.ix_(ys, xs)].astype(np.float32)
+    black = np.asarray(frame.black, dtype=np.float32)
+    white = np.asarray(frame.white, dtype=np.float32)
+    if raw:
+        c = cell[(ys % 2)[:, None], (xs % 2)[None, :]] if cell is not None else np.zeros((len(ys), len(xs)), np.intp)
+        return ((z - black[c]) / (white[c] - black[c]))[..., None]
+    return (z - black[: z.shape[-1]]) / (white[: z.shape[-1]] - black[: z.shape[-1]])
+
+
+def _step_and_cell(first: Frame, max_samples: int = MAX_SAMPLES) -> tuple[int, np.ndarray | None]:
+    step = max(1, int(np.ceil(np.sqrt(first.width * first.height / max_samples))))
+    cell = raw_channel_map(first.path)[:2, :2].astype(np.intp) if first.kind == "raw" else None
+    return step, cell
+
+
+def _samples(frames: list[Frame], v: list[np.ndarray], step: int) -> Samples:
+    first = frames[0]
+    border = constant_border(v, BORDER_TOL)
+    if any(border):
+        log.info("constant border (rows top/bottom, columns left/right, subsampled by %d): %s left out of the checks",
+                 step, "/".join(map(str, border)))
+    span = float(np.min(first.white - first.black))
+    return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0))
+
+
+def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_SAMPLES) -> Samples:
+    """Decode every frame (two at a time) into :class:`Samples`."""
+    step, cell = _step_and_cell(frames[0], max_samples)
+
+    def one(frame):
+        return normalise(frame, load(frame), step, cell)
+
+    with ThreadPoolExecutor(2) as pool:
+        v = list(pool.map(one, frames))
+    return _samples(frames, v, step)
+
+
+class SampleTee:
+    """A frame loader that keeps, from each frame's first decode, what :class:`Samples`
+    holds: the label check then reads the frames the merge decodes anyway, with no pass of
+    its own.  Call it as the loader; :meth:`samples` once every frame went through."""
+
+    def __init__(self, frames: list[Frame], load=load_codes):
+        self._load, self._v = load, {}
+        self._step, self._cell = _step_and_cell(frames[0])
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        codes = self._load(frame)
+        if frame.path not in self._v:
+            self._v[frame.path] = normalise(frame, codes, self._step, self._cell)
+        return codes
+
+    def samples(self, frames: list[Frame]) -> Samples:
+        missing = [f for f in frames if f.path not in self._v]
+        for f in missing:  # not decoded by the merge (no weight anywhere): read now
+            self(f)
+        return _samples(frames, [self._v[f.path] for f in frames], self._step)
+
+
+# ---------------------------------------------------------------- checks
+def check_order(frames: list[Frame], s: Samples) -> None:
+    """Frames sorted by their labels must not get darker: per neighbour pair the sign test
+    of :func:`~hdrmerge_cli.core.exposure.order_test` on the pixels neither clips, off the
+    constant borders (frames at the noise floor and equal exposures pass; only a pair
+    darker on most changed pixels fails), with a one-line error naming both frames."""
+    margin = max(1.5 * s.codes_step, 0.004)
+    for k in range(1, len(frames)):
+        a, b = s.v[k - 1], s.v[k]
+        usable = (a < 1 - 0.5 * s.codes_step) & (b < 1 - 0.5 * s.codes_step) & s.inside[..., None]
+        t = order_test(a, b, usable, margin)
+        if t.disordered:
+            raise HdrMergeError(
+                f"{frames[k].path}: darker than {frames[k - 1].path} on {100 * t.down_fraction:.0f} % of the pixels that "
+                f"changed, though labelled a longer exposure ({_fmt(frames[k].exposure_time)} vs "
+                f"{_fmt(frames[k - 1].exposure_time)}); check the exposure times"
+            )
+
+
+def check_overlap(frames: list[Frame], s: Samples) -> None:
+    """Consecutive frames must share pixels that neither clips (0 < z < max; constant
+    borders excluded), or a response cannot be chained from one to the next."""
+    lo, hi = 0.5 * s.codes_step, 1 - 0.5 * s.codes_step
+    for k in range(1, len(frames)):
+        a, b = s.v[k - 1], s.v[k]
+        both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
+        if both < MIN_OVERLAP:
+            raise HdrMergeError(
+                f"{frames[k].path}: only {both} pixels are unclipped both here and in {frames[k - 1].path} "
+                f"(need {MIN_OVERLAP}); the exposures are too far apart to estimate a CRF"
+            )
+
+
+# ---------------------------------------------------------------- estimates
+def crf_verified(crf: CRF) -> bool:
+    """Linear data, measured response tables and a response the user named are trusted;
+    sRGB assumed for want of one is not: its ratios are read in the mid range and up to a
+    power."""
+    return not crf.assumed
+
+
+def usable_range(crf: CRF) -> tuple[float, float]:
+    return RANGE_LINEAR if crf.is_linear else RANGE_VERIFIED if crf_verified(crf) else RANGE_UNVERIFIED
+
+
+def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
+    """``gamma^-1(v)`` per channel (``v`` itself for a linear response), through a table
+    over the code values when ``v`` holds whole codes."""
+    vc = np.clip(v, 0.0, 1.0)
+    if crf.is_linear:
+        return vc
+    n = int(round(1.0 / codes_step)) + 1
+    if n > 1 << 16:
+        return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
+    grid = np.linspace(0.0, 1.0, n)
+    z = np.rint(vc * (n - 1)).astype(np.int64)
+    return np.stack([crf.inverse(grid, c).astype(np.float32)[z[..., c]] for c in range(v.shape[-1])], -1)
+
+
+def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
+    """:func:`~hdrmerge_cli.core.exposure.robust_log_ratio` of every neighbour pair, on the
+    pixels both frames expose well: ``v`` within ``value_range`` (default by the response,
+    :func:`usable_range`) and above each frame's own floor, off the borders; linearised by
+    ``crf`` per channel (RAW: ``v`` itself)."""
+    lo, hi = value_range or usable_range(crf)
+    masks, lin = [], []
+    for v in s.v:
+        inside = v[s.inside]  # (N, C)
+        floor = np.percentile(inside, 0.5, axis=0) + FLOOR_MARGIN if inside.size else np.zeros(v.shape[-1])
+        ok = (v >= np.maximum(lo, floor)) & (v <= hi) & s.inside[..., None]
+        masks.append(ok)
+        lin.append(linearise(v, crf, s.codes_step))
+    total = max(1, int(np.count_nonzero(s.inside)) * s.v[0].shape[-1])
+    out = []
+    for k in range(1, len(s.v)):
+        both = masks[k - 1] & masks[k]
+        r = robust_log_ratio(lin[k - 1][both], lin[k][both])
+        r.coverage = int(np.count_nonzero(both)) / total
+        out.append(r)
+    return out
+
+
+def estimate(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF,
+             value_range: tuple[float, float] | None = None, free_slope: bool = False) -> ExposureEstimate:
+    """Every frame's exposure measured on the samples (see :mod:`hdrmerge_cli.core.exposure`),
+    on the labels' scale (the reference frame keeps its label)."""
+    pairs = measure_pairs(s, crf, value_range)
+    return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
+
+
+def samples_codes(frames: list[Frame], s: Samples) -> list[np.ndarray]:
+    """The samples back as integer code values (images: exact)."""
+    f = frames[0]
+    c = s.v[0].shape[-1]
+    span = np.asarray(f.white - f.black, dtype=np.float32)[:c]
+    black = np.asarray(f.black, np.float32)[:c]
+    return [np.rint(v * span + black).clip(0, f.n_codes - 1).astype(np.int64) for v in s.v]
+
+
+def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples) -> CRF:
+    """An image bracket's inverse response fitted on its samples (constant borders off)
+    with the given exposures, per channel, from the neighbour pairs' comparagrams
+    (:func:`~hdrmerge_cli.core.exposure.response_from_comparagrams`): the check's own
+    response when the one in use is an unverified model (sRGB assumed), whose ratios are
+    off by up to a stop on real cameras' tone curves."""
+    from hdrmerge_cli.core.crf import table_crf
+    from hdrmerge_cli.core.crf_estimate import inverse_from_log
+    from hdrmerge_cli.core.crf_goossens2012 import from_knots, knot_levels, to_knots
+
+    n = frames[0].n_codes
+    levels = knot_levels(n)
+    codes = [to_knots(c[s.inside], n, levels) for c in samples_codes(frames, s)]  # (N, C)
+    log_r = np.diff(np.log(exposures))
+    tables = []
+    for ch in range(codes[0].shape[-1]):
+        grams = [comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in range(1, len(codes))]
+        g = from_knots(response_from_comparagrams(grams, log_r), n)
+        tables.append(inverse_from_log(g)[0])
+    return table_crf(np.stack(tables), "fitted on the bracket")
+
+
+def estimate_with_response(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF,
+                           rounds: int = 1) -> tuple[ExposureEstimate, CRF]:
+    """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
+    otherwise through a response fitted on the bracket (:func:`quick_response`), jointly:
+    fit with the labels, estimate, refit with the estimates, ``rounds`` times."""
+    if crf_verified(crf):
+        return estimate(frames, exposures, s, crf), crf
+    h = np.asarray(exposures, dtype=np.float64)
+    fitted = quick_response(frames, h, s)  # its least squares shrink the ratios a little: slope fitted
+    est = estimate(frames, exposures, s, fitted, free_slope=True)
+    for _ in range(rounds - 1):
+        fitted = quick_response(frames, np.exp(est.log_h), s)
+        est = estimate(frames, exposures, s, fitted, free_slope=True)
+    # a label is called wrong only where the assumed response agrees (same sign; the smaller
+    # of the two differences): a fit on pairs that barely overlap, or a camera curve far
+    # from the assumed one, each alone makes false alarms
+    assumed = estimate(frames, exposures, s, crf).difference_ev
+    agree = np.sign(assumed) == np.sign(est.difference_ev)
+    diff = np.where(agree, np.sign(assumed) * np.minimum(np.abs(assumed), np.abs(est.difference_ev)), 0.0)
+    return replace(est, difference_ev=diff), fitted
+
+
+def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, used: str,
+           crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV) -> dict:
+    """The ``--json`` record of the estimates: per frame the label and the estimate (in
+    seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV;
+    per neighbour pair the measured ratio; which exposures the merge used."""
+    est_h = np.exp(est.log_h)
+    bad = est.mislabelled(tol_ev)
+    rows = []
+    for k, f in enumerate(frames):
+        factor = exposures[k] / f.exposure_time
+        rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
+                     "difference_ev": round(float(est.difference_ev[k]), 4),
+                     "mislabelled": k in bad})
+    pairs = [{"frames": [frames[k].name, frames[k + 1].name],
+              "label_ev": round(float(np.log2(exposures[k + 1] / exposures[k])), 4),
+              "measured_ev": round(float(p.log_ratio / np.log(2)), 4) if p.measured else None,
+              "stderr_ev": round(float(p.stderr / np.log(2)), 5) if p.measured else None,
+              "pixels": p.kept, "coverage": round(p.coverage, 4)} for k, p in enumerate(est.pairs)]
+    return {"used": used, "reference": frames[est.reference].name, "tolerance_ev": round(tol_ev, 4),
+            "response": crf.describe() + ("" if crf_verified(crf) else " (unverified: mid-range codes, slope fitted)"),
+            "slope": round(est.slope, 4), "frames": rows, "pairs": pairs}
+
+
+def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, hint: str,
+                     tol_ev: float = LABEL_TOLERANCE_EV) -> list[int]:
+    """One warning per frame whose label is more than ``tol_ev`` from its estimate."""
+    bad = est.mislabelled(tol_ev)
+    ref = frames[est.reference]
+    for k in bad:
+        f = frames[k]
+        t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
+        log.warning("%s: labelled %s, but the frames say %s (%+.2f EV; measured against %s, labelled %s)%s",
+                    f.path, _fmt(f.exposure_time), _fmt(t_est), -est.difference_ev[k], ref.name,
+                    _fmt(ref.exposure_time), hint)
+    return bad
+
+
+def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
+                      samples: Samples | None = None):
+    """merge: check the frames' order, measure their exposures and warn about labels more
+    than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
+    instead (frames re-sorted by them, their ``exposure_time`` set to them).
+
+    Returns (frames, exposures, the report for ``--json``).  A single frame has nothing to
+    compare: returned as it is, with no report."""
+    if len(frames) < 2:
+        if use_estimates:
+            log.warning("--times estimate: a single frame has nothing to compare; its label is used")
+        return frames, exposures, None
+    s = samples if samples is not None else sample_frames(frames, load)
+    check_order(frames, s)
+    est, used = estimate_with_response(frames, exposures, s, crf, rounds=2 if use_estimates else 1)
+    unmeasured = [k for k, p in enumerate(est.pairs) if not p.measured]
+    for k in unmeasured:
+        log.info("%s / %s: too few pixels both expose well (%d) to measure their ratio; their labels are kept",
+                 frames[k].name, frames[k + 1].name, est.pairs[k].kept)
+    hint = "" if use_estimates else "; merge with --times estimate to use the estimates"
+    warn_mislabelled(frames, exposures, est, hint)
+    rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used)
+    if not use_estimates:
+        return frames, exposures, rep
+    est_h = np.exp(est.log_h)
+    for f, h, h_label in zip(frames, est_h, exposures):
+        f.exposure_time = float(f.exposure_time * h / h_label)
+    order = np.argsort(est_h, kind="stable")
+    frames = [frames[i] for i in order]
+    log.info("--times estimate: exposures %s (reference %s)",
+             ", ".join(f"{f.name} {_fmt(f.exposure_time)}" for f in frames), rep["reference"])
+    return frames, est_h[order], rep
+
+
+def _fmt(t: float) -> str:
+    return f"1/{1 / t:.4g} s" if t < 1 else f"{t:.4g} s"

@@ -1,0 +1,189 @@
+"""Exposures measured on the frames (issue 18): the estimator against known exposures,
+the warning on a mislabelled bracket (and none on a correct one), the order check on a
+film-bracket-like case, ``--times estimate`` and ``info --times``."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.exposure import (
+    PairRatio, border_mask, comparagram, constant_border, estimate_exposures, order_test, response_from_comparagrams,
+    robust_log_ratio,
+)
+from tests.conftest import SHARED, frames_of, needs_shared
+
+
+def _scene(rng, shape=(96, 128)):
+    """Textured positive radiance over about 6 stops."""
+    y, x = np.mgrid[: shape[0], : shape[1]]
+    return np.exp2(6 * x / shape[1] - 6) * (1 + 0.3 * rng.random(shape))
+
+
+def test_robust_ratio_recovers_known_exposures_with_outliers():
+    rng = np.random.default_rng(1)
+    e = _scene(rng).ravel()
+    for ratio in (1.0, 2.0, 4.0, 8.0):
+        a = e * 0.1 * (1 + 0.01 * rng.standard_normal(e.size))
+        b = e * 0.1 * ratio * (1 + 0.01 * rng.standard_normal(e.size))
+        b[:500] *= 3.0  # motion: 500 pixels off the comparametric line
+        ok = (a > 1e-3) & (b < 0.9)
+        r = robust_log_ratio(a[ok], b[ok])
+        assert r.measured
+        assert abs(r.log_ratio - np.log(ratio)) < 0.005, ratio
+
+
+def test_estimate_names_the_mislabelled_frame_and_keeps_the_reference_label():
+    true = np.log(np.array([1 / 120, 1 / 60, 1 / 30, 1 / 15, 1 / 8]))
+    label = true.copy()
+    label[2] = np.log(1 / 15)  # says 1/15 s for 1/30 s: 1 EV too long
+    pairs = [PairRatio(float(d), 1e-3, 0.01, 10_000, 10_000) for d in np.diff(true)]
+    est = estimate_exposures(label, pairs)
+    assert est.mislabelled() == [2]
+    assert est.difference_ev[2] == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(est.log_h, true, atol=1e-9)
+    correct = estimate_exposures(true, pairs)
+    assert correct.mislabelled() == []
+
+
+def test_a_run_of_wrong_labels_is_named_not_the_majority():
+    true = np.log(np.array([1, 2, 4, 8, 8, 8, 8], float))  # the camera stopped changing after 4th
+    label = np.log(np.array([1, 2, 4, 8, 16, 32, 64], float))
+    pairs = [PairRatio(float(d), 1e-3, 0.01, 10_000, 10_000) for d in np.diff(true)]
+    est = estimate_exposures(label, pairs)
+    assert est.mislabelled() == [4, 5, 6]
+
+
+def test_unmeasured_pairs_keep_their_labels():
+    label = np.log(np.array([1, 2, 4], float))
+    pairs = [PairRatio(float("nan"), np.inf, np.nan, 10, 0), PairRatio(np.log(2), 1e-3, 0.01, 10_000, 10_000)]
+    est = estimate_exposures(label, pairs)
+    assert est.mislabelled() == []
+
+
+def test_response_from_comparagrams_recovers_a_gamma_curve():
+    rng = np.random.default_rng(2)
+    e = _scene(rng, (128, 128)).ravel()
+    t = np.array([1, 2, 4, 8], float) / 8
+    codes = [np.clip(np.rint(255 * np.clip(e * tj * 2, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.int64) for tj in t]
+    grams = [comparagram(codes[k - 1], codes[k], 256) for k in range(1, 4)]
+    g = response_from_comparagrams(grams, np.diff(np.log(t)))
+    z = np.arange(60, 240)
+    want = 2.2 * np.log(z / 255.0)
+    got = g[z] - g[255 - 15] + want[-1 - 15 + 15] if False else g[z] - g[200] + 2.2 * np.log(200 / 255.0)
+    assert np.max(np.abs(got - want)) < 0.08
+
+
+def test_constant_borders_are_found_and_noise_floor_frames_pass_the_order_check():
+    """The 16-frame film bracket's case: blue scan borders constant in every frame, the
+    darkest frames at the noise floor (their mean code order is noise)."""
+    rng = np.random.default_rng(3)
+    e = _scene(rng, (80, 100))
+    frames = []
+    for t in (1 / 64, 1 / 32, 1 / 4, 1):
+        z = np.clip(18 + 230 * np.clip(e * t, 0, 1) ** (1 / 2.2) + rng.normal(0, 1.5, e.shape), 0, 255)
+        img = np.repeat(np.rint(z)[..., None], 3, axis=-1).astype(np.uint8)
+        img[:6], img[-6:], img[:, :9], img[:, -9:] = (40, 60, 200), (40, 60, 200), (40, 60, 200), (40, 60, 200)
+        frames.append(img)
+    assert constant_border(frames, 8) == (6, 6, 9, 9)
+    inside = border_mask(frames[0].shape, constant_border(frames, 8))[..., None]
+    for a, b in zip(frames, frames[1:]):
+        usable = (a < 255) & (b < 255) & inside
+        assert not order_test(a, b, usable, 1.5).disordered
+    # genuinely disordered frames (labels swapped) still fail
+    usable = (frames[3] < 255) & (frames[2] < 255) & inside
+    assert order_test(frames[3], frames[2], usable, 1.5).disordered
+
+
+# ---------------------------------------------------------------- end to end
+def _times_arg(meta, k=None, factor=1.0):
+    t = list(meta["exposure_times"])
+    if k is not None:
+        t[k] *= factor
+    return ",".join(repr(x) for x in t)
+
+
+def test_merge_warns_about_a_mislabelled_dng_frame(run, dng_bracket, tmp_path):
+    folder, meta = dng_bracket
+    files = frames_of(folder, meta)
+    ok = run("merge", *files, "-o", tmp_path / "ok.exr", "--json")
+    assert "labelled" not in ok.stderr
+    check = json.loads(ok.stdout)["exposure_check"]
+    assert not any(f["mislabelled"] for f in check["frames"])
+    bad = run("merge", *files, "-o", tmp_path / "bad.exr", "--times", _times_arg(meta, 2, 2.0), "--json")
+    name = files[2].name
+    lines = [ln for ln in bad.stderr.splitlines() if "labelled" in ln]
+    assert len(lines) == 1 and name in lines[0] and "--times estimate" in lines[0], bad.stderr
+    check = json.loads(bad.stdout)["exposure_check"]
+    row = next(f for f in check["frames"] if f["name"] == name)
+    assert row["mislabelled"] and row["difference_ev"] == pytest.approx(1.0, abs=0.1)
+    assert row["estimate_seconds"] == pytest.approx(meta["exposure_times"][2], rel=0.05)
+
+
+def test_times_estimate_merges_as_with_the_true_labels(run, dng_bracket, tmp_path):
+    from hdrmerge_cli.io.images import read_exr
+
+    folder, meta = dng_bracket
+    files = frames_of(folder, meta)
+    (tmp_path / "times.txt").write_text("".join(
+        f"{f.name} {t!r}\n" for f, t in zip(files, [x * (2.0 if k == 2 else 1.0)
+                                                    for k, x in enumerate(meta["exposure_times"])])))
+    run("merge", *files, "-o", tmp_path / "true.exr", "--reference", "shortest", "-q")
+    out = run("merge", *files, "-o", tmp_path / "est.exr", "--reference", "shortest", "--times", "estimate",
+              "--times-file", tmp_path / "times.txt", "--json")
+    assert json.loads(out.stdout)["exposure_check"]["used"] == "estimates"
+    truth = read_exr(folder / "truth.exr")[0][..., :3].astype(np.float64)
+
+    def log_psnr(path):  # log E against the truth after one global scale, over measured pixels
+        est = read_exr(path)[0][..., :3].astype(np.float64)
+        ok = (truth > 1e-4) & (est > 0) & np.isfinite(est)
+        d = np.log(est[ok]) - np.log(truth[ok])
+        d -= np.median(d)
+        return 20 * np.log10(np.ptp(np.log(truth[ok])) / np.sqrt(np.mean(d * d)))
+
+    # the issue's target: within 0.3 dB of the merge with the true labels (a 1 EV label error)
+    assert abs(log_psnr(tmp_path / "est.exr") - log_psnr(tmp_path / "true.exr")) < 0.3
+
+
+def test_disordered_frames_fail_with_one_line(run, dng_bracket, tmp_path):
+    folder, meta = dng_bracket
+    files = frames_of(folder, meta)
+    t = list(meta["exposure_times"])
+    t[1], t[3] = t[3], t[1]  # labels of two frames swapped
+    proc = run("merge", *files, "-o", tmp_path / "x.exr", "--times", ",".join(map(repr, t)), check=False)
+    assert proc.returncode == 1
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 1 and "darker than" in err[0] and "Traceback" not in proc.stderr
+
+
+def test_info_takes_times_and_reports_estimates(run, dng_bracket):
+    folder, meta = dng_bracket
+    files = frames_of(folder, meta)
+    out = run("info", *files, "--json", "--times", _times_arg(meta, 2, 2.0))
+    summary = json.loads(out.stdout)
+    est = summary["exposure_estimates"]
+    assert [f["mislabelled"] for f in est["frames"]] == [False, False, True, False, False]
+    assert files[2].name in out.stderr
+    assert all("estimated_exposure_time" in r for r in summary["frames"])
+    text = run("info", *files, "--times", _times_arg(meta)).stdout
+    assert "estimate" in text.splitlines()[0]
+    bad = run("info", *files, "--times", "1/100,1/10", check=False)
+    assert bad.returncode == 1 and len(bad.stderr.strip().splitlines()) == 1
+
+
+@needs_shared
+@pytest.mark.parametrize("name", ["office_jpg", "eos5d3_foyer_jpg", "em1ii_kitchen_jpg", "eos70d_kitchen_jpg",
+                                  "ex2f_trees_jpg", "stack_jpg", "stack_ghost_jpg", "eos350d_lamps_night_jpg"])
+def test_no_false_alarm_on_real_brackets(name):
+    from hdrmerge_cli.pipeline import exposures as ex
+    from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
+
+    folder = SHARED / "brackets" / name
+    frames = read_bracket(sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")))
+    h = exposure_values(frames)
+    s = ex.sample_frames(frames, max_samples=1 << 17)
+    ex.check_order(frames, s)
+    est, _ = ex.estimate_with_response(frames, h, s, CRF("srgb", assumed=True))  # no response given
+    assert est.mislabelled() == [], est.difference_ev

@@ -1,0 +1,266 @@
+"""Speed paths (issue 19): lazy imports, the fused colour kernel against the reference
+colour path, EXR compression, the per-camera noise cache."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+# Merges in this session must neither read nor fill the user's noise cache (a measurement
+# of an earlier test's bracket would change a later test's result).  Set at collection, so
+# it holds for every test module; belongs in conftest.py.
+
+from conftest import frames_of  # noqa: E402
+from hdrmerge_cli.cli import COMMANDS, SUMMARIES, cli  # noqa: E402
+from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic  # noqa: E402
+from hdrmerge_cli.core.color_fused import raw_to_rgb_rows  # noqa: E402
+from hdrmerge_cli.io import noisecache  # noqa: E402
+from hdrmerge_cli.io.images import EXR_COMPRESSIONS, exr_compression, read_exr  # noqa: E402
+
+#: libraries a command must not import unless its path uses them
+HEAVY = ("cvxpy", "matplotlib", "scipy.stats", "colour", "colour_demosaicing", "colour_hdri", "cv2")
+
+_PROBE = """
+import json, os, sys
+from hdrmerge_cli.cli import main
+sys.argv = ["hdrmerge-cli"] + json.loads(os.environ["PROBE_ARGS"])
+try:
+    main()
+except SystemExit as exc:
+    code = exc.code
+else:
+    code = 0
+with open(os.environ["PROBE_OUT"], "w") as fh:
+    json.dump({"code": code, "modules": sorted(sys.modules)}, fh)
+"""
+
+
+@pytest.fixture
+def dng_frames(dng_bracket) -> list[str]:
+    return [str(p) for p in frames_of(*dng_bracket)]
+
+
+def _modules_after(args: list[str], tmp_path: Path, env: dict | None = None) -> tuple[int, set[str]]:
+    out = tmp_path / "probe.json"
+    run_env = os.environ | {"PROBE_ARGS": json.dumps(args), "PROBE_OUT": str(out)} | (env or {})
+    subprocess.run([sys.executable, "-c", _PROBE], env=run_env, check=False, capture_output=True, timeout=600)
+    data = json.loads(out.read_text())
+    return data["code"], set(data["modules"])
+
+
+def test_import_cli_is_light():
+    code = ("import sys, json; import hdrmerge_cli.cli; "
+            "print(json.dumps(sorted(sys.modules)))")
+    mods = set(json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                         check=True).stdout))
+    assert not mods & set(HEAVY + ("numpy", "numba", "scipy", "OpenImageIO", "rawpy")), mods & set(HEAVY)
+
+
+def test_group_help_imports_no_command(tmp_path):
+    code, mods = _modules_after(["--help"], tmp_path)
+    assert code == 0
+    assert not mods & set(HEAVY + ("numpy", "numba", "scipy")), sorted(mods & set(HEAVY + ("numpy", "numba")))
+    assert not any(m.startswith("hdrmerge_cli.pipeline") for m in mods)
+
+
+@pytest.mark.parametrize("command", ["merge", "info", "simulate"])
+def test_command_help_skips_heavy_libraries(tmp_path, command):
+    code, mods = _modules_after([command, "--help"], tmp_path)
+    assert code == 0
+    assert not mods & set(HEAVY), sorted(mods & set(HEAVY))
+
+
+def test_raw_merge_imports_no_colour_science(tmp_path, dng_frames):
+    """A RAW merge with given noise parameters: no colour-science, matplotlib, cvxpy,
+    scipy.stats or OpenCV (the demosaic is the fused kernel; the noise is not measured)."""
+    frames = dng_frames
+    code, mods = _modules_after(["merge", *frames, "-o", str(tmp_path / "m.exr"), "-q",
+                                 "--noise", "sigma_o2=9,alpha=0.25,beta=0"], tmp_path)
+    assert code == 0
+    assert not mods & set(HEAVY), sorted(mods & set(HEAVY))
+
+
+def test_summaries_match_the_commands():
+    import click
+
+    ctx = click.Context(cli)
+    for name in COMMANDS:
+        cmd = cli.get_command(ctx, name)
+        stub = click.Command(name, help=SUMMARIES[name])
+        for limit in (45, 60, 1000):
+            assert stub.get_short_help_str(limit) == cmd.get_short_help_str(limit), name
+
+
+def test_group_help_lists_every_command():
+    result = CliRunner().invoke(cli, ["--help"])
+    assert result.exit_code == 0
+    for name in COMMANDS:
+        assert f"  {name}  " in result.output
+
+
+# ------------------------------------------------------------------ fused colour kernel
+MATRIX = np.array([[1.6, -0.4, -0.2], [-0.2, 1.4, -0.2], [0.05, -0.5, 1.45]], np.float32)
+WB = np.array([2.1, 1.0, 1.6], np.float32)
+
+
+def _reference(mosaic, pattern, wb=WB, matrix=MATRIX):
+    balanced = mosaic * wb[bayer_channels(pattern, mosaic.shape)]
+    return camera_to_rec709(demosaic(balanced, pattern), matrix)
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
+@pytest.mark.parametrize("shape", [(40, 36), (33, 17), (5, 6), (3, 4)])
+def test_fused_colour_matches_reference(pattern, shape):
+    rng = np.random.default_rng(sum(shape))
+    mosaic = (rng.random(shape) * rng.choice([1.0, 100.0, 1e4], size=shape)).astype(np.float32)
+    ref = _reference(mosaic, pattern)
+    got = np.concatenate([raw_to_rgb_rows(mosaic, pattern, WB, MATRIX, y0, min(shape[0], y0 + 8))
+                          for y0 in range(0, shape[0], 8)])
+    assert got.dtype == np.float32 and got.shape == ref.shape
+    scale = np.abs(ref) + 1e-4 * np.abs(ref).max()
+    assert np.max(np.abs(got - ref) / scale) < 2e-5
+
+
+def test_merge_output_equals_reference_colour_path(tmp_path, dng_frames, monkeypatch):
+    import hdrmerge_cli.pipeline.merge as pm
+
+    frames = dng_frames
+    args = ["merge", *frames, "--noise", "sigma_o2=9,alpha=0.25,beta=0", "-q"]
+    assert CliRunner().invoke(cli, args + ["-o", str(tmp_path / "fused.exr")]).exit_code == 0
+    monkeypatch.setattr(pm, "_raw_to_rec709_rows", pm._raw_to_rec709_rows_reference)
+    assert CliRunner().invoke(cli, args + ["-o", str(tmp_path / "ref.exr")]).exit_code == 0
+    fused, _ = read_exr(tmp_path / "fused.exr")
+    ref, _ = read_exr(tmp_path / "ref.exr")
+    assert fused.shape == ref.shape
+    np.testing.assert_allclose(fused, ref, rtol=2e-5, atol=1e-6 * float(np.abs(ref).max()))
+
+
+# ------------------------------------------------------------------ EXR compression
+def test_compression_auto_is_lossless_and_by_type():
+    assert exr_compression("auto", half=False) == "none"
+    assert exr_compression("auto", half=True) == "zips"
+    assert exr_compression("piz", half=False) == "piz"
+    with pytest.raises(Exception):
+        exr_compression("lzma", half=False)
+
+
+@pytest.mark.parametrize("compression", ["auto", "zip", "piz", "zips"])
+def test_merge_compression_option(tmp_path, dng_frames, compression):
+    import OpenImageIO as oiio
+
+    frames = dng_frames
+    out = tmp_path / f"{compression}.exr"
+    result = CliRunner().invoke(cli, ["merge", *frames, "-o", str(out), "-q", "--compression", compression,
+                                      "--noise", "sigma_o2=9,alpha=0.25,beta=0"])
+    assert result.exit_code == 0, result.output
+    inp = oiio.ImageInput.open(str(out))
+    try:
+        assert inp.spec().get_string_attribute("compression") == exr_compression(compression, False)
+    finally:
+        inp.close()
+    if compression != "auto":  # lossless: the same pixels as the default
+        base = tmp_path / "base.exr"
+        if not base.exists():
+            CliRunner().invoke(cli, ["merge", *frames, "-o", str(base), "-q",
+                                     "--noise", "sigma_o2=9,alpha=0.25,beta=0"])
+        np.testing.assert_array_equal(read_exr(out)[0], read_exr(base)[0])
+
+
+def test_compression_choices_are_the_registry():
+    result = CliRunner().invoke(cli, ["merge", "--help"])
+    for name in EXR_COMPRESSIONS:
+        assert name in result.output
+
+
+# ------------------------------------------------------------------ noise cache
+@pytest.fixture
+def cam_bracket(tmp_path, dng_frames):
+    """The simulated bracket rewritten with a real-looking make/model (simulated sensors
+    are never cached)."""
+    import rawpy
+
+    from hdrmerge_cli.io.frames import read_frame
+    from hdrmerge_cli.io.raw import write_dng
+
+    out = []
+    for p in dng_frames:
+        f = read_frame(str(p))
+        with rawpy.imread(str(p)) as raw:
+            mosaic = raw.raw_image_visible.copy()
+        dst = tmp_path / "cam" / Path(p).name
+        dst.parent.mkdir(exist_ok=True)
+        write_dng(str(dst), mosaic, pattern=f.cfa_pattern, black=int(f.black[0]), white=int(f.white[0]),
+                  exposure_time=f.exposure_time, iso=int(f.iso), make="TestCam", model="Model X",
+                  xyz_to_camera=np.eye(3))
+        out.append(str(dst))
+    return out
+
+
+def _merge_json(frames, out, *extra):
+    result = CliRunner().invoke(cli, ["merge", *frames, "-o", str(out), "--json", "-q", *extra])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.output)
+
+
+def test_noise_cache_fill_hit_and_no_cache(tmp_path, cam_bracket, monkeypatch):
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
+    first = _merge_json(cam_bracket, tmp_path / "a.exr")
+    assert first["noise_source"].startswith("measured on the bracket")
+    stored = json.loads((tmp_path / "cache" / "noise.json").read_text())
+    assert len(stored["entries"]) == 1 and "TestCam | Model X | iso=" in next(iter(stored["entries"]))
+    second = _merge_json(cam_bracket, tmp_path / "b.exr")
+    assert "cache" in second["noise_source"]
+    assert second["noise"] == first["noise"]
+    assert "noise_estimate" in second["timing_seconds"]
+    np.testing.assert_array_equal(read_exr(tmp_path / "a.exr")[0], read_exr(tmp_path / "b.exr")[0])
+    profile = json.loads((tmp_path / "b.profile.json").read_text())
+    assert profile["noise"]["estimated_from_bracket"]["cached"]["key"].startswith("TestCam")
+    # --no-cache: measured again, nothing read or written
+    (tmp_path / "cache" / "noise.json").unlink()
+    third = _merge_json(cam_bracket, tmp_path / "c.exr", "--no-cache")
+    assert third["noise_source"].startswith("measured on the bracket")
+    assert not (tmp_path / "cache" / "noise.json").exists()
+
+
+def test_noise_cache_ignores_damaged_file_and_simulated_frames(tmp_path, cam_bracket, dng_frames, monkeypatch):
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "noise.json").write_text("{not json")
+    assert _merge_json(cam_bracket, tmp_path / "a.exr")["noise_source"].startswith("measured on the bracket")
+    assert json.loads((tmp_path / "cache" / "noise.json").read_text())["schema"] == noisecache.SCHEMA
+    from hdrmerge_cli.io.frames import read_frame
+
+    assert noisecache.cache_key(read_frame(dng_frames[0])) is None  # simulated: never cached
+
+
+def test_cache_location(monkeypatch, tmp_path):
+    monkeypatch.delenv("HDRMERGE_CLI_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert noisecache.cache_file() == tmp_path / "hdrmerge-cli" / "noise.json"
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "x"))
+    assert noisecache.cache_file() == tmp_path / "x" / "noise.json"
+
+
+# ------------------------------------------------------------------ sRGB without colour-science
+def test_srgb_transfer_functions_equal_colour_science():
+    from hdrmerge_cli.core.color import quiet_import, srgb_eotf, srgb_eotf_inverse
+
+    models = quiet_import("colour.models")
+    # colour's own default precision (the reference demosaic sets float32 process-wide)
+    quiet_import("colour").utilities.set_default_float_dtype(np.float64)
+    v = np.concatenate([np.linspace(-0.2, 1.3, 20001), [0.04045, 0.0031308 * 12.92, 0.0031308, 0.0, 1.0]])
+    np.testing.assert_array_equal(srgb_eotf(v), models.eotf_sRGB(v))
+    np.testing.assert_array_equal(srgb_eotf_inverse(v), models.eotf_inverse_sRGB(v))
+
+
+def test_image_merge_imports_no_colour_science(tmp_path, jpeg_bracket):
+    frames = [str(p) for p in frames_of(*jpeg_bracket)]
+    code, mods = _modules_after(["merge", *frames, "-o", str(tmp_path / "j.exr"), "-q", "--crf", "srgb"], tmp_path)
+    assert code == 0
+    assert not mods & set(HEAVY), sorted(mods & set(HEAVY))
