@@ -356,3 +356,27 @@ def test_ml_irls_treats_clipped_readings_as_censored():
         assert new <= old * 1.005
         if abs(level * times[1] - full) < 2 * np.sqrt(p.sigma_o2 + 4 * full):  # frame 2 partly clipped
             assert new < 0.93 * old  # measured 0.0357 vs 0.0388 (E = 1000), 0.0490 vs 0.0628 (1100)
+
+
+@pytest.mark.parametrize("linear", [True, False])
+@pytest.mark.parametrize("shape, pattern", [((6, 8), np.array([[0, 1], [2, 3]])), ((5, 7, 3), np.array([[0, 1, 2]]))])
+def test_fused_irls_weights_match_the_reference(shape, pattern, linear):
+    """The compiled per-frame weights of IRLS equal :func:`irls_weights` (lookup + numpy) with
+    each sample's own noise parameters."""
+    rng = np.random.default_rng(4)
+    rows = pattern.max() + 1
+    certainty = rng.random((rows, 256)).astype(np.float32)
+    certainty[:, [0, 255]] = 0.0
+    codes = rng.integers(0, 300, shape).astype(np.uint16)
+    log_e = rng.normal(-3, 1, shape).astype(np.float32)
+    params = [NoiseParams(float(rng.uniform(1, 20)), float(rng.uniform(0.5, 4)), float(rng.uniform(0, 1e-3)))
+              for _ in range(rows)]
+    per_row = reconstruct.noise_rows(params)
+    idx = reconstruct.channel_index(shape, pattern)
+    expected = reconstruct.irls_weights(reconstruct.lookup(certainty.ravel(), 256, codes, pattern), log_e, 0.01, 255.0,
+                                        [m[idx] for m in per_row], linear)
+    flat = reconstruct._rows_cols(shape)
+    out = np.empty(flat, np.float32)
+    reconstruct._irls_weights_rows(codes.reshape(flat), pattern.astype(np.intp), certainty, log_e.reshape(flat),
+                                   np.float32(0.01 * 255.0), *per_row, linear, out)
+    np.testing.assert_allclose(out.reshape(shape), expected, rtol=2e-6)

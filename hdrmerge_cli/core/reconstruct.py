@@ -296,20 +296,42 @@ def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_fu
     return np.where(certainty > 0, np.maximum(w, np.float32(WEIGHT_FLOOR)), np.float32(0.0))
 
 
-def noise_maps(shape: tuple[int, ...], params: list[NoiseParams], pattern: np.ndarray | None):
-    """(sigma_o2, sqrt_alpha, beta / alpha) of (21) per sample, float32, broadcastable to
-    ``shape``; ``params`` one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
-    cols = [np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
-            for i in range(3)]
-    if len(params) == 1 or pattern is None:
-        return tuple(c[0] for c in cols)
-    idx = channel_index(shape, pattern)
-    return tuple(c[idx] for c in cols)
+def noise_rows(params: list[NoiseParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sigma_o2, sqrt_alpha, beta / alpha) of (21) per table row, float32 ``(R,)`` each;
+    ``params`` one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
+    return tuple(np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
+                 for i in range(3))
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, linear, out):  # pragma: no cover
+    """:func:`irls_weights` fused with the table lookup, per 2-D sample: the row of a
+    sample from ``pattern`` tiled, its noise parameters from the per-row arrays."""
+    rows, cols = codes.shape
+    ph, pw = pattern.shape
+    n = certainty.shape[1]
+    floor = np.float32(WEIGHT_FLOOR)
+    for i in numba.prange(rows):
+        for j in range(cols):
+            r = pattern[i % ph, j % pw]
+            c = certainty[r, min(codes[i, j], n - 1)]
+            if c > 0:
+                mu = np.float32(np.exp(log_e[i, j]) * k)
+                var = max(s_o2[r] + sqrt_a[r] * mu + b_a[r] * mu * mu, np.float32(1e-12))
+                num = np.float32(k * k) if linear else mu * mu
+                out[i, j] = max(c * (num / var), floor)
+            else:
+                out[i, j] = 0.0
+
+
+def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
+    """The table row of every True sample of a 2-D ``mask`` (row-major order)."""
+    i, j = np.nonzero(mask)
+    return pattern[i % pattern.shape[0], j % pattern.shape[1]]
 
 
 #: IRLS stops when no measured sample's log-irradiance moves more than this
 IRLS_TOLERANCE = 1e-3
-
 
 #: clipped readings whose estimate is this many noise sds above full scale are not censored terms
 CENSORED_SDS = 8.0
@@ -346,37 +368,43 @@ def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps
     return weight.astype(np.float32), value.astype(np.float32)
 
 
-def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, maps,
+def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE):
     """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
-    at the previous estimate, until no measured sample moves more than ``tol`` (in log E).
+    at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
+    until no measured sample moves more than ``tol`` (in log E).
 
     codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
     y_full : per frame, the full-scale code value ``white - black``
-    maps : :func:`noise_maps`
+    rows : :func:`noise_rows`
     Returns ``(log_e, flags, den, passes, largest_change)``.
     """
     flags = den = None
     change = np.inf
-    max_maps = [float(np.max(m)) for m in maps]
+    pat = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
+    shape2 = _rows_cols(log_e.shape)
+    weight = np.empty(shape2, np.float32)  # one buffer for every frame's weights
+    max_rows = [float(np.max(m)) for m in rows]
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern)
         cen_num = cen_den = None  # ML: the clipped readings as censored observations (censored_terms)
+        log_e2 = log_e.reshape(shape2)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
-            w = irls_weights(lookup(tab.certainty, tab.n_codes, codes, pattern), log_e, h, y_full[k], maps, linear)
-            acc.add(codes, tab, last=k == len(tables) - 1, weight=w)
+            _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
+                               np.float32(h * y_full[k]), *rows, linear, weight)
+            acc.add(codes, tab, last=k == len(tables) - 1, weight=weight.reshape(log_e.shape))
             if linear and tab.saturated is not None:
                 sat = lookup(tab.saturated, tab.n_codes, codes, pattern)
                 # a clipped reading whose current estimate lies more than CENSORED_SDS noise
                 # sds above full scale carries no information (weight ~ phi(8)): skipped
-                sd_full = np.sqrt(max_maps[0] + max_maps[1] * y_full[k] + max_maps[2] * y_full[k] ** 2)
+                sd_full = np.sqrt(max_rows[0] + max_rows[1] * y_full[k] + max_rows[2] * y_full[k] ** 2)
                 sat &= log_e < np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * sd_full) / (h * y_full[k])))
                 if sat.any():
                     if cen_num is None:
                         cen_num, cen_den = np.zeros(log_e.shape, np.float32), np.zeros(log_e.shape, np.float32)
-                    cw, cv = censored_terms(log_e[sat], h, y_full[k], [np.broadcast_to(m, log_e.shape)[sat]
-                                                                       for m in maps])
+                    r = _rows_of(sat.reshape(shape2), pat)
+                    cw, cv = censored_terms(log_e[sat], h, y_full[k], [m[r] for m in rows])
                     cen_num[sat] += cw * cv
                     cen_den[sat] += cw
         if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
@@ -414,9 +442,8 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     if not irls_iterations:
         return merge_in_memory(codes, tables, pattern, estimator == "ml", scale)
     log_e, flags, _ = merge_in_memory(codes, tables, pattern, estimator == "ml")
-    maps = noise_maps(log_e.shape, noise, pattern)
     y_full = [float(white[0] - black[0])] * len(codes)
-    log_e, flags, den, _, _ = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, maps,
+    log_e, flags, den, _, _ = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, noise_rows(noise),
                                    estimator == "ml", irls_iterations)
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)

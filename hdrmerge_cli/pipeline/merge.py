@@ -19,7 +19,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.preview import BlockMean, block_factor, tonemap_srgb
 from hdrmerge_cli.core.reconstruct import (
-    FLAG_DARK, FLAG_SATURATED, LogMerge, channel_index, exposure_tables, irls, noise_maps, table_size,
+    FLAG_DARK, FLAG_SATURATED, LogMerge, channel_index, exposure_tables, irls, noise_rows, table_size,
 )
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
@@ -335,7 +335,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     iterations = 0
     if n_irls:
         t0 = time.perf_counter()
-        maps = noise_maps(result.shape, per_channel(noise, table_channels), pattern)
+        maps = noise_rows(per_channel(noise, table_channels))
         y_full = [float(f.white[0] - f.black[0]) for f in frames]
         log_e, flags, den, iterations, change = irls(lambda k: load(frames[k]), tables, pattern, result,
                                                      exposures, y_full, maps, estimator == "ml", n_irls)
