@@ -93,12 +93,32 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     return lin / exposure, var / exposure**2, valid
 
 
-def block_sum(a: np.ndarray, b: int) -> np.ndarray:
-    """Sum over ``b x b`` blocks of the first two axes of ``a`` (partial blocks dropped)."""
+def block_mean(a: np.ndarray, b: int) -> np.ndarray:
+    """Mean over ``b x b`` blocks of a 2-D array (partial blocks dropped), float32: OpenCV's
+    area resize, which for an integer factor is exactly the block mean."""
+    a = np.asarray(a, np.float32)
     if b == 1:
         return a
     h, w = a.shape[0] // b, a.shape[1] // b
-    return a[:h * b, :w * b].reshape((h, b, w, b) + a.shape[2:]).sum(axis=(1, 3))
+    import cv2
+
+    return cv2.resize(np.ascontiguousarray(a[:h * b, :w * b]), (w, h), interpolation=cv2.INTER_AREA)
+
+
+def block_all(a: np.ndarray, b: int) -> np.ndarray:
+    """Whether every sample of each ``b x b`` block of a 2-D bool array is True."""
+    return a if b == 1 else block_mean(a.view(np.uint8), b) > np.float32(1 - 1e-4)
+
+
+def table_lookup(table: np.ndarray, codes: np.ndarray) -> np.ndarray:
+    """``table[codes]`` (codes beyond the table read its last entry), float32; 8-bit codes
+    through OpenCV's lookup."""
+    table = np.asarray(table, np.float32)
+    if codes.dtype == np.uint8 and table.size == 256:
+        import cv2
+
+        return cv2.LUT(np.ascontiguousarray(codes), table)
+    return np.take(table, codes, mode="clip")
 
 
 def block_size(h: int, w: int, target: int = CELL_TARGET) -> int:

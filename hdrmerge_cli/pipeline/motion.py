@@ -173,24 +173,22 @@ def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, table
     minus the x of the highest one) bounds, 0 elsewhere."""
     planes = _planes(frame, codes, pattern)
     x = s = ok = bound = None
-    n = np.float32(b * b)
     for c, (plane, row) in enumerate(planes):
         x_t, s_t, ok_t = tables[row]
-        xs = deghost.block_sum(np.take(x_t, plane, mode="clip"), b)
+        xs = deghost.block_mean(deghost.table_lookup(x_t, plane), b)
         if x is None:
             shape = xs.shape + (len(planes),)
             x, s = np.empty(shape, np.float32), np.empty(shape, np.float32)
             ok = np.empty(shape, bool)
             bound = np.zeros(shape, np.float32) if bounds else None
-        x[..., c] = xs / n
-        s[..., c] = deghost.block_sum(np.take(s_t, plane, mode="clip"), b) / (n * n)
-        okc = np.take(ok_t, plane, mode="clip")
-        ok[..., c] = deghost.block_sum(okc.astype(np.uint16), b) == b * b if b > 1 else okc
+        x[..., c] = xs
+        s[..., c] = deghost.block_mean(deghost.table_lookup(s_t, plane), b) / np.float32(b * b)
+        ok[..., c] = deghost.block_all(np.take(ok_t, plane, mode="clip"), b)
         if bounds:
             valid = np.flatnonzero(ok_t)
             lo_code, hi_code = valid[0], valid[-1]
-            dark = deghost.block_sum((plane < lo_code).astype(np.uint16), b) == b * b
-            clip = deghost.block_sum((plane > hi_code).astype(np.uint16), b) == b * b
+            dark = deghost.block_all(plane < lo_code, b)
+            clip = deghost.block_all(plane > hi_code, b)
             bound[..., c] = np.where(dark, x_t[lo_code], np.where(clip, -x_t[hi_code], 0.0))
     return x, s, ok, bound
 
