@@ -41,6 +41,8 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
         import cv2
 
         lin = cv2.LUT(codes, lut[None])
+        if lin.ndim == 3 and lin.shape[-1] <= 4:  # the channels' mean in one OpenCV pass
+            return cv2.transform(lin, np.full((1, lin.shape[-1]), 1.0 / lin.shape[-1], np.float32))
     else:
         lin = np.stack([lut[codes[..., c], c] for c in range(codes.shape[-1])], axis=-1)
     return lin.mean(axis=-1, dtype=np.float32)
