@@ -39,7 +39,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import ndimage, optimize, stats
+from scipy import ndimage, special
 
 from hdrmerge_cli.core.errors import HdrMergeError
 
@@ -361,7 +361,7 @@ def binned_variance(ws: WindowStats, ratio: float | None = None, bins: int = 64,
         return variance_points([], [], [], ratio)
     edges, order, starts = equal_count_bins(mean, bins)
     mean, var, tex = mean[order], var[order], tex[order]  # each bin is now a slice
-    median_factor = stats.chi2.median(ws.dof) / ws.dof
+    median_factor = special.chdtri(ws.dof, 0.5) / ws.dof  # the chi-square median (scipy.special: no scipy.stats import)
     mus, vs, ns = [], [], []
     for b in range(edges.size - 1):
         m, v = mean[starts[b]:starts[b + 1]], var[starts[b]:starts[b + 1]]
@@ -419,6 +419,8 @@ def _robust_wls(design, var, counts, free, fixed):
     ``free`` (the others held at ``fixed``), with a soft-L1 loss on the standardised
     residuals ``sqrt(count / 2) (var - pred) / pred`` (a bin's variance estimate has
     relative variance ~2 / count); re-weighted three times.  Returns (c, residuals)."""
+    from scipy import optimize  # here, not at the top: importing it costs ~0.5 s of every merge's start-up
+
     full = np.array(fixed, dtype=np.float64)
     rest = [k for k in range(3) if k not in free]
     offset = design[:, rest] @ full[rest]
@@ -456,7 +458,7 @@ def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
     if quad_possible and dof > 0:
         rss_aff, rss_quad = float(np.sum(r_aff[inl] ** 2)), float(np.sum(r_quad[inl] ** 2))
         f_stat = max(rss_aff - rss_quad, 0.0) / max(rss_quad / dof, 1e-300)
-        p = float(stats.f.sf(f_stat, 1, dof))
+        p = float(special.fdtrc(1, dof, f_stat))  # F(1, dof) survival function
     else:
         f_stat, p = 0.0, 1.0
     quadratic = p < p_threshold and c_quad[2] > 0

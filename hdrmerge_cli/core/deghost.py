@@ -246,12 +246,12 @@ def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float 
     ``x / bound`` over the samples it bounds: a static scene is then within it, a moving
     minority still beyond it (clipped bounds are kept: a moving object may fill a small
     clipped region)."""
-    from scipy.stats import norm
+    from scipy.special import ndtri
 
     out = np.zeros(x.shape, bool)
     where = np.flatnonzero(bound)  # only where the reference reads dark or clipped
     xb, bb = x.ravel()[where], bound.ravel()[where]
-    k = np.float32(norm.isf(p_fa)) * np.sqrt(s.ravel()[where])
+    k = np.float32(-ndtri(p_fa)) * np.sqrt(s.ravel()[where])  # the normal's upper p_fa quantile
     up, down = np.float32(BOUND_FACTOR), np.float32(BOUND_FACTOR)
     if adapt:
         dark = (bb > 0) & (xb > 0)
@@ -270,9 +270,9 @@ def cell_sums(a: np.ndarray, ph: int, pw: int) -> np.ndarray:
 def chi2_thresholds(k_max: int, p_fa: float = P_FALSE_ALARM) -> np.ndarray:
     """``t[k]``: the (1 - p_fa) quantile of chi-square with ``k`` degrees of freedom
     (``t[0] = inf``: no test)."""
-    from scipy.stats import chi2
+    from scipy.special import chdtri
 
-    return np.concatenate([[np.inf], chi2.isf(p_fa, np.arange(1, k_max + 1))])
+    return np.concatenate([[np.inf], chdtri(np.arange(1, k_max + 1), p_fa)])
 
 
 def squared_gradient(xa: np.ndarray, layout: str) -> np.ndarray:

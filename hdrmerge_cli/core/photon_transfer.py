@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, stats
+from scipy import ndimage, special
 
 from hdrmerge_cli.core.calibrate import IMMERKAER
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -125,7 +125,7 @@ def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]
     m2 = mean[sel] ** 2
     slope = float(np.sum(w * m2 * excess[sel]) / np.sum(w * m2 * m2))
     t = slope / float(np.sqrt(1.0 / np.sum(w * m2 * m2)))
-    p = float(stats.norm.sf(t))
+    p = float(special.ndtr(-t))  # the normal survival function
     quadratic = slope > 0 and p < p_threshold
     alpha = k * k
     rel = (temporal[used] - pred[used]) / pred[used]
