@@ -1,6 +1,5 @@
 """CRF estimation (Debevec-Malik baseline) against closed forms."""
 import numpy as np
-import pytest
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.crf_estimate import crf_debevec1997, inverse_from_log, sample_pixels

@@ -4,7 +4,6 @@ errors naming the user's path, SIGTERM cleaned up like SIGINT."""
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
