@@ -263,8 +263,16 @@ def lookup(table: np.ndarray, n_codes: int, codes: np.ndarray, pattern: np.ndarr
     field), shape of ``codes``: the sample's table row from ``pattern`` tiled over
     ``(H, W)`` or ``(H, W * C)`` (as :func:`channel_index`; None: row 0), entry ``codes``;
     codes above the table read its last (clipped) entry, as the fused kernels do.  One
-    strided gather per pattern cell: no per-sample index array."""
+    strided gather per pattern cell (no per-sample index array); 8-bit interleaved images
+    through OpenCV's lookup, as float32."""
     per_row = table.reshape(-1, n_codes)
+    channels = codes.shape[-1] if codes.ndim == 3 else 1
+    if (codes.dtype == np.uint8 and n_codes == 256 and per_row.dtype.kind == "f" and channels <= 4
+            and (pattern is None or (codes.ndim == 3 and pattern.shape == (1, channels)))):
+        import cv2  # 8-bit interleaved images: OpenCV's table lookup, every channel in one pass
+
+        rows = np.zeros(channels, np.intp) if pattern is None else pattern[0]
+        return cv2.LUT(np.ascontiguousarray(codes), np.ascontiguousarray(per_row[rows].T[None], np.float32))
     if pattern is None:
         return per_row[0][np.minimum(codes, n_codes - 1)]
     flat = codes.reshape(_rows_cols(codes.shape))

@@ -331,7 +331,7 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
             w *= keep if frames[k].kind == "raw" else np.repeat(keep, w.shape[1] // keep.shape[1], axis=1)
         if alignment is not None:
             w *= covered(frames[k], alignment["warps"][k], alignment["resampling"] == "cfa-periods")
-        return w.reshape(codes.shape).astype(np.float32)
+        return w.reshape(codes.shape).astype(np.float32, copy=False)
 
     return weights
 
