@@ -40,7 +40,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
     """Frames (sorted by exposure), their decimated codes (H, W, 3) uint8 and exposures."""
     from hdrmerge_cli.io.frames import load_codes
-    from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
+    from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
 
     paths = sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     frames = read_bracket(paths)
@@ -68,7 +68,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
         lookup = {id(f): c for f, c in zip(frames, codes)}
         used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])
         params = [NoiseParams(**used[ch]) for ch in frames[0].channel_names]
-    from hdrmerge_cli.pipeline.merge import default_variance, prior_rate_of
+    from hdrmerge_cli.pipeline.models import default_variance, prior_rate_of
 
     k = len(codes) // 2
     prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None

@@ -193,7 +193,7 @@ def test_a_retried_cluster_task_counts_its_own_earlier_outputs_as_done(tmp_path,
     import time
 
     from hdrmerge_cli.pipeline.batch import merge_one
-    from hdrmerge_cli.pipeline.merge import MergeOptions
+    from hdrmerge_cli.pipeline.options import MergeOptions
 
     folder, meta = dng_bracket
     paths = [str(p) for p in frames_of(folder, meta)[:3]]

@@ -224,7 +224,7 @@ def test_float_images_are_refused_in_one_line(run, tmp_path):
 
 def test_strip_demosaic_equals_whole_frame(monkeypatch):
     """The EXR is made in strips of rows with a halo: strips must join seamlessly."""
-    import hdrmerge_cli.pipeline.merge as pm
+    import hdrmerge_cli.pipeline.output as pm
     from hdrmerge_cli.io.frames import Frame
 
     frame = Frame(path="x", kind="raw", width=40, height=30, exposure_time=1.0, iso=None, aperture=None, make="",
@@ -243,7 +243,7 @@ def test_prefetched_keeps_order_bounds_the_lookahead_and_raises():
     raises in the consumer."""
     import threading
 
-    from hdrmerge_cli.pipeline.merge import prefetched
+    from hdrmerge_cli.pipeline.output import prefetched
 
     started, lock = [], threading.Lock()
 

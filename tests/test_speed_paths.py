@@ -128,7 +128,7 @@ def test_fused_colour_matches_reference(pattern, shape):
 
 
 def test_merge_output_equals_reference_colour_path(tmp_path, dng_frames, monkeypatch):
-    import hdrmerge_cli.pipeline.merge as pm
+    import hdrmerge_cli.pipeline.output as pm
 
     frames = dng_frames
     args = ["merge", *frames, "--noise", "sigma_o2=9,alpha=0.25,beta=0", "-q"]

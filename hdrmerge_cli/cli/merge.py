@@ -20,7 +20,8 @@ from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 
 from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
 from hdrmerge_cli.io.images import EXR_COMPRESSIONS
-from hdrmerge_cli.pipeline.merge import ESTIMATORS, EXTRA_CHANNELS, MergeOptions, merge
+from hdrmerge_cli.pipeline.merge import merge
+from hdrmerge_cli.pipeline.options import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
 log = logging.getLogger("hdrmerge_cli")

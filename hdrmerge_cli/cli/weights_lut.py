@@ -17,9 +17,9 @@ from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.io.plots import check_figure_path
 from hdrmerge_cli.pipeline.lut import plot_luts, weight_luts, write_luts
-from hdrmerge_cli.pipeline.merge import (
-    MergeOptions, choose_crf, exposure_values, prior_rate as prior_rate_of, read_bracket, resolve_noise,
-)
+from hdrmerge_cli.pipeline.bracket import choose_crf, exposure_values, read_bracket
+from hdrmerge_cli.pipeline.models import prior_rate as prior_rate_of, resolve_noise
+from hdrmerge_cli.pipeline.options import MergeOptions
 
 
 @click.command("weights-lut")

@@ -21,7 +21,9 @@ import numpy as np
 from hdrmerge_cli.core.errors import HdrMergeError, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
-from hdrmerge_cli.pipeline.merge import MergeOptions, default_profile_path, merge
+from hdrmerge_cli.pipeline.merge import merge
+from hdrmerge_cli.pipeline.options import MergeOptions
+from hdrmerge_cli.pipeline.output import default_profile_path
 
 log = logging.getLogger("hdrmerge_cli")
 

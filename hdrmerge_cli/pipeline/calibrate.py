@@ -19,7 +19,7 @@ from hdrmerge_cli.io.frames import Frame, list_frames, load_codes, raw_channel_m
 from hdrmerge_cli.io.noisespec import iso_key
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
-from hdrmerge_cli.pipeline.merge import choose_crf
+from hdrmerge_cli.pipeline.bracket import choose_crf
 
 log = logging.getLogger("hdrmerge_cli")
 

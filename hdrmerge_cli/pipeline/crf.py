@@ -21,7 +21,7 @@ from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import exposures as exposures_mod
-from hdrmerge_cli.pipeline.merge import exposure_values, read_bracket
+from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
 

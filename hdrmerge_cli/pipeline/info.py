@@ -9,7 +9,7 @@ from hdrmerge_cli.core.coverage import Coverage, clip_classes
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.io.times import apply_times
 from hdrmerge_cli.pipeline import exposures as exposures_mod
-from hdrmerge_cli.pipeline.merge import _fmt_time, exposure_values, sample_pattern
+from hdrmerge_cli.pipeline.bracket import exposure_values, fmt_time, sample_pattern
 
 
 def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str | None = None) -> dict:
@@ -85,10 +85,10 @@ def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool
     advice = []
     if coverage.too_bright:
         advice.append(f"{100 * coverage.too_bright:.3g} % of pixels are clipped in every frame: add an exposure "
-                      f"shorter than {_fmt_time(frames[0].exposure_time)}")
+                      f"shorter than {fmt_time(frames[0].exposure_time)}")
     if coverage.too_dark:
         advice.append(f"{100 * coverage.too_dark:.3g} % of pixels are dark in every frame: add an exposure "
-                      f"longer than {_fmt_time(frames[-1].exposure_time)}")
+                      f"longer than {fmt_time(frames[-1].exposure_time)}")
     if coverage.gap:
         advice.append(f"{100 * coverage.gap:.3g} % of pixels are dark in one frame and clipped in the next: "
                       "add exposures between them")
@@ -106,8 +106,8 @@ def format_info(summary: dict) -> str:
         white = sorted(set(r["white"]))
         lines.append((
             r["path"].rsplit("/", 1)[-1], r["camera"] or "-",
-            _fmt_time(r["exposure_time"]) if r["exposure_time"] else "-",
-            _fmt_time(r["estimated_exposure_time"]) if r.get("estimated_exposure_time") else "-",
+            fmt_time(r["exposure_time"]) if r["exposure_time"] else "-",
+            fmt_time(r["estimated_exposure_time"]) if r.get("estimated_exposure_time") else "-",
             f"{r['iso']:g}" if r["iso"] else "-", str(r["bits"]),
             "/".join(f"{b:g}" for b in black), "/".join(f"{w:g}" for w in white),
             f"{100 * r['clipped_fraction']:.2f} %", f"{100 * r['dark_fraction']:.2f} %",

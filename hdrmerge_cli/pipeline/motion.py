@@ -209,7 +209,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     :data:`~hdrmerge_cli.core.deghost.AUTO_FRACTION` of its blocks rejected."""
     first = frames[0]
     raw = first.kind == "raw"
-    from hdrmerge_cli.pipeline.merge import sample_pattern
+    from hdrmerge_cli.pipeline.bracket import sample_pattern
 
     pattern = sample_pattern(first)
     per_px = 2 if raw else 1  # pixels per cell side of the planes

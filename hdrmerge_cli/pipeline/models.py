@@ -1,0 +1,263 @@
+"""Choose the models a merge uses: the estimator, the weights, the noise parameters
+(given, cached or measured on the bracket), the variance mode and the per-frame lookup
+tables of (7)."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
+from hdrmerge_cli.core.reconstruct import exposure_tables, table_size
+from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
+from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
+from hdrmerge_cli.io.profile import load_profile
+from hdrmerge_cli.pipeline.bracket import sample_pattern
+from hdrmerge_cli.pipeline.options import MergeOptions
+
+log = logging.getLogger("hdrmerge_cli")
+
+
+@dataclass
+class Models:
+    """What a merge reconstructs with (the second stage, :func:`choose_models`).
+
+    tables : per frame, the :class:`~hdrmerge_cli.core.reconstruct.ExposureTables` of (7)
+    pattern : the periodic table row of each sample (None: one row serves all)
+    table_channels : the tables' row names (``R``, ``G``, ``B``, ``G2`` ...)
+    noise : per channel :class:`NoiseParams` in code units, or None
+    estimated : how the noise was measured (bracket or cache), for the profile
+    """
+
+    estimator: str
+    weights: str
+    variance: str
+    n_irls: int
+    noise: dict[str, NoiseParams] | None
+    estimated: dict | None
+    prior: float | None
+    bounds: tuple | None
+    tables: list
+    pattern: np.ndarray | None
+    table_channels: list[str]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def noise_used(self, frame: Frame) -> dict | None:
+        """The noise parameters per channel name, as the profile and ``--json`` give them."""
+        if not self.noise:
+            return None
+        return {ch: vars(p) for ch, p in zip(frame.channel_names, per_channel(self.noise, frame.channel_names))}
+
+
+def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: MergeOptions, load=load_codes,
+                  noise: dict[str, NoiseParams] | None = None) -> Models:
+    """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
+    else measured on the bracket through ``load`` where the options need them), variance
+    mode and the per-frame tables, each option's ``auto`` resolved by the defaults below."""
+    first = frames[0]
+    timings = {}
+    estimated = None
+    estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first, crf)
+    weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
+    # RAW: always measured (the ML default needs it); images only where the options ask for
+    # a noise model (their default, the log estimator with code-error variances, does not)
+    needs_noise = (opts.variance == "model" or (weights in NOISE_MODEL_WEIGHTS and weights != "bounded")
+                   or bool(opts.irls) or estimator == "ml" or (opts.variance == "auto" and first.kind in ("raw", "linear")))
+    if noise is None and needs_noise and not opts.lut:
+        t1 = time.perf_counter()
+        noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache)
+        timings["noise_estimate"] = time.perf_counter() - t1
+    variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf)
+    if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
+        log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
+                    "conservative upper bounds", weights)
+    if opts.irls and not noise:
+        raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
+    if opts.irls and opts.deghost != "off":
+        raise HdrMergeError("--deghost and --irls cannot be combined yet; drop one of them")
+    n_irls = opts.irls if opts.irls is not None else default_irls(estimator, noise, opts.deghost != "off",
+                                                                   bool(opts.lut))
+    t0 = time.perf_counter()
+    prior = prior_rate(frames, exposures, crf) if weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
+    luts = lut_columns(opts.lut, frames) if opts.lut else None
+    bounds = parse_bounds(opts.bounds) if opts.bounds else None
+    tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
+                                                   estimator, luts, bounds)
+    timings["tables"] = time.perf_counter() - t0
+    return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
+                  table_channels, timings)
+
+
+def default_estimator(frame: Frame, crf: CRF) -> str:
+    """``--estimator auto``: the linear ML estimate for RAW and linear images (sensor data:
+    on simulated 12-bit DNGs it is 2.0 dB closer to the Cramer-Rao bound than the log
+    estimator), the paper's log-domain (7) for camera-processed images (a non-linear
+    response), whose errors are the response's and the camera's processing more than
+    noise: on the real brackets' leave-one-out the ML estimate's error is 1.33x the log
+    estimator's (benchmarks/results/real_loo.md, cli_defaults.md)."""
+    return "ml" if frame.kind == "raw" or crf.is_linear else "log"
+
+
+def default_weights(estimator: str) -> str:
+    """``--weights auto``: ``uniform`` for the ML estimator, whose inverse-variance weights
+    are already the noise-optimal ones (simulated RAW brackets, dB below the exact bound
+    over samples whose bound is < 0.1, mean / worst: uniform 0.40 / 0.81, triangle
+    0.53 / 0.76, probabilistic 0.87 / 1.32, benchmarks/results/cli_defaults.md); the
+    classical ``triangle`` for the log estimator, the best weighting on the real brackets'
+    leave-one-out (real_loo.md)."""
+    return "uniform" if estimator == "ml" else "triangle"
+
+
+def default_variance(noise, crf: CRF) -> str:
+    """``--variance auto``: ``model`` with noise parameters (given, or measured on a RAW
+    bracket); without them ``codes`` for a non-linear response (the quantisation of the
+    codes through it plus a 1 % model tolerance: 0.94x the leave-one-out error of
+    ``photon`` on the real brackets, benchmarks/results/real_loo.md), else ``photon``."""
+    if noise:
+        return "model"
+    return "photon" if crf.is_linear else "codes"
+
+
+def default_irls(estimator: str, noise, deghost: bool = False, lut: bool = False) -> int:
+    """``--irls`` unset: one re-weighting pass for the ML estimator of a bracket with a noise
+    model and no deghosting.  Its one-pass weights take each frame's variance at that
+    frame's own noisy reading, which favours readings that came out low (photon noise);
+    one pass at the merged estimate removes that bias: 2.50 dB below the Cramer-Rao bound
+    on average instead of 3.33 (worst 5.11 instead of 5.98) on the simulated 12-bit DNG
+    brackets of benchmarks/results/cli_defaults.md; a second pass adds 0.02 dB."""
+    return int(estimator == "ml" and bool(noise) and not deghost and not lut)
+
+
+def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True):
+    """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
+    code, fast path; for images on the signal linearised by ``crf``); on failure fall back
+    to photon-noise weights.  With ``cache``, an earlier merge's measurement of the same
+    camera and ISO is read from the per-camera cache (:mod:`hdrmerge_cli.io.noisecache`)
+    instead, and a new measurement is stored there."""
+    from hdrmerge_cli.io import noisecache
+
+    key = noisecache.cache_key(frames[0], crf.describe()) if cache else None
+    hit = noisecache.lookup(key)
+    if hit is not None:
+        used = hit["used"]
+        log.info("noise of %s from the cache %s: %s", key, noisecache.cache_file(),
+                 ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+        cached = {"file": str(noisecache.cache_file()), "key": key, "date": hit.get("date"),
+                  "measured_on": hit.get("inputs")}
+        return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, (hit.get("estimated_from_bracket") or {}) | {
+            "cached": cached}
+
+    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+
+    try:
+        used, entries = estimate_bracket_noise(frames, crf, load)
+    except HdrMergeError as exc:
+        log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
+        return None, None
+    log.info("noise measured on the bracket: %s",
+             ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
+    if key is not None and noisecache.store(key, used, entries, [f.path for f in frames]):
+        log.debug("noise of %s stored in %s", key, noisecache.cache_file())
+    return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
+
+
+def resolve_noise(opts, frames: list[Frame]) -> dict[str, NoiseParams] | None:
+    """``opts``: anything with ``noise``, ``profile`` and ``crf`` (the options' strings).
+    Noise parameters from ``--noise``, else from the profile (``--profile``, or a
+    profile given as ``--crf``), else None (a CRF-only profile from estimate-crf included:
+    the noise is then measured on a RAW bracket, as without a profile)."""
+    if opts.noise:
+        return parse_noise(opts.noise)
+    source = opts.profile or (opts.crf if opts.crf and opts.crf.lower().endswith(".json") else None)
+    if source:
+        prof = load_profile(source)
+        if prof.get("noise") and any(k.startswith("ISO") for k in prof["noise"]):
+            isos = {f.iso for f in frames}
+            return noise_from_profile(prof, isos.pop() if len(isos) == 1 else None, source)
+        log.info("%s: the profile has no noise parameters; %s", source,
+                 "measuring them on the bracket" if frames[0].kind == "raw" else "using the weights' defaults")
+    return None
+
+
+def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF) -> float:
+    """Mean of the exponential irradiance prior (code values per second), estimated from
+    the middle frame (the paper assumes it known); see :func:`prior_rate_of`."""
+    k = len(frames) // 2
+    f = frames[k]
+    return prior_rate_of(load_codes(f), float(f.black[0]), float(f.white[0]), exposures[k], crf, f.kind == "raw",
+                         f.path)
+
+
+#: samples of the middle frame that estimate the prior's mean
+PRIOR_SAMPLES = 1 << 18
+
+
+def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float, crf: CRF, raw: bool,
+                  name: str = "the middle frame") -> float:
+    """The prior's mean from one frame's unclipped samples: the mean linear signal (code
+    values) per second over an even subsample of at most :data:`PRIOR_SAMPLES` samples.
+
+    codes : (H, W) mosaic (``raw``) or (H, W, C) image of the frame of exposure ``exposure`` s
+    """
+    full = white - black
+    step = max(1, codes.shape[0] * codes.shape[1] // PRIOR_SAMPLES)
+    sub = codes.reshape(codes.shape[0] * codes.shape[1], -1)[::step].astype(np.float64)
+    v = np.clip((sub - black) / full, 0, 1)
+    lin = crf.inverse(v) if raw else np.stack([crf.inverse(v[:, c], c) for c in range(v.shape[1])], axis=-1)
+    ok = (lin > 0) & (lin < 1)
+    if not np.any(ok):
+        what = "black" if np.all(lin <= 0) else "clipped" if np.all(lin >= 1) else "black or clipped"
+        raise HdrMergeError(f"{name}: every sample is {what}; cannot estimate the irradiance prior")
+    return float(np.mean(lin[ok]) * full / exposure)
+
+
+def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
+    """``merge --lut``: each frame's ``(C, N)`` weights from a ``weights-lut`` table whose
+    columns follow the exposures in increasing order (one per frame, or per frame and channel)."""
+    from hdrmerge_cli.pipeline.lut import read_luts
+
+    first = frames[0]
+    if first.kind == "raw":
+        raise HdrMergeError(f"{path}: weight tables apply to JPEG/TIFF/PNG brackets (RAW black levels vary)")
+    table = read_luts(path)
+    if table.shape[0] != first.n_codes:
+        raise HdrMergeError(f"{path}: {table.shape[0]} rows, but the frames have {first.n_codes} code values")
+    per = table.shape[1] // len(frames)
+    if per * len(frames) != table.shape[1] or per not in (1, first.channels):
+        raise HdrMergeError(f"{path}: {table.shape[1]} columns do not fit {len(frames)} frames of {first.channels} channels")
+    if not np.all(np.isfinite(table)) or np.any(table < 0):
+        raise HdrMergeError(f"{path}: weights must be finite and non-negative")
+    columns = [table[:, j * per:(j + 1) * per].T for j in range(len(frames))]
+    for j, col in enumerate(columns):
+        if not np.any(col > 0):
+            raise HdrMergeError(f"{path}: the weights of frame {j + 1} ({frames[j].name}) are all zero; "
+                                "that frame would be ignored (rebuild the table)")
+    return columns
+
+
+def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
+            luts=None, bounds=None):
+    """Per-frame lookup tables (each frame with its own black and white levels), the
+    periodic pattern of table rows (see :class:`LogMerge`; None when one row serves every
+    channel) and the table rows' channel names."""
+    first = frames[0]
+    names = first.channel_names
+    chan_noise = per_channel(noise, names) if noise else None
+    shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
+    shared &= crf.table is None or crf.table.shape[0] == 1
+    shared &= chan_noise is None or all(p == chan_noise[0] for p in chan_noise)
+    shared &= luts is None or luts[0].shape[0] == 1
+    rows = 1 if shared else len(first.black)
+    names = names[:rows]
+    row_noise = chan_noise[:rows] if chan_noise else None
+    tables = [exposure_tables(f.n_codes if luts else table_size(f.white, f.n_codes),
+                              f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
+                              tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
+                              bounds=bounds)
+              for j, (f, h) in enumerate(zip(frames, exposures))]
+    return tables, None if shared else sample_pattern(first), names

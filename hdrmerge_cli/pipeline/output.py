@@ -1,0 +1,291 @@
+"""The last stages of a merge: finish (colour, extra channels) and write (EXR, profile,
+preview).  :class:`Merged` holds a reconstructed bracket in memory; the CLI writes it
+strip by strip, the Python API (:func:`hdrmerge_cli.merge`) also hands out its arrays."""
+from __future__ import annotations
+
+import hashlib
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from hdrmerge_cli import __version__
+from hdrmerge_cli.core.color import REC709_CHROMATICITIES, bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
+from hdrmerge_cli.io.frames import Frame
+from hdrmerge_cli.pipeline.bracket import upright
+from hdrmerge_cli.pipeline.models import Models
+from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
+
+#: file types ``--preview`` writes (by suffix)
+PREVIEW_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+#: rows per strip of the colour conversion and EXR writing (even: keeps the CFA phase)
+STRIP_ROWS = 256
+#: rows of context around a strip for the demosaic (Malvar's 5 x 5 kernels need 2; even)
+STRIP_HALO = 4
+
+
+def default_profile_path(output: Path) -> Path:
+    return output.with_name(output.stem + ".profile.json")
+
+
+@dataclass
+class Merged:
+    """A merged bracket (what :func:`hdrmerge_cli.pipeline.merge.reconstruct_frames`
+    returns).
+
+    result : float32 ``(H, W)`` mosaic (RAW) or ``(H, W, C)`` image, scene-linear, 1.0 =
+        the full-scale signal of an exposure of ``h_ref`` seconds, in camera RGB (before
+        white balance, demosaic and the camera matrix, which :meth:`strip` applies)
+    flag_samples : int8, per sample of ``result``: 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
+    den : float32, per sample, the summed weights of the frames that measured it
+    """
+
+    frames: list[Frame]
+    exposures: np.ndarray
+    h_ref: float
+    crf: CRF
+    models: Models
+    options: MergeOptions
+    result: np.ndarray
+    flag_samples: np.ndarray
+    den: np.ndarray
+    iterations: int = 0
+    orientation: int = 1
+    alignment: dict | None = None
+    ghosts: dict | None = None
+    exposure_check: dict | None = None
+    repeats: list = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    # ------------------------------------------------------------ what it holds
+    @property
+    def first(self) -> Frame:
+        return self.frames[0]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.first.height, self.first.width
+
+    @property
+    def colour_channels(self) -> list[str]:
+        """The EXR's colour channels: ``Y`` for a mosaic (``--cfa``) or a grey image."""
+        if self.first.kind == "raw":
+            return ["Y"] if self.options.cfa else ["R", "G", "B"]
+        return ["R", "G", "B"] if self.first.channels == 3 else ["Y"]
+
+    @property
+    def channel_names(self) -> list[str]:
+        return self.colour_channels + [c for c in EXTRA_CHANNELS if c in self.options.extra_channels]
+
+    @cached_property
+    def flags(self) -> np.ndarray:
+        """``(H, W)`` int8 per pixel: ``FLAG_SATURATED`` where a channel had no unclipped
+        reading, else ``FLAG_DARK`` where one was below every frame's noise floor, else 0."""
+        f = self.flag_samples
+        if f.ndim == 2:
+            return f
+        return np.where((f == FLAG_SATURATED).any(-1), FLAG_SATURATED,
+                        np.where((f == FLAG_DARK).any(-1), FLAG_DARK, 0)).astype(np.int8)
+
+    @property
+    def image(self) -> np.ndarray:
+        """``(H, W, 3)`` (or ``(H, W, 1)``) float32 scene-linear colour, as the EXR holds it."""
+        return np.concatenate([self.colour_rows(y0, min(self.shape[0], y0 + STRIP_ROWS))
+                               for y0 in range(0, self.shape[0], STRIP_ROWS)])
+
+    @property
+    def white_balanced(self) -> bool:
+        first = self.first
+        return (first.kind == "raw" and not self.options.cfa) or (first.kind == "linear" and first.channels == 3)
+
+    # ------------------------------------------------------------ finish
+    def colour_rows(self, y0: int, y1: int) -> np.ndarray:
+        """Rows ``y0:y1`` of the output colour: RAW white balance, demosaic and camera
+        matrix; linear RGB white balance and camera matrix; images as merged."""
+        first = self.first
+        if first.kind == "raw" and not self.options.cfa:
+            return _raw_to_rec709_rows(self.result, first, y0, y1)
+        rgb = self.result[y0:y1].reshape(y1 - y0, first.width, -1)
+        if first.kind == "linear" and first.channels == 3:  # demosaiced camera RGB
+            rgb = camera_to_rec709(rgb * first.white_balance.astype(np.float32), first.color_matrix)
+        return rgb
+
+    def strip(self, y0: int, ghost_img: np.ndarray | None = None, wsum: np.ndarray | None = None):
+        """``(y0, rows)``: rows ``y0:y0 + STRIP_ROWS`` of the EXR, colour and extra
+        channels, so no full-size RGB copy is ever held."""
+        y1 = min(self.shape[0], y0 + STRIP_ROWS)
+        rgb = self.colour_rows(y0, y1)
+        extra = self.options.extra_channels
+        planes = [rgb]
+        if "clipped" in extra:
+            planes.append(self.flags[y0:y1, :, None].astype(np.float32))
+        if "weight" in extra:
+            planes.append(wsum[y0:y1, :, None].astype(np.float32))
+        if ghost_img is not None:
+            planes.append(ghost_img[y0:y1, :, None])
+        return y0, np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
+
+    def profile(self, profile_name: str | None = None) -> dict:
+        """The JSON camera profile this merge used (response, weights, noise)."""
+        from hdrmerge_cli.io.profile import new_profile
+
+        first, m = self.first, self.models
+        profile = new_profile({"make": first.make, "model": first.model}, first.bits, self.crf,
+                              [f.path for f in self.frames], "merge")
+        profile["weights"] = f"lut:{Path(self.options.lut).name}" if self.options.lut else m.weights
+        if m.noise:
+            profile["noise"] = {"used": m.noise_used(first)}
+        if m.estimated:
+            profile["noise"]["estimated_from_bracket"] = m.estimated
+        return profile
+
+    def header(self, profile_name: str, profile_text: str) -> dict:
+        """The EXR header attributes: provenance, units, colour, orientation."""
+        first, m = self.first, self.models
+        attrs = {
+            "Software": f"hdrmerge-cli {__version__}",
+            "hdrmerge:version": __version__,
+            "hdrmerge:exposureTimes": [f.exposure_time for f in self.frames],
+            "hdrmerge:exposures": list(self.exposures),
+            "hdrmerge:referenceExposure": self.h_ref,
+            "hdrmerge:units": (
+                "scene-linear; 1.0 = the full-scale (clipping) signal of an exposure of "
+                "hdrmerge:referenceExposure seconds" + (", after white balance (green = 1)" if self.white_balanced
+                                                        else "")
+            ),
+            "hdrmerge:weights": m.weights,
+            "hdrmerge:estimator": m.estimator,
+            "hdrmerge:variance": m.variance,
+            "hdrmerge:crf": self.crf.describe(),
+            "hdrmerge:profile": profile_name,
+            "hdrmerge:profileSHA256": hashlib.sha256(profile_text.encode()).hexdigest(),
+            "hdrmerge:inputs": "; ".join(f.name for f in self.frames),
+            "ExposureTime": self.h_ref,
+        }
+        if first.camera:
+            attrs["Make"], attrs["Model"] = first.make, first.model
+        if self.colour_channels == ["R", "G", "B"]:
+            attrs["chromaticities"] = list(REC709_CHROMATICITIES)
+        if first.kind == "raw" and self.options.cfa:
+            attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
+        if self.orientation != 1:  # the pixels stay in sensor order; viewers rotate by the header
+            attrs["Orientation"] = self.orientation
+        return attrs
+
+    # ------------------------------------------------------------ write
+    def write(self, output=None, profile_out=None, preview=None, overwrite: bool | None = None,
+              inputs=()) -> dict:
+        """Write the EXR, its profile and (optionally) a preview, all or none (each to a
+        temporary name first); the options' paths unless given.  Returns the paths written."""
+        from hdrmerge_cli.core.preview import BlockMean, block_factor, tonemap_srgb
+        from hdrmerge_cli.io.atomic import atomic_paths
+        from hdrmerge_cli.io.images import write_exr, write_ldr
+        from hdrmerge_cli.io.profile import dumps
+        from hdrmerge_cli.pipeline import motion
+
+        opts = self.options
+        output = Path(output if output is not None else opts.output)
+        profile_out = Path(profile_out or opts.profile_out or default_profile_path(output))
+        preview = preview if preview is not None else opts.preview
+        overwrite = opts.overwrite if overwrite is None else overwrite
+        profile_text = dumps(self.profile())
+        attrs = self.header(profile_out.name, profile_text)
+        extra = opts.extra_channels
+        wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
+        ghost_img = motion.ghost_image(self.ghosts, *self.shape) if "ghost" in extra else None
+        strips = prefetched(lambda y0: self.strip(y0, ghost_img, wsum), range(0, self.shape[0], STRIP_ROWS))
+        n_colour = len(self.colour_channels)
+        thumb = None
+        if preview is not None:
+            thumb = BlockMean(*self.shape, n_colour, block_factor(*self.shape, opts.preview_size))
+            strips = _tee_preview(strips, thumb, n_colour)
+        outputs = [output, profile_out] + ([Path(preview)] if thumb else [])
+        with atomic_paths(outputs, overwrite, list(inputs)) as tmps:
+            write_exr(tmps[0], strips, self.channel_names, attrs, half=opts.half, size=self.shape,
+                      compression=opts.compression)
+            Path(tmps[1]).write_text(profile_text, encoding="utf-8")
+            if thumb:
+                rgb = upright(thumb.result(), self.orientation)
+                write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
+        return {"output": str(output), "profile": str(profile_out)} | ({"preview": str(preview)} if thumb else {})
+
+    def summary(self) -> dict:
+        """What ``merge --json`` prints (without the paths written)."""
+        m, first, flags = self.models, self.first, self.flag_samples
+        estimated, n = m.estimated, flags.size
+        alignment, ghosts = self.alignment, self.ghosts
+        return {
+            "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(self.frames, self.exposures)],
+            "reference_exposure": self.h_ref,
+            "exposure_check": self.exposure_check,
+            "orientation": self.orientation,
+            **({"equal_exposures": self.repeats} if self.repeats else {}),
+            "weights": m.weights,
+            "estimator": m.estimator,
+            "variance": m.variance,
+            "irls_iterations": self.iterations,
+            "noise": m.noise_used(first),
+            "noise_source": (f"measured earlier on the same camera and ISO (cache {estimated['cached']['file']})"
+                             if estimated and "cached" in estimated
+                             else "measured on the bracket (calibrate-noise fast path)" if estimated
+                             else "given (--noise or --profile)" if m.noise else None),
+            "prior_rate": m.prior,
+            "bounds": list(m.bounds) if m.bounds else None,
+            "crf": self.crf.describe(),
+            "width": first.width,
+            "height": first.height,
+            "channels": self.channel_names,
+            "saturated_fraction": float(np.count_nonzero(flags == FLAG_SATURATED) / n),
+            "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
+            **({"alignment": {k: v for k, v in alignment.items() if k != "warps"}
+                | {"warps": [np.round(w, 6).tolist() for w in alignment["warps"]]}} if alignment else {}),
+            **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
+            "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
+        }
+
+
+def _tee_preview(strips, preview, n_channels: int):
+    """Pass the EXR strips on, adding each one's image channels to the preview."""
+    for y0, data in strips:
+        preview.add(y0, data[..., :n_channels])
+        yield y0, data
+
+
+def prefetched(fn, items, ahead: int = 2):
+    """``fn(item)`` for each item in order, computed up to ``ahead`` items in advance on
+    worker threads (so the colour conversion of the next strips runs while the EXR
+    writer compresses this one), holding at most ``ahead + 1`` results."""
+    with ThreadPoolExecutor(ahead) as pool:
+        pending = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+def _raw_to_rec709_rows(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
+    """Rows ``y0:y1`` of the Rec.709 image: white balance (green = 1) per CFA colour,
+    demosaic (Malvar-He-Cutler, reading the rows around the strip, so strips join
+    seamlessly), camera matrix; one compiled pass that releases the GIL (strips run on the
+    prefetch threads, one per core).  :func:`_raw_to_rec709_rows_reference` is the same
+    arithmetic through colour-demosaicing (the tests compare the two)."""
+    return raw_to_rgb_rows(mosaic, frame.cfa_pattern, frame.white_balance, frame.color_matrix, y0, y1)
+
+
+def _raw_to_rec709_rows_reference(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
+    """The reference of :func:`_raw_to_rec709_rows`: NumPy white balance, colour-demosaicing's
+    Malvar (2004) on the strip with a halo of rows, the camera matrix."""
+    a, b = max(0, y0 - STRIP_HALO), min(mosaic.shape[0], y1 + STRIP_HALO)
+    part = mosaic[a:b]
+    colors = bayer_channels(frame.cfa_pattern, part.shape)  # a is even: same CFA phase as row 0
+    balanced = part * frame.white_balance.astype(np.float32)[colors]
+    rgb = demosaic(balanced, frame.cfa_pattern)[y0 - a:y1 - a]
+    return camera_to_rec709(rgb, frame.color_matrix)
