@@ -233,8 +233,8 @@ def test_strip_demosaic_equals_whole_frame(monkeypatch):
     frame.white_balance = np.array([2.0, 1.0, 1.5])
     frame.color_matrix = np.eye(3) + 0.1
     mosaic = np.random.default_rng(0).random((30, 40)).astype(np.float32)
-    whole = pm._raw_to_rec709_rows(mosaic, frame, 0, 30)
-    parts = np.concatenate([pm._raw_to_rec709_rows(mosaic, frame, y, min(30, y + 6)) for y in range(0, 30, 6)])
+    whole = pm._raw_to_rgb_rows(mosaic, frame, 0, 30)
+    parts = np.concatenate([pm._raw_to_rgb_rows(mosaic, frame, y, min(30, y + 6)) for y in range(0, 30, 6)])
     np.testing.assert_allclose(parts, whole, rtol=1e-5, atol=1e-6)
 
 

@@ -133,7 +133,7 @@ def test_merge_output_equals_reference_colour_path(tmp_path, dng_frames, monkeyp
     frames = dng_frames
     args = ["merge", *frames, "--noise", "sigma_o2=9,alpha=0.25,beta=0", "-q"]
     assert CliRunner().invoke(cli, args + ["-o", str(tmp_path / "fused.exr")]).exit_code == 0
-    monkeypatch.setattr(pm, "_raw_to_rec709_rows", pm._raw_to_rec709_rows_reference)
+    monkeypatch.setattr(pm, "_raw_to_rgb_rows", pm._raw_to_rgb_rows_reference)
     assert CliRunner().invoke(cli, args + ["-o", str(tmp_path / "ref.exr")]).exit_code == 0
     fused, _ = read_exr(tmp_path / "fused.exr")
     ref, _ = read_exr(tmp_path / "ref.exr")

@@ -13,6 +13,7 @@ from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
     TIMES_HELP, parse_csv_list, times_or_estimate_callback,
 )
+from hdrmerge_cli.core.colorspace import COLORSPACES
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
@@ -60,6 +61,10 @@ log = logging.getLogger("hdrmerge_cli")
                    "labels that set the scale).")
 @click.option("--reference", default="geomean", show_default=True, metavar="REF",
               help="Exposure (s) whose full-scale signal is 1.0 in the output: geomean, shortest, longest or seconds.")
+@click.option("--colorspace", type=click.Choice(list(COLORSPACES)), default="rec709", show_default=True,
+              help="Output colour space, stated in the EXR header (chromaticities and the Color Interop Forum's "
+                   "colorInteropID): " + "; ".join(f"{k}: {v.description}" for k, v in COLORSPACES.items())
+                   + ".  RAW converts through the camera matrix; images are taken as sRGB primaries.")
 @click.option("--cfa", is_flag=True, help="RAW: write the merged mosaic (channel Y, camera-native, no demosaic).")
 @click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats.")
 @click.option("--compression", type=click.Choice(list(EXR_COMPRESSIONS)), default="auto", show_default=True,
@@ -106,7 +111,7 @@ log = logging.getLogger("hdrmerge_cli")
 @output_options
 @common_options
 def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_run, profile_out, weights, crf, times,
-            times_file, reference, cfa, half, compression, no_cache, extra_channels, noise, profile, variance,
+            times_file, reference, colorspace, cfa, half, compression, no_cache, extra_channels, noise, profile, variance,
             estimator, irls, k, lut, bounds, align, deghost, preview, preview_size, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
@@ -130,7 +135,7 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
         noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
         preview=preview, preview_size=preview_size, align=align, deghost=deghost,
-        compression=compression, noise_cache=not no_cache,
+        compression=compression, noise_cache=not no_cache, colorspace=colorspace,
     )
     given = _given(click.get_current_context())
     if "preview_size" in given and preview is None:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrmerge_cli.core.colorspace import COLORSPACES
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import LogMerge, irls, noise_rows
@@ -60,6 +61,10 @@ def check_options(opts: MergeOptions) -> None:
         if extra not in EXTRA_CHANNELS:
             raise HdrMergeError(f"unknown extra channel {extra!r} (choose from {', '.join(EXTRA_CHANNELS)})")
     exr_compression(opts.compression, opts.half)  # an unknown name fails before any work
+    if opts.colorspace not in COLORSPACES:
+        raise HdrMergeError(f"unknown colour space {opts.colorspace!r} (choose from {', '.join(COLORSPACES)})")
+    if opts.cfa and opts.colorspace != "rec709":
+        log.warning("--cfa writes the camera's mosaic: --colorspace %s does not apply", opts.colorspace)
 
 
 def check_outputs(paths: list[str], opts: MergeOptions) -> list:

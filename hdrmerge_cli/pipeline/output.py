@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli import __version__
-from hdrmerge_cli.core.color import REC709_CHROMATICITIES, bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli.core.colorspace import COLORSPACES, camera_chromaticities, rec709_to
 from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
@@ -105,16 +106,55 @@ class Merged:
         return (first.kind == "raw" and not self.options.cfa) or (first.kind == "linear" and first.channels == 3)
 
     # ------------------------------------------------------------ finish
+    @property
+    def colorspace(self) -> str | None:
+        """The output's colour space (``--colorspace``); None for a mosaic or grey image.
+        Camera-processed images count as Rec.709 (sRGB primaries) in their native RGB."""
+        if self.colour_channels != ["R", "G", "B"]:
+            return None
+        cs = self.options.colorspace
+        return "rec709" if cs == "camera" and self.first.kind == "image" else cs
+
+    @cached_property
+    def colour_matrix(self) -> np.ndarray | None:
+        """``(3, 3)`` from the merged (white-balanced) camera RGB to the output space (RAW
+        and linear RGB: the camera matrix, then :func:`rec709_to`; ``camera``: identity);
+        for images from Rec.709; None where nothing is converted."""
+        cs, first = self.colorspace, self.first
+        if cs is None:
+            return None
+        if first.kind == "image":
+            return None if cs == "rec709" else rec709_to(cs)
+        if cs == "camera":
+            return np.eye(3)
+        return first.color_matrix if cs == "rec709" else rec709_to(cs) @ first.color_matrix
+
     def colour_rows(self, y0: int, y1: int) -> np.ndarray:
-        """Rows ``y0:y1`` of the output colour: RAW white balance, demosaic and camera
-        matrix; linear RGB white balance and camera matrix; images as merged."""
-        first = self.first
+        """Rows ``y0:y1`` of the output colour: RAW white balance, demosaic and
+        :attr:`colour_matrix`; linear RGB white balance and that matrix; images as merged,
+        or through it."""
+        first, matrix = self.first, self.colour_matrix
         if first.kind == "raw" and not self.options.cfa:
-            return _raw_to_rec709_rows(self.result, first, y0, y1)
+            return _raw_to_rgb_rows(self.result, first, y0, y1, matrix)
         rgb = self.result[y0:y1].reshape(y1 - y0, first.width, -1)
         if first.kind == "linear" and first.channels == 3:  # demosaiced camera RGB
-            rgb = camera_to_rec709(rgb * first.white_balance.astype(np.float32), first.color_matrix)
-        return rgb
+            rgb = rgb * first.white_balance.astype(np.float32)
+        return rgb if matrix is None else camera_to_rec709(rgb, matrix)
+
+    def colour_tags(self) -> dict:
+        """The EXR header's colour attributes: ``chromaticities`` and ``colorInteropID``
+        (Color Interop Forum), none for a mosaic, a grey image, or a camera space whose
+        primaries are unknown."""
+        cs = self.colorspace
+        if cs is None:
+            return {}
+        if cs == "camera":
+            first = self.first
+            chroma = (camera_chromaticities(first.xyz_to_camera, first.white_balance)
+                      if getattr(first, "xyz_to_camera", None) is not None else None)
+            return {"chromaticities": list(chroma)} if chroma else {}
+        space = COLORSPACES[cs]
+        return {"chromaticities": list(space.chromaticities), "colorInteropID": space.interop_id}
 
     def strip(self, y0: int, ghost_img: np.ndarray | None = None, wsum: np.ndarray | None = None):
         """``(y0, rows)``: rows ``y0:y0 + STRIP_ROWS`` of the EXR, colour and extra
@@ -170,8 +210,7 @@ class Merged:
         }
         if first.camera:
             attrs["Make"], attrs["Model"] = first.make, first.model
-        if self.colour_channels == ["R", "G", "B"]:
-            attrs["chromaticities"] = list(REC709_CHROMATICITIES)
+        attrs.update(self.colour_tags())
         if first.kind == "raw" and self.options.cfa:
             attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
         if self.orientation != 1:  # the pixels stay in sensor order; viewers rotate by the header
@@ -271,21 +310,23 @@ def prefetched(fn, items, ahead: int = 2):
             yield pending.popleft().result()
 
 
-def _raw_to_rec709_rows(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
-    """Rows ``y0:y1`` of the Rec.709 image: white balance (green = 1) per CFA colour,
+def _raw_to_rgb_rows(mosaic: np.ndarray, frame: Frame, y0: int, y1: int, matrix=None) -> np.ndarray:
+    """Rows ``y0:y1`` of the output RGB: white balance (green = 1) per CFA colour,
     demosaic (Malvar-He-Cutler, reading the rows around the strip, so strips join
-    seamlessly), camera matrix; one compiled pass that releases the GIL (strips run on the
-    prefetch threads, one per core).  :func:`_raw_to_rec709_rows_reference` is the same
-    arithmetic through colour-demosaicing (the tests compare the two)."""
-    return raw_to_rgb_rows(mosaic, frame.cfa_pattern, frame.white_balance, frame.color_matrix, y0, y1)
+    seamlessly), ``matrix`` (default: the camera matrix, to Rec.709); one compiled pass
+    that releases the GIL (strips run on the prefetch threads, one per core).
+    :func:`_raw_to_rgb_rows_reference` is the same arithmetic through colour-demosaicing
+    (the tests compare the two)."""
+    matrix = frame.color_matrix if matrix is None else matrix
+    return raw_to_rgb_rows(mosaic, frame.cfa_pattern, frame.white_balance, matrix, y0, y1)
 
 
-def _raw_to_rec709_rows_reference(mosaic: np.ndarray, frame: Frame, y0: int, y1: int) -> np.ndarray:
-    """The reference of :func:`_raw_to_rec709_rows`: NumPy white balance, colour-demosaicing's
-    Malvar (2004) on the strip with a halo of rows, the camera matrix."""
+def _raw_to_rgb_rows_reference(mosaic: np.ndarray, frame: Frame, y0: int, y1: int, matrix=None) -> np.ndarray:
+    """The reference of :func:`_raw_to_rgb_rows`: NumPy white balance, colour-demosaicing's
+    Malvar (2004) on the strip with a halo of rows, the matrix."""
     a, b = max(0, y0 - STRIP_HALO), min(mosaic.shape[0], y1 + STRIP_HALO)
     part = mosaic[a:b]
     colors = bayer_channels(frame.cfa_pattern, part.shape)  # a is even: same CFA phase as row 0
     balanced = part * frame.white_balance.astype(np.float32)[colors]
     rgb = demosaic(balanced, frame.cfa_pattern)[y0 - a:y1 - a]
-    return camera_to_rec709(rgb, frame.color_matrix)
+    return camera_to_rec709(rgb, frame.color_matrix if matrix is None else matrix)
