@@ -48,7 +48,12 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     bad options or outputs before decoding a pixel."""
     check_options(opts)
     inputs = check_outputs(paths, opts)
-    merged = merge_bracket(paths, opts)
+    t0 = time.perf_counter()
+    frames, crf = open_bracket(paths, opts)
+    if Path(opts.output).suffix.lower() == ".dng" and frames[0].kind != "raw":
+        raise HdrMergeError(f"{opts.output}: a DNG output holds a CFA mosaic, but {frames[0].path} is not a Bayer "
+                            "RAW frame; name the output *.exr")
+    merged = merge_frames(frames, crf, opts, t_start=t0)
     t0 = time.perf_counter()
     written = merged.write(inputs=inputs)
     merged.timings["color_and_write"] = time.perf_counter() - t0
@@ -72,8 +77,11 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
     ``overwrite``, the same as an input); returns the inputs the outputs must not replace."""
     output = Path(opts.output)
     profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(output)
-    if output.suffix.lower() != ".exr":
-        raise HdrMergeError(f"{output}: merge writes OpenEXR only; name the output *.exr")
+    if output.suffix.lower() not in (".exr", ".dng"):
+        raise HdrMergeError(f"{output}: merge writes OpenEXR (*.exr) or, from RAW, a floating-point DNG (*.dng)")
+    if output.suffix.lower() == ".dng" and (opts.extra_channels or opts.preview is not None):
+        raise HdrMergeError(f"{output}: a DNG holds the colour mosaic only (it embeds its own preview); "
+                            "--extra-channels and --preview need an EXR output")
     check_writable(output, opts.overwrite)
     check_writable(profile_out, opts.overwrite)
     if opts.preview is not None:
@@ -88,11 +96,16 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
 
 # ---------------------------------------------------------------- the stages
 def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
-    """Stages 1-4 on files: read and check the bracket, then :func:`merge_frames`."""
+    """Stages 1-4 on files: :func:`open_bracket`, then :func:`merge_frames`."""
     t0 = time.perf_counter()
-    frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True)
-    crf = choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf)
+    frames, crf = open_bracket(paths, opts)
     return merge_frames(frames, crf, opts, t_start=t0)
+
+
+def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF]:
+    """Stage 1: the frames' metadata, checked and sorted by exposure, and the response."""
+    frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True)
+    return frames, choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf)
 
 
 def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_codes,

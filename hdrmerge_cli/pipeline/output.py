@@ -150,8 +150,7 @@ class Merged:
             return {}
         if cs == "camera":
             first = self.first
-            chroma = (camera_chromaticities(first.xyz_to_camera, first.white_balance)
-                      if getattr(first, "xyz_to_camera", None) is not None else None)
+            chroma = camera_chromaticities(camera_xyz_matrix(first), first.white_balance)
             return {"chromaticities": list(chroma)} if chroma else {}
         space = COLORSPACES[cs]
         return {"chromaticities": list(space.chromaticities), "colorInteropID": space.interop_id}
@@ -234,6 +233,11 @@ class Merged:
         preview = preview if preview is not None else opts.preview
         overwrite = opts.overwrite if overwrite is None else overwrite
         profile_text = dumps(self.profile())
+        if output.suffix.lower() == ".dng":
+            with atomic_paths([output, profile_out], overwrite, list(inputs)) as tmps:
+                self.write_dng(tmps[0])
+                Path(tmps[1]).write_text(profile_text, encoding="utf-8")
+            return {"output": str(output), "profile": str(profile_out)}
         attrs = self.header(profile_out.name, profile_text)
         extra = opts.extra_channels
         wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
@@ -253,6 +257,30 @@ class Merged:
                 rgb = upright(thumb.result(), self.orientation)
                 write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
         return {"output": str(output), "profile": str(profile_out)} | ({"preview": str(preview)} if thumb else {})
+
+    def write_dng(self, path) -> None:
+        """The merged CFA mosaic as a floating-point DNG (:func:`hdrmerge_cli.io.dng.write_float_dng`)
+        that raw editors open like the camera's own raw files: black 0, WhiteLevel the
+        smallest whole number above the brightest value, BaselineExposure log2 of it (so
+        the default rendering shows the reference exposure: 1.0 = white), the camera
+        matrix and as-shot white balance that the EXR path uses (:func:`camera_xyz_matrix`),
+        32-bit floats (``--half``: 16), and an embedded preview."""
+        from hdrmerge_cli.core.errors import HdrMergeError
+        from hdrmerge_cli.core.preview import tonemap_srgb
+        from hdrmerge_cli.io.dng import write_float_dng
+
+        first = self.first
+        if first.kind != "raw":
+            raise HdrMergeError(f"{path}: a DNG output holds a CFA mosaic; {first.path} is not a Bayer RAW frame "
+                                "(write an EXR)")
+        white = max(1.0, float(np.ceil(np.max(self.result))))
+        preview = tonemap_srgb(cell_rgb(self.result, first, first.color_matrix, DNG_PREVIEW_SIZE))
+        write_float_dng(path, self.result, cfa_pattern=first.cfa_pattern, xyz_to_camera=camera_xyz_matrix(first),
+                        as_shot_neutral=1.0 / first.white_balance, make=first.make or "hdrmerge-cli",
+                        model=first.model or "merged", exposure_time=self.h_ref, iso=first.iso,
+                        aperture=first.aperture, baseline_exposure=float(np.log2(white)),
+                        orientation=self.orientation, preview=preview, bits=16 if self.options.half else 32,
+                        white_level=white, datetime=first.timestamp)
 
     def summary(self) -> dict:
         """What ``merge --json`` prints (without the paths written)."""
@@ -287,6 +315,39 @@ class Merged:
             **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
             "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
         }
+
+
+#: longest side of the preview embedded in a DNG
+DNG_PREVIEW_SIZE = 1024
+
+
+def camera_xyz_matrix(frame: Frame) -> np.ndarray:
+    """The DNG ColorMatrix (XYZ D65 -> the camera's native RGB) that makes a raw editor
+    render the colours of the EXR path: that path takes native RGB ``c`` to Rec.709 as
+    ``color_matrix @ (white_balance * c)``, so XYZ = ``N @ color_matrix @ diag(wb) @ c``
+    with ``N`` the Rec.709 -> XYZ matrix, and the ColorMatrix is that product's inverse.
+    (LibRaw's own camera table, where it has one, is what ``color_matrix`` was made from.)"""
+    from hdrmerge_cli.core.colorspace import COLORSPACES, D65, rgb_to_xyz_matrix
+
+    to_xyz = rgb_to_xyz_matrix(COLORSPACES["rec709"].primaries, D65)
+    return np.linalg.inv(to_xyz @ np.asarray(frame.color_matrix, np.float64) @ np.diag(frame.white_balance))
+
+
+def cell_rgb(mosaic: np.ndarray, frame: Frame, matrix: np.ndarray, max_side: int) -> np.ndarray:
+    """A small ``(h, w, 3)`` float RGB picture of a mosaic without demosaicing: each 2 x 2
+    CFA cell gives one pixel (its greens averaged), white balance and ``matrix`` applied,
+    then area-averaged to at most ``max_side`` pixels on the longer side."""
+    from hdrmerge_cli.core.preview import block_factor
+
+    h, w = (mosaic.shape[0] // 2) * 2, (mosaic.shape[1] // 2) * 2
+    planes = {"R": [], "G": [], "B": []}
+    for i, colour in enumerate(frame.cfa_pattern):
+        planes[colour].append(mosaic[i // 2:h:2, i % 2:w:2])
+    rgb = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1) * frame.white_balance.astype(np.float32)
+    f = block_factor(rgb.shape[0], rgb.shape[1], max_side)
+    hh, ww = rgb.shape[0] // f * f, rgb.shape[1] // f * f
+    rgb = rgb[:hh, :ww].reshape(hh // f, f, ww // f, f, 3).mean(axis=(1, 3))
+    return rgb @ np.asarray(matrix, np.float64).T
 
 
 def _tee_preview(strips, preview, n_channels: int):
