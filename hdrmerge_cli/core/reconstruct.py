@@ -19,10 +19,16 @@ index array is ever built.
 
 Pixels that no frame measures (weight 0 in every frame) get a finite, documented value
 and a flag (see :meth:`LogMerge.finish`).
+
+On request (``merge --extra-channels variance``) the merge also propagates the noise
+model's variance of each merged value: per frame and code the variance of the frame's own
+estimate (:func:`estimate_variance_table`), summed as ``sum_j w_j^2 Var_j / (sum_j w_j)^2``
+(:func:`combined_variance`) by ``LogMerge(..., variance=True)``, or at the re-weighted
+estimate by ``irls(..., variance=True)``; off, nothing of it runs or is allocated.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -53,6 +59,9 @@ class ExposureTables:
         unmeasured everywhere is taken as saturated, otherwise as dark
     saturated : bool, ``z >= z_max``: a reading clipped at full scale (censored), which the
         ML estimator's re-weighting passes use (:func:`censored_terms`)
+    variance : the variance of ``value`` (the frame's own estimate, in the estimator's
+        domain: ``log E`` or ``E``) at each code, :func:`estimate_variance_table`; only
+        built when asked for (``exposure_tables(..., with_variance=True)``), None otherwise
     """
 
     weight: np.ndarray
@@ -63,6 +72,7 @@ class ExposureTables:
     value: np.ndarray | None = None
     certainty: np.ndarray | None = None
     saturated: np.ndarray | None = None
+    variance: np.ndarray | None = None
 
 
 def table_size(white, n_codes: int) -> int:
@@ -193,6 +203,7 @@ def exposure_tables(
     certainty: np.ndarray | None = None,
     estimator: str = "log",
     bounds=None,
+    with_variance: bool = False,
 ) -> ExposureTables:
     """Build the per-channel tables of one exposure for (7): the weight ``w(z)`` times the
     variance factor ``sigma^-2`` of :func:`inverse_variance`.
@@ -207,6 +218,8 @@ def exposure_tables(
         (Granados et al. 2010): value ``gamma^-1(z) / h``, weight ``w(z) h^2 / v(y)`` (the
         variance of ``y / h``; ``variance`` is then ignored), saturated codes censored
         (weight 0) as every weight is there
+    with_variance : also build the ``variance`` table (:func:`estimate_variance_table`),
+        for ``LogMerge(..., variance=True)``; off by default (no cost)
     """
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
@@ -241,10 +254,91 @@ def exposure_tables(
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
         rows.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
     w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*rows))
+    var = (estimate_variance_table(n_codes, black, white, crf, exposure, noise, estimator)
+           if with_variance else None)
     return ExposureTables(
         w.astype(np.float32), wv.astype(np.float32), fb.astype(np.float32), hi, n_codes,
-        val.astype(np.float32), cert.astype(np.float32), sat,
+        val.astype(np.float32), cert.astype(np.float32), sat, var,
     )
+
+
+#: largest per-code variance of a frame's value (codes whose linear value is 0 carry no
+#: weight; a finite stand-in keeps ``w^2 var`` finite in float32 should one ever count)
+VARIANCE_CAP = 1e30
+
+#: variance of an unmeasured sample (flag != 0) relative to its squared value: the result
+#: there is a bound (:meth:`LogMerge.finish`), and its variance is reported as
+#: ``UNMEASURED_RELATIVE_VARIANCE * result^2``, i.e. a standard deviation equal to the
+#: value itself (SNR 1): for a dark sample (true value in ``[0, bound]``) an upper bound of
+#: the error, for a saturated one (true value above the bound) a floor; finite, NaN-free,
+#: in the result's units; the flag channel tells which.  In ``log E``: variance 1.
+UNMEASURED_RELATIVE_VARIANCE = 1.0
+
+
+def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: float,
+                            noise: list[NoiseParams] | None = None, estimator: str = "log",
+                            tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
+    """Variance of one frame's own estimate (the ``value`` table of
+    :func:`exposure_tables`) at every stored code, in the estimator's domain,
+    flattened ``(C * N,)`` float32.
+
+    The linearised reading ``y = gamma^-1(z) y_full`` (code values above black) has the
+    variance ``V(y) = v(y) + c(y)``: the sensor's (17) as a function of the mean,
+    ``v(mu) = sigma_o^2 + sqrt(alpha) mu + (beta / alpha) mu^2``
+    (:func:`~hdrmerge_cli.core.noise.code_variance`), plus, for a non-linear response, the
+    code error ``c`` of :func:`code_error_variance` (quantisation through ``gamma^-1`` and
+    ``tolerance``; a linear sensor's measured read noise already holds its quantisation).
+    Both are evaluated at the frame's own reading (``mu = y``), as the tables' weights are.
+
+    * ``estimator="log"``: the value is ``log y - log(h y_full)``, variance
+      ``V(y) / y^2`` (the clipping-free (21) of the paper, ``sigma^2(E, t_j)``, i.e. the
+      delta method ``Var log y ~= Var y / mu^2``); dimensionless.
+    * ``estimator="ml"``: the value is ``y / (h y_full)``, variance ``V(y) / (h y_full)^2``,
+      in (full scale per second)^2.
+
+    Without ``noise`` only the code error remains (``c(y)``, or ``1/12`` for a linear
+    response): a lower bound, the ``codes`` variance of (7)'s factor.  Codes at or below
+    black (``y = 0``) read :data:`VARIANCE_CAP` (they carry no weight).
+
+    n_codes, black, white, crf, exposure, noise : as :func:`exposure_tables`
+    tolerance : the code error's relative model tolerance (:data:`MODEL_TOLERANCE`; 0 for
+        a camera whose response is known exactly, e.g. a simulation)
+    """
+    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
+    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
+    rows = []
+    for c, (b, wl) in enumerate(zip(black, white)):
+        v = code_grid(n_codes, b, wl)
+        lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
+        y_full = wl - b
+        y = np.clip(lin, 0.0, 1.0) * y_full
+        chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
+        var_y = np.zeros_like(y) if chan_noise is None else code_variance(y, chan_noise)
+        if not crf.is_linear:
+            var_y = var_y + code_error_variance(lin, y_full, tolerance)
+        elif chan_noise is None:
+            var_y = var_y + 1.0 / 12.0
+        if estimator == "ml":
+            var = var_y / (exposure * y_full) ** 2
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                var = np.where(y > 0, var_y / np.maximum(y, 1e-300) ** 2, VARIANCE_CAP)
+        rows.append(np.minimum(var, VARIANCE_CAP))
+    return np.concatenate(rows).astype(np.float32)
+
+
+def combined_variance(weights, variances) -> np.ndarray:
+    """Variance of a weighted mean of independent estimates, the reference formula the
+    streamed accumulators implement: ``Var(sum_j w_j x_j / sum_j w_j) = sum_j w_j^2
+    Var(x_j) / (sum_j w_j)^2`` (weights taken as fixed); for inverse-variance weights
+    ``w_j = 1 / Var(x_j)`` it is ``1 / sum_j w_j``, the inverse of the summed Fisher
+    information.  weights, variances : ``(P, ...)``; returns ``(...)`` float64, NaN where
+    every weight is 0."""
+    w = np.asarray(weights, np.float64)
+    q = np.asarray(variances, np.float64)
+    den = w.sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0, (w * w * np.where(w > 0, q, 0.0)).sum(axis=0) / (den * den), np.nan)
 
 
 def channel_index(shape: tuple[int, ...], pattern: np.ndarray | None) -> np.ndarray | None:
@@ -377,7 +471,7 @@ def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps
 
 
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
-         linear: bool, iterations: int, tol: float = IRLS_TOLERANCE):
+         linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False):
     """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E).
@@ -385,7 +479,20 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
     y_full : per frame, the full-scale code value ``white - black``
     rows : :func:`noise_rows`
-    Returns ``(log_e, flags, den, passes, largest_change)``.
+    variance : also return the variance of ``log E`` of the last pass (needs no
+        ``with_variance`` tables): each frame's weight ``w_j = w(z) I_j`` is its certainty
+        times its Fisher information at the previous estimate, ``I_j = 1 / Var(x_j)`` with
+        the clipping-free variance (21) (``Var(log y) = v(mu) / mu^2``, ``Var(y / k) = v(mu)
+        / k^2``, ``k = h y_full``, ``mu = E k``), so ``w_j^2 Var(x_j) = w(z) w_j`` and the
+        weighted mean's variance is ``sum_j w(z_j) w_j / (sum_j w_j)^2`` (``1 / sum_j I_j``,
+        the inverse of the summed information, for uniform certainty); a clipped reading's
+        censored term (:func:`censored_terms`) adds its information to both sums.  ML: the
+        variance of ``E`` divided by ``E^2``, the delta method (exact to first order, as is
+        ``Var(E scale) = (E scale)^2 Var(log E)`` that takes it back).  Unmeasured samples:
+        :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a non-linear response
+        (:func:`code_error_variance`) is not part of these weights, nor of this variance.
+    Returns ``(log_e, flags, den, passes, largest_change)``, and with ``variance`` the
+    variance of ``log_e`` (float32, like ``log_e``) as a sixth element.
     """
     flags = den = None
     change = np.inf
@@ -394,14 +501,14 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     weight = np.empty(shape2, np.float32)  # one buffer for every frame's weights
     max_rows = [float(np.max(m)) for m in rows]
     for it in range(1, iterations + 1):
-        acc = LogMerge(log_e.shape, pattern)
+        acc = LogMerge(log_e.shape, pattern, variance=variance)
         cen_num = cen_den = None  # ML: the clipped readings as censored observations (censored_terms)
         log_e2 = log_e.reshape(shape2)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
             _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
                                np.float32(h * y_full[k]), *rows, linear, weight)
-            acc.add(codes, tab, last=k == len(tables) - 1, weight=weight.reshape(log_e.shape))
+            acc.add(codes, tab, last=k == len(tables) - 1, weight=weight.reshape(log_e.shape), information=True)
             if linear and tab.saturated is not None:
                 sat = lookup(tab.saturated, tab.n_codes, codes, pattern)
                 # a clipped reading whose current estimate lies more than CENSORED_SDS noise
@@ -419,21 +526,31 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             measured = acc.den > 0  # clipped in every frame has no finite ML estimate and keeps its flag
             acc.num[measured] += cen_num[measured]
             acc.den[measured] += cen_den[measured]
+            if variance:  # certainty 1: w^2 Var = the information itself
+                acc.var[measured] += cen_den[measured]
         new, flags = acc.finish(linear)
         den = acc.den
         change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
         log_e = new
         if change < tol:
             break
+    if variance:
+        return log_e, flags, den, it, change, acc.variance
     return log_e, flags, den, it, change
 
 
 def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, weighting: str = "triangle",
                  noise: list[NoiseParams] | None = None, variance: str = "none", estimator: str = "log",
                  prior_rate: float | None = None, k: float = DEFAULT_K, pattern: np.ndarray | None = None,
-                 scale: float = 1.0, irls_iterations: int = 0):
+                 scale: float = 1.0, irls_iterations: int = 0, with_variance: bool = False,
+                 variance_tables=None):
     """The merge core on decoded frames in memory: (7) (or the ML estimator) with the
     tables of :func:`exposure_tables`, optionally re-weighted (:func:`irls`).
+
+    with_variance : also return the noise model's variance of ``E * scale`` (streamed
+        with ``LogMerge(variance=True)``, or from :func:`irls`), a fourth element;
+        ``variance_tables`` optional per-frame ``(R * N,)`` tables to use instead of
+        :func:`estimate_variance_table`'s defaults (e.g. with ``tolerance=0``)
 
     codes : P arrays ``(H, W)`` or ``(H, W, C)`` uint8/uint16 in increasing exposure order
     exposures : (P,) ``h_j`` in seconds
@@ -445,17 +562,30 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     black = np.atleast_1d(np.asarray(black, np.float64))
     white = np.broadcast_to(np.asarray(white, np.float64), black.shape)
     n_codes = table_size(white, int(np.iinfo(codes[0].dtype).max) + 1)
+    streamed_var = with_variance and not irls_iterations  # IRLS brings its own variance
     tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
-                              k, estimator=estimator) for h in exposures]
+                              k, estimator=estimator, with_variance=streamed_var and variance_tables is None)
+              for h in exposures]
+    if streamed_var:
+        if variance_tables is not None:
+            tables = [replace(t, variance=np.asarray(q, np.float32)) for t, q in zip(tables, variance_tables)]
+        acc = LogMerge(codes[0].shape, pattern, variance=True)
+        for j, z in enumerate(codes):
+            acc.add(z, tables[j], last=j == len(codes) - 1)
+        out, flags = acc.finish(estimator == "ml", scale)
+        return out, flags, acc.den, acc.variance
     if not irls_iterations:
         return merge_in_memory(codes, tables, pattern, estimator == "ml", scale)
     log_e, flags, _ = merge_in_memory(codes, tables, pattern, estimator == "ml")
     y_full = [float(white[0] - black[0])] * len(codes)
-    log_e, flags, den, _, _ = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, noise_rows(noise),
-                                   estimator == "ml", irls_iterations)
+    log_e, flags, den, *_, var = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full,
+                                      noise_rows(noise), estimator == "ml", irls_iterations, variance=with_variance)
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)
-    return out, flags, den
+    if not with_variance:
+        return out, flags, den
+    var *= out * out  # Var(E scale) = (E scale)^2 Var(log E), the delta method
+    return out, flags, den, np.minimum(var, np.float32(3.4e38), out=var)
 
 
 #: samples per task of :func:`merge_in_memory` (rounded down to whole pattern periods):
@@ -507,17 +637,41 @@ class LogMerge:
         a mosaic (e.g. the 2 x 2 Bayer cell) or over ``(H, W * C)`` for interleaved
         channels (``[[0, 1, 2]]``); None when one table row serves every sample.
 
-    Memory: two float32 arrays of ``shape`` (``num``, ``den``).  A sample that no frame has
-    measured yet keeps its fallback value in ``num`` and its class in ``den`` (0: dark,
-    -1: saturated, decided by the shortest frame), so no third array is needed.
+    variance : also propagate the noise model's variance of the result (a third float32
+        array ``var``, and tables built ``with_variance``): per sample ``var`` sums
+        ``w_j^2 Var(x_j)``, the frame's weight squared times the variance of its value
+        (:func:`estimate_variance_table`), and :meth:`finish` turns it into the variance of
+        the result, ``sum_j w_j^2 Var(x_j) / (sum_j w_j)^2`` (:func:`combined_variance`;
+        ``1 / sum_j w_j`` for the ML estimator's inverse-variance weights), read from
+        :attr:`variance`.  Off (the default): the same kernels and memory as before.
+
+    Memory: two float32 arrays of ``shape`` (``num``, ``den``; three with ``variance``).
+    A sample that no frame has measured yet keeps its fallback value in ``num`` and its
+    class in ``den`` (0: dark, -1: saturated, decided by the shortest frame), so no flag
+    array is needed.
     """
 
-    def __init__(self, shape: tuple[int, ...], pattern: np.ndarray | None = None):
+    def __init__(self, shape: tuple[int, ...], pattern: np.ndarray | None = None, variance: bool = False):
         self.shape = tuple(shape)
         self.num = np.zeros(self.shape, np.float32)
         self.den = np.zeros(self.shape, np.float32)
+        self.var = np.zeros(self.shape, np.float32) if variance else None
         self.pattern = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
         self.frames = 0
+        self.finished = False
+
+    @property
+    def variance(self) -> np.ndarray:
+        """After :meth:`finish`: the variance of each result value, in the result's units
+        (``shape`` float32, finite): of ``E * scale`` when ``finish`` got a ``scale``
+        (``(E scale)^2 Var(log E)`` for the log estimator, the delta method), else of
+        ``log E`` (``Var(E) / E^2`` for the ML estimator).  Unmeasured samples (flag != 0):
+        :data:`UNMEASURED_RELATIVE_VARIANCE` times the squared result (1 in ``log E``)."""
+        if self.var is None:
+            raise ValueError("LogMerge(..., variance=True) was not asked for the variance")
+        if not self.finished:
+            raise ValueError("the variance is known after finish()")
+        return self.var
 
     def _2d(self, a: np.ndarray) -> np.ndarray:
         if a.shape != self.shape:
@@ -525,19 +679,34 @@ class LogMerge:
         return a.reshape(_rows_cols(self.shape))
 
     def add(self, codes: np.ndarray, tables: ExposureTables, last: bool = False,
-            weight: np.ndarray | None = None) -> None:
+            weight: np.ndarray | None = None, information: bool = False) -> None:
         """Add one frame of stored code values ``codes`` (``shape``, uint8/uint16); ``last``
-        for the longest exposure; ``weight`` per-sample weights (IRLS) instead of the
-        table's ``w(z) sigma^-2``, combined with the table's ``value``."""
+        for the longest exposure; ``weight`` per-sample weights (IRLS, deghosting) instead
+        of the table's ``w(z) sigma^-2``, combined with the table's ``value``.
+
+        With ``variance``: ``var += w^2 Var(x_j)`` with the table's ``variance``; or, with
+        ``information`` (IRLS), where ``weight = w(z) I_j`` is the certainty times the
+        frame's Fisher information ``I_j = 1 / Var(x_j)`` at the current estimate
+        (:func:`irls_weights`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
         if weight is None:
             num_tab, per_sample = tables.weighted_log, _NO_WEIGHT
         else:
             num_tab, per_sample = tables.value, self._2d(weight.astype(np.float32, copy=False))
-        _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
-                    tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
-                    weight is not None, mode, self._2d(self.num), self._2d(self.den))
+        if self.var is None:
+            _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
+                        tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
+                        weight is not None, mode, self._2d(self.num), self._2d(self.den))
+        else:
+            use_cert = information and weight is not None
+            q_tab = tables.certainty if use_cert else tables.variance
+            if q_tab is None:
+                raise ValueError("LogMerge(..., variance=True) needs tables built with_variance=True")
+            _accumulate_var(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
+                            tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
+                            q_tab.reshape(-1, n), per_sample, weight is not None, use_cert, mode,
+                            self._2d(self.num), self._2d(self.den), self._2d(self.var))
         # the ML estimator's dark floor: the longest frame's fallback at code 0, per row
         self._dark_floor = np.ascontiguousarray(tables.fallback_log.reshape(-1, n)[:, 0])
         self.frames += 1
@@ -556,12 +725,20 @@ class LogMerge:
         ``linear``: the sums hold linear values (the ML estimator); a sample whose weighted
         mean is not positive (every weighted frame read black) is dark, with the floor
         ``log(gamma^-1(1/2) / h_max)`` of its channel.
+
+        With ``variance`` the same pass also turns ``var`` into :attr:`variance`.
         """
         if self.frames == 0:
             raise ValueError("no frame was added")
         flag = np.empty(self.shape, np.int8)
-        _finish(self._2d(self.num), self._2d(self.den), self.pattern, self._dark_floor, linear,
-                -1.0 if scale is None else float(scale), self._2d(flag))
+        if self.var is None:
+            _finish(self._2d(self.num), self._2d(self.den), self.pattern, self._dark_floor, linear,
+                    -1.0 if scale is None else float(scale), self._2d(flag))
+        else:
+            _finish_var(self._2d(self.num), self._2d(self.den), self._2d(self.var), self.pattern, self._dark_floor,
+                        linear, -1.0 if scale is None else float(scale), UNMEASURED_RELATIVE_VARIANCE,
+                        self._2d(flag))
+        self.finished = True
         return self.num, flag
 
 
@@ -635,6 +812,94 @@ def _finish(num, den, pattern, dark_floor, linear, scale, flag):  # pragma: no c
                 f = 1 if d < 0 else -1
                 den[r, s] = 0.0
             num[r, s] = np.exp(v) * scale if scale > 0 else v
+            flag[r, s] = f
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
+                    num, den, var):  # pragma: no cover
+    """:func:`_accumulate` with the third accumulator of ``LogMerge(variance=True)``:
+    ``var += w^2 q`` (``q_tab`` the frame's per-code variance of its value), or with
+    ``use_cert`` ``var += q w`` (``q_tab`` the certainty ``w(z)``, ``w`` an IRLS weight
+    ``w(z) / Var``).  ``var`` is set where ``den`` is (the first weighted frame)."""
+    rows, cols = codes.shape
+    ph, pw = pattern.shape
+    top = w_tab.shape[1] - 1
+    for r in numba.prange(rows):
+        prow = pattern[r % ph]
+        for q in range(min(pw, cols)):
+            c = prow[q]
+            for s in range(q, cols, pw):
+                z = min(codes[r, s], top)
+                if use_weight:
+                    w = weight[r, s]
+                    wv = w * num_tab[c, z]
+                else:
+                    w = w_tab[c, z]
+                    wv = num_tab[c, z]
+                if w > 0:
+                    wq = w * q_tab[c, z] if use_cert else (w * q_tab[c, z]) * w
+                    if mode != 0 and den[r, s] > 0:
+                        num[r, s] += wv
+                        den[r, s] += w
+                        var[r, s] += wq
+                    else:
+                        num[r, s] = wv
+                        den[r, s] = w
+                        var[r, s] = wq
+                elif mode == 0:
+                    num[r, s] = fb_tab[c, z]
+                    den[r, s] = -1.0 if hi_tab[c, z] else 0.0
+                elif mode == 2 and den[r, s] == 0:
+                    num[r, s] = fb_tab[c, z]
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, flag):  # pragma: no cover
+    """:func:`_finish` plus the variance of the result, in place over ``var``: ``q = var /
+    den^2`` is the variance of the weighted mean ``num / den`` in the sums' domain; ``log
+    E`` (log estimator) or ``E`` (``linear``).  Outputs: with ``scale > 0`` the variance of
+    ``E scale``: ``q scale^2`` (linear) or ``(E scale)^2 q`` (from ``log E``, the delta
+    method); else of ``log E``: ``q`` or ``q / E^2`` (linear).  Unmeasured samples:
+    ``unmeasured`` in ``log E``, ``unmeasured (E scale)^2`` in linear units.  Capped at the
+    float32 maximum (finite)."""
+    rows, cols = num.shape
+    ph, pw = pattern.shape
+    nf = dark_floor.shape[0]
+    big = np.float32(3.4e38)
+    for r in numba.prange(rows):
+        prow = pattern[r % ph]
+        for s in range(cols):
+            d = den[r, s]
+            f = 0
+            q = unmeasured
+            if d > 0:
+                v = num[r, s] / d
+                q = (var[r, s] / d) / d
+                if linear:
+                    if v > 0:
+                        if scale > 0:
+                            num[r, s] = v * scale
+                            var[r, s] = min(q * scale * scale, big)
+                            flag[r, s] = 0
+                            continue
+                        q = min((q / v) / v, big)
+                        v = np.log(v)
+                    else:
+                        v = dark_floor[min(prow[s % pw], nf - 1)]
+                        f = -1
+                        q = unmeasured
+            else:
+                v = num[r, s]
+                f = 1 if d < 0 else -1
+                den[r, s] = 0.0
+            if scale > 0:
+                e = np.exp(v) * scale
+                num[r, s] = e
+                var[r, s] = min((e * e) * q, big)
+            else:
+                num[r, s] = v
+                var[r, s] = q
             flag[r, s] = f
 
 

@@ -138,12 +138,13 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
                                     load, opts.deghost)
         timings["deghost"] = time.perf_counter() - t0
     h_ref = reference_exposure(opts.reference, exposures)
-    result, flags, den, iterations = reconstruct(frames, exposures, h_ref, models, load,
-                                                 motion.sample_weights(models.tables, models.pattern, frames, ghosts,
-                                                                       alignment), timings)
+    result, flags, den, variance, iterations = reconstruct(
+        frames, exposures, h_ref, models, load,
+        motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment), timings,
+        "variance" in opts.extra_channels)
     check_range(result, opts.half, opts.reference, h_ref)
     exposure_check, repeats = checks(frames, exposures, timings)
-    return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, iterations,
+    return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,
                   output_orientation(frames), alignment, ghosts, exposure_check, repeats, timings)
 
 
@@ -173,27 +174,35 @@ def prepare_loader(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: M
 
 
 def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,
-                timings: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+                timings: dict, with_variance: bool = False) -> tuple:
     """Stream the frames through (7) (:func:`_stream`), then ``models.n_irls`` passes of
     re-weighting at the merged estimate (:func:`~hdrmerge_cli.core.reconstruct.irls`).
-    Returns ``(E * h_ref, flags, summed weights, IRLS passes)``."""
+    Returns ``(E * h_ref, flags, summed weights, variance, IRLS passes)``; the variance
+    of ``E * h_ref`` under the noise model (float32, like the result) with
+    ``with_variance``, else None."""
     ml = models.estimator == "ml"
     # without IRLS the stream's last pass returns the linear image directly
-    result, flags, den, timings_stream = _stream(frames, models.tables, models.pattern, ml,
-                                                 None if models.n_irls else h_ref, load, weights_of)
+    result, flags, den, variance, timings_stream = _stream(frames, models.tables, models.pattern, ml,
+                                                           None if models.n_irls else h_ref, load, weights_of,
+                                                           with_variance and not models.n_irls)
     timings.update(timings_stream)
     if not models.n_irls:
-        return result, flags, den, 0
+        return result, flags, den, variance, 0
     t0 = time.perf_counter()
     maps = noise_rows(per_channel(models.noise, models.table_channels))
     y_full = [float(f.white[0] - f.black[0]) for f in frames]
-    log_e, flags, den, iterations, change = irls(lambda k: load(frames[k]), models.tables, models.pattern, result,
-                                                 exposures, y_full, maps, ml, models.n_irls)
+    log_e, flags, den, iterations, change, *var = irls(lambda k: load(frames[k]), models.tables, models.pattern,
+                                                       result, exposures, y_full, maps, ml, models.n_irls,
+                                                       variance=with_variance)
     log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
     result = np.exp(log_e, out=log_e)
     result *= np.float32(h_ref)
+    variance = None
+    if with_variance:  # Var(E h_ref) = (E h_ref)^2 Var(log E), the delta method
+        variance = var[0]
+        variance *= result * result
     timings["irls"] = time.perf_counter() - t0
-    return result, flags, den, iterations
+    return result, flags, den, variance, iterations
 
 
 # ---------------------------------------------------------------- checks after the merge
@@ -287,12 +296,13 @@ def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float) ->
 
 
 # ---------------------------------------------------------------- streaming
-def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None):
+def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
     """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
     decoded frames in memory.  Returns ``log E``, or ``E * scale`` when ``scale`` is given
-    (see :meth:`LogMerge.finish`), the flags and the summed weights."""
+    (see :meth:`LogMerge.finish`), the flags, the summed weights and, with ``variance``,
+    the result's variance (:attr:`LogMerge.variance`; else None)."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
-    acc = LogMerge(shape, pattern)
+    acc = LogMerge(shape, pattern, variance=variance)
     decode_time = 0.0
     merge_time = 0.0
 
@@ -320,4 +330,5 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
     result, flags = acc.finish(linear, scale)
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
-    return result, flags, acc.den, {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total}
+    return (result, flags, acc.den, acc.variance if variance else None,
+            {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total})

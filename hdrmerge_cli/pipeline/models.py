@@ -67,7 +67,8 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     # RAW: always measured (the ML default needs it); images only where the options ask for
     # a noise model (their default, the log estimator with code-error variances, does not)
     needs_noise = (opts.variance == "model" or (weights in NOISE_MODEL_WEIGHTS and weights != "bounded")
-                   or bool(opts.irls) or estimator == "ml" or (opts.variance == "auto" and first.kind in ("raw", "linear")))
+                   or bool(opts.irls) or estimator == "ml" or (opts.variance == "auto" and first.kind in ("raw", "linear"))
+                   or "variance" in opts.extra_channels)
     if noise is None and needs_noise and not opts.lut:
         t1 = time.perf_counter()
         noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache)
@@ -87,7 +88,8 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     luts = lut_columns(opts.lut, frames) if opts.lut else None
     bounds = parse_bounds(opts.bounds) if opts.bounds else None
     tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
-                                                   estimator, luts, bounds)
+                                                   estimator, luts, bounds,
+                                                   with_variance="variance" in opts.extra_channels and not n_irls)
     timings["tables"] = time.perf_counter() - t0
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
                   table_channels, timings)
@@ -241,10 +243,11 @@ def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
 
 
 def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-            luts=None, bounds=None):
+                 luts=None, bounds=None, with_variance=False):
     """Per-frame lookup tables (each frame with its own black and white levels), the
     periodic pattern of table rows (see :class:`LogMerge`; None when one row serves every
-    channel) and the table rows' channel names."""
+    channel) and the table rows' channel names.  ``with_variance``: the tables also hold
+    each frame's per-code variance (``--extra-channels variance``, streamed by :class:`LogMerge`)."""
     first = frames[0]
     names = first.channel_names
     chan_noise = per_channel(noise, names) if noise else None
@@ -258,6 +261,6 @@ def build_tables(frames, exposures, crf, weights, noise=None, variance="none", p
     tables = [exposure_tables(f.n_codes if luts else table_size(f.white, f.n_codes),
                               f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
-                              bounds=bounds)
+                              bounds=bounds, with_variance=with_variance)
               for j, (f, h) in enumerate(zip(frames, exposures))]
     return tables, None if shared else sample_pattern(first), names

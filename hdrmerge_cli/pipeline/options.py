@@ -7,7 +7,7 @@ from pathlib import Path
 from hdrmerge_cli.core.noise import DEFAULT_K
 
 #: extra EXR channels a user may ask for
-EXTRA_CHANNELS = ("clipped", "weight", "ghost")
+EXTRA_CHANNELS = ("clipped", "weight", "ghost", "variance")
 
 #: estimator choices: log = the paper's (7), ml = linear inverse-variance (censored)
 ESTIMATORS = ("auto", "log", "ml")

@@ -45,6 +45,8 @@ class Merged:
         white balance, demosaic and the camera matrix, which :meth:`strip` applies)
     flag_samples : int8, per sample of ``result``: 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
     den : float32, per sample, the summed weights of the frames that measured it
+    variance : float32 like ``result``, the noise model's variance of each value (in
+        ``result``'s units squared; ``--extra-channels variance``), or None
     """
 
     frames: list[Frame]
@@ -56,6 +58,7 @@ class Merged:
     result: np.ndarray
     flag_samples: np.ndarray
     den: np.ndarray
+    variance: np.ndarray | None = None
     iterations: int = 0
     orientation: int = 1
     alignment: dict | None = None
@@ -82,7 +85,17 @@ class Merged:
 
     @property
     def channel_names(self) -> list[str]:
-        return self.colour_channels + [c for c in EXTRA_CHANNELS if c in self.options.extra_channels]
+        """The EXR's channels: colour, then the data channels asked for, whose names end
+        in no R, G or B (the Color Interop Forum's rule for channels that are not colour)."""
+        extra = [c for c in EXTRA_CHANNELS if c in self.options.extra_channels and c != "variance"]
+        return self.colour_channels + extra + self.variance_channels
+
+    @property
+    def variance_channels(self) -> list[str]:
+        """``variance`` (one colour channel) or ``variance.red/green/blue``."""
+        if "variance" not in self.options.extra_channels:
+            return []
+        return ["variance"] if len(self.colour_channels) == 1 else ["variance.red", "variance.green", "variance.blue"]
 
     @cached_property
     def flags(self) -> np.ndarray:
@@ -155,6 +168,25 @@ class Merged:
         space = COLORSPACES[cs]
         return {"chromaticities": list(space.chromaticities), "colorInteropID": space.interop_id}
 
+    def variance_rows(self, y0: int, y1: int) -> np.ndarray:
+        """Rows ``y0:y1`` of the variance of :meth:`colour_rows`, per channel, under the
+        noise model: each value's variance scaled as the colour is (gain^2 for the white
+        balance, the matrix's squared entries), correlations between channels ignored.
+        RAW RGB: each colour's variance is that of the pixel's own 2 x 2 CFA cell (the
+        mean over its sites of that colour); the demosaic's averaging of neighbours, which
+        lowers the variance of interpolated values, is not counted (an upper bound there).
+        Exact for a mosaic (``--cfa``) and for images in their own colour space."""
+        first, matrix = self.first, self.colour_matrix
+        sq = None if matrix is None else np.square(np.asarray(matrix, np.float32))
+        if first.kind == "raw" and not self.options.cfa:
+            var = _cell_planes(self.variance, first.cfa_pattern, y0, y1)
+            var *= np.square(first.white_balance).astype(np.float32)
+        else:
+            var = self.variance[y0:y1].reshape(y1 - y0, first.width, -1)
+            if first.kind == "linear" and first.channels == 3:
+                var = var * np.square(first.white_balance).astype(np.float32)
+        return var if sq is None else camera_to_rec709(var, sq)
+
     def strip(self, y0: int, ghost_img: np.ndarray | None = None, wsum: np.ndarray | None = None):
         """``(y0, rows)``: rows ``y0:y0 + STRIP_ROWS`` of the EXR, colour and extra
         channels, so no full-size RGB copy is ever held."""
@@ -168,6 +200,8 @@ class Merged:
             planes.append(wsum[y0:y1, :, None].astype(np.float32))
         if ghost_img is not None:
             planes.append(ghost_img[y0:y1, :, None])
+        if "variance" in extra:
+            planes.append(self.variance_rows(y0, y1))
         return y0, np.concatenate(planes, axis=-1) if len(planes) > 1 else rgb
 
     def profile(self, profile_name: str | None = None) -> dict:
@@ -212,6 +246,11 @@ class Merged:
         attrs.update(self.colour_tags())
         if first.kind == "raw" and self.options.cfa:
             attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
+        if self.variance_channels:
+            attrs["hdrmerge:varianceChannels"] = (
+                "variance of each colour value under the noise model (inverse of the summed Fisher information of "
+                "the frames that measured it, or the exact variance of the weighted mean), in the colour channels' "
+                "units squared; samples no frame measured: the value squared")
         if self.orientation != 1:  # the pixels stay in sensor order; viewers rotate by the header
             attrs["Orientation"] = self.orientation
         return attrs
@@ -315,6 +354,20 @@ class Merged:
             **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
             "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
         }
+
+
+def _cell_planes(mosaic: np.ndarray, pattern: str, y0: int, y1: int) -> np.ndarray:
+    """Rows ``y0:y1`` (``y0`` even) of ``(rows, W, 3)``: at every pixel, the mean of each
+    colour's sites in the pixel's 2 x 2 CFA cell (a nearest-cell upsampling)."""
+    h, w = mosaic.shape
+    part = mosaic[y0:min(h, y1 + (y1 % 2))]
+    if part.shape[0] % 2 or w % 2:  # odd edges: repeat the last row / column
+        part = np.pad(part, ((0, part.shape[0] % 2), (0, w % 2)), mode="edge")
+    planes = {"R": [], "G": [], "B": []}
+    for i, colour in enumerate(pattern):
+        planes[colour].append(part[i // 2::2, i % 2::2])
+    cells = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1).astype(np.float32)
+    return np.repeat(np.repeat(cells, 2, axis=0), 2, axis=1)[:y1 - y0, :w]
 
 
 #: longest side of the preview embedded in a DNG
