@@ -10,3 +10,15 @@ try:
     __version__ = version("hdrmerge-cli")
 except PackageNotFoundError:  # running from a source tree without installing
     __version__ = "0.0.0+source"
+
+#: the Python API (:mod:`hdrmerge_cli.api`), imported on first use so that the command
+#: line's start-up does not pay for it
+__all__ = ["Merged", "MergeOptions", "merge", "merge_arrays", "__version__"]
+
+
+def __getattr__(name: str):
+    if name in ("Merged", "MergeOptions", "merge", "merge_arrays"):
+        from hdrmerge_cli import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'hdrmerge_cli' has no attribute {name!r}")

@@ -335,3 +335,39 @@ def apply_warp_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, perio
             w_sub = np.hstack([a, ((a @ d + warp[:, 2] - d) / 2)[:, None]])
             out[dy::2, dx::2] = apply_warp(sub, w_sub, clip_code)
     return out
+
+
+def tap_variance(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """The spread of the source samples bilinear resampling (:func:`apply_warp`) mixes into
+    each output sample, float32 in squared codes, shape of ``codes``: ``sum_i w_i z_i^2 -
+    (sum_i w_i z_i)^2`` over the (up to 4) taps ``z_i`` with their bilinear weights ``w_i``
+    (two float warps).  It is the variance of the interpolated value if the true one were
+    any of the taps, in proportion to their weights: 0 where the warp lands on a sample or
+    the neighbourhood is flat, the squared contrast across an edge the warp falls inside.
+    The merge adds it to a resampled sample's variance (:func:`hdrmerge_cli.pipeline.motion.sample_weights`),
+    so that where resampling cannot reproduce the scene (sharp edges, detail finer than the
+    sample pitch, e.g. a CFA colour's sub-plane) the frames that were not resampled decide.
+    float32 round-off of ``z^2`` is ``6e-8 z^2``, far below the noise of a reading ``z``."""
+    cv2 = _cv2()
+    h, w = codes.shape[:2]
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    m = np.asarray(warp, np.float32)
+    z = np.ascontiguousarray(codes, np.float32)
+    mean = cv2.warpAffine(z, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    np.multiply(z, z, out=z)
+    second = cv2.warpAffine(z, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    second -= mean * mean
+    return np.maximum(second, 0.0, out=second).reshape(codes.shape)
+
+
+def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """:func:`tap_variance` of :func:`apply_warp_mosaic`'s per-colour resampling (each
+    same-colour sub-plane on its own)."""
+    out = np.empty(codes.shape, np.float32)
+    a = warp[:, :2]
+    for dy in (0, 1):
+        for dx in (0, 1):
+            d = np.array([dx, dy], np.float64)
+            w_sub = np.hstack([a, ((a @ d + warp[:, 2] - d) / 2)[:, None]])
+            out[dy::2, dx::2] = tap_variance(codes[dy::2, dx::2], w_sub)
+    return out

@@ -203,6 +203,20 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32
     return (x * np.exp(shift)).astype(x.dtype)
 
 
+def match_channels(x: np.ndarray, xa: np.ndarray, both: np.ndarray, nc: int) -> np.ndarray:
+    """:func:`match_anchor` for each of the ``nc`` interleaved channels of ``(H, W * nc)``
+    samples on its own: a camera applies its tone curve per channel after white balance,
+    so where the assumed response is not the camera's, each channel is off by a curve of
+    its own, which one curve over all channels cannot absorb (a coloured surface then
+    differs between exposures by tens of per cent in one channel)."""
+    if nc == 1:
+        return match_anchor(x, xa, both)
+    out = np.empty_like(x)
+    for c in range(nc):
+        out[:, c::nc] = match_anchor(x[:, c::nc], xa[:, c::nc], both[:, c::nc])
+    return out
+
+
 def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32) -> np.ndarray:
     """Per sample, the factor ``lambda`` by which the model variance under-predicts the
     spread of a static scene's differences: ``median(T) / median(chi2_1)`` in equal-count
@@ -341,13 +355,14 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     pixels: ``ALIGN_TOLERANCE_PX^2 |grad x|^2``), ``cell = (ph, pw)`` samples per cell.
     The variance of a difference is the noise of both frames, the model tolerance and
     the registration tolerance along the gradient, times the measured level scale
-    (:func:`level_scale`, with ``scale``).  With ``smooth`` the frame is also divided by
+    (:func:`level_scale`, with ``scale``), after each channel is matched to the anchor
+    (:func:`match_channels`, ``pw`` the channels per cell).  With ``smooth`` the frame is also divided by
     :func:`smooth_ratio_field` (``pw`` the channels per cell); a cell is then kept only
     where its mean log ratio exceeds ``min_change`` in size and, where ``excuse``
     (:func:`glare_excuse`, per cell) is non-zero, does not have its sign.  Returns
     ``(H // ph, W' // pw)`` bool."""
     both = valid & valid_a
-    x = match_anchor(x, xa, both)
+    x = match_channels(x, xa, both, cell[1])
     r = None
     if smooth or min_change > 0 or excuse is not None:
         pos = both & (x > 0) & (xa > 0)

@@ -471,7 +471,8 @@ def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps
 
 
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
-         linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False):
+         linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
+         den: np.ndarray | None = None):
     """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E).
@@ -479,6 +480,13 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
     y_full : per frame, the full-scale code value ``white - black``
     rows : :func:`noise_rows`
+    adjust : optional ``(k, codes, w) -> (w', factor)``: frame k's weights ``w``
+        (``(rows, cols)`` of the samples) as the merge uses them (e.g. with a resampling
+        variance added and a ghost / coverage ``factor`` in [0, 1] applied, or None), the
+        factor also applied to the frame's censored terms
+    den : the summed inverse-variance weights of ``log_e``'s estimate (ML: ``1 / Var E``;
+        :class:`LogMerge`'s ``den``), which lets the first pass drop clipped readings the
+        estimate makes impossible (motion); later passes use their predecessor's
     variance : also return the variance of ``log E`` of the last pass (needs no
         ``with_variance`` tables): each frame's weight ``w_j = w(z) I_j`` is its certainty
         times its Fisher information at the previous estimate, ``I_j = 1 / Var(x_j)`` with
@@ -494,7 +502,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     Returns ``(log_e, flags, den, passes, largest_change)``, and with ``variance`` the
     variance of ``log_e`` (float32, like ``log_e``) as a sixth element.
     """
-    flags = den = None
+    flags = None
+    prev_den = den if linear else None
     change = np.inf
     pat = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
     shape2 = _rows_cols(log_e.shape)
@@ -508,18 +517,32 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             codes = codes_of(k)
             _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
                                np.float32(h * y_full[k]), *rows, linear, weight)
-            acc.add(codes, tab, last=k == len(tables) - 1, weight=weight.reshape(log_e.shape), information=True)
+            w, factor = (weight, None) if adjust is None else adjust(k, codes, weight)
+            acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True)
             if linear and tab.saturated is not None:
                 sat = lookup(tab.saturated, tab.n_codes, codes, pattern)
                 # a clipped reading whose current estimate lies more than CENSORED_SDS noise
-                # sds above full scale carries no information (weight ~ phi(8)): skipped
+                # sds above full scale carries no information (weight ~ phi(8)): skipped; one
+                # whose estimate lies more than CENSORED_SDS sds below it is impossible under
+                # the model (probability ~ Phi(-8)): the frame saw something else there
+                # (motion, a ghost), and its bound must not pull the estimate: skipped too
                 sd_full = np.sqrt(max_rows[0] + max_rows[1] * y_full[k] + max_rows[2] * y_full[k] ** 2)
                 sat &= log_e < np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * sd_full) / (h * y_full[k])))
+                if prev_den is not None and sat.any():
+                    # the reading the estimate predicts, ``E h y_full``, with the estimate's own
+                    # uncertainty (``Var E = 1 / den`` of the previous pass) and the noise at
+                    # full scale: a clip more than CENSORED_SDS combined sds above it is dropped
+                    kf = h * y_full[k]
+                    d = prev_den[sat]
+                    sd = np.sqrt(sd_full ** 2 + np.where(d > 0, kf * kf / np.where(d > 0, d, 1.0), np.inf))
+                    sat[sat] = np.exp(log_e[sat].astype(np.float64)) * kf > y_full[k] - 0.5 - CENSORED_SDS * sd
                 if sat.any():
                     if cen_num is None:
                         cen_num, cen_den = np.zeros(log_e.shape, np.float32), np.zeros(log_e.shape, np.float32)
                     r = _rows_of(sat.reshape(shape2), pat)
                     cw, cv = censored_terms(log_e[sat], h, y_full[k], [m[r] for m in rows])
+                    if factor is not None:
+                        cw *= factor.reshape(log_e.shape)[sat]
                     cen_num[sat] += cw * cv
                     cen_den[sat] += cw
         if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
@@ -529,7 +552,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             if variance:  # certainty 1: w^2 Var = the information itself
                 acc.var[measured] += cen_den[measured]
         new, flags = acc.finish(linear)
-        den = acc.den
+        den = prev_den = acc.den
         change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
         log_e = new
         if change < tol:
@@ -576,10 +599,11 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
         return out, flags, acc.den, acc.variance
     if not irls_iterations:
         return merge_in_memory(codes, tables, pattern, estimator == "ml", scale)
-    log_e, flags, _ = merge_in_memory(codes, tables, pattern, estimator == "ml")
+    log_e, flags, den = merge_in_memory(codes, tables, pattern, estimator == "ml")
     y_full = [float(white[0] - black[0])] * len(codes)
     log_e, flags, den, *_, var = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full,
-                                      noise_rows(noise), estimator == "ml", irls_iterations, variance=with_variance)
+                                      noise_rows(noise), estimator == "ml", irls_iterations, variance=with_variance,
+                                      den=den)
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)
     if not with_variance:

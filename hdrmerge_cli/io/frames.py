@@ -62,6 +62,9 @@ class Frame:
     color_matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
     orientation: int = 1
     file_levels: tuple | None = None
+    #: RAW: the 2 x 2 cell of LibRaw's colour index (0..3) when known without the file
+    #: (frames made from arrays, :func:`hdrmerge_cli.merge_arrays`); else read by :func:`cfa_corner`
+    cfa_cell: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -409,6 +412,11 @@ def linear_codes(stored: np.ndarray, frame: Frame) -> np.ndarray:
         np.clip(v, 0, 65535, out=v)
         out[..., c] = v
     return out
+
+
+def cfa_corner(frame: Frame) -> np.ndarray:
+    """The top-left 2 x 2 cell of a RAW frame's colour index map (0..3, LibRaw's order)."""
+    return frame.cfa_cell if frame.cfa_cell is not None else raw_channel_map(frame.path)[:2, :2]
 
 
 def raw_channel_map(path: str) -> np.ndarray:

@@ -140,6 +140,8 @@ def sample_pattern(frame: Frame) -> np.ndarray:
     """Which table row each sample reads, as the periodic pattern of :class:`LogMerge`:
     the 2 x 2 CFA cell of a RAW frame, the channel order of an image."""
     if frame.kind == "raw":
+        if frame.cfa_cell is not None:
+            return np.asarray(frame.cfa_cell, np.intp)
         return cfa_cell(raw_channel_map(frame.path))
     return np.arange(frame.channels, dtype=np.intp)[None, :]
 

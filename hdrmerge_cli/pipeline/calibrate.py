@@ -15,7 +15,7 @@ from hdrmerge_cli.core.calibrate import NoiseFit, estimate_noise
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable
-from hdrmerge_cli.io.frames import Frame, list_frames, load_codes, raw_channel_map, read_frame
+from hdrmerge_cli.io.frames import Frame, cfa_corner, list_frames, load_codes, read_frame
 from hdrmerge_cli.io.noisespec import iso_key
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
@@ -49,7 +49,7 @@ def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | No
     2 x 2 visible sites, read from the file when not given), the linearised colour
     channels otherwise."""
     if frame.kind == "raw":
-        corner = raw_channel_map(frame.path)[:2, :2] if corner is None else corner
+        corner = cfa_corner(frame) if corner is None else corner
         for k, name in enumerate(frame.channel_names):
             ys, xs = np.nonzero(corner == k)
             if ys.size:
@@ -100,7 +100,7 @@ def _read_group(frames: list[Frame], crf, what: str, reduce=None, load=load_code
     usability is judged on the whole planes first), so a bracket's full-size planes are never
     all held at once.  Frames are decoded two at a time (both cores)."""
     # one camera (checked): the CFA layout is read once, not by a second decode per frame
-    corner = raw_channel_map(frames[0].path)[:2, :2] if frames and frames[0].kind == "raw" else None
+    corner = cfa_corner(frames[0]) if frames and frames[0].kind == "raw" else None
 
     def read(f):  # usability is judged on the whole frame (sparse lamps may miss a subsample)
         planes = list(channel_planes(f, load(f), crf, corner))

@@ -20,7 +20,7 @@ from hdrmerge_cli.core.exposure import (
     LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, border_mask, comparagram, constant_border, estimate_exposures,
     order_test, response_from_comparagrams, robust_log_ratio,
 )
-from hdrmerge_cli.io.frames import Frame, load_codes, raw_channel_map
+from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -76,7 +76,7 @@ def normalise(frame: Frame, codes: np.ndarray, step: int = 1, cell: np.ndarray |
 
 def _step_and_cell(first: Frame, max_samples: int = MAX_SAMPLES) -> tuple[int, np.ndarray | None]:
     step = max(1, int(np.ceil(np.sqrt(first.width * first.height / max_samples))))
-    cell = raw_channel_map(first.path)[:2, :2].astype(np.intp) if first.kind == "raw" else None
+    cell = cfa_corner(first).astype(np.intp) if first.kind == "raw" else None
     return step, cell
 
 

@@ -121,10 +121,10 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     alignment = None
     if opts.align != "off":
         t1 = time.perf_counter()
-        alignment = motion.estimate_alignment(frames, exposures, crf, opts.align)
+        alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
         timings["align"] = time.perf_counter() - t1
-    load, frames, exposures, checks = prepare_loader(frames, exposures, crf, opts, motion.loader(frames, alignment)
-                                                     if load is load_codes else load)
+    aligned = motion.loader(frames, alignment, load)
+    load, frames, exposures, checks = prepare_loader(frames, exposures, crf, opts, aligned)
     if opts.cfa and frames[0].kind == "linear":
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
     models = choose_models(frames, exposures, crf, opts, load, noise)
@@ -140,7 +140,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     h_ref = reference_exposure(opts.reference, exposures)
     result, flags, den, variance, iterations = reconstruct(
         frames, exposures, h_ref, models, load,
-        motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment), timings,
+        motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned), timings,
         "variance" in opts.extra_channels)
     check_range(result, opts.half, opts.reference, h_ref)
     exposure_check, repeats = checks(frames, exposures, timings)
@@ -193,7 +193,9 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     y_full = [float(f.white[0] - f.black[0]) for f in frames]
     log_e, flags, den, iterations, change, *var = irls(lambda k: load(frames[k]), models.tables, models.pattern,
                                                        result, exposures, y_full, maps, ml, models.n_irls,
-                                                       variance=with_variance)
+                                                       variance=with_variance,
+                                                       adjust=None if weights_of is None else weights_of.adjust,
+                                                       den=den)
     log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
     result = np.exp(log_e, out=log_e)
     result *= np.float32(h_ref)

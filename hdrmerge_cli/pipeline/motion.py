@@ -48,7 +48,7 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     return lin.mean(axis=-1, dtype=np.float32)
 
 
-def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str) -> dict:
+def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
     """Warps bringing every frame onto the reference (``core.align``).  ``auto`` registers
     with rotation too and keeps a frame's rotation only where it beats translation, and
     applies the warps only when some frame is displaced by more than
@@ -67,7 +67,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     def image(k: int) -> np.ndarray:
         if k not in held:
             held.pop(next((j for j in held if j not in (k - 1, k + 1)), None), None)
-            held[k] = _linear(frames[k], load_codes(frames[k]), crf)
+            held[k] = _linear(frames[k], load(frames[k]), crf)
         return held[k]
 
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
@@ -137,21 +137,53 @@ def whole_periods_suffice(warps) -> bool:
     return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
 
 
-def loader(frames: list[Frame], alignment: dict | None):
-    """``frame -> codes``, brought onto the reference when the alignment is applied."""
+def loader(frames: list[Frame], alignment: dict | None, load=load_codes):
+    """``frame -> codes`` (``load``), brought onto the reference when the alignment is
+    applied (an :class:`AlignedLoader`)."""
     if not alignment or not alignment["applied"]:
-        return load_codes
-    warps = {f.path: w for f, w in zip(frames, alignment["warps"])}
-    periods = alignment["resampling"] == "cfa-periods"
+        return load
+    return AlignedLoader(frames, alignment, load)
 
-    def load(frame: Frame) -> np.ndarray:
-        codes = load_codes(frame)
+
+class AlignedLoader:
+    """``frame -> codes`` brought onto the reference.  A RAW frame resampled per CFA
+    colour also leaves the spread of the samples each value was interpolated from
+    (:func:`~hdrmerge_cli.core.align.tap_variance`) for :class:`SampleWeights`; the
+    spreads of the :data:`KEEP` latest decodes are kept (the merge holds two frames)."""
+
+    KEEP = 3
+
+    def __init__(self, frames: list[Frame], alignment: dict, load=load_codes):
+        self.load = load
+        self.warps = {f.path: w for f, w in zip(frames, alignment["warps"])}
+        self.periods = alignment["resampling"] == "cfa-periods"
+        self.spreads: dict[str, np.ndarray] = {}
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        codes = self.load(frame)
         clip = int(np.max(frame.white))
-        if frame.kind == "raw":
-            return align.apply_warp_mosaic(codes, warps[frame.path], clip, periods)
-        return align.apply_warp(codes, warps[frame.path], clip)
+        w = self.warps[frame.path]
+        if frame.kind != "raw":
+            # full-resolution bilinear resampling of images: no tap variance (on the 8-bit cases
+            # of benchmarks/motion.py it cost 1-5 dB away from the ghost: the taps' spread is
+            # mostly the codes' noise and quantisation there, which the tables already hold)
+            return align.apply_warp(codes, w, clip)
+        out = align.apply_warp_mosaic(codes, w, clip, self.periods)
+        self.spreads.pop(frame.path, None)
+        if not self.periods and not is_identity(w):
+            self.spreads[frame.path] = align.tap_variance_mosaic(codes, w)
+            while len(self.spreads) > self.KEEP:
+                self.spreads.pop(next(iter(self.spreads)))
+        return out
 
-    return load
+    def spread(self, frame: Frame) -> np.ndarray | None:
+        """The tap variance (squared codes) of the frame's latest decode, or None."""
+        return self.spreads.get(frame.path)
+
+
+def is_identity(warp: np.ndarray) -> bool:
+    """Whether a warp moves nothing (the reference's; no resampling)."""
+    return bool(np.allclose(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), rtol=0.0, atol=1e-9))
 
 
 def _samples(codes: np.ndarray) -> np.ndarray:
@@ -315,25 +347,70 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
     return inside if frame.kind == "raw" else np.repeat(inside, frame.channels, axis=1)
 
 
-def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None):
-    """``(k, codes) -> weights`` for the merge (see :meth:`LogMerge.add`), or None when
-    neither applies: frame ``k``'s table weight ``w(z) sigma^-2``, zero in its rejected
-    ghost cells and where the aligned frame does not cover the reference."""
+def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None,
+                   load=None):
+    """The per-sample weights of the merge (a :class:`SampleWeights`), or None when
+    neither the deghosting nor the alignment is applied.  ``load``: the merge's
+    :class:`AlignedLoader` (for the resampling spreads)."""
     ghosts = ghosts if ghosts and ghosts["applied"] else None
     alignment = alignment if alignment and alignment["applied"] else None
     if ghosts is None and alignment is None:
         return None
+    return SampleWeights(tables, pattern, frames, ghosts, alignment, load if isinstance(load, AlignedLoader) else None)
 
-    def weights(k: int, codes: np.ndarray) -> np.ndarray:
-        w = _samples(lookup(tables[k].weight, tables[k].n_codes, codes, pattern))
-        if ghosts is not None and ghosts["masks"][k].any():  # w (1 - m): feathered, no seam
-            keep = 1.0 - ghost_weight(ghosts, k, frames[k].height, frames[k].width)
-            w *= keep if frames[k].kind == "raw" else np.repeat(keep, w.shape[1] // keep.shape[1], axis=1)
+
+class SampleWeights:
+    """``(k, codes) -> weights`` of frame ``k`` for the merge (see :meth:`LogMerge.add`):
+    its table weight ``w(z) sigma^-2`` through :meth:`adjust`, which also re-weights the
+    IRLS passes (:func:`~hdrmerge_cli.core.reconstruct.irls`)."""
+
+    def __init__(self, tables, pattern, frames, ghosts, alignment, load):
+        self.tables, self.pattern, self.frames = tables, pattern, frames
+        self.ghosts, self.alignment, self.load = ghosts, alignment, load
+
+    def factor(self, k: int) -> np.ndarray | None:
+        """``(H, W')`` float32 in [0, 1], or None (all 1): zero where the aligned frame does
+        not cover the reference, ``1 - m`` in its rejected ghost cells (feathered ``m``, so
+        no seam)."""
+        frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
+        out = None
+        if ghosts is not None and ghosts["masks"][k].any():
+            keep = 1.0 - ghost_weight(ghosts, k, frame.height, frame.width)
+            out = keep if frame.kind == "raw" else np.repeat(keep, frame.channels, axis=1)
         if alignment is not None:
-            w *= covered(frames[k], alignment["warps"][k], alignment["resampling"] == "cfa-periods")
-        return w.reshape(codes.shape).astype(np.float32, copy=False)
+            inside = covered(frame, alignment["warps"][k], alignment["resampling"] == "cfa-periods")
+            out = inside.astype(np.float32) if out is None else out * inside
+        return out
 
-    return weights
+    def adjust(self, k: int, codes: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Inverse-variance weights ``w`` (``(H, W')``) of frame ``k``'s ``codes`` with the
+        resampling's variance added (:func:`resampled_weight`), times :meth:`factor`;
+        returns ``(weights, factor)``."""
+        spread = self.load.spread(self.frames[k]) if self.load is not None else None
+        if spread is not None:
+            w = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread))
+        f = self.factor(k)
+        return (w if f is None else w * f), f
+
+    def __call__(self, k: int, codes: np.ndarray) -> np.ndarray:
+        w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
+        return self.adjust(k, codes, w)[0].reshape(codes.shape).astype(np.float32, copy=False)
+
+
+def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray) -> np.ndarray:
+    """Inverse-variance weights of resampled samples: a table weight ``w = c / v`` (``c``
+    the weighting function ``w(z)``, ``v`` the variance of the sample's value) becomes
+    ``c / (v + u)``, ``u`` the interpolation's variance: the tap variance in squared codes
+    (:func:`~hdrmerge_cli.core.align.tap_variance`) times the squared slope of the value
+    table (linear or log value per code) at the sample's code.  Both ``(H, W')``."""
+    n = tables.n_codes
+    slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
+    u = _samples(lookup(slope, n, codes, pattern))
+    u *= u
+    u *= spread
+    c = _samples(lookup(tables.certainty, n, codes, pattern))
+    den = c + w * u
+    return np.where(den > 0, w * c / np.where(den > 0, den, 1.0), 0.0).astype(np.float32)
 
 
 def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:

@@ -45,8 +45,8 @@ class Merged:
         white balance, demosaic and the camera matrix, which :meth:`strip` applies)
     flag_samples : int8, per sample of ``result``: 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
     den : float32, per sample, the summed weights of the frames that measured it
-    variance : float32 like ``result``, the noise model's variance of each value (in
-        ``result``'s units squared; ``--extra-channels variance``), or None
+    variance_samples : float32 like ``result``, the noise model's variance of each value
+        (in ``result``'s units squared; ``--extra-channels variance``), or None
     """
 
     frames: list[Frame]
@@ -58,7 +58,7 @@ class Merged:
     result: np.ndarray
     flag_samples: np.ndarray
     den: np.ndarray
-    variance: np.ndarray | None = None
+    variance_samples: np.ndarray | None = None
     iterations: int = 0
     orientation: int = 1
     alignment: dict | None = None
@@ -111,6 +111,16 @@ class Merged:
     def image(self) -> np.ndarray:
         """``(H, W, 3)`` (or ``(H, W, 1)``) float32 scene-linear colour, as the EXR holds it."""
         return np.concatenate([self.colour_rows(y0, min(self.shape[0], y0 + STRIP_ROWS))
+                               for y0 in range(0, self.shape[0], STRIP_ROWS)])
+
+    @property
+    def variance(self) -> np.ndarray | None:
+        """``(H, W, 3)`` (or ``(H, W, 1)``) float32: the variance of each value of
+        :attr:`image` (:meth:`variance_rows`); None unless ``extra_channels`` has
+        ``variance``."""
+        if self.variance_samples is None:
+            return None
+        return np.concatenate([self.variance_rows(y0, min(self.shape[0], y0 + STRIP_ROWS))
                                for y0 in range(0, self.shape[0], STRIP_ROWS)])
 
     @property
@@ -179,10 +189,10 @@ class Merged:
         first, matrix = self.first, self.colour_matrix
         sq = None if matrix is None else np.square(np.asarray(matrix, np.float32))
         if first.kind == "raw" and not self.options.cfa:
-            var = _cell_planes(self.variance, first.cfa_pattern, y0, y1)
+            var = _cell_planes(self.variance_samples, first.cfa_pattern, y0, y1)
             var *= np.square(first.white_balance).astype(np.float32)
         else:
-            var = self.variance[y0:y1].reshape(y1 - y0, first.width, -1)
+            var = self.variance_samples[y0:y1].reshape(y1 - y0, first.width, -1)
             if first.kind == "linear" and first.channels == 3:
                 var = var * np.square(first.white_balance).astype(np.float32)
         return var if sq is None else camera_to_rec709(var, sq)
