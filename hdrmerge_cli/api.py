@@ -116,9 +116,8 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
     arrays, times = [arrays[i] for i in order], [times[i] for i in order]
     frames = [_frame(f"<array {order[k]}>", a, t, cfa_pattern, black, white, bits, container)
               for k, (a, t) in enumerate(zip(arrays, times))]
-    by_path = {f.path: a if a.ndim == 2 or f.kind == "raw" else a for f, a in zip(frames, arrays)}
-    if frames[0].kind == "image" and first.ndim == 2:
-        by_path = {p: a[..., None] for p, a in by_path.items()}
+    grey = frames[0].kind == "image" and first.ndim == 2  # decoded images are (H, W, C)
+    by_path = {f.path: a[..., None] if grey else a for f, a in zip(frames, arrays)}
     options.setdefault("noise_cache", False)  # no camera to key a cache entry by
     opts = MergeOptions(**options)
     check_options(opts)

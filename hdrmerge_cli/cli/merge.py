@@ -31,7 +31,8 @@ log = logging.getLogger("hdrmerge_cli")
 @click.command("merge")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
-              help="The EXR to write (with --batch: the folder to write one EXR per bracket to).")
+              help="The EXR to write, or from RAW a floating-point DNG (*.dng: the merged mosaic, for raw editors) "
+                   "(with --batch: the folder to write one EXR per bracket to).")
 @click.option("--batch", "batch_dir", type=click.Path(exists=True, file_okay=False),
               help="Merge every bracket in this folder instead of IMAGES: frames are grouped by capture-time gaps "
                    "(--gap) and by the exposure sequence starting again; each bracket's EXR is named after its "
@@ -66,7 +67,7 @@ log = logging.getLogger("hdrmerge_cli")
                    "colorInteropID): " + "; ".join(f"{k}: {v.description}" for k, v in COLORSPACES.items())
                    + ".  RAW converts through the camera matrix; images are taken as sRGB primaries.")
 @click.option("--cfa", is_flag=True, help="RAW: write the merged mosaic (channel Y, camera-native, no demosaic).")
-@click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats.")
+@click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats (EXR and DNG).")
 @click.option("--compression", type=click.Choice(list(EXR_COMPRESSIONS)), default="auto", show_default=True,
               help="OpenEXR compression: " + "; ".join(f"{k}: {v}" for k, v in EXR_COMPRESSIONS.items()) + ".")
 @click.option("--no-cache", "no_cache", is_flag=True,
@@ -149,7 +150,7 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
     if given & {"jobs", "gap", "scheduler", "skip_existing", "dry_run"}:
         raise click.UsageError("--jobs, --gap, --scheduler, --skip-existing and --dry-run apply to --batch only")
     if output.is_dir():
-        raise click.UsageError(f"{output} is a folder; -o names the EXR to write (or use --batch DIR)")
+        raise click.UsageError(f"{output} is a folder; -o names the EXR or DNG to write (or use --batch DIR)")
     summary = merge(list(images), opts)
     emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")
 
