@@ -414,9 +414,12 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
         if hdrmerge else None
     ours_small = best_timed(base_cmd, cache, 3)
     ours_small_cold = best_timed(base_cmd + ["--no-cache"], cache, 2)
+    ours_small_dng = best_timed(base_cmd[:base_cmd.index("-o") + 1] + [str(tmp / "small.dng"), "--overwrite", "--json"],
+                                cache, 3)
     ref = hm_small["wall"] if hm_small else None
     case = "4 x 0.4 MP DNG"
     row(case, "hdrmerge-cli merge (noise cache filled)", ours_small, ref, "")
+    row(case, "hdrmerge-cli merge -o out.dng (float DNG, as HDRMerge)", ours_small_dng, ref, "")
     row(case, "hdrmerge-cli merge --no-cache", ours_small_cold, ref, "noise measured")
     row(case, "HDRMerge -b 32 (float DNG)", hm_small, ref)
 
@@ -432,6 +435,8 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
     timed(big_cmd, cache)  # fills the cache
     ours_big = best_timed(big_cmd, cache, 2)
     ours_big_no_irls = best_timed(big_cmd + ["--irls", "0"], cache, 1)
+    ours_big_dng = best_timed(big_cmd[:big_cmd.index("-o") + 1] + [str(tmp / "big.dng"), "--overwrite", "--json"],
+                              cache, 2)
     lum_big = best_timed([luminance, "-e", ev_list(big), "-s", str(tmp / "big_lum.exr"), *map(str, big)], None, 1,
                          timeout=900) if luminance and not quick else None
     ref = hm_big["wall"] if hm_big else None
@@ -440,6 +445,7 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
         f"{ours_big['wall'] / decode:.1f}x LibRaw decode sum ({decode:.2f} s)" if ours_big else "")
     row(case, "hdrmerge-cli merge --no-cache", ours_cold, ref, "noise measured on the bracket")
     row(case, "hdrmerge-cli merge --irls 0", ours_big_no_irls, ref, "no re-weighting pass")
+    row(case, "hdrmerge-cli merge -o out.dng (float DNG, as HDRMerge)", ours_big_dng, ref, "")
     row(case, "HDRMerge -b 32 (float DNG)", hm_big, ref)
     row(case, "luminance-hdr-cli -s out.exr", lum_big, ref, "" if luminance else "not installed")
     splits = [("default", merge_split(ours_big["stdout"]) if ours_big else {}),
