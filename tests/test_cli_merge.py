@@ -348,7 +348,7 @@ def test_outputs_the_tool_cannot_write_faithfully_are_refused(run, tmp_path, jpe
     run("weights-lut", *frames, "--crf", "srgb", "-o", lut)
     rows = lut.read_text().splitlines()
     lut.write_text("\n".join([rows[0]] + [",".join(["0"] * len(r.split(","))) for r in rows[1:]]) + "\n")
-    for args, words in [(("-o", tmp_path / "x.jpg"), "OpenEXR only"),
+    for args, words in [(("-o", tmp_path / "x.jpg"), "OpenEXR (*.exr) or"),
                         (("-o", tmp_path / "x.exr", "--half", "--reference", "1e-8"), "--reference"),
                         (("-o", tmp_path / "x.exr", "--half", "--reference", "1e5"), "drop --half"),
                         (("-o", tmp_path / "x.exr", "--lut", lut), "all zero")]:
