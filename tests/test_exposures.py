@@ -187,3 +187,146 @@ def test_no_false_alarm_on_real_brackets(name):
     ex.check_order(frames, s)
     est, _ = ex.estimate_with_response(frames, h, s, CRF("srgb", assumed=True))  # no response given
     assert est.mislabelled() == [], est.difference_ev
+
+
+# ---------------------------------------------------------------- frames that moved (hand-held, no --align)
+def _crops(src, dst, meta, step_xy, size=(448, 320)):
+    """The simulated frames cropped to ``size``, frame k at offset k * step_xy (a camera
+    moving between exposures), written as JPEG with the source's metadata (EXIF times)."""
+    import OpenImageIO as oiio
+
+    dst.mkdir()
+    w, h = size
+    out = []
+    for k, name in enumerate(meta["frames"]):
+        buf = oiio.ImageBuf(str(src / name))
+        x0, y0 = k * step_xy[0], k * step_xy[1]
+        crop = np.ascontiguousarray(buf.get_pixels(oiio.UINT8)[y0:y0 + h, x0:x0 + w])
+        spec = oiio.ImageSpec(w, h, crop.shape[-1], oiio.UINT8)
+        for a in buf.spec().extra_attribs:
+            spec.attribute(a.name, a.type, a.value)
+        img = oiio.ImageBuf(spec)
+        img.set_pixels(oiio.ROI(), crop)
+        assert img.write(str(dst / name)), img.geterror()
+        out.append(dst / name)
+    return out
+
+
+@pytest.fixture(scope="module")
+def moving_bracket(tmp_path_factory, run):
+    """4 sRGB JPEG frames 2 EV apart, 448 x 320: ``still`` (the same window of the scene)
+    and ``moved`` (each frame 10 px right and 5 px down of the one before: 11.2 px)."""
+    folder = tmp_path_factory.mktemp("moving")
+    run("simulate", "-o", folder / "src", "-q", "--size", "480x352", "--times", "0.0025,0.01,0.04,0.16",
+        "--format", "jpg", "--seed", "5")
+    meta = json.loads((folder / "src" / "simulation.json").read_text())
+    src = folder / "src"
+    return _crops(src, folder / "still", meta, (0, 0)), _crops(src, folder / "moved", meta, (10, 5)), meta
+
+
+def test_moved_threshold_and_displacement_on_samples():
+    from hdrmerge_cli.core.align import log_irradiance
+    from hdrmerge_cli.core.exposure import MOVED_PITCHES, moved_threshold_px, pair_displacement
+
+    assert moved_threshold_px(1) == 1.5 and moved_threshold_px(0.5) == 1.0
+    assert moved_threshold_px(6) == pytest.approx(6 * MOVED_PITCHES)
+    rng = np.random.default_rng(4)
+    e = _scene(rng, (200, 260))
+    e *= 1 + 0.5 * (np.add.outer(np.arange(200) // 9, np.arange(260) // 11) % 2)  # edges to register
+    a = log_irradiance(e[20:180, 20:240] * 0.5, 0.5, 2e-3, 0.9)
+    b = log_irradiance(e[26:186, 12:232] * 2.0, 2.0, 2e-3, 0.9)  # the camera moved by (-8, +6)
+    assert pair_displacement(a, b) == pytest.approx(10.0, abs=0.3)
+    assert pair_displacement(a, log_irradiance(e[20:180, 20:240] * 2.0, 2.0, 2e-3, 0.9)) < 0.1
+    flat = np.zeros((160, 220), np.float32)
+    assert pair_displacement(flat, flat) is None  # nothing to register
+
+
+def test_frames_that_moved_are_reported_instead_of_a_wrong_label(run, moving_bracket, tmp_path):
+    _, moved, _ = moving_bracket
+    out = run("merge", *moved, "-o", tmp_path / "m.exr", "--crf", "srgb", "--json")
+    assert "labelled" not in out.stderr, out.stderr  # without the check: frame_00 "labelled 1/400 s, but ..."
+    lines = [ln for ln in out.stderr.splitlines() if "moved between exposures" in ln]
+    assert len(lines) == 1 and "cannot be checked" in lines[0] and "--align auto" in lines[0], out.stderr
+    check = json.loads(out.stdout)["exposure_check"]
+    assert not any(f["mislabelled"] for f in check["frames"]) and any(f["moved"] for f in check["frames"])
+    measured = [p["moved_px"] for p in check["pairs"] if p["moved_px"] is not None]
+    assert measured and all(9.5 < d < 13 for d in measured), check["pairs"]  # 11.2 px
+    assert check["moved_threshold_px"] == 1.5  # samples of every pixel
+    # aligned first (--align): the tee sees aligned frames, nothing moved
+    aligned = run("merge", *moved, "-o", tmp_path / "a.exr", "--crf", "srgb", "--align", "auto", "--json")
+    assert "moved between exposures" not in aligned.stderr and "labelled" not in aligned.stderr, aligned.stderr
+
+
+def test_a_wrong_label_on_still_frames_is_still_called_wrong(run, moving_bracket, tmp_path):
+    still, _, meta = moving_bracket
+    times = list(meta["exposure_times"])
+    times[1] *= 2.0  # 1 EV too long
+    out = run("merge", *still, "-o", tmp_path / "s.exr", "--crf", "srgb", "--times", ",".join(map(repr, times)),
+              "--json")
+    lines = [ln for ln in out.stderr.splitlines() if "labelled" in ln]
+    assert len(lines) == 1 and still[1].name in lines[0], out.stderr
+    assert "moved between exposures" not in out.stderr
+    check = json.loads(out.stdout)["exposure_check"]
+    assert [f["mislabelled"] for f in check["frames"]] == [False, True, False, False]
+    registered = [p["moved_px"] for p in check["pairs"] if p["moved_px"] is not None]
+    assert registered and max(registered) < 0.5, check["pairs"]
+
+
+def _exposure_log(name, crf, caplog, times_file=None):
+    import logging
+
+    from hdrmerge_cli.pipeline import exposures as ex
+    from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
+
+    folder = SHARED / "brackets" / name
+    frames = read_bracket(sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")),
+                          times_file=times_file)
+    logger = logging.getLogger("hdrmerge_cli")
+    own = not logger.propagate  # the CLI, run in this process, stops it propagating: caplog's handler on it
+    caplog.clear()
+    if own:
+        logger.addHandler(caplog.handler)
+    try:
+        with caplog.at_level(logging.WARNING, logger="hdrmerge_cli"):
+            rep = ex.resolve_exposures(frames, exposure_values(frames), crf, samples=ex.sample_frames(frames))[2]
+    finally:
+        if own:
+            logger.removeHandler(caplog.handler)
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING], rep
+
+
+@needs_shared
+@pytest.mark.parametrize("assumed", [True, False])
+def test_real_hand_held_bracket_reports_motion_not_a_label(caplog, assumed):
+    lines, rep = _exposure_log("stack_handheld_jpg", CRF("srgb", assumed=assumed), caplog)
+    assert not any("labelled" in ln for ln in lines), lines
+    moved = [ln for ln in lines if "moved between exposures" in ln]
+    assert len(moved) == 1 and "IMG_4211.jpg: " in moved[0] and "--align auto" in moved[0], lines
+    assert max(p["moved_px"] or 0 for p in rep["pairs"]) > 20  # about 26 px at full resolution
+
+
+@needs_shared
+@pytest.mark.parametrize("name", ["stack_jpg", "office_jpg"])
+@pytest.mark.parametrize("assumed", [True, False])
+def test_real_still_brackets_get_no_motion_message(caplog, name, assumed):
+    times = SHARED / "brackets" / name / "exposure_times_seconds.txt"
+    lines, rep = _exposure_log(name, CRF("srgb", assumed=assumed), caplog, str(times) if times.exists() else None)
+    assert not any("moved" in ln for ln in lines), lines
+    assert not any(f["moved"] for f in rep["frames"])
+
+
+def test_info_reports_motion_not_a_label(run, moving_bracket):
+    """info runs merge's check: a hand-held bracket's frames moved, its labels are right."""
+    _, moved, _ = moving_bracket
+    out = run("info", *moved, "--crf", "srgb", "--json")
+    assert "labelled" not in out.stderr, out.stderr
+    lines = [ln for ln in out.stderr.splitlines() if "moved between exposures" in ln]
+    assert len(lines) == 1 and "cannot be checked" in lines[0], out.stderr
+    check = json.loads(out.stdout)["exposure_estimates"]
+    assert any(f["moved"] for f in check["frames"]) and not any(f["mislabelled"] for f in check["frames"])
+
+
+def test_estimate_crf_calls_no_label_of_a_moved_bracket_wrong(run, moving_bracket, tmp_path):
+    _, moved, _ = moving_bracket
+    out = run("estimate-crf", *moved, "-o", tmp_path / "crf.json")
+    assert "labelled" not in out.stderr, out.stderr

@@ -602,3 +602,103 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
 
     assert rms(weighted) < 0.5 * rms(unweighted)
 
+
+
+# ---------------------------------------------------------------- static JPEG brackets (issue 17)
+def _jpeg_scene(rng, h=240, w=320):
+    """Linear radiance of a static scene with hard edges, lines a pixel wide and fine
+    texture over a wide range (about 1e-3 .. 1), band-limited by a small blur."""
+    from scipy import ndimage as ndi
+
+    e = np.full((h, w, 3), 0.05, np.float32)
+    for _ in range(40):  # rectangles and discs of random colour
+        y0, x0 = rng.integers(0, h - 8), rng.integers(0, w - 8)
+        dy, dx = rng.integers(6, h // 3), rng.integers(6, w // 3)
+        c = np.exp(rng.uniform(np.log(2e-3), 0.0)) * rng.uniform(0.7, 1.3, 3)
+        if rng.random() < 0.5:
+            e[y0:y0 + dy, x0:x0 + dx] = c
+        else:
+            yy, xx = np.ogrid[:h, :w]
+            e[(yy - y0) ** 2 / dy ** 2 + (xx - x0) ** 2 / dx ** 2 < 0.25] = c
+    e *= np.exp(rng.normal(0, 0.3, (h, w, 1))).astype(np.float32)  # fine texture
+    for _ in range(12):  # thin lines
+        e[rng.integers(0, h), :] *= rng.uniform(0.2, 3.0)
+        e[:, rng.integers(0, w)] *= rng.uniform(0.2, 3.0)
+    return np.stack([ndi.gaussian_filter(e[..., c], 0.6) for c in range(3)], axis=-1)
+
+
+def _jpeg_frames(rng, scene, times, quality=90, ghost=None):
+    """8-bit sRGB frames of ``scene`` (noise of about a code, JPEG at ``quality``, 4:2:0);
+    ``ghost = (frame, (rows, cols), value)`` pastes a flat patch into one frame's scene."""
+    out = []
+    for k, t in enumerate(times):
+        e = scene.copy()
+        if ghost is not None and ghost[0] == k:
+            e[ghost[1]] = ghost[2]
+        v = np.clip(e * t, 0, 1)
+        v = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055) * 255
+        codes = np.clip(np.rint(v + rng.normal(0, 0.8, v.shape)), 0, 255).astype(np.uint8)
+        ok, buf = cv2.imencode(".jpg", codes, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        out.append(cv2.imdecode(buf, cv2.IMREAD_UNCHANGED))
+    return out
+
+
+def _worst_rejected(seed: int) -> float:
+    import hdrmerge_cli
+
+    rng = np.random.default_rng(1000 + seed)
+    times = [0.25, 1.0, 4.0]
+    frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
+    return max(hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto").ghosts["rejected_fraction"])
+
+
+def test_envelope_tolerance_cuts_the_false_alarms_of_static_jpeg_brackets(monkeypatch):
+    """The registration tolerance as a local range (envelope_residual) against the older
+    variance form (half a pixel times the anchor's gradient): on static textured JPEG
+    brackets it rejects under half as many cells (measured: 5.8 % -> 1.7 % summed over
+    seeds 0-2; 6.6 % -> 2.3 % on the worst of seeds 0-5)."""
+    after = sum(_worst_rejected(s) for s in range(3))
+    monkeypatch.setattr(deghost, "ENVELOPE_REACH", 0)
+    before = sum(_worst_rejected(s) for s in range(3))
+    assert after < 0.5 * before
+
+
+@pytest.mark.xfail(reason="issue 17: static JPEG brackets still reject up to ~2 % of a frame's cells "
+                          "(target 0.2 %)", strict=False)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_static_jpeg_bracket_is_not_deghosted(seed):
+    """Monte-Carlo: static textured scenes through JPEG (quality 90) 2 EV apart: the test
+    rejects at most AUTO_FRACTION of any frame's cells (the false alarms of edges, ringing
+    and fine texture are within a shift of one block, envelope_residual), so auto leaves
+    the bracket alone."""
+    import hdrmerge_cli
+
+    rng = np.random.default_rng(1000 + seed)
+    times = [0.25, 1.0, 4.0]
+    frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
+    m = hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto")
+    assert max(m.ghosts["rejected_fraction"]) <= deghost.AUTO_FRACTION
+    assert not m.ghosts["applied"]
+
+
+@pytest.mark.parametrize("frame", [0, 2])
+def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
+    """A flat object in one frame only, over the textured part of a JPEG bracket: found
+    over (almost) all of its footprint."""
+    import hdrmerge_cli
+    from hdrmerge_cli.pipeline import motion
+
+    rng = np.random.default_rng(7)
+    times = [0.25, 1.0, 4.0]
+    scene = _jpeg_scene(rng)
+    patch = (slice(80, 140), slice(120, 190))
+    # a value well exposed in the frame that holds it, unlike the scene around it
+    level = float(np.median(scene[patch]))
+    value = level * (6.0 if frame == 0 else 1 / 6.0)
+    frames = _jpeg_frames(rng, scene, times, ghost=(frame, patch, value))
+    m = hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto")
+    g = m.ghosts
+    assert g["applied"]
+    soft = motion.ghost_weight(g, frame, *frames[0].shape[:2])
+    inner = soft[90:130, 130:180]
+    assert np.mean(inner > 0.5) >= 0.95

@@ -52,8 +52,18 @@ CHI2_1_MEDIAN = 0.454936
 LAMBDA_MAX = 100.0
 #: relative error allowed beyond the noise (residual model error after :func:`match_anchor`)
 MODEL_TOLERANCE = 0.01
-#: registration error allowed (pixels): an edge's contrast times this is not motion
+#: registration error allowed (pixels) by the older, variance form of the registration
+#: tolerance (``grad2`` of :func:`inconsistent_cells`, used when :data:`ENVELOPE_REACH` is 0)
 ALIGN_TOLERANCE_PX = 0.5
+#: registration tolerance of :func:`find_ghosts <hdrmerge_cli.pipeline.motion.find_ghosts>`
+#: (blocks): a difference that a shift of the frame or the anchor by up to this many blocks
+#: explains is not motion (:func:`envelope_residual`).  On real static JPEG brackets the
+#: variance form left most false alarms on edges and fine texture, where JPEG ringing and
+#: 4:2:0 chroma, sharpening halos, sub-pixel registration residuals and lines too thin for a
+#: central-difference gradient make differences that are huge against the noise but lie
+#: within the local range of the other frame.  Images only (a RAW mosaic has none of these;
+#: there the variance form keeps a ghost's low-contrast parts)
+ENVELOPE_REACH = 1
 #: how far beyond a dark / clipped reference's bound a reading must be to be motion
 BOUND_FACTOR = 2.0
 #: quantile of a static scene's readings against a dark / clipped bound (``violates_bound(adapt=True)``)
@@ -345,10 +355,40 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH) -> 
     return np.where(d <= reach * max(clipped.shape), np.int8(sign), np.int8(0))
 
 
+def envelope(a: np.ndarray, nc: int, reach: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample of ``(H, W * nc)`` interleaved channels, the smallest and largest value of
+    its channel within ``reach`` samples along both axes."""
+    fp = np.zeros((2 * reach + 1, (2 * reach) * nc + 1), bool)
+    fp[:, ::nc] = True
+    return (ndimage.minimum_filter(a, footprint=fp, mode="nearest"),
+            ndimage.maximum_filter(a, footprint=fp, mode="nearest"))
+
+
+def envelope_residual(x: np.ndarray, xa: np.ndarray, nc: int, reach: int) -> np.ndarray:
+    """The signed difference (frame minus anchor) between ``x`` and the anchor ``xa`` that no
+    local shift within ``reach`` samples explains (both ``(H, W * nc)``, channels
+    interleaved): the smaller of the distance of ``x`` to the range of the anchor's values
+    within reach and that of ``xa`` to the range of the frame's (0 inside either).  A
+    registration tolerance that needs no gradient model: an edge, a line one sample wide,
+    a halo or a ringing lobe that is displaced, blurred or sharpened differently in the
+    two frames lies within the other's local range; an object that is in one frame only
+    lies outside it wherever its value differs from everything around it in the other
+    (over a flat surround: everywhere; over texture: where it is brighter or darker than
+    the texture's local extremes).  The symmetric form excuses blur and sharpening in
+    either frame; its cost: where an object that is itself textured straddles the level of
+    a flat surround, the cells whose anchor value lies within the object's local range are
+    not found (the region step, :func:`clean` and :func:`feather`, covers small gaps)."""
+    lo, hi = envelope(xa, nc, reach)
+    d1 = x - np.clip(x, lo, hi)
+    lo, hi = envelope(x, nc, reach)
+    d2 = np.clip(xa, lo, hi) - xa
+    return np.where(np.abs(d1) < np.abs(d2), d1, d2).astype(np.float32)
+
+
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
                        valid_a: np.ndarray, grad2: np.ndarray, cell: tuple[int, int],
                        p_fa: float = P_FALSE_ALARM, scale: bool = True, smooth: bool = False,
-                       min_change: float = 0.0, excuse: np.ndarray | None = None) -> np.ndarray:
+                       min_change: float = 0.0, excuse: np.ndarray | None = None, reach: int = 0) -> np.ndarray:
     """Cells where a frame disagrees with the anchor: all inputs ``(H, W')`` per sample
     (``W' = W * C`` for interleaved channels), ``grad2`` the anchor's squared gradient
     times the squared registration tolerance in its units (:func:`squared_gradient`;
@@ -372,9 +412,17 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
             f = smooth_ratio_field(r, pos, cell[1])
             x = x * np.exp(-f).astype(np.float32)
             r = np.where(pos, r - f, 0.0).astype(np.float32)
-    var = s + sa + (MODEL_TOLERANCE * xa) ** 2 + grad2
+    var = s + sa + (MODEL_TOLERANCE * xa) ** 2
+    if reach:
+        d = envelope_residual(x, xa, cell[1], reach)
+        if r is not None:  # the log change beyond what a shift within reach explains
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xa, 1e-30))), 0.0).astype(np.float32)
+    else:
+        d = x - xa
+        var = var + grad2
     with np.errstate(over="ignore"):
-        t = np.where(both, (x - xa) ** 2 / np.maximum(var, 1e-30), 0.0).astype(np.float32)
+        t = np.where(both, d * d / np.maximum(var, 1e-30), 0.0).astype(np.float32)
     if scale:
         t /= level_scale(t, x, xa, both)
     stat = cell_sums(t, *cell)

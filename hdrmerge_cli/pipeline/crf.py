@@ -147,10 +147,11 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
             log_h = new_log_h
             if moved < 0.01:
                 break
+        motion = exposures_mod.label_motion(samples, labels, crf, est)
         exposures_mod.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
-                                       else "; estimate-crf --times estimate fits with the estimates")
+                                       else "; estimate-crf --times estimate fits with the estimates", motion=motion)
         exposure_check = exposures_mod.report(frames, labels, est,
-                                              "estimates" if opts.times == ESTIMATE else "labels", crf)
+                                              "estimates" if opts.times == ESTIMATE else "labels", crf, motion=motion)
         points = (codes, log_h)
     details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}
     if fits:

@@ -4,7 +4,10 @@ and the order and overlap checks that read real frames.
 The numerics are :mod:`hdrmerge_cli.core.exposure`; here the frames are decoded,
 subsampled (CFA cells kept whole), normalised to ``v = (z - black) / (white - black)``,
 cut to the pixels worth comparing (constant borders off, clipped and noise-floor codes
-off) and linearised through the response in use.
+off) and linearised through the response in use.  Before a label is called wrong, the pairs that
+decided it are registered on the same samples (:func:`moved_pairs`): frames that moved
+between exposures (a hand-held bracket merged without ``--align``) leave the labels
+unchecked, with a line saying so, instead of a false label warning.
 """
 from __future__ import annotations
 
@@ -17,8 +20,9 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.exposure import (
-    LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, border_mask, comparagram, constant_border, estimate_exposures,
-    order_test, response_from_comparagrams, robust_log_ratio,
+    LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, border_mask, chain_pairs, comparagram, constant_border,
+    estimate_exposures, moved_threshold_px, order_test, pair_displacement, response_from_comparagrams,
+    robust_log_ratio,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 
@@ -45,13 +49,22 @@ MIN_OVERLAP = 50
 class Samples:
     """Frames decoded, subsampled and normalised: ``v`` per frame ``(H', W', C)`` float32
     (C = 1 for a RAW mosaic, every site normalised by its own black and white levels);
-    ``inside``: (H', W') pixels off the constant borders; ``step``: the subsampling."""
+    ``inside``: (H', W') pixels off the constant borders; ``step``: the subsampling (images:
+    every ``step``-th row and column; RAW: whole 2 x 2 CFA cells, one every ``step`` cells,
+    so consecutive sample rows pair up into cells ``2 step`` pixels apart)."""
 
     v: list[np.ndarray]
     inside: np.ndarray
     border: tuple[int, int, int, int]
     step: int
     codes_step: float  # one code value in units of v
+    raw: bool = False  # a RAW mosaic (samples in whole CFA cells)
+
+    @property
+    def pitch(self) -> int:
+        """Full-resolution pixels between the samples :func:`registration_image` reads
+        (RAW: between CFA cells)."""
+        return 2 * self.step if self.raw else self.step
 
 
 def _subsample_index(n: int, step: int, raw: bool) -> np.ndarray:
@@ -87,7 +100,7 @@ def _samples(frames: list[Frame], v: list[np.ndarray], step: int) -> Samples:
         log.info("constant border (rows top/bottom, columns left/right, subsampled by %d): %s left out of the checks",
                  step, "/".join(map(str, border)))
     span = float(np.min(first.white - first.black))
-    return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0))
+    return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0), first.kind == "raw")
 
 
 def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_SAMPLES) -> Samples:
@@ -207,10 +220,12 @@ def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None 
 
 
 def estimate(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF,
-             value_range: tuple[float, float] | None = None, free_slope: bool = False) -> ExposureEstimate:
+             value_range: tuple[float, float] | None = None, free_slope: bool = False,
+             moved: frozenset[int] = frozenset()) -> ExposureEstimate:
     """Every frame's exposure measured on the samples (see :mod:`hdrmerge_cli.core.exposure`),
-    on the labels' scale (the reference frame keeps its label)."""
-    pairs = measure_pairs(s, crf, value_range)
+    on the labels' scale (the reference frame keeps its label).  The pairs in ``moved``
+    (frames that moved between the exposures) are marked so: their labels' ratio is kept."""
+    pairs = [replace(p, moved=True) if k in moved else p for k, p in enumerate(measure_pairs(s, crf, value_range))]
     return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
 
 
@@ -223,12 +238,14 @@ def samples_codes(frames: list[Frame], s: Samples) -> list[np.ndarray]:
     return [np.rint(v * span + black).clip(0, f.n_codes - 1).astype(np.int64) for v in s.v]
 
 
-def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples) -> CRF:
+def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples,
+                   skip: frozenset[int] = frozenset()) -> CRF:
     """An image bracket's inverse response fitted on its samples (constant borders off)
     with the given exposures, per channel, from the neighbour pairs' comparagrams
     (:func:`~hdrmerge_cli.core.exposure.response_from_comparagrams`): the check's own
     response when the one in use is an unverified model (sRGB assumed), whose ratios are
-    off by up to a stop on real cameras' tone curves."""
+    off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
+    moved) are left out while others remain."""
     from hdrmerge_cli.core.crf import table_crf
     from hdrmerge_cli.core.crf_estimate import inverse_from_log
     from hdrmerge_cli.core.crf_goossens2012 import from_knots, knot_levels, to_knots
@@ -237,71 +254,180 @@ def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples) -> CR
     levels = knot_levels(n)
     codes = [to_knots(c[s.inside], n, levels) for c in samples_codes(frames, s)]  # (N, C)
     log_r = np.diff(np.log(exposures))
+    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
     tables = []
     for ch in range(codes[0].shape[-1]):
-        grams = [comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in range(1, len(codes))]
-        g = from_knots(response_from_comparagrams(grams, log_r), n)
+        grams = [comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
+        g = from_knots(response_from_comparagrams(grams, log_r[[k - 1 for k in used]]), n)
         tables.append(inverse_from_log(g)[0])
     return table_crf(np.stack(tables), "fitted on the bracket")
 
 
 def estimate_with_response(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF,
-                           rounds: int = 1) -> tuple[ExposureEstimate, CRF]:
+                           rounds: int = 1, moved: frozenset[int] = frozenset()) -> tuple[ExposureEstimate, CRF]:
     """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
     otherwise through a response fitted on the bracket (:func:`quick_response`), jointly:
-    fit with the labels, estimate, refit with the estimates, ``rounds`` times."""
+    fit with the labels, estimate, refit with the estimates, ``rounds`` times.  Pairs in
+    ``moved`` are not used (their labels' ratio is kept)."""
     if crf_verified(crf):
-        return estimate(frames, exposures, s, crf), crf
+        return estimate(frames, exposures, s, crf, moved=moved), crf
     h = np.asarray(exposures, dtype=np.float64)
-    fitted = quick_response(frames, h, s)  # its least squares shrink the ratios a little: slope fitted
-    est = estimate(frames, exposures, s, fitted, free_slope=True)
+    fitted = quick_response(frames, h, s, moved)  # its least squares shrink the ratios a little: slope fitted
+    est = estimate(frames, exposures, s, fitted, free_slope=True, moved=moved)
     for _ in range(rounds - 1):
-        fitted = quick_response(frames, np.exp(est.log_h), s)
-        est = estimate(frames, exposures, s, fitted, free_slope=True)
+        fitted = quick_response(frames, np.exp(est.log_h), s, moved)
+        est = estimate(frames, exposures, s, fitted, free_slope=True, moved=moved)
     # a label is called wrong only where the assumed response agrees (same sign; the smaller
     # of the two differences): a fit on pairs that barely overlap, or a camera curve far
     # from the assumed one, each alone makes false alarms
-    assumed = estimate(frames, exposures, s, crf).difference_ev
+    assumed = estimate(frames, exposures, s, crf, moved=moved).difference_ev
     agree = np.sign(assumed) == np.sign(est.difference_ev)
     diff = np.where(agree, np.sign(assumed) * np.minimum(np.abs(assumed), np.abs(est.difference_ev)), 0.0)
     return replace(est, difference_ev=diff), fitted
 
 
+# ---------------------------------------------------------------- motion between exposures
+@dataclass
+class Motion:
+    """Neighbour pairs registered on the samples (:func:`moved_pairs`): ``px`` per pair
+    index (frames ``j``, ``j + 1``) the displacement in full-resolution pixels, None where
+    the pair could not be registered (too little texture in the range both expose, a weak
+    correlation); pairs not asked about are absent.  ``threshold_px``: beyond it a pair
+    moved (:func:`~hdrmerge_cli.core.exposure.moved_threshold_px` of the samples' pitch)."""
+
+    px: dict[int, float | None]
+    threshold_px: float
+
+    def moved(self) -> frozenset[int]:
+        return frozenset(j for j, d in self.px.items() if d is not None and d > self.threshold_px)
+
+    def decided_by_motion(self, k: int, reference: int) -> int | None:
+        """The pair that moved most among those frame ``k``'s estimate chains through from
+        the reference (:func:`~hdrmerge_cli.core.exposure.chain_pairs`), or None when none
+        of them moved."""
+        moved = [j for j in chain_pairs(k, reference) if j in self.moved()]
+        return max(moved, key=lambda j: self.px[j]) if moved else None
+
+
+def registration_image(s: Samples, k: int, crf: CRF, exposure: float, lo: float, hi: float,
+                       lin: np.ndarray | None = None) -> np.ndarray:
+    """Frame ``k``'s samples as an exposure-invariant image for registration
+    (:func:`~hdrmerge_cli.core.align.log_irradiance` of the linearised channels' mean over
+    ``exposure``, within ``[lo, hi]``), the constant borders cut off; RAW: the mean of each
+    2 x 2 CFA cell.  ``lin``: :func:`_registration_linear` of the frame when already made."""
+    from hdrmerge_cli.core import align
+
+    lin = _registration_linear(s, k, crf) if lin is None else lin
+    return align.log_irradiance(lin, exposure, lo, hi)
+
+
+def _registration_linear(s: Samples, k: int, crf: CRF) -> np.ndarray:
+    from hdrmerge_cli.core import align
+
+    top, bottom, left, right = s.border
+    v = s.v[k]
+    if s.raw:  # whole cells: start on an even sample row and column
+        top, left = top + top % 2, left + left % 2
+    v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
+    lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
+    return align.block_mean(lin, 2) if s.raw else lin
+
+
+def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
+    """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
+    the samples (:func:`~hdrmerge_cli.core.exposure.pair_displacement` of their
+    :func:`registration_image` over the irradiance range both expose, exposure-normalised by
+    ``exposures``, the labels: registration is invariant to the gain a wrong label makes),
+    in full-resolution pixels (the samples' pitch).  A few tens of milliseconds a pair on
+    the default :data:`MAX_SAMPLES`; only the pairs asked about are registered."""
+    from hdrmerge_cli.core import align
+
+    lin: dict[int, np.ndarray] = {}
+    px: dict[int, float | None] = {}
+    for j in sorted(set(pairs)):
+        try:
+            lo, hi = align.common_range([exposures[j], exposures[j + 1]], lo_code=min(0.02, 16.0 * s.codes_step))
+        except HdrMergeError:
+            px[j] = None
+            continue
+        for k in (j, j + 1):
+            if k not in lin:
+                lin[k] = _registration_linear(s, k, crf)
+        d = pair_displacement(registration_image(s, j, crf, exposures[j], lo, hi, lin[j]),
+                              registration_image(s, j + 1, crf, exposures[j + 1], lo, hi, lin[j + 1]))
+        px[j] = None if d is None else d * s.pitch
+        lin.pop(j, None)  # pairs in order: frame j is not needed again
+    return Motion(px, moved_threshold_px(s.pitch))
+
+
+def label_motion(s: Samples, exposures: np.ndarray, crf: CRF, est: ExposureEstimate) -> Motion:
+    """:func:`moved_pairs` of only the pairs that decided a label in question (none: no
+    cost), for :func:`warn_mislabelled` and :func:`report`."""
+    return moved_pairs(s, exposures, crf, {j for k in est.mislabelled() for j in chain_pairs(k, est.reference)})
+
+
+def _fmt_px(d: float) -> str:
+    return f"{d:.0f}" if d >= 10 else f"{d:.1f}"
+
+
+def warn_moved(frames: list[Frame], k: int, j: int, motion: Motion, consequence: str) -> None:
+    log.warning("%s: the frames moved between exposures (about %s px between %s and %s); %s; consider --align auto",
+                frames[k].path, _fmt_px(motion.px[j]), frames[j].name, frames[j + 1].name, consequence)
+
+
 def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, used: str,
-           crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV) -> dict:
+           crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> dict:
     """The ``--json`` record of the estimates: per frame the label and the estimate (in
-    seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV;
-    per neighbour pair the measured ratio; which exposures the merge used."""
+    seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV,
+    whether the label is off (``mislabelled``) or could not be checked because the frames
+    moved (``moved``); per neighbour pair the measured ratio and, where registered
+    (:func:`moved_pairs`), ``moved_px`` (null: not registered: no label in question, or too
+    little texture); which exposures the merge used."""
     est_h = np.exp(est.log_h)
     bad = est.mislabelled(tol_ev)
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
+        by_motion = motion is not None and k in bad and motion.decided_by_motion(k, est.reference) is not None
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
-                     "mislabelled": k in bad})
+                     "mislabelled": k in bad and not by_motion, "moved": by_motion})
+    px = motion.px if motion is not None else {}
     pairs = [{"frames": [frames[k].name, frames[k + 1].name],
               "label_ev": round(float(np.log2(exposures[k + 1] / exposures[k])), 4),
-              "measured_ev": round(float(p.log_ratio / np.log(2)), 4) if p.measured else None,
-              "stderr_ev": round(float(p.stderr / np.log(2)), 5) if p.measured else None,
-              "pixels": p.kept, "coverage": round(p.coverage, 4)} for k, p in enumerate(est.pairs)]
-    return {"used": used, "reference": frames[est.reference].name, "tolerance_ev": round(tol_ev, 4),
-            "response": crf.describe() + ("" if crf_verified(crf) else " (unverified: mid-range codes, slope fitted)"),
-            "slope": round(est.slope, 4), "frames": rows, "pairs": pairs}
+              "measured_ev": round(float(p.log_ratio / np.log(2)), 4) if p.counted else None,
+              "stderr_ev": round(float(p.stderr / np.log(2)), 5) if p.counted else None,
+              "pixels": p.kept, "coverage": round(p.coverage, 4),
+              "moved_px": None if px.get(k) is None else round(float(px[k]), 2),
+              "used": p.measured} for k, p in enumerate(est.pairs)]
+    out = {"used": used, "reference": frames[est.reference].name, "tolerance_ev": round(tol_ev, 4),
+           "response": crf.describe() + ("" if crf_verified(crf) else " (unverified: mid-range codes, slope fitted)"),
+           "slope": round(est.slope, 4), "frames": rows, "pairs": pairs}
+    if motion is not None:
+        out["moved_threshold_px"] = round(motion.threshold_px, 2)
+    return out
 
 
 def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, hint: str,
-                     tol_ev: float = LABEL_TOLERANCE_EV) -> list[int]:
-    """One warning per frame whose label is more than ``tol_ev`` from its estimate."""
-    bad = est.mislabelled(tol_ev)
+                     tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> list[int]:
+    """One warning per frame whose label is more than ``tol_ev`` from its estimate; with
+    ``motion`` (:func:`moved_pairs` of the pairs the frame's estimate chains through), a
+    frame whose estimate went through a pair that moved gets a line saying its label cannot
+    be checked instead.  Returns the frames called mislabelled."""
     ref = frames[est.reference]
-    for k in bad:
+    called = []
+    for k in est.mislabelled(tol_ev):
         f = frames[k]
+        j = motion.decided_by_motion(k, est.reference) if motion is not None else None
+        if j is not None:
+            warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
+            continue
         t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
         log.warning("%s: labelled %s, but the frames say %s (%+.2f EV; measured against %s, labelled %s)%s",
                     f.path, _fmt(f.exposure_time), _fmt(t_est), -est.difference_ev[k], ref.name,
                     _fmt(ref.exposure_time), hint)
-    return bad
+        called.append(k)
+    return called
 
 
 def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
@@ -319,13 +445,29 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     s = samples if samples is not None else sample_frames(frames, load)
     check_order(frames, s)
     est, used = estimate_with_response(frames, exposures, s, crf, rounds=2 if use_estimates else 1)
-    unmeasured = [k for k, p in enumerate(est.pairs) if not p.measured]
+    if use_estimates:
+        # every estimate is used: every pair registered; a pair that moved keeps its labels' ratio
+        motion = moved_pairs(s, exposures, crf, range(len(frames) - 1))
+        if motion.moved():
+            est, used = estimate_with_response(frames, exposures, s, crf, rounds=2, moved=motion.moved())
+            for j in sorted(motion.moved()):
+                warn_moved(frames, j + 1, j, motion,
+                           "their exposures' ratio is not estimated (their labels' ratio is kept)")
+    else:
+        motion = label_motion(s, exposures, crf, est)
+    unmeasured = [k for k, p in enumerate(est.pairs) if not p.measured and not p.moved]
     for k in unmeasured:
         log.info("%s / %s: too few pixels both expose well (%d) to measure their ratio; their labels are kept",
                  frames[k].name, frames[k + 1].name, est.pairs[k].kept)
+    for j, d in sorted(motion.px.items()):
+        what = ("could not be registered (too little texture, or a weak correlation)" if d is None
+                else f"{d:.2f} px apart ({'moved' if d > motion.threshold_px else 'still'}: threshold "
+                     f"{motion.threshold_px:.1f} px)")
+        log.info("%s / %s: on the samples, %s", frames[j].name, frames[j + 1].name, what)
     hint = "" if use_estimates else "; merge with --times estimate to use the estimates"
-    warn_mislabelled(frames, exposures, est, hint)
-    rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used)
+    # --times estimate: the pairs that moved are out of the estimates already (warned above)
+    warn_mislabelled(frames, exposures, est, hint, motion=None if use_estimates else motion)
+    rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used, motion=motion)
     if not use_estimates:
         return frames, exposures, rep
     est_h = np.exp(est.log_h)

@@ -65,8 +65,10 @@ def _estimates(frames: list[Frame], crf_spec: str | None) -> dict:
     s = exposures_mod.sample_frames(frames)
     exposures_mod.check_order(frames, s)
     est, used = exposures_mod.estimate_with_response(frames, exposures, s, crf)
-    exposures_mod.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates")
-    return exposures_mod.report(frames, exposures, est, "labels", used)
+    motion = exposures_mod.label_motion(s, exposures, crf, est)
+    exposures_mod.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates",
+                                   motion=motion)
+    return exposures_mod.report(frames, exposures, est, "labels", used, motion=motion)
 
 
 def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:
