@@ -380,3 +380,48 @@ def test_fused_irls_weights_match_the_reference(shape, pattern, linear):
     reconstruct._irls_weights_rows(codes.reshape(flat), pattern.astype(np.intp), certainty, log_e.reshape(flat),
                                    np.float32(0.01 * 255.0), *per_row, linear, out)
     np.testing.assert_allclose(out.reshape(shape), expected, rtol=2e-6)
+
+
+@pytest.mark.parametrize("use_den, use_factor", [(False, False), (True, True)])
+def test_fused_censored_terms_match_the_reference(use_den, use_factor):
+    """The compiled censored terms of IRLS (_censored_rows) equal censored_terms (scipy's
+    log_ndtr) on the readings the numpy selection keeps: clipped, not CENSORED_SDS sds
+    above full scale, and (with the previous pass's den) not CENSORED_SDS combined sds
+    below it; estimates from far below to far above full scale (a from about -40 to 60)."""
+    rng = np.random.default_rng(11)
+    pattern = np.array([[0, 1], [1, 2]], np.intp)
+    shape, full, h = (40, 60), 4095.0, 0.5
+    params = [NoiseParams(float(rng.uniform(5, 50)), float(rng.uniform(0.5, 4)), float(rng.uniform(0, 1e-4)))
+              for _ in range(3)]
+    rows = reconstruct.noise_rows(params)
+    saturated = np.zeros((3, 4096), bool)
+    saturated[:, 4095] = True
+    codes = np.where(rng.random(shape) < 0.7, 4095, rng.integers(0, 4095, shape)).astype(np.uint16)
+    log_e = np.log(rng.uniform(0.2, 2.5, shape) * full / (h * full)).astype(np.float32)
+    den = np.where(rng.random(shape) < 0.2, 0.0, rng.uniform(1e-6, 1e3, shape)).astype(np.float32)
+    factor = rng.random(shape).astype(np.float32)
+    k = h * full
+    sd_full2 = float(max(rows[0]) + max(rows[1]) * full + max(rows[2]) * full ** 2)
+    log_hi = np.float32(np.log((full - 0.5 + reconstruct.CENSORED_SDS * np.sqrt(sd_full2)) / k))
+    # the reference: numpy selection, then censored_terms
+    idx = reconstruct.channel_index(shape, pattern)
+    sat = (codes == 4095) & (log_e < log_hi)
+    if use_den:
+        sd = np.sqrt(sd_full2 + np.where(den > 0, k * k / np.where(den > 0, den, 1.0), np.inf))
+        sat &= np.exp(log_e.astype(np.float64)) * k > full - 0.5 - reconstruct.CENSORED_SDS * sd
+    assert 0 < sat.sum() < sat.size
+    cw, cv = reconstruct.censored_terms(log_e[sat], h, full, [m[idx][sat] for m in rows])
+    if use_factor:
+        cw = cw * factor[sat]
+    num, den_c = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    num[sat], den_c[sat] = cw * cv, cw
+    out_num, out_den = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    reconstruct._censored_rows(codes, pattern, saturated, log_e, den, use_den, k, full, sd_full2, log_hi, *rows,
+                               factor, use_factor, out_num, out_den)
+    np.testing.assert_allclose(out_den, den_c, rtol=1e-5, atol=1e-30)
+    np.testing.assert_allclose(out_num, num, rtol=1e-5, atol=1e-30)
+    # Mills' ratio on both sides of the switch to the asymptotic series
+    from scipy.special import log_ndtr
+    for a in (-38.0, -5.0, 0.0, 3.0, 29.99, 30.0, 45.0, 300.0):
+        ref = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_ndtr(-a))
+        assert reconstruct._inverse_mills(a) == pytest.approx(ref, rel=1e-10, abs=1e-300)

@@ -28,6 +28,7 @@ estimate by ``irls(..., variance=True)``; off, nothing of it runs or is allocate
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numba
@@ -470,6 +471,53 @@ def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps
     return weight.astype(np.float32), value.astype(np.float32)
 
 
+@numba.njit(cache=True, nogil=True)
+def _inverse_mills(a):  # pragma: no cover
+    """``lam = phi(a) / Phi(-a)`` of :func:`censored_terms` in float64: directly below
+    a = 30 (erfc keeps its relative accuracy there), above it by the asymptotic series of
+    Mills' ratio ``Phi(-a) / phi(a) = (1 - a^-2 + 3 a^-4 - 15 a^-6 + 105 a^-8) / a``
+    (relative error < 1e-12 at a = 30)."""
+    if a < 30.0:
+        return math.exp(-0.5 * a * a) / (0.5 * math.erfc(a / math.sqrt(2.0)) * math.sqrt(2.0 * math.pi))
+    q = 1.0 / (a * a)
+    return a / (1.0 - q * (1.0 - q * (3.0 - q * (15.0 - 105.0 * q))))
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd_full2, log_hi, s_o2, sqrt_a, b_a,
+                   factor, use_factor, cen_num, cen_den):  # pragma: no cover
+    """One frame's censored terms (:func:`censored_terms`) added to ``cen_num`` (weight
+    times value) and ``cen_den`` (weight), per 2-D sample, fused with the choice of the
+    readings they apply to (see :func:`irls`): clipped (``saturated`` table), an estimate
+    under ``log_hi`` (not :data:`CENSORED_SDS` sds above full scale) and, with
+    ``use_den``, not :data:`CENSORED_SDS` combined sds below it."""
+    rows, cols = codes.shape
+    ph, pw = pattern.shape
+    n = saturated.shape[1]
+    top = y_full - 0.5
+    for i in numba.prange(rows):
+        for j in range(cols):
+            r = pattern[i % ph, j % pw]
+            le = log_e[i, j]
+            if not saturated[r, min(codes[i, j], n - 1)] or not le < log_hi:
+                continue
+            e = math.exp(np.float64(le))
+            mu = e * k
+            if use_den and den[i, j] > 0 and not mu > top - CENSORED_SDS * math.sqrt(sd_full2 + k * k / den[i, j]):
+                continue
+            var = max(s_o2[r] + sqrt_a[r] * mu + b_a[r] * mu * mu, 1e-12)
+            sd = math.sqrt(var)
+            a = (top - mu) / sd
+            lam = _inverse_mills(a)
+            gap = max(lam - a, 1e-12)
+            w = np.float32(k * k * lam * gap / var)
+            v = np.float32(e + sd / (k * gap))
+            if use_factor:
+                w *= factor[i, j]
+            cen_num[i, j] += w * v
+            cen_den[i, j] += w
+
+
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
          den: np.ndarray | None = None):
@@ -520,37 +568,30 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             w, factor = (weight, None) if adjust is None else adjust(k, codes, weight)
             acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True)
             if linear and tab.saturated is not None:
-                sat = lookup(tab.saturated, tab.n_codes, codes, pattern)
                 # a clipped reading whose current estimate lies more than CENSORED_SDS noise
                 # sds above full scale carries no information (weight ~ phi(8)): skipped; one
                 # whose estimate lies more than CENSORED_SDS sds below it is impossible under
                 # the model (probability ~ Phi(-8)): the frame saw something else there
-                # (motion, a ghost), and its bound must not pull the estimate: skipped too
-                sd_full = np.sqrt(max_rows[0] + max_rows[1] * y_full[k] + max_rows[2] * y_full[k] ** 2)
-                sat &= log_e < np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * sd_full) / (h * y_full[k])))
-                if prev_den is not None and sat.any():
-                    # the reading the estimate predicts, ``E h y_full``, with the estimate's own
-                    # uncertainty (``Var E = 1 / den`` of the previous pass) and the noise at
-                    # full scale: a clip more than CENSORED_SDS combined sds above it is dropped
-                    kf = h * y_full[k]
-                    d = prev_den[sat]
-                    sd = np.sqrt(sd_full ** 2 + np.where(d > 0, kf * kf / np.where(d > 0, d, 1.0), np.inf))
-                    sat[sat] = np.exp(log_e[sat].astype(np.float64)) * kf > y_full[k] - 0.5 - CENSORED_SDS * sd
-                if sat.any():
-                    if cen_num is None:
-                        cen_num, cen_den = np.zeros(log_e.shape, np.float32), np.zeros(log_e.shape, np.float32)
-                    r = _rows_of(sat.reshape(shape2), pat)
-                    cw, cv = censored_terms(log_e[sat], h, y_full[k], [m[r] for m in rows])
-                    if factor is not None:
-                        cw *= factor.reshape(log_e.shape)[sat]
-                    cen_num[sat] += cw * cv
-                    cen_den[sat] += cw
+                # (motion, a ghost), and its bound must not pull the estimate: skipped too.
+                # That sd combines the noise at full scale with the estimate's own
+                # uncertainty (``Var E = 1 / den`` of the previous pass: the prediction
+                # ``E h y_full`` is uncertain by ``h y_full / sqrt(den)``)
+                sd_full2 = max_rows[0] + max_rows[1] * y_full[k] + max_rows[2] * y_full[k] ** 2
+                log_hi = np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * np.sqrt(sd_full2)) / (h * y_full[k])))
+                if cen_num is None:
+                    cen_num, cen_den = np.zeros(shape2, np.float32), np.zeros(shape2, np.float32)
+                _censored_rows(codes.reshape(shape2), pat, tab.saturated.reshape(-1, tab.n_codes), log_e2,
+                               weight if prev_den is None else prev_den.reshape(shape2), prev_den is not None,
+                               float(h * y_full[k]), float(y_full[k]), float(sd_full2), log_hi, *rows,
+                               weight if factor is None else factor.reshape(shape2), factor is not None,
+                               cen_num, cen_den)
         if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
             measured = acc.den > 0  # clipped in every frame has no finite ML estimate and keeps its flag
-            acc.num[measured] += cen_num[measured]
-            acc.den[measured] += cen_den[measured]
+            cen_num, cen_den = cen_num.reshape(log_e.shape), cen_den.reshape(log_e.shape)
+            np.add(acc.num, cen_num, out=acc.num, where=measured)
+            np.add(acc.den, cen_den, out=acc.den, where=measured)
             if variance:  # certainty 1: w^2 Var = the information itself
-                acc.var[measured] += cen_den[measured]
+                np.add(acc.var, cen_den, out=acc.var, where=measured)
         new, flags = acc.finish(linear)
         den = prev_den = acc.den
         change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))

@@ -416,15 +416,24 @@ def linear_codes(stored: np.ndarray, frame: Frame) -> np.ndarray:
 
 def cfa_corner(frame: Frame) -> np.ndarray:
     """The top-left 2 x 2 cell of a RAW frame's colour index map (0..3, LibRaw's order)."""
-    return frame.cfa_cell if frame.cfa_cell is not None else raw_channel_map(frame.path)[:2, :2]
+    return frame.cfa_cell if frame.cfa_cell is not None else raw_channel_window(frame.path)[:2, :2]
 
 
-def raw_channel_map(path: str) -> np.ndarray:
-    """LibRaw's raw colour index (0..3) of every visible site, ``(H, W)`` uint8."""
+#: rows and columns of the colour index map :func:`raw_channel_window` reads: a multiple of
+#: every CFA period in use (2 x 2 Bayer, 6 x 6 X-Trans, 4 x 4 quad Bayer)
+CFA_WINDOW = 12
+
+
+def raw_channel_window(path: str, size: int = CFA_WINDOW) -> np.ndarray:
+    """LibRaw's raw colour index (0..3) of the top-left ``size`` x ``size`` visible sites,
+    uint8, from the colour at each position (``raw_color``): the CFA is periodic, so this
+    window tells its layout and period without the whole map (``raw_colors_visible``,
+    ~0.1 s at 24 MP)."""
     import rawpy
 
     try:
         with _quiet_c_stderr(), rawpy.imread(path) as raw:
-            return raw.raw_colors_visible.astype(np.uint8)
+            top, left = raw.sizes.top_margin, raw.sizes.left_margin
+            return np.array([[raw.raw_color(top + i, left + j) for j in range(size)] for i in range(size)], np.uint8)
     except rawpy.LibRawError as exc:
         raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc, path)})") from None

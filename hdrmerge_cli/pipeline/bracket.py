@@ -12,7 +12,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import channel_index
 from hdrmerge_cli.io.crfspec import resolve_crf
-from hdrmerge_cli.io.frames import Frame, raw_channel_map, read_frame
+from hdrmerge_cli.io.frames import Frame, raw_channel_window, read_frame
 from hdrmerge_cli.io.profile import crf_from_json, load_profile
 from hdrmerge_cli.io.times import apply_times
 
@@ -142,12 +142,13 @@ def sample_pattern(frame: Frame) -> np.ndarray:
     if frame.kind == "raw":
         if frame.cfa_cell is not None:
             return np.asarray(frame.cfa_cell, np.intp)
-        return cfa_cell(raw_channel_map(frame.path))
+        return cfa_cell(raw_channel_window(frame.path))
     return np.arange(frame.channels, dtype=np.intp)[None, :]
 
 
 def cfa_cell(channel_map: np.ndarray) -> np.ndarray:
-    """The 2 x 2 repeating cell of a Bayer CFA's ``(H, W)`` channel map."""
+    """The 2 x 2 repeating cell of a Bayer CFA's ``(H, W)`` channel map (or a window of it,
+    :func:`~hdrmerge_cli.io.frames.raw_channel_window`)."""
     cell = channel_map[:2, :2].astype(np.intp)
     if not np.array_equal(channel_map, channel_index(channel_map.shape, cell)):
         raise HdrMergeError("the colour filter array does not repeat with a 2 x 2 cell (Bayer only)")
