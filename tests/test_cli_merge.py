@@ -292,6 +292,20 @@ def test_tonemap_is_monotone_srgb_and_black_stays_black():
     assert not tonemap_srgb(np.zeros((2, 2, 3))).any()
 
 
+def test_reinhard_devlin_equals_colour_hdri():
+    """The preview's operator against colour-hdri's tonemapping_operator_Reinhard2004 and
+    colour's sRGB encoding (defaults; an HDR image over 8 decades, coloured)."""
+    from hdrmerge_cli.core.color import quiet_import
+    from hdrmerge_cli.core.preview import reinhard_devlin, tonemap_srgb
+
+    rng = np.random.default_rng(2)
+    rgb = np.exp(rng.uniform(-9, 9, (20, 30, 1))) * rng.uniform(0.2, 1.0, (20, 30, 3))
+    ref = quiet_import("colour_hdri").tonemapping_operator_Reinhard2004(rgb)
+    np.testing.assert_allclose(reinhard_devlin(rgb), ref, rtol=1e-12)
+    encoded = quiet_import("colour.models").eotf_inverse_sRGB(np.clip(ref, 0, 1))
+    np.testing.assert_array_equal(tonemap_srgb(rgb), np.rint(np.clip(encoded, 0, 1) * 255).astype(np.uint8))
+
+
 def test_merge_writes_a_preview_with_the_exr(run, tmp_path, dng_bracket):
     import OpenImageIO as oiio
 

@@ -518,6 +518,33 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
             cen_den[i, j] += w
 
 
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _add_censored(num, den, var, cen_num, cen_den, use_var):  # pragma: no cover
+    """``num += cen_num``, ``den += cen_den`` (and ``var += cen_den``) where ``den > 0``
+    (2-D, in place)."""
+    for i in numba.prange(num.shape[0]):
+        for j in range(num.shape[1]):
+            if den[i, j] > 0:
+                num[i, j] += cen_num[i, j]
+                den[i, j] += cen_den[i, j]
+                if use_var:
+                    var[i, j] += cen_den[i, j]
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _largest_change(new, old, flags):  # pragma: no cover
+    """``max |new - old|`` over the samples whose flag is 0 (0.0 when none), 2-D."""
+    rows = new.shape[0]
+    best = np.zeros(rows, np.float32)
+    for i in numba.prange(rows):
+        m = np.float32(0.0)
+        for j in range(new.shape[1]):
+            if flags[i, j] == 0:
+                m = max(m, abs(new[i, j] - old[i, j]))
+        best[i] = m
+    return float(best.max()) if rows else 0.0
+
+
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
          den: np.ndarray | None = None):
@@ -586,15 +613,13 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
                                weight if factor is None else factor.reshape(shape2), factor is not None,
                                cen_num, cen_den)
         if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
-            measured = acc.den > 0  # clipped in every frame has no finite ML estimate and keeps its flag
-            cen_num, cen_den = cen_num.reshape(log_e.shape), cen_den.reshape(log_e.shape)
-            np.add(acc.num, cen_num, out=acc.num, where=measured)
-            np.add(acc.den, cen_den, out=acc.den, where=measured)
-            if variance:  # certainty 1: w^2 Var = the information itself
-                np.add(acc.var, cen_den, out=acc.var, where=measured)
+            # clipped in every frame has no finite ML estimate and keeps its flag; with the
+            # variance, certainty 1: w^2 Var = the information itself
+            _add_censored(acc.num.reshape(shape2), acc.den.reshape(shape2),
+                          (acc.var if variance else acc.num).reshape(shape2), cen_num, cen_den, variance)
         new, flags = acc.finish(linear)
         den = prev_den = acc.den
-        change = float(np.max(np.abs(new - log_e), where=flags == 0, initial=0.0))
+        change = _largest_change(new.reshape(shape2), log_e2, flags.reshape(shape2))
         log_e = new
         if change < tol:
             break

@@ -38,9 +38,9 @@ def write_dng(
     from pidng.defs import CalibrationIlluminant, CFAPattern, Orientation, PhotometricInterpretation
 
     if xyz_to_camera is None:
-        from hdrmerge_cli.core.color import quiet_import
+        from hdrmerge_cli.core.colorspace import xyz_to
 
-        xyz_to_camera = quiet_import("colour").RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB
+        xyz_to_camera = xyz_to("rec709")
     h, w = mosaic.shape
     tags = DNGTags()
     tags.set(Tag.ImageWidth, w)
@@ -89,9 +89,9 @@ def write_linear_dng(
     from pidng.defs import CalibrationIlluminant
 
     if xyz_to_camera is None:
-        from hdrmerge_cli.core.color import quiet_import
+        from hdrmerge_cli.core.colorspace import xyz_to
 
-        xyz_to_camera = quiet_import("colour").RGB_COLOURSPACES["ITU-R BT.709"].matrix_XYZ_to_RGB
+        xyz_to_camera = xyz_to("rec709")
     pixels = np.ascontiguousarray(pixels, dtype=np.uint16)
     h, w = pixels.shape[:2]
     samples = 1 if pixels.ndim == 2 else pixels.shape[2]
