@@ -415,16 +415,19 @@ def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, l
     n = certainty.shape[1]
     floor = np.float32(WEIGHT_FLOOR)
     for i in numba.prange(rows):
-        for j in range(cols):
-            r = pattern[i % ph, j % pw]
-            c = certainty[r, min(codes[i, j], n - 1)]
-            if c > 0:
-                mu = np.float32(np.exp(log_e[i, j]) * k)
-                var = max(s_o2[r] + sqrt_a[r] * mu + b_a[r] * mu * mu, np.float32(1e-12))
-                num = np.float32(k * k) if linear else mu * mu
-                out[i, j] = max(c * (num / var), floor)
-            else:
-                out[i, j] = 0.0
+        prow = pattern[i % ph]
+        for q in range(min(pw, cols)):  # one table row at a time: no per-sample modulo
+            r = prow[q]
+            so, sq, ba = s_o2[r], sqrt_a[r], b_a[r]
+            for j in range(q, cols, pw):
+                c = certainty[r, min(codes[i, j], n - 1)]
+                if c > 0:
+                    mu = np.float32(np.exp(log_e[i, j]) * k)
+                    var = max(so + sq * mu + ba * mu * mu, np.float32(1e-12))
+                    num = np.float32(k * k) if linear else mu * mu
+                    out[i, j] = max(c * (num / var), floor)
+                else:
+                    out[i, j] = 0.0
 
 
 def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
@@ -496,26 +499,28 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
     n = saturated.shape[1]
     top = y_full - 0.5
     for i in numba.prange(rows):
-        for j in range(cols):
-            r = pattern[i % ph, j % pw]
-            le = log_e[i, j]
-            if not saturated[r, min(codes[i, j], n - 1)] or not le < log_hi:
-                continue
-            e = math.exp(np.float64(le))
-            mu = e * k
-            if use_den and den[i, j] > 0 and not mu > top - CENSORED_SDS * math.sqrt(sd_full2 + k * k / den[i, j]):
-                continue
-            var = max(s_o2[r] + sqrt_a[r] * mu + b_a[r] * mu * mu, 1e-12)
-            sd = math.sqrt(var)
-            a = (top - mu) / sd
-            lam = _inverse_mills(a)
-            gap = max(lam - a, 1e-12)
-            w = np.float32(k * k * lam * gap / var)
-            v = np.float32(e + sd / (k * gap))
-            if use_factor:
-                w *= factor[i, j]
-            cen_num[i, j] += w * v
-            cen_den[i, j] += w
+        prow = pattern[i % ph]
+        for q in range(min(pw, cols)):  # one table row at a time: no per-sample modulo
+            r = prow[q]
+            for j in range(q, cols, pw):
+                le = log_e[i, j]
+                if not saturated[r, min(codes[i, j], n - 1)] or not le < log_hi:
+                    continue
+                e = math.exp(np.float64(le))
+                mu = e * k
+                if use_den and den[i, j] > 0 and not mu > top - CENSORED_SDS * math.sqrt(sd_full2 + k * k / den[i, j]):
+                    continue
+                var = max(s_o2[r] + sqrt_a[r] * mu + b_a[r] * mu * mu, 1e-12)
+                sd = math.sqrt(var)
+                a = (top - mu) / sd
+                lam = _inverse_mills(a)
+                gap = max(lam - a, 1e-12)
+                w = np.float32(k * k * lam * gap / var)
+                v = np.float32(e + sd / (k * gap))
+                if use_factor:
+                    w *= factor[i, j]
+                cen_num[i, j] += w * v
+                cen_den[i, j] += w
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)

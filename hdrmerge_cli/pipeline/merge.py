@@ -191,11 +191,12 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     t0 = time.perf_counter()
     maps = noise_rows(per_channel(models.noise, models.table_channels))
     y_full = [float(f.white[0] - f.black[0]) for f in frames]
-    log_e, flags, den, iterations, change, *var = irls(lambda k: load(frames[k]), models.tables, models.pattern,
-                                                       result, exposures, y_full, maps, ml, models.n_irls,
-                                                       variance=with_variance,
-                                                       adjust=None if weights_of is None else weights_of.adjust,
-                                                       den=den)
+    with ThreadPoolExecutor(1) as pool:
+        log_e, flags, den, iterations, change, *var = irls(_read_ahead(load, frames, pool), models.tables,
+                                                           models.pattern, result, exposures, y_full, maps, ml,
+                                                           models.n_irls, variance=with_variance,
+                                                           adjust=None if weights_of is None else weights_of.adjust,
+                                                           den=den)
     log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
     result = np.exp(log_e, out=log_e)
     result *= np.float32(h_ref)
@@ -205,6 +206,25 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
         variance *= result * result
     timings["irls"] = time.perf_counter() - t0
     return result, flags, den, variance, iterations
+
+
+def _read_ahead(load, frames: list[Frame], pool: ThreadPoolExecutor):
+    """``k -> load(frames[k])`` for a reader that asks for the frames in order (IRLS): frame
+    ``k + 1`` is decoded on ``pool`` while frame ``k`` is used (one decode at a time, so the
+    loader needs no locking; one frame more in memory)."""
+    pending = {}
+
+    def codes_of(k: int) -> np.ndarray:
+        ahead = pending.pop(k, None)
+        for other in pending.values():  # asked out of order: the guess is dropped, never two decodes at once
+            other.cancel() or other.result()
+        pending.clear()
+        codes = ahead.result() if ahead is not None else load(frames[k])
+        if k + 1 < len(frames):
+            pending[k + 1] = pool.submit(load, frames[k + 1])
+        return codes
+
+    return codes_of
 
 
 # ---------------------------------------------------------------- checks after the merge
