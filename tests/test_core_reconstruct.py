@@ -386,8 +386,10 @@ def test_fused_irls_weights_match_the_reference(shape, pattern, linear):
 def test_fused_censored_terms_match_the_reference(use_den, use_factor):
     """The compiled censored terms of IRLS (_censored_rows) equal censored_terms (scipy's
     log_ndtr) on the readings the numpy selection keeps: clipped, not CENSORED_SDS sds
-    above full scale, and (with the previous pass's den) not CENSORED_SDS combined sds
-    below it; estimates from far below to far above full scale (a from about -40 to 60)."""
+    above full scale, and (with the previous pass's den) measured by the previous pass and
+    not CENSORED_SDS combined sds below it; estimates from far below to far above full
+    scale (a from about -40 to 60).  They add to sums already started and set those that
+    are not (den 0 or a class mark -1)."""
     rng = np.random.default_rng(11)
     pattern = np.array([[0, 1], [1, 2]], np.intp)
     shape, full, h = (40, 60), 4095.0, 0.5
@@ -407,19 +409,26 @@ def test_fused_censored_terms_match_the_reference(use_den, use_factor):
     idx = reconstruct.channel_index(shape, pattern)
     sat = (codes == 4095) & (log_e < log_hi)
     if use_den:
+        sat &= den > 0
         sd = np.sqrt(sd_full2 + np.where(den > 0, k * k / np.where(den > 0, den, 1.0), np.inf))
         sat &= np.exp(log_e.astype(np.float64)) * k > full - 0.5 - reconstruct.CENSORED_SDS * sd
     assert 0 < sat.sum() < sat.size
     cw, cv = reconstruct.censored_terms(log_e[sat], h, full, [m[idx][sat] for m in rows])
     if use_factor:
         cw = cw * factor[sat]
-    num, den_c = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
-    num[sat], den_c[sat] = cw * cv, cw
-    out_num, out_den = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    start_num = rng.uniform(1, 2, shape).astype(np.float32)
+    start_den = rng.choice(np.float32([-1.0, 0.0, 0.5, 2.0]), shape)
+    started = start_den > 0
+    num, den_c = start_num.copy(), start_den.copy()
+    num[sat] = np.where(started[sat], num[sat], 0.0) + cw * cv
+    den_c[sat] = np.where(started[sat], den_c[sat], 0.0) + cw
+    var_c = np.where(sat, den_c, np.where(started, start_den, 7.0))  # var follows den where a term was added
+    out_num, out_den, out_var = start_num.copy(), start_den.copy(), np.where(started, start_den, 7.0)
     reconstruct._censored_rows(codes, pattern, saturated, log_e, den, use_den, k, full, sd_full2, log_hi, *rows,
-                               factor, use_factor, out_num, out_den)
+                               factor, use_factor, out_num, out_den, out_var, True)
     np.testing.assert_allclose(out_den, den_c, rtol=1e-5, atol=1e-30)
     np.testing.assert_allclose(out_num, num, rtol=1e-5, atol=1e-30)
+    np.testing.assert_allclose(out_var, var_c, rtol=1e-5)
     # Mills' ratio on both sides of the switch to the asymptotic series
     from scipy.special import log_ndtr
     for a in (-38.0, -5.0, 0.0, 3.0, 29.99, 30.0, 45.0, 300.0):

@@ -488,12 +488,15 @@ def _inverse_mills(a):  # pragma: no cover
 
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd_full2, log_hi, s_o2, sqrt_a, b_a,
-                   factor, use_factor, cen_num, cen_den):  # pragma: no cover
-    """One frame's censored terms (:func:`censored_terms`) added to ``cen_num`` (weight
-    times value) and ``cen_den`` (weight), per 2-D sample, fused with the choice of the
-    readings they apply to (see :func:`irls`): clipped (``saturated`` table), an estimate
-    under ``log_hi`` (not :data:`CENSORED_SDS` sds above full scale) and, with
-    ``use_den``, not :data:`CENSORED_SDS` combined sds below it."""
+                   factor, use_factor, num_t, den_t, var_t, use_var):  # pragma: no cover
+    """One frame's censored terms (:func:`censored_terms`) added to ``num_t`` (weight times
+    value), ``den_t`` (weight) and, with ``use_var``, ``var_t`` (weight), per 2-D sample,
+    fused with the choice of the readings they apply to (see :func:`irls`): clipped
+    (``saturated`` table) and an estimate under ``log_hi`` (not :data:`CENSORED_SDS` sds
+    above full scale); with ``use_den`` also only where the previous pass measured the
+    sample (``den > 0``) and not :data:`CENSORED_SDS` combined sds below full scale.  A
+    target sample whose ``den_t`` is not positive (no weight yet, or a class mark of
+    :class:`LogMerge`) is set, as a first weight is."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
     n = saturated.shape[1]
@@ -506,9 +509,11 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
                 le = log_e[i, j]
                 if not saturated[r, min(codes[i, j], n - 1)] or not le < log_hi:
                     continue
+                if use_den and not den[i, j] > 0:
+                    continue
                 e = math.exp(np.float64(le))
                 mu = e * k
-                if use_den and den[i, j] > 0 and not mu > top - CENSORED_SDS * math.sqrt(sd_full2 + k * k / den[i, j]):
+                if use_den and not mu > top - CENSORED_SDS * math.sqrt(sd_full2 + k * k / den[i, j]):
                     continue
                 var = max(s_o2[r] + sqrt_a[r] * mu + b_a[r] * mu * mu, 1e-12)
                 sd = math.sqrt(var)
@@ -519,8 +524,16 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
                 v = np.float32(e + sd / (k * gap))
                 if use_factor:
                     w *= factor[i, j]
-                cen_num[i, j] += w * v
-                cen_den[i, j] += w
+                if den_t[i, j] > 0:
+                    num_t[i, j] += w * v
+                    den_t[i, j] += w
+                    if use_var:
+                        var_t[i, j] += w
+                else:
+                    num_t[i, j] = w * v
+                    den_t[i, j] = w
+                    if use_var:
+                        var_t[i, j] = w
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -566,7 +579,9 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
         factor also applied to the frame's censored terms
     den : the summed inverse-variance weights of ``log_e``'s estimate (ML: ``1 / Var E``;
         :class:`LogMerge`'s ``den``), which lets the first pass drop clipped readings the
-        estimate makes impossible (motion); later passes use their predecessor's
+        estimate makes impossible (motion) and add the censored terms straight into the
+        sums where it is positive (without it they wait in two more arrays until every
+        frame is in); later passes use their predecessor's
     variance : also return the variance of ``log E`` of the last pass (needs no
         ``with_variance`` tables): each frame's weight ``w_j = w(z) I_j`` is its certainty
         times its Fisher information at the previous estimate, ``I_j = 1 / Var(x_j)`` with
@@ -610,13 +625,19 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
                 # ``E h y_full`` is uncertain by ``h y_full / sqrt(den)``)
                 sd_full2 = max_rows[0] + max_rows[1] * y_full[k] + max_rows[2] * y_full[k] ** 2
                 log_hi = np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * np.sqrt(sd_full2)) / (h * y_full[k])))
-                if cen_num is None:
+                # with the previous pass's den (which samples some frame measures): straight
+                # into the accumulators; without it, apart until every frame is in
+                direct = prev_den is not None
+                if not direct and cen_num is None:
                     cen_num, cen_den = np.zeros(shape2, np.float32), np.zeros(shape2, np.float32)
+                targets = ((acc.num.reshape(shape2), acc.den.reshape(shape2),
+                            (acc.var if variance else acc.num).reshape(shape2)) if direct
+                           else (cen_num, cen_den, cen_num))
                 _censored_rows(codes.reshape(shape2), pat, tab.saturated.reshape(-1, tab.n_codes), log_e2,
-                               weight if prev_den is None else prev_den.reshape(shape2), prev_den is not None,
+                               weight if prev_den is None else prev_den.reshape(shape2), direct,
                                float(h * y_full[k]), float(y_full[k]), float(sd_full2), log_hi, *rows,
                                weight if factor is None else factor.reshape(shape2), factor is not None,
-                               cen_num, cen_den)
+                               *targets, direct and variance)
         if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
             # clipped in every frame has no finite ML estimate and keeps its flag; with the
             # variance, certainty 1: w^2 Var = the information itself
