@@ -41,6 +41,46 @@ def test_ecc_recovers_a_subpixel_shift_between_exposures():
     assert rho > 0.9
 
 
+def test_euclidean_fit_matches_opencv_without_scale():
+    """_euclidean_fit (2-D Procrustes) against OpenCV's similarity fit on exact rigid
+    correspondences (scale 1), and it never scales noisy ones."""
+    rng = np.random.default_rng(3)
+    src = rng.uniform(0, 1000, (12, 2))
+    true = _rigid(0.7, 3.2, -1.1)
+    dst = src @ true[:, :2].T + true[:, 2]
+    ocv, _ = cv2.estimateAffinePartial2D(src, dst, method=cv2.LMEDS)
+    np.testing.assert_allclose(align._euclidean_fit(src, dst), true, atol=1e-9)
+    np.testing.assert_allclose(align._euclidean_fit(src, dst), ocv, atol=1e-4)  # LMEDS refines to ~2e-5
+    fit = align._euclidean_fit(src, dst * 1.003 + rng.normal(0, 0.1, dst.shape))
+    assert np.linalg.det(fit[:, :2]) == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("motion, rotation", [("translation", 0.0), ("similarity", 0.4)])
+def test_a_moving_object_does_not_bias_the_registration(motion, rotation, monkeypatch):
+    """A flat object in one frame only (an object that moved; 6 % of the frame, hard edges)
+    over a textured scene: the whole-image registration alone is pulled by it (measured
+    0.14 px translation, 3.0 px similarity), the tile consensus (_tile_consensus: tiles
+    registered on their own, a least-median fit) recovers the true warp within 0.1 px at
+    every corner (measured 0.015, 0.034)."""
+    from scipy import ndimage as ndi
+
+    size = (480, 640)
+    rng = np.random.default_rng(5)
+    big = ndi.gaussian_filter(rng.normal(0, 1, (size[0] + 64, size[1] + 64)), 2.0).astype(np.float32)
+    big *= np.float32(0.2 / big.std())  # log-irradiance texture
+    true = _rigid(rotation, 3.3, -2.7)  # reference pixel x -> frame pixel true @ x
+    ia = np.ascontiguousarray(big[32:-32, 32:-32])
+    inv = cv2.invertAffineTransform(true.astype(np.float32))
+    inv[:, 2] += 32  # frame pixel y sees padded-scene pixel true^-1 y + 32
+    ib = cv2.warpAffine(big, inv, size[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    ib[100:230, 150:300] = 1.5  # the moved object, brighter than the scene around it
+    warp, _ = align.estimate_warp(ia, ib, motion)
+    assert align.corner_distance(warp, true, *size) < 0.1, (warp, true)
+    monkeypatch.setattr(align, "_tile_consensus", lambda *args: None)
+    whole, _ = align.estimate_warp(ia, ib, motion)
+    assert align.corner_distance(whole, true, *size) > 0.1
+
+
 def _bracket_pngs(folder, times, warps, size=(300, 400), seed=2):
     """8-bit PNG frames (x^(1/2.2), noise) of the built-in scene, frame j seeing it through
     ``warps[j]`` (reference coordinates -> frame coordinates, as ``core.align``); rendered

@@ -217,6 +217,77 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
     return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
 
 
+#: tiles per side of the robust consensus (:func:`_tile_consensus`)
+CONSENSUS_TILES = 5
+#: a tile's correction farther than this (pixels) from the consensus is an outlier (motion)
+CONSENSUS_TOL_PX = 0.25
+#: textured pixels a tile needs to take part
+CONSENSUS_MIN_TEXTURED = 200
+
+
+def _euclidean_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The rotation and translation (no scale: a camera that turned, not zoomed) taking the
+    points ``src`` nearest to ``dst`` in least squares (2-D Procrustes: the angle of the
+    summed cross and dot products of the centred points), ``(2, 3)``."""
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    theta = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b))
+    r = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    return np.hstack([r, (dst.mean(axis=0) - r @ src.mean(axis=0))[:, None]])
+
+
+def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+    """A correction of ``warp`` that a moving object cannot bias: ``image`` resampled onto
+    ``reference`` by ``warp`` (bicubic), each of :data:`CONSENSUS_TILES` x
+    :data:`CONSENSUS_TILES` tiles registered on its own (ECC translation, from no motion),
+    and the tile centres' displacements fitted robustly: the median for ``translation``,
+    OpenCV's least-median-of-squares similarity (``cv2.estimateAffinePartial2D``, LMEDS) for
+    ``similarity``; tiles farther than :data:`CONSENSUS_TOL_PX` from the fit are outliers
+    and the fit is redone on the rest, without scale (:func:`_euclidean_fit`; its rotation
+    kept where ``warp`` rotates already or it moves a corner by more than
+    :data:`ROTATION_PX` beyond the inliers' mean shift).  Whole-image ECC weighs every pixel, so an object
+    that moved between the frames (a ghost) pulls it by tenths of a pixel and a rotation by
+    hundredths of a degree; here its tiles are outvoted.  Returns the corrected warp, or
+    None unless at least 4 tiles are textured (:data:`CONSENSUS_MIN_TEXTURED`), registered
+    within :data:`MAX_REFINE_PX`, and at least half of them (and 4) agree."""
+    cv2 = _cv2()
+    h, w = reference.shape
+    n = CONSENSUS_TILES
+    th, tw = h // n, w // n
+    if min(th, tw) < 32:
+        return None
+    moved = cv2.warpAffine(image, warp.astype(np.float32), (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)
+    inside = covered_mask(warp, *image.shape)
+    centres, shifts = [], []
+    for i in range(n):
+        for j in range(n):
+            y0, x0 = i * th, j * tw
+            if not inside[y0:y0 + th, x0:x0 + tw].all():
+                continue
+            tile = np.ascontiguousarray(reference[y0:y0 + th, x0:x0 + tw])
+            if textured_pixels(tile) < CONSENSUS_MIN_TEXTURED:
+                continue
+            found = _ecc(tile, np.ascontiguousarray(moved[y0:y0 + th, x0:x0 + tw]), np.eye(2, 3), "translation")
+            if found is not None and np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):
+                centres.append((x0 + (tw - 1) / 2, y0 + (th - 1) / 2))
+                shifts.append(found[:, 2])
+    if len(shifts) < 4:
+        return None
+    src = np.asarray(centres, np.float64)
+    dst = src + np.asarray(shifts, np.float64)
+    fit = cv2.estimateAffinePartial2D(src, dst, method=cv2.LMEDS)[0] if motion == "similarity" else None
+    pred = src + np.median(dst - src, axis=0) if fit is None else src @ fit[:, :2].T + fit[:, 2]
+    keep = np.hypot(*(pred - dst).T) <= CONSENSUS_TOL_PX
+    if keep.sum() < max(4, len(src) // 2):
+        return None
+    correction = np.hstack([np.eye(2), np.mean(dst[keep] - src[keep], axis=0)[:, None]])
+    if motion == "similarity":  # the rotation too: the warp rotates already, or it moves a corner by > ROTATION_PX
+        rotated = _euclidean_fit(src[keep], dst[keep])
+        if not np.allclose(warp[:, :2], np.eye(2)) or corner_distance(rotated, correction, h, w) > ROTATION_PX:
+            correction = rotated
+    return compose(warp, correction.astype(np.float64))
+
+
 def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> tuple[np.ndarray, float]:
     """The warp bringing ``image`` onto ``reference`` (both ``(H, W)`` float32 exposure-
     invariant images, see :func:`log_irradiance`) and its confidence, the enhanced
@@ -249,6 +320,9 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
         rotated = _pyramid_ecc(reference, image, best, "similarity")
         if rotated is not None and (r := score(rotated)) > rho and corner_distance(rotated, best, *reference.shape) > ROTATION_PX:
             best, rho = rotated, r
+    robust = _tile_consensus(reference, image, best, motion)
+    if robust is not None:
+        best, rho = robust, score(robust)
     return best, rho
 
 
