@@ -17,14 +17,15 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## Compile and cache the numba kernels (merge of a tiny RAW, JPEG and 16-bit TIFF bracket), so that a
-## user's first merge does not pay for compilation; run again after editing a kernel.
+## Compile and cache the numba kernels (merge of a tiny RAW, JPEG and 16-bit TIFF bracket, the first two
+## with deghosting), so that a user's first merge does not pay for compilation; run again after editing
+## a kernel.
 warm:
 	@tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && export HDRMERGE_CLI_CACHE_DIR="$$tmp/cache" && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/raw" --size 96x64 --frames 3 -q && \
-	$(BIN)/hdrmerge-cli merge "$$tmp"/raw/frame_*.dng -o "$$tmp/raw.exr" -q && \
+	$(BIN)/hdrmerge-cli merge "$$tmp"/raw/frame_*.dng -o "$$tmp/raw.exr" --deghost on -q && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/jpg" --format jpg --size 96x64 --frames 3 -q && \
-	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --crf srgb -q && \
+	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --crf srgb --deghost on -q && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/tif" --format tif --out-bits 16 --size 96x64 --frames 3 -q && \
 	$(BIN)/hdrmerge-cli merge "$$tmp"/tif/frame_*.tif -o "$$tmp/tif.exr" --crf srgb -q && \
 	echo "numba kernels compiled and cached"

@@ -344,10 +344,37 @@ def test_samples_shifted_in_from_outside_get_no_weight():
     raw = covered(frame("raw", 4), w, True)  # moved by (+2, -2): the last 2 columns, first 2 rows
     assert raw.shape == (6, 10) and not raw[:2].any() and not raw[:, 8:].any() and raw[2:, :8].all()
     rgb = covered(frame("image", 3), w, False)  # x + 2.7 beyond 9.5 from x = 7
-    assert rgb.shape == (6, 30) and not rgb[:, 21:].any() and rgb[3:, :21].all()
+    assert rgb.shape == (6, 10) and not rgb[:, 7:].any() and rgb[3:, :7].all()
 
 
 # ---------------------------------------------------------------- deghosting decision rules (issue 17)
+@pytest.mark.parametrize("dtype, n_codes", [(np.uint8, 256), (np.uint16, 4096)])
+@pytest.mark.parametrize("b", [1, 2, 3])
+def test_block_statistics_match_table_lookups_and_block_means(dtype, n_codes, b):
+    """The compiled block pass equals, to float32 rounding (1e-6 relative), table lookups
+    followed by block means and all-of tests in NumPy, on one strided channel of
+    interleaved codes with dark and clipped regions and codes beyond the table."""
+    rng = np.random.default_rng(7)
+    codes = rng.integers(0, n_codes, (61, 3 * 47), dtype=dtype)
+    codes[:8, :12], codes[10:20, 30:60] = 0, n_codes - 1
+    plane = codes[:, 1::3]
+    x_t = np.sort(rng.random(n_codes - 10)).astype(np.float32)  # shorter than the codes: last entry repeats
+    s_t = rng.random(n_codes - 10).astype(np.float32)
+    ok_t = np.zeros(n_codes - 10, bool)
+    ok_t[3:-5] = True
+    lo, hi = 3, n_codes - 16
+    xs, ss, ok, bound = deghost.block_statistics(plane, x_t, s_t, ok_t, b)
+    h, w = plane.shape[0] // b, plane.shape[1] // b
+    z = np.minimum(plane[:h * b, :w * b].astype(np.int64), x_t.size - 1).reshape(h, b, w, b)
+    np.testing.assert_allclose(xs, x_t[z].astype(np.float64).mean(axis=(1, 3)), rtol=1e-6)
+    np.testing.assert_allclose(ss, s_t[z].astype(np.float64).mean(axis=(1, 3)) / b**2, rtol=1e-6)
+    np.testing.assert_array_equal(ok, ok_t[z].all(axis=(1, 3)))
+    raw = plane[:h * b, :w * b].reshape(h, b, w, b)
+    dark, clipped = (raw < lo).all(axis=(1, 3)), (raw > hi).all(axis=(1, 3))
+    assert dark.any() and clipped.any()
+    np.testing.assert_array_equal(bound, np.where(dark, x_t[lo], np.where(clipped, -x_t[hi], 0.0)).astype(np.float32))
+
+
 def _image_frame(name, t, h, w):
     from hdrmerge_cli.io.frames import Frame
 

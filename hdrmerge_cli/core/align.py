@@ -187,11 +187,11 @@ def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str,
     return found.astype(np.float64)
 
 
-def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
-    """ECC coarse to fine: on area-averaged levels (factors 2^k, every level between
-    :data:`PYRAMID_MIN` and :data:`COARSE_SIDE` pixels wide; loosely converged), then at
-    full resolution on the central :data:`FINE_SIDE` window; each level starts from the one
-    before."""
+def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray:
+    """ECC coarse to fine on area-averaged levels (factors 2^k, every level between
+    :data:`PYRAMID_MIN` and :data:`COARSE_SIDE` pixels wide; loosely converged), each level
+    starting from the one before; a level that does not converge leaves the warp as it
+    was.  Full resolution is left to :func:`_tile_consensus` or :func:`_fine_ecc`."""
     side = max(reference.shape)
     levels = [f for f in (2**k for k in range(1, 16)) if PYRAMID_MIN <= side / f <= COARSE_SIDE]
     for f in sorted(levels, reverse=True):
@@ -200,6 +200,12 @@ def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, mot
         found = _ecc(block_mean(reference, f), block_mean(image, f), level, motion, eps=1e-4)
         if found is not None:
             warp = rescale_warp(found, f, c)
+    return warp
+
+
+def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+    """ECC at full resolution on the central :data:`FINE_SIDE` window, from ``warp``; None
+    when it does not converge."""
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
     found = _ecc(np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1]),
                  shift_warp(warp, (x0, y0)), motion)
@@ -223,6 +229,11 @@ CONSENSUS_TILES = 5
 CONSENSUS_TOL_PX = 0.25
 #: textured pixels a tile needs to take part
 CONSENSUS_MIN_TEXTURED = 200
+#: a tile is registered on its central window at most this many pixels on a side (at 24 MP
+#: the 25 whole tiles would be the whole frame at full resolution)
+CONSENSUS_TILE_SIDE = 256
+#: ECC's convergence threshold (change of the correlation) for a tile
+CONSENSUS_EPS = 1e-4
 
 
 def _euclidean_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -238,7 +249,8 @@ def _euclidean_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
     """A correction of ``warp`` that a moving object cannot bias: ``image`` resampled onto
     ``reference`` by ``warp`` (bicubic), each of :data:`CONSENSUS_TILES` x
-    :data:`CONSENSUS_TILES` tiles registered on its own (ECC translation, from no motion),
+    :data:`CONSENSUS_TILES` tiles registered on its own (ECC translation, from no motion, on
+    its central window of at most :data:`CONSENSUS_TILE_SIDE` pixels a side),
     and the tile centres' displacements fitted robustly: the median for ``translation``,
     OpenCV's least-median-of-squares similarity (``cv2.estimateAffinePartial2D``, LMEDS) for
     ``similarity``; tiles farther than :data:`CONSENSUS_TOL_PX` from the fit are outliers
@@ -259,17 +271,19 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
                            borderMode=cv2.BORDER_REPLICATE)
     inside = covered_mask(warp, *image.shape)
     centres, shifts = [], []
+    sh, sw = min(th, CONSENSUS_TILE_SIDE), min(tw, CONSENSUS_TILE_SIDE)
     for i in range(n):
         for j in range(n):
-            y0, x0 = i * th, j * tw
-            if not inside[y0:y0 + th, x0:x0 + tw].all():
+            y0, x0 = i * th + (th - sh) // 2, j * tw + (tw - sw) // 2
+            rows, cols = slice(y0, y0 + sh), slice(x0, x0 + sw)
+            if not inside[rows, cols].all():
                 continue
-            tile = np.ascontiguousarray(reference[y0:y0 + th, x0:x0 + tw])
+            tile = np.ascontiguousarray(reference[rows, cols])
             if textured_pixels(tile) < CONSENSUS_MIN_TEXTURED:
                 continue
-            found = _ecc(tile, np.ascontiguousarray(moved[y0:y0 + th, x0:x0 + tw]), np.eye(2, 3), "translation")
+            found = _ecc(tile, np.ascontiguousarray(moved[rows, cols]), np.eye(2, 3), "translation", eps=CONSENSUS_EPS)
             if found is not None and np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):
-                centres.append((x0 + (tw - 1) / 2, y0 + (th - 1) / 2))
+                centres.append((x0 + (sw - 1) / 2, y0 + (sh - 1) / 2))
                 shifts.append(found[:, 2])
     if len(shifts) < 4:
         return None
@@ -296,13 +310,15 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
 
     A coarse translation (:func:`_translation`: phase correlation against no motion, by the
     vote of the pixels) starts ECC (Evangelidis and Psarakis 2008, ``cv2.findTransformECC``)
-    on a pyramid down to full resolution (:func:`_pyramid_ecc`): every textured pixel of the
+    on a pyramid of area-averaged levels (:func:`_pyramid_ecc`): every textured pixel of the
     band an HDR pair shares counts, however small a fraction of the frame it is.  ECC's
     result stands unless it wandered more than :data:`MAX_REFINE_PX` from the phase
     correlation's.  ``similarity`` then adds a rotation (ECC's Euclidean model, from
     the translation) and keeps it only if it correlates better and moves some corner of the
     frame by more than :data:`ROTATION_PX` (a negligible rotation is not worth resampling
-    for).  Returns ``((2, 3), rho)``."""
+    for).  Full resolution: the tile consensus (:func:`_tile_consensus`), or where too few
+    tiles are textured, ECC on the central window (:func:`_fine_ecc`).  Returns ``((2, 3),
+    rho)``."""
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}")
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
@@ -311,15 +327,22 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
     def score(warp):
         return ecc_score(ref_w, img_w, shift_warp(warp, (x0, y0)))
 
-    best = _translation(reference, image)
-    rho = score(best)
-    refined = _pyramid_ecc(reference, image, best, "translation")
-    if refined is not None and np.max(np.abs(refined[:, 2] - best[:, 2])) <= MAX_REFINE_PX:
+    phase = _translation(reference, image)
+    best, rho = phase, score(phase)
+    refined = _fine_ecc(reference, image, _pyramid_ecc(reference, image, phase, "translation"), "translation")
+    if refined is not None and np.max(np.abs(refined[:, 2] - phase[:, 2])) <= MAX_REFINE_PX:
         best, rho = refined, score(refined)
+
+    def beats(candidate):  # a rotation is kept where it correlates better and is not negligible
+        return (r := score(candidate)) > rho and corner_distance(candidate, best, *reference.shape) > ROTATION_PX, r
+
     if motion == "similarity":
         rotated = _pyramid_ecc(reference, image, best, "similarity")
-        if rotated is not None and (r := score(rotated)) > rho and corner_distance(rotated, best, *reference.shape) > ROTATION_PX:
-            best, rho = rotated, r
+        if corner_distance(rotated, best, *reference.shape) > ROTATION_PX:  # the coarse levels see a
+            # rotation that is not negligible: refine it at full resolution and compare
+            rotated = _fine_ecc(reference, image, rotated, "similarity")
+            if rotated is not None and (kept := beats(rotated))[0]:
+                best, rho = rotated, kept[1]
     robust = _tile_consensus(reference, image, best, motion)
     if robust is not None:
         best, rho = robust, score(robust)

@@ -33,6 +33,7 @@ result shows one moment.
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy import ndimage
 
@@ -41,7 +42,7 @@ from hdrmerge_cli.core.noise import NoiseParams, code_variance
 #: false-alarm rate of the per-cell test
 P_FALSE_ALARM = 1e-3
 #: samples the intensity matching and the level scale are fitted on
-FIT_SAMPLES = 1 << 18
+FIT_SAMPLES = 1 << 16
 #: degree of the polynomial (in log x) of :func:`match_anchor`
 MATCH_DEGREE = 3
 #: smallest robust scale of :func:`robust_poly` (log units)
@@ -101,6 +102,53 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     step = np.gradient(lin)  # linear value per code step
     var = code_variance(np.maximum(lin, 0.0) * y_full, noise) / y_full**2 + step * step / 12.0
     return lin / exposure, var / exposure**2, valid
+
+
+def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int):
+    """One channel's block estimates from its codes in one compiled pass: ``plane`` ``(H, W)``
+    integer codes (any strides), per code the tables of :func:`ghost_tables` (codes beyond
+    them read the last entry).  Per ``b x b`` block (partial blocks dropped), float32/bool
+    ``(H // b, W // b)``: the mean of ``x``, the mean of ``s`` over ``b^2`` (the variance of
+    a mean of ``b^2`` independent readings), whether every code measures, and the bound a
+    block sets where the frame does not measure it: the ``x`` of the lowest measuring code
+    where every code lies below it (dark), minus the ``x`` of the highest where every code
+    lies above it (clipped), 0 elsewhere (see :func:`violates_bound`)."""
+    valid = np.flatnonzero(ok_t)
+    lo, hi = (int(valid[0]), int(valid[-1])) if valid.size else (x_t.size, -1)
+    shape = (plane.shape[0] // b, plane.shape[1] // b)
+    xs, ss, bound = (np.empty(shape, np.float32) for _ in range(3))
+    ok = np.empty(shape, np.bool_)
+    _block_statistics(plane, np.ascontiguousarray(x_t, np.float32), np.ascontiguousarray(s_t, np.float32),
+                      np.ascontiguousarray(ok_t, np.bool_), lo, hi, b, xs, ss, ok, bound)
+    return xs, ss, ok, bound
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _block_statistics(plane, x_t, s_t, ok_t, lo, hi, b, xs, ss, ok, bound):  # pragma: no cover - compiled
+    last = x_t.size - 1
+    inv = 1.0 / (b * b)
+    dark_x = x_t[min(max(lo, 0), last)]
+    clip_x = x_t[min(max(hi, 0), last)]
+    for i in numba.prange(xs.shape[0]):
+        for j in range(xs.shape[1]):
+            sx = 0.0
+            sv = 0.0
+            all_ok = True
+            dark = True
+            clipped = True
+            for u in range(i * b, i * b + b):
+                for v in range(j * b, j * b + b):
+                    z = np.int64(plane[u, v])
+                    r = min(z, last)
+                    sx += x_t[r]
+                    sv += s_t[r]
+                    all_ok = all_ok and ok_t[r]
+                    dark = dark and z < lo
+                    clipped = clipped and z > hi
+            xs[i, j] = sx * inv
+            ss[i, j] = sv * inv * inv
+            ok[i, j] = all_ok
+            bound[i, j] = dark_x if dark else (-clip_x if clipped else 0.0)
 
 
 def block_mean(a: np.ndarray, b: int) -> np.ndarray:

@@ -163,6 +163,9 @@ class AlignedLoader:
         codes = self.load(frame)
         clip = int(np.max(frame.white))
         w = self.warps[frame.path]
+        if is_identity(w):  # the reference: nothing to resample
+            self.spreads.pop(frame.path, None)
+            return codes
         if frame.kind != "raw":
             # full-resolution bilinear resampling of images: no tap variance (on the 8-bit cases
             # of benchmarks/motion.py it cost 1-5 dB away from the ghost: the taps' spread is
@@ -199,32 +202,12 @@ def _planes(frame: Frame, codes: np.ndarray, pattern: np.ndarray) -> list[tuple[
     return [(codes[..., c], c) for c in range(codes.shape[-1])]
 
 
-def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list, b: int,
-                     bounds: bool = False):
-    """One frame's block means ``(h, w, C)``: x, its variance s (mean variance / b^2) and
-    whether every sample of the block measures; with ``bounds`` also what a block whose
-    samples are all dark (> 0: the x of the lowest measuring code) or all clipped (< 0:
-    minus the x of the highest one) bounds, 0 elsewhere."""
-    planes = _planes(frame, codes, pattern)
-    x = s = ok = bound = None
-    for c, (plane, row) in enumerate(planes):
-        x_t, s_t, ok_t = tables[row]
-        xs = deghost.block_mean(deghost.table_lookup(x_t, plane), b)
-        if x is None:
-            shape = xs.shape + (len(planes),)
-            x, s = np.empty(shape, np.float32), np.empty(shape, np.float32)
-            ok = np.empty(shape, bool)
-            bound = np.zeros(shape, np.float32) if bounds else None
-        x[..., c] = xs
-        s[..., c] = deghost.block_mean(deghost.table_lookup(s_t, plane), b) / np.float32(b * b)
-        ok[..., c] = deghost.block_all(np.take(ok_t, plane, mode="clip"), b)
-        if bounds:
-            valid = np.flatnonzero(ok_t)
-            lo_code, hi_code = valid[0], valid[-1]
-            dark = deghost.block_all(plane < lo_code, b)
-            clip = deghost.block_all(plane > hi_code, b)
-            bound[..., c] = np.where(dark, x_t[lo_code], np.where(clip, -x_t[hi_code], 0.0))
-    return x, s, ok, bound
+def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list, b: int):
+    """One frame's block estimates ``(h, w, C)`` (:func:`~hdrmerge_cli.core.deghost.block_statistics`
+    per channel): x, its variance s, whether every sample of the block measures, and what a
+    block whose samples are all dark (> 0) or all clipped (< 0) bounds (0 elsewhere)."""
+    per_channel = [deghost.block_statistics(plane, *tables[row], b) for plane, row in _planes(frame, codes, pattern)]
+    return tuple(np.stack(a, axis=-1) for a in zip(*per_channel))
 
 
 def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
@@ -262,7 +245,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
 
     est = {}
     for k, f in enumerate(frames):  # one decode per frame; only block means are kept
-        est[k] = _block_estimates(f, load(f), pattern, tables(k), b, bounds=True)
+        est[k] = _block_estimates(f, load(f), pattern, tables(k), b)
     bound_r = est[ref][3]
     clipped = {k: (e[3] < 0).any(axis=-1) for k, e in est.items()}  # blocks clipped in a channel
     order = sorted(range(len(frames)), key=lambda k: (abs(np.log(exposures[k] / exposures[ref])), k))
@@ -341,7 +324,7 @@ def ghost_image(ghosts: dict | None, height: int, width: int) -> np.ndarray:
 
 
 def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
-    """Which samples of the aligned frame come from inside it, ``(H, W')`` bool (a pixel's
+    """Which pixels of the aligned frame come from inside it, ``(H, W)`` bool (a pixel's
     channels share its value); the others are stand-ins (the edge repeated) and get no
     weight in the merge.  ``periods``: a RAW frame moved by whole CFA periods."""
     h, w = frame.height, frame.width
@@ -350,8 +333,7 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
         rows = (np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1)
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
         return rows[:, None] & cols[None, :]
-    inside = align.covered_mask(warp, h, w)
-    return inside if frame.kind == "raw" else np.repeat(inside, frame.channels, axis=1)
+    return align.covered_mask(warp, h, w)
 
 
 def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None,
@@ -376,32 +358,42 @@ class SampleWeights:
         self.ghosts, self.alignment, self.load = ghosts, alignment, load
 
     def factor(self, k: int) -> np.ndarray | None:
-        """``(H, W')`` float32 in [0, 1], or None (all 1): zero where the aligned frame does
-        not cover the reference, ``1 - m`` in its rejected ghost cells (feathered ``m``, so
-        no seam)."""
+        """``(H, W)`` float32 in [0, 1] per pixel (an image's channels share it), or None
+        (all 1): zero where the aligned frame does not cover the reference, ``1 - m`` in its
+        rejected ghost cells (feathered ``m``, so no seam)."""
         frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
         out = None
         if ghosts is not None and ghosts["masks"][k].any():
-            keep = 1.0 - ghost_weight(ghosts, k, frame.height, frame.width)
-            out = keep if frame.kind == "raw" else np.repeat(keep, frame.channels, axis=1)
+            out = np.subtract(np.float32(1.0), ghost_weight(ghosts, k, frame.height, frame.width))
         if alignment is not None:
             inside = covered(frame, alignment["warps"][k], alignment["resampling"] == "cfa-periods")
-            out = inside.astype(np.float32) if out is None else out * inside
+            out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
         return out
 
-    def adjust(self, k: int, codes: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Inverse-variance weights ``w`` (``(H, W')``) of frame ``k``'s ``codes`` with the
-        resampling's variance added (:func:`resampled_weight`), times :meth:`factor`;
-        returns ``(weights, factor)``."""
+    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``w`` with the resampling's variance added and times :meth:`factor` (broadcast
+        over an image's channels, which need no copy of it each), and the factor."""
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
             w = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread))
         f = self.factor(k)
-        return (w if f is None else w * f), f
+        if f is None:
+            return w, None
+        per_pixel = w.reshape(f.shape + (-1,))
+        return np.multiply(per_pixel, f[..., None]).reshape(w.shape), f
+
+    def adjust(self, k: int, codes: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Inverse-variance weights ``w`` (``(H, W')``) of frame ``k``'s ``codes`` with the
+        resampling's variance added (:func:`resampled_weight`), times :meth:`factor`;
+        returns ``(weights, factor)``, the factor per sample ``(H, W')``."""
+        out, f = self._weighted(k, codes, w)
+        if f is not None and f.shape != out.shape:
+            f = np.repeat(f, out.shape[1] // f.shape[1], axis=1)
+        return out, f
 
     def __call__(self, k: int, codes: np.ndarray) -> np.ndarray:
         w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
-        return self.adjust(k, codes, w)[0].reshape(codes.shape).astype(np.float32, copy=False)
+        return self._weighted(k, codes, w)[0].reshape(codes.shape).astype(np.float32, copy=False)
 
 
 def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray) -> np.ndarray:
