@@ -482,6 +482,44 @@ def test_clipped_reference_bounds_a_dark_reading_in_another_frame():
     assert ghost_weight(g, 0, 160, 200)[45:85, 180:196].min() > 0.95
 
 
+def test_object_clipped_in_the_long_frame_over_a_dark_reference_region():
+    """Censoring the other way: a bright object in the long frame, clipped in green and
+    just below clipping in red and blue, where the reference measures a dark value (far
+    below half the long frame's clipping level).  Its clipped readings are impossible, so
+    it is not a glare source that excuses its own unclipped channels: dropped (before:
+    the glare excuse around the frame's own clipped cells kept most of it, and its red
+    and blue readings tinted the merge)."""
+    rng = np.random.default_rng(2)
+    frames, codes, times = _gamma_bracket(rng)
+    obj = (slice(60, 110), slice(20, 55))
+    assert codes[1][obj].max() <= 80 and (codes[2][obj] < 255).all()  # the reference: <= 0.38 of the long frame's clipping level
+    frames, codes, times = _gamma_bracket(np.random.default_rng(2))
+    codes[2][obj] = (235, 255, 240)
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    g = _ghosts_of(frames, codes, times, "auto")
+    assert g["applied"]
+    assert ghost_weight(g, 2, 160, 200)[obj].min() > 0.95
+    assert ghost_weight(g, 2, 160, 200)[:, 130:].max() < 0.05
+
+
+def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excused():
+    """A halo that the long frame reads clipped around a source that the reference also
+    sees near its clipping level (blooming): its clipped readings lie beyond what the
+    reference measures there, but within the glare reach of the agreeing source, so the
+    long frame is not dropped around it."""
+    frames, codes, times = _gamma_bracket(np.random.default_rng(2))
+    source = (slice(70, 90), slice(40, 60))
+    halo = (slice(64, 96), slice(34, 66))
+    codes[0][source], codes[1][source], codes[2][source] = 120, 250, 255  # a lamp: bright in every frame
+    codes[2][halo] = np.maximum(codes[2][halo], 255)  # blooming in the long frame only
+    codes[1][source] = 255
+    g = _ghosts_of(frames, codes, times, "on")
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    assert ghost_weight(g, 2, 160, 200)[halo].max() < 0.05
+
+
 def test_feathered_mask_has_no_seam():
     mask = np.zeros((80, 80), bool)
     mask[30:50, 30:50] = True
@@ -769,3 +807,27 @@ def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
     soft = motion.ghost_weight(g, frame, *frames[0].shape[:2])
     inner = soft[90:130, 130:180]
     assert np.mean(inner > 0.5) >= 0.95
+
+
+@pytest.mark.parametrize("nc, reach", [(1, 1), (3, 1), (3, 2), (4, 1), (5, 1)])
+def test_envelope_is_the_per_channel_min_and_max_within_reach(nc, reach):
+    """OpenCV's erosion / dilation equal SciPy's minimum / maximum filter of each
+    interleaved channel on its own, edges repeated (a footprint over the interleaved
+    samples took the neighbouring channel's values at the left and right edges)."""
+    from scipy import ndimage
+
+    a = np.random.default_rng(3).normal(size=(23, 17 * nc)).astype(np.float32)
+    lo, hi = deghost.envelope(a, nc, reach)
+    for c in range(nc):
+        np.testing.assert_array_equal(lo[:, c::nc], ndimage.minimum_filter(a[:, c::nc], 2 * reach + 1, mode="nearest"))
+        np.testing.assert_array_equal(hi[:, c::nc], ndimage.maximum_filter(a[:, c::nc], 2 * reach + 1, mode="nearest"))
+
+
+@pytest.mark.parametrize("ph, pw", [(1, 1), (1, 3), (2, 2), (3, 4)])
+def test_cell_sums_equal_reshaped_sums(ph, pw):
+    a = np.random.default_rng(4).normal(size=(25, 38)).astype(np.float32)
+    h, w = 25 // ph * ph, 38 // pw * pw
+    want = a[:h, :w].astype(np.float64).reshape(h // ph, ph, w // pw, pw).sum(axis=(1, 3))
+    np.testing.assert_allclose(deghost.cell_sums(a, ph, pw), want, rtol=1e-5, atol=1e-5)
+    counts = deghost.cell_sums((a > 0).astype(np.int32), ph, pw)
+    np.testing.assert_array_equal(counts, (a[:h, :w] > 0).reshape(h // ph, ph, w // pw, pw).sum(axis=(1, 3)))

@@ -276,13 +276,22 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     min_cells = deghost.min_blob(b * per_px)
     masks, fractions = [], []
     for k in range(len(frames)):
-        x, s, ok, _ = est.pop(k)
+        x, s, ok, bound_k = est.pop(k)
         longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
-        excuse = deghost.glare_excuse(clipped[k] if longer > 0 else clipped[ref], longer)
+        impossible = np.zeros(clipped[k].shape, bool)
+        if longer > 0:
+            # a clipped reading of the longer frame that the anchor makes impossible (it measures
+            # far below the frame's clipping level): something bright was there in this frame
+            # only, unless glare from what is clipped in agreement with the anchor spread there
+            clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
+            impossible = (deghost.violates_bound(xa, sa, clip_bound, p_fa) & va).any(axis=-1)
+            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer) == 0
+        # glare spreads from what is bright in every frame, not from such an object
+        excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer)
         bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
                                          _samples(va), grad2, (1, nc), p_fa, smooth=True,
                                          min_change=deghost.MIN_LOG_CHANGE, excuse=excuse, reach=reach)
-        bad |= beyond.pop(k).any(axis=-1)
+        bad |= beyond.pop(k).any(axis=-1) | impossible
         del x, s, ok
         bad = deghost.clean(bad, min_cells=min_cells)
         anchor = (source == k).any(axis=-1)  # the anchor itself stays
@@ -370,30 +379,32 @@ class SampleWeights:
             out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
         return out
 
-    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray, own: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """``w`` with the resampling's variance added and times :meth:`factor` (broadcast
-        over an image's channels, which need no copy of it each), and the factor."""
+        over an image's channels), and the factor; ``own``: ``w`` may be overwritten (a
+        fresh full-size array costs its page faults, tenths of a second at 24 MP)."""
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
-            w = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread))
+            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread)), True
         f = self.factor(k)
         if f is None:
             return w, None
         per_pixel = w.reshape(f.shape + (-1,))
-        return np.multiply(per_pixel, f[..., None]).reshape(w.shape), f
+        out = np.multiply(per_pixel, f[..., None], out=per_pixel if own else None)
+        return out.reshape(w.shape), f
 
     def adjust(self, k: int, codes: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Inverse-variance weights ``w`` (``(H, W')``) of frame ``k``'s ``codes`` with the
         resampling's variance added (:func:`resampled_weight`), times :meth:`factor`;
         returns ``(weights, factor)``, the factor per sample ``(H, W')``."""
-        out, f = self._weighted(k, codes, w)
+        out, f = self._weighted(k, codes, w, own=False)  # w: the caller's buffer
         if f is not None and f.shape != out.shape:
             f = np.repeat(f, out.shape[1] // f.shape[1], axis=1)
         return out, f
 
     def __call__(self, k: int, codes: np.ndarray) -> np.ndarray:
         w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
-        return self._weighted(k, codes, w)[0].reshape(codes.shape).astype(np.float32, copy=False)
+        return self._weighted(k, codes, w, own=True)[0].reshape(codes.shape).astype(np.float32, copy=False)
 
 
 def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray) -> np.ndarray:
