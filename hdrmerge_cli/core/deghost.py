@@ -104,7 +104,7 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     return lin / exposure, var / exposure**2, valid
 
 
-def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int):
+def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int, out=None):
     """One channel's block estimates from its codes in one compiled pass: ``plane`` ``(H, W)``
     integer codes (any strides), per code the tables of :func:`ghost_tables` (codes beyond
     them read the last entry).  Per ``b x b`` block (partial blocks dropped), float32/bool
@@ -112,12 +112,15 @@ def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: 
     a mean of ``b^2`` independent readings), whether every code measures, and the bound a
     block sets where the frame does not measure it: the ``x`` of the lowest measuring code
     where every code lies below it (dark), minus the ``x`` of the highest where every code
-    lies above it (clipped), 0 elsewhere (see :func:`violates_bound`)."""
+    lies above it (clipped), 0 elsewhere (see :func:`violates_bound`).  ``out``: the four
+    arrays to write (e.g. one channel of ``(h, w, C)`` arrays), else new ones."""
     valid = np.flatnonzero(ok_t)
     lo, hi = (int(valid[0]), int(valid[-1])) if valid.size else (x_t.size, -1)
-    shape = (plane.shape[0] // b, plane.shape[1] // b)
-    xs, ss, bound = (np.empty(shape, np.float32) for _ in range(3))
-    ok = np.empty(shape, np.bool_)
+    if out is None:
+        shape = (plane.shape[0] // b, plane.shape[1] // b)
+        out = (np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.bool_),
+               np.empty(shape, np.float32))
+    xs, ss, ok, bound = out
     _block_statistics(plane, np.ascontiguousarray(x_t, np.float32), np.ascontiguousarray(s_t, np.float32),
                       np.ascontiguousarray(ok_t, np.bool_), lo, hi, b, xs, ss, ok, bound)
     return xs, ss, ok, bound

@@ -206,8 +206,13 @@ def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, table
     """One frame's block estimates ``(h, w, C)`` (:func:`~hdrmerge_cli.core.deghost.block_statistics`
     per channel): x, its variance s, whether every sample of the block measures, and what a
     block whose samples are all dark (> 0) or all clipped (< 0) bounds (0 elsewhere)."""
-    per_channel = [deghost.block_statistics(plane, *tables[row], b) for plane, row in _planes(frame, codes, pattern)]
-    return tuple(np.stack(a, axis=-1) for a in zip(*per_channel))
+    planes = _planes(frame, codes, pattern)
+    shape = (planes[0][0].shape[0] // b, planes[0][0].shape[1] // b, len(planes))
+    x, s, bound = (np.empty(shape, np.float32) for _ in range(3))
+    ok = np.empty(shape, bool)
+    for c, (plane, row) in enumerate(planes):
+        deghost.block_statistics(plane, *tables[row], b, out=(x[..., c], s[..., c], ok[..., c], bound[..., c]))
+    return x, s, ok, bound
 
 
 def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
