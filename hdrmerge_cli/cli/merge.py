@@ -98,13 +98,16 @@ log = logging.getLogger("hdrmerge_cli")
               help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
 @click.option("--bounds", metavar="BOUNDS", callback=bounds_option_callback, help=BOUNDS_HELP)
 @click.option("--align", type=click.Choice(ALIGN_MODES), default="off", show_default=True,
-              help="Bring hand-held frames onto the middle exposure (OpenCV ECC on exposure-normalised images): "
-                   "translation, similarity (also rotation and scale), auto (translation, applied only when a frame "
-                   "is off by more than a quarter pixel).  RAW moves by whole CFA periods (similarity: per colour).")
+              help="Bring hand-held frames onto the middle exposure (OpenCV phase correlation and ECC on "
+                   "exposure-normalised images, checked tile by tile so that a moving object cannot pull it): "
+                   "translation, similarity (also rotation), auto (a rotation kept only where it beats translation; "
+                   "applied only when a frame is off by more than a quarter pixel).  RAW moves by whole CFA periods "
+                   "where that suffices, else each colour's sites are resampled.")
 @click.option("--deghost", type=click.Choice(DEGHOST_MODES), default="off", show_default=True,
               help="Drop moving objects: per cell, a chi-square test of each frame against the reference (the "
-                   "middle exposure) under the noise model, false-alarm rate 1e-3, cleaned morphologically; auto "
-                   "acts only when more than 0.2 % of a frame moves.  --extra-channels ghost shows where.")
+                   "middle exposure) under the noise model, and the bounds a dark or clipped reading sets; "
+                   "false-alarm rate 1e-3; regions feathered so that no seam shows; auto acts only when more than "
+                   "0.2 % of a frame moves.  --extra-channels ghost shows where.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write a tone-mapped sRGB picture (Reinhard-Devlin; .jpg, .png or .tif) to look at.")
 @click.option("--preview-size", default=2048, show_default=True, type=click.IntRange(0),

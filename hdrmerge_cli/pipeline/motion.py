@@ -220,8 +220,10 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     """Per frame, the blocks inconsistent with the anchor (``core.deghost``), cleaned and
     feathered.  ``noise``: one parameter set per channel (code units), or None (the
     quantisation of the codes alone; :func:`~hdrmerge_cli.core.deghost.level_scale`
-    measures the rest).  Each frame is decoded once; the test runs on block means
-    (:func:`~hdrmerge_cli.core.deghost.block_size`).  Returns ``{"mode", "applied",
+    measures the rest).  The test runs on block means
+    (:func:`~hdrmerge_cli.core.deghost.block_size`); each frame is decoded twice, for the
+    anchor and for its test, so that only the anchor's block estimates are held (memory flat
+    in the frame count).  Returns ``{"mode", "applied",
     "p_false_alarm", "rejected_fraction": [...], "masks": [(h, w) uint8 soft masks, 255 =
     dropped], "block", "covered"}``, masks over blocks of ``block`` x ``block`` pixels
     (RAW: CFA periods) covering the first ``covered`` = (rows, cols) samples; ``auto``
@@ -248,25 +250,28 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
         return out
 
-    est = {}
-    for k, f in enumerate(frames):  # one decode per frame; only block means are kept
-        est[k] = _block_estimates(f, load(f), pattern, tables(k), b)
-    bound_r = est[ref][3]
-    clipped = {k: (e[3] < 0).any(axis=-1) for k, e in est.items()}  # blocks clipped in a channel
-    order = sorted(range(len(frames)), key=lambda k: (abs(np.log(exposures[k] / exposures[ref])), k))
-    xa = sa = va = source = None
-    beyond = {}  # per frame: readings far outside the reference's dark / clipped bound
-    for k in order:  # the anchor: the reference where it measures, else the nearest frame consistent with it
-        x, s, ok, _ = est[k]
+    def estimate(k: int):  # decoded again for each pass: the block estimates of every frame at
+        # once would make the memory grow with the frame count (9 frames: +245 MB at 0.7 MP)
+        return _block_estimates(frames[k], load(frames[k]), pattern, tables(k), b)
+
+    # the anchor: the reference where it measures, else the nearest frame consistent with it
+    order = sorted(range(len(frames)), key=lambda k: (k != ref, abs(np.log(exposures[k] / exposures[ref])), k))
+    xa = sa = va = source = bound_r = None
+    clipped, beyond = {}, {}  # per frame: blocks clipped in a channel; readings far outside the
+    for k in order:  # reference's dark / clipped bound
+        x, s, ok, bound = estimate(k)
+        bound_r = bound if bound_r is None else bound_r
+        clipped[k] = (bound < 0).any(axis=-1)
         beyond[k] = deghost.violates_bound(x, s, bound_r, adapt=k != ref) & ok
         ok = ok & ~beyond[k]
         if xa is None:
-            xa, sa, va = x.copy(), s.copy(), ok
+            xa, sa, va = x, s, ok
             source = np.where(ok, k, -1).astype(np.int16)
             continue
         take = ok & ~va
         xa[take], sa[take], source[take] = x[take], s[take], k
         va |= ok
+        del x, s, ok, bound
     hb, wb, nc = xa.shape
     # registration tolerance: a shift within reach (blocks) is not motion.  Images only: the
     # envelope excuses what image processing does to edges (JPEG ringing, 4:2:0 chroma,
@@ -281,7 +286,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     min_cells = deghost.min_blob(b * per_px)
     masks, fractions = [], []
     for k in range(len(frames)):
-        x, s, ok, bound_k = est.pop(k)
+        x, s, ok, bound_k = estimate(k)
         longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
         impossible = np.zeros(clipped[k].shape, bool)
         if longer > 0:
