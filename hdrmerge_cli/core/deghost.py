@@ -154,34 +154,6 @@ def _block_statistics(plane, x_t, s_t, ok_t, lo, hi, b, xs, ss, ok, bound):  # p
             bound[i, j] = dark_x if dark else (-clip_x if clipped else 0.0)
 
 
-def block_mean(a: np.ndarray, b: int) -> np.ndarray:
-    """Mean over ``b x b`` blocks of a 2-D array (partial blocks dropped), float32: OpenCV's
-    area resize, which for an integer factor is exactly the block mean."""
-    a = np.asarray(a, np.float32)
-    if b == 1:
-        return a
-    h, w = a.shape[0] // b, a.shape[1] // b
-    import cv2
-
-    return cv2.resize(np.ascontiguousarray(a[:h * b, :w * b]), (w, h), interpolation=cv2.INTER_AREA)
-
-
-def block_all(a: np.ndarray, b: int) -> np.ndarray:
-    """Whether every sample of each ``b x b`` block of a 2-D bool array is True."""
-    return a if b == 1 else block_mean(a.view(np.uint8), b) > np.float32(1 - 1e-4)
-
-
-def table_lookup(table: np.ndarray, codes: np.ndarray) -> np.ndarray:
-    """``table[codes]`` (codes beyond the table read its last entry), float32; 8-bit codes
-    through OpenCV's lookup."""
-    table = np.asarray(table, np.float32)
-    if codes.dtype == np.uint8 and table.size == 256:
-        import cv2
-
-        return cv2.LUT(np.ascontiguousarray(codes), table)
-    return np.take(table, codes, mode="clip")
-
-
 def block_size(h: int, w: int, target: int = CELL_TARGET) -> int:
     """Side (in cells of the frame's own layout) of the blocks the test runs on: the
     smallest giving at most ``target`` blocks (1 for small frames)."""
@@ -416,7 +388,7 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH) -> 
 def envelope(a: np.ndarray, nc: int, reach: int) -> tuple[np.ndarray, np.ndarray]:
     """Per sample of ``(H, W * nc)`` interleaved channels, the smallest and largest value of
     its channel within ``reach`` samples along both axes (edges repeated): OpenCV's erosion
-    and dilation by a ``(2 reach + 1)`` square, each channel on its own (``nc`` <= 4)."""
+    and dilation by a ``(2 reach + 1)`` square, each channel on its own."""
     import cv2
 
     img = np.ascontiguousarray(a, np.float32).reshape(a.shape[0], -1, nc)
