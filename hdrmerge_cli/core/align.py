@@ -191,7 +191,7 @@ def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, mot
     """ECC coarse to fine on area-averaged levels (factors 2^k, every level between
     :data:`PYRAMID_MIN` and :data:`COARSE_SIDE` pixels wide; loosely converged), each level
     starting from the one before; a level that does not converge leaves the warp as it
-    was.  Full resolution is left to :func:`_tile_consensus` or :func:`_fine_ecc`."""
+    was.  Full resolution is :func:`_fine_ecc`'s."""
     side = max(reference.shape)
     levels = [f for f in (2**k for k in range(1, 16)) if PYRAMID_MIN <= side / f <= COARSE_SIDE]
     for f in sorted(levels, reverse=True):
@@ -310,15 +310,16 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
 
     A coarse translation (:func:`_translation`: phase correlation against no motion, by the
     vote of the pixels) starts ECC (Evangelidis and Psarakis 2008, ``cv2.findTransformECC``)
-    on a pyramid of area-averaged levels (:func:`_pyramid_ecc`): every textured pixel of the
-    band an HDR pair shares counts, however small a fraction of the frame it is.  ECC's
-    result stands unless it wandered more than :data:`MAX_REFINE_PX` from the phase
-    correlation's.  ``similarity`` then adds a rotation (ECC's Euclidean model, from
-    the translation) and keeps it only if it correlates better and moves some corner of the
-    frame by more than :data:`ROTATION_PX` (a negligible rotation is not worth resampling
-    for).  Full resolution: the tile consensus (:func:`_tile_consensus`), or where too few
-    tiles are textured, ECC on the central window (:func:`_fine_ecc`).  Returns ``((2, 3),
-    rho)``."""
+    on a pyramid of area-averaged levels (:func:`_pyramid_ecc`) and then at full resolution
+    on the central window (:func:`_fine_ecc`): every textured pixel of the band an HDR pair
+    shares counts, however small a fraction of the frame it is.  ECC's result stands unless
+    it wandered more than :data:`MAX_REFINE_PX` from the phase correlation's.
+    ``similarity`` then adds a rotation (ECC's Euclidean model, from the translation, on the
+    pyramid; refined at full resolution only where it moves some corner of the frame by more
+    than :data:`ROTATION_PX`) and keeps it only if it correlates better and still moves a
+    corner that far (a negligible rotation is not worth resampling for).  Last, the tile
+    consensus (:func:`_tile_consensus`) corrects what a moving object pulled, where enough
+    tiles are textured.  Returns ``((2, 3), rho)``."""
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}")
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
@@ -332,17 +333,14 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
     refined = _fine_ecc(reference, image, _pyramid_ecc(reference, image, phase, "translation"), "translation")
     if refined is not None and np.max(np.abs(refined[:, 2] - phase[:, 2])) <= MAX_REFINE_PX:
         best, rho = refined, score(refined)
-
-    def beats(candidate):  # a rotation is kept where it correlates better and is not negligible
-        return (r := score(candidate)) > rho and corner_distance(candidate, best, *reference.shape) > ROTATION_PX, r
-
     if motion == "similarity":
         rotated = _pyramid_ecc(reference, image, best, "similarity")
         if corner_distance(rotated, best, *reference.shape) > ROTATION_PX:  # the coarse levels see a
-            # rotation that is not negligible: refine it at full resolution and compare
+            # rotation that is not negligible: refine it at full resolution, keep it if it correlates better
             rotated = _fine_ecc(reference, image, rotated, "similarity")
-            if rotated is not None and (kept := beats(rotated))[0]:
-                best, rho = rotated, kept[1]
+            if (rotated is not None and (r := score(rotated)) > rho
+                    and corner_distance(rotated, best, *reference.shape) > ROTATION_PX):
+                best, rho = rotated, r
     robust = _tile_consensus(reference, image, best, motion)
     if robust is not None:
         best, rho = robust, score(robust)

@@ -105,7 +105,9 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
 
 
 def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int, out=None):
-    """One channel's block estimates from its codes in one compiled pass: ``plane`` ``(H, W)``
+    """One channel's block estimates from its codes in one compiled pass (the readings
+    ``x_j = g(z) / h_j`` of (7) before the weighting and their variance (17)/(21) plus
+    quantisation, as tabulated by :func:`ghost_tables`, averaged over blocks): ``plane`` ``(H, W)``
     integer codes (any strides), per code the tables of :func:`ghost_tables` (codes beyond
     them read the last entry).  Per ``b x b`` block (partial blocks dropped), float32/bool
     ``(H // b, W // b)``: the mean of ``x``, the mean of ``s`` over ``b^2`` (the variance of
