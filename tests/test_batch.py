@@ -151,7 +151,9 @@ def test_an_empty_folder_is_a_one_line_error_and_writes_nothing(run, tmp_path):
 
 def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_path, tmp_path_factory):
     """SIGTERM to `merge --batch -j 2`: exit 143, the worker processes are gone, no
-    temporary is left and no output appears after the command has ended."""
+    temporary is left, no bracket that had not started is merged (the pool queues one
+    ahead: a worker that went on to it wrote it after the signal) and no output appears
+    after the command has ended."""
     import os
     import signal
     import subprocess
@@ -174,6 +176,7 @@ def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_p
         assert proc.poll() is None and time.monotonic() < deadline, "the batch ended before writing"
         time.sleep(0.005)
     children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+    started = {n.split(".")[1] for n in os.listdir(out) if ".part" in n} | {n.split(".")[0] for n in os.listdir(out)}
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=90)
     if proc.returncode == 0:
@@ -182,6 +185,7 @@ def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_p
     listing = sorted(os.listdir(out))
     time.sleep(3)
     assert sorted(os.listdir(out)) == listing and not any(".part" in n for n in listing)
+    assert {n.split(".")[0] for n in listing} <= started, (listing, started)
     assert not [c for c in children if Path(f"/proc/{c}").exists()
                 and "zombie" not in Path(f"/proc/{c}/status").read_text()]
 

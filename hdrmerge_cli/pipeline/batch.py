@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.errors import HdrMergeError, raise_terminated
+from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
 from hdrmerge_cli.pipeline.merge import merge
@@ -216,11 +216,24 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     return summarize(entries)
 
 
+#: a worker process is merging a bracket (its stop signal then unwinds the merge)
+_IN_JOB = False
+
+
+def _stop_worker(signum, frame):
+    """A worker's SIGTERM/SIGINT handler: inside a merge, unwind it (removing its
+    temporaries, see :func:`_merge_in_worker`); between merges, exit at once."""
+    if _IN_JOB:
+        raise_terminated(signum, frame)
+    os._exit(128 + signum)
+
+
 def _init_worker(level: int) -> None:
-    """Worker processes log like the parent (prefix, level, stderr) and unwind on SIGTERM
-    (removing their temporaries) when the parent stops them."""
+    """Worker processes log like the parent (prefix, level, stderr) and stop on SIGTERM
+    or Ctrl-C (removing their temporaries) when the parent stops them."""
     separate_python_stderr()
-    signal.signal(signal.SIGTERM, raise_terminated)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, _stop_worker)
     handler = logging.StreamHandler()
     handler.setFormatter(StderrFormatter())
     log.handlers[:] = [handler]
@@ -228,11 +241,25 @@ def _init_worker(level: int) -> None:
     log.propagate = False
 
 
+def _merge_in_worker(paths, opts):
+    """:func:`merge_one` in a worker process.  A stop signal unwinds the merge (its
+    temporaries removed), then the process exits: it must not go on to a bracket the pool
+    had already queued for it (the pool's queued calls cannot be cancelled)."""
+    global _IN_JOB
+    _IN_JOB = True
+    try:
+        return merge_one(paths, opts)
+    except Terminated as exc:
+        os._exit(128 + exc.signum)
+    finally:
+        _IN_JOB = False
+
+
 def _on_processes(n: int, jobs, progress):
     # spawn: a fresh interpreter per worker (forking a process whose numba threads run is unsafe)
     with ProcessPoolExecutor(n, mp_context=get_context("spawn"), initializer=_init_worker,
                              initargs=(log.getEffectiveLevel(),)) as pool:
-        futures = {pool.submit(merge_one, e["frames"], mo): e for e, mo in jobs}
+        futures = {pool.submit(_merge_in_worker, e["frames"], mo): e for e, mo in jobs}
         results = []
         try:
             for fut in as_completed(futures):
