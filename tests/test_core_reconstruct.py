@@ -434,3 +434,44 @@ def test_fused_censored_terms_match_the_reference(use_den, use_factor):
     for a in (-38.0, -5.0, 0.0, 3.0, 29.99, 30.0, 45.0, 300.0):
         ref = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_ndtr(-a))
         assert reconstruct._inverse_mills(a) == pytest.approx(ref, rel=1e-10, abs=1e-300)
+
+
+@pytest.mark.parametrize("linear", [True, False])
+@pytest.mark.parametrize("layout", ["rgb", "mosaic"])
+def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
+    """LogMerge.add_irls (weights computed inside the accumulation) gives the sums and
+    flags of LogMerge.add with the weights of :func:`irls_weights` (lookup + NumPy, each
+    sample's own noise parameters), frame for frame, with black and clipped codes."""
+    rng = np.random.default_rng(21)
+    exposures = [0.004, 0.02, 0.1]
+    if layout == "rgb":
+        shape, n, pattern = (17, 21, 3), 256, np.array([[0, 1, 2]])
+        black, white = np.zeros(3), np.full(3, 255.0)
+    else:
+        shape, n, pattern = (18, 26), 4096, np.array([[0, 1], [3, 2]])
+        black, white = np.full(4, 64.0), np.full(4, 4000.0)
+    rows_n = pattern.max() + 1
+    params = [NoiseParams(float(rng.uniform(1, 20)), float(rng.uniform(0.5, 4)), float(rng.uniform(0, 1e-3)))
+              for _ in range(rows_n)]
+    tables = [exposure_tables(n, black, white, CRF("linear"), "probabilistic", h, noise=params,
+                              estimator="ml" if linear else "log", prior_rate=1e4, exposures=tuple(exposures))
+              for h in exposures]
+    frames = [rng.choice([0, 1, n - 1, *rng.integers(0, n, 30)], size=shape).astype(np.uint8 if n == 256 else np.uint16)
+              for _ in exposures]
+    log_e = rng.normal(-1, 1.5, shape).astype(np.float32)
+    per_row = reconstruct.noise_rows(params)
+    idx = reconstruct.channel_index(shape, pattern)
+    fused, ref = LogMerge(shape, pattern), LogMerge(shape, pattern)
+    y_full = float(white[0] - black[0])
+    for k, (z, tab, h) in enumerate(zip(frames, tables, exposures)):
+        last = k == len(frames) - 1
+        fused.add_irls(z, tab, last, log_e.reshape(reconstruct._rows_cols(shape)), h * y_full, per_row, linear)
+        w = reconstruct.irls_weights(reconstruct.lookup(tab.certainty.ravel(), n, z, pattern), log_e, h, y_full,
+                                     [m[idx] for m in per_row], linear)
+        ref.add(z, tab, last=last, weight=w)
+    np.testing.assert_allclose(fused.num, ref.num, rtol=1e-5)
+    np.testing.assert_allclose(fused.den, ref.den, rtol=1e-5)
+    got, flag = fused.finish(linear)
+    want, want_flag = ref.finish(linear)
+    np.testing.assert_array_equal(flag, want_flag)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)

@@ -305,3 +305,28 @@ def test_image_merge_imports_no_colour_science(tmp_path, jpeg_bracket):
     code, mods = _modules_after(["merge", *frames, "-o", str(tmp_path / "j.exr"), "-q", "--crf", "srgb"], tmp_path)
     assert code == 0
     assert not mods & set(HEAVY), sorted(mods & set(HEAVY))
+
+
+def test_raw_metadata_carries_the_cfa_cell_and_reads_in_parallel(dng_frames, monkeypatch):
+    """read_frame keeps LibRaw's 2 x 2 colour index cell it reads while unpacking (so the
+    merge does not open and unpack the file again for it): equal to the window read from
+    the file; read_bracket reads several frames on two threads and keeps their order."""
+    from hdrmerge_cli.io import frames as io_frames
+    from hdrmerge_cli.pipeline import bracket
+
+    paths = [str(p) for p in dng_frames]
+    frame = io_frames.read_frame(paths[0])
+    np.testing.assert_array_equal(frame.cfa_cell, io_frames.raw_channel_window(paths[0])[:2, :2])
+    threads = set()
+    real = bracket.read_frame
+
+    def spy(path):
+        import threading
+        threads.add(threading.current_thread().name)
+        return real(path)
+
+    monkeypatch.setattr(bracket, "read_frame", spy)
+    read = bracket.read_bracket(paths[::-1])
+    assert sorted(f.path for f in read) == sorted(paths)
+    assert threads and all(t != "MainThread" for t in threads)
+    assert [f.exposure_time for f in read] == sorted(f.exposure_time for f in read)

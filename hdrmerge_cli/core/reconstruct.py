@@ -430,6 +430,49 @@ def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, l
                     out[i, j] = 0.0
 
 
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, k, s_o2, sqrt_a, b_a, linear, mode,
+                     num, den):  # pragma: no cover
+    """:func:`_irls_weights_rows` fused with :func:`_accumulate`: each sample's IRLS weight
+    is computed and added to ``num``/``den`` at once, so no frame-sized weight array is
+    written and read back (the same arithmetic, in the same order)."""
+    rows, cols = codes.shape
+    ph, pw = pattern.shape
+    top = certainty.shape[1] - 1
+    floor = np.float32(WEIGHT_FLOOR)
+    for i in numba.prange(rows):
+        prow = pattern[i % ph]
+        for q in range(min(pw, cols)):
+            r = prow[q]
+            so, sq, ba = s_o2[r], sqrt_a[r], b_a[r]
+            for j in range(q, cols, pw):
+                z = min(codes[i, j], top)
+                c = certainty[r, z]
+                w = np.float32(0.0)
+                if c > 0:
+                    mu = np.float32(np.exp(log_e[i, j]) * k)
+                    var = max(so + sq * mu + ba * mu * mu, np.float32(1e-12))
+                    nm = np.float32(k * k) if linear else mu * mu
+                    w = max(c * (nm / var), floor)
+                wv = w * num_tab[r, z]
+                if mode == 0:
+                    if w > 0:
+                        num[i, j] = wv
+                        den[i, j] = w
+                    else:
+                        num[i, j] = fb_tab[r, z]
+                        den[i, j] = -1.0 if hi_tab[r, z] else 0.0
+                elif w > 0:
+                    if den[i, j] > 0:
+                        num[i, j] += wv
+                        den[i, j] += w
+                    else:
+                        num[i, j] = wv
+                        den[i, j] = w
+                elif mode == 2 and den[i, j] == 0:
+                    num[i, j] = fb_tab[r, z]
+
+
 def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
     """The table row of every True sample of a 2-D ``mask`` (row-major order)."""
     i, j = np.nonzero(mask)
@@ -602,7 +645,10 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     change = np.inf
     pat = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
     shape2 = _rows_cols(log_e.shape)
-    weight = np.empty(shape2, np.float32)  # one buffer for every frame's weights
+    # the weights as an array only where something else reads them (motion's adjustment, the
+    # variance, the censored terms of a first pass without ``den``); else fused into the sums
+    fused = adjust is None and not variance and (prev_den is not None or not linear)
+    weight = np.empty(shape2, np.float32) if not fused else np.zeros((1, 1), np.float32)
     max_rows = [float(np.max(m)) for m in rows]
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern, variance=variance)
@@ -610,10 +656,14 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
         log_e2 = log_e.reshape(shape2)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
-            _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
-                               np.float32(h * y_full[k]), *rows, linear, weight)
-            w, factor = (weight, None) if adjust is None else adjust(k, codes, weight)
-            acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True)
+            factor = None
+            if fused:
+                acc.add_irls(codes, tab, k == len(tables) - 1, log_e2, np.float32(h * y_full[k]), rows, linear)
+            else:
+                _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
+                                   np.float32(h * y_full[k]), *rows, linear, weight)
+                w, factor = (weight, None) if adjust is None else adjust(k, codes, weight)
+                acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True)
             if linear and tab.saturated is not None:
                 # a clipped reading whose current estimate lies more than CENSORED_SDS noise
                 # sds above full scale carries no information (weight ~ phi(8)): skipped; one
@@ -823,8 +873,25 @@ class LogMerge:
                             tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
                             q_tab.reshape(-1, n), per_sample, weight is not None, use_cert, mode,
                             self._2d(self.num), self._2d(self.den), self._2d(self.var))
+        self._added(tables)
+
+    def add_irls(self, codes: np.ndarray, tables: ExposureTables, last: bool, log_e: np.ndarray, k: float, rows,
+                 linear: bool) -> None:
+        """:meth:`add` with the IRLS weights of :func:`irls_weights` computed in the same
+        pass (:func:`_accumulate_irls`): ``log_e`` the current estimate (2-D like the
+        samples), ``k = h y_full``, ``rows`` :func:`noise_rows`.  Without ``variance``."""
+        if self.var is not None:
+            raise ValueError("add_irls does not propagate the variance: use add(weight=...)")
+        n = tables.n_codes
+        mode = 0 if self.frames == 0 else 2 if last else 1
+        _accumulate_irls(self._2d(codes), self.pattern, tables.certainty.reshape(-1, n), tables.value.reshape(-1, n),
+                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), log_e, np.float32(k),
+                         *rows, linear, mode, self._2d(self.num), self._2d(self.den))
+        self._added(tables)
+
+    def _added(self, tables: ExposureTables) -> None:
         # the ML estimator's dark floor: the longest frame's fallback at code 0, per row
-        self._dark_floor = np.ascontiguousarray(tables.fallback_log.reshape(-1, n)[:, 0])
+        self._dark_floor = np.ascontiguousarray(tables.fallback_log.reshape(-1, tables.n_codes)[:, 0])
         self.frames += 1
 
     def finish(self, linear: bool = False, scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:

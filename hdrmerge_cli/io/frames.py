@@ -62,8 +62,9 @@ class Frame:
     color_matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
     orientation: int = 1
     file_levels: tuple | None = None
-    #: RAW: the 2 x 2 cell of LibRaw's colour index (0..3) when known without the file
-    #: (frames made from arrays, :func:`hdrmerge_cli.merge_arrays`); else read by :func:`cfa_corner`
+    #: RAW: the 2 x 2 cell of LibRaw's colour index (0..3): read with the metadata, or given
+    #: (frames made from arrays, :func:`hdrmerge_cli.merge_arrays`); None where the colour
+    #: index does not repeat with a 2 x 2 cell (:func:`cfa_corner` then reads the file)
     cfa_cell: np.ndarray | None = None
 
     @property
@@ -240,6 +241,8 @@ def _read_raw(path: str) -> Frame:
                 raise HdrMergeError(f"{path}: a {num_colors}-colour sensor ({raw.color_desc.decode('ascii', 'replace')} "
                                     "filters); only Bayer RGB mosaics and linear RGB RAW data are supported")
             pattern = raw.raw_pattern  # unpacks
+            # the colour index window at no extra cost now (cfa_corner would open and unpack again)
+            window = _channel_window(raw) if pattern is not None and np.shape(pattern) == (2, 2) else None
             raw_type = raw.raw_type
             sizes = raw.sizes
             black = np.asarray(raw.black_level_per_channel, dtype=np.float64)
@@ -285,7 +288,10 @@ def _read_raw(path: str) -> Frame:
         return Frame(**common, black=np.zeros(channels), white=np.full(channels, 65535.0), channels=channels,
                      channel_colors="RGB" if channels == 3 else "Y", file_levels=(black[:channels], white))
     cfa = "".join(colors[i] for i in pattern.ravel())
-    return Frame(**common, black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors)
+    cell = window[:2, :2]
+    periodic = np.array_equal(window, np.tile(cell, (CFA_WINDOW // 2, CFA_WINDOW // 2)))
+    return Frame(**common, black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors,
+                 cfa_cell=cell.astype(np.intp) if periodic else None)  # else sample_pattern reports it
 
 
 def _libraw_reason(exc, path: str | None = None) -> str:
@@ -424,6 +430,12 @@ def cfa_corner(frame: Frame) -> np.ndarray:
 CFA_WINDOW = 12
 
 
+def _channel_window(raw, size: int = CFA_WINDOW) -> np.ndarray:
+    """:func:`raw_channel_window` of an open ``rawpy.RawPy`` (unpacks it if needed)."""
+    top, left = raw.sizes.top_margin, raw.sizes.left_margin
+    return np.array([[raw.raw_color(top + i, left + j) for j in range(size)] for i in range(size)], np.uint8)
+
+
 def raw_channel_window(path: str, size: int = CFA_WINDOW) -> np.ndarray:
     """LibRaw's raw colour index (0..3) of the top-left ``size`` x ``size`` visible sites,
     uint8, from the colour at each position (``raw_color``): the CFA is periodic, so this
@@ -433,7 +445,6 @@ def raw_channel_window(path: str, size: int = CFA_WINDOW) -> np.ndarray:
 
     try:
         with _quiet_c_stderr(), rawpy.imread(path) as raw:
-            top, left = raw.sizes.top_margin, raw.sizes.left_margin
-            return np.array([[raw.raw_color(top + i, left + j) for j in range(size)] for i in range(size)], np.uint8)
+            return _channel_window(raw, size)
     except rawpy.LibRawError as exc:
         raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc, path)})") from None

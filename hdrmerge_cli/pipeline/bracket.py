@@ -5,6 +5,7 @@ calibrate-noise, info); it decodes no pixels."""
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -29,7 +30,11 @@ def read_bracket(paths: list[str], times: list[float] | None = None, times_file:
     response or weight table needs distinct exposures)."""
     if not paths:
         raise HdrMergeError("no input frames given")
-    frames = [read_frame(p) for p in paths]
+    if len(paths) > 1:  # LibRaw unpacks each RAW to report its CFA layout, releasing the GIL: both cores
+        with ThreadPoolExecutor(2) as pool:
+            frames = list(pool.map(read_frame, paths))  # the first bad file in order is reported
+    else:
+        frames = [read_frame(p) for p in paths]
     apply_times(frames, times, times_file)  # "estimate": labels here, estimates after decoding
     first = frames[0]
     for f in frames[1:]:
