@@ -181,18 +181,20 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     of ``E * h_ref`` under the noise model (float32, like the result) with
     ``with_variance``, else None."""
     ml = models.estimator == "ml"
-    # without IRLS the stream's last pass returns the linear image directly
-    result, flags, den, variance, timings_stream = _stream(frames, models.tables, models.pattern, ml,
-                                                           None if models.n_irls else h_ref, load, weights_of,
-                                                           with_variance and not models.n_irls)
-    timings.update(timings_stream)
-    if not models.n_irls:
-        return result, flags, den, variance, 0
-    t0 = time.perf_counter()
-    maps = noise_rows(per_channel(models.noise, models.table_channels))
-    y_full = [float(f.white[0] - f.black[0]) for f in frames]
-    with ThreadPoolExecutor(1) as pool:
-        log_e, flags, den, iterations, change, *var = irls(_read_ahead(load, frames, pool), models.tables,
+    with ThreadPoolExecutor(1) as pool:  # IRLS's decodes, the first while the stream finishes
+        # without IRLS the stream's last pass returns the linear image directly
+        result, flags, den, variance, timings_stream = _stream(frames, models.tables, models.pattern, ml,
+                                                               None if models.n_irls else h_ref, load, weights_of,
+                                                               with_variance and not models.n_irls,
+                                                               then=(pool, frames[0]) if models.n_irls else None)
+        first = timings_stream.pop("then", None)
+        timings.update(timings_stream)
+        if not models.n_irls:
+            return result, flags, den, variance, 0
+        t0 = time.perf_counter()
+        maps = noise_rows(per_channel(models.noise, models.table_channels))
+        y_full = [float(f.white[0] - f.black[0]) for f in frames]
+        log_e, flags, den, iterations, change, *var = irls(_read_ahead(load, frames, pool, first), models.tables,
                                                            models.pattern, result, exposures, y_full, maps, ml,
                                                            models.n_irls, variance=with_variance,
                                                            adjust=None if weights_of is None else weights_of.adjust,
@@ -208,11 +210,12 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     return result, flags, den, variance, iterations
 
 
-def _read_ahead(load, frames: list[Frame], pool: ThreadPoolExecutor):
+def _read_ahead(load, frames: list[Frame], pool: ThreadPoolExecutor, first=None):
     """``k -> load(frames[k])`` for a reader that asks for the frames in order (IRLS): frame
     ``k + 1`` is decoded on ``pool`` while frame ``k`` is used (one decode at a time, so the
-    loader needs no locking; one frame more in memory)."""
-    pending = {}
+    loader needs no locking; one frame more in memory).  ``first``: frame 0's decode,
+    already submitted to ``pool``."""
+    pending = {} if first is None else {0: first}
 
     def codes_of(k: int) -> np.ndarray:
         ahead = pending.pop(k, None)
@@ -318,11 +321,14 @@ def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float) ->
 
 
 # ---------------------------------------------------------------- streaming
-def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
+def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False,
+            then=None):
     """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
     decoded frames in memory.  Returns ``log E``, or ``E * scale`` when ``scale`` is given
     (see :meth:`LogMerge.finish`), the flags, the summed weights and, with ``variance``,
-    the result's variance (:attr:`LogMerge.variance`; else None)."""
+    the result's variance (:attr:`LogMerge.variance`; else None).  ``then``: a
+    ``(pool, frame)`` whose decode starts on ``pool`` once the last frame's is done (IRLS's
+    first frame, decoded while this pass finishes); its future is ``timings["then"]``."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
     acc = LogMerge(shape, pattern, variance=variance)
     decode_time = 0.0
@@ -343,6 +349,8 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
             decode_time += dt
             if k + 1 < len(frames):
                 pending = pool.submit(decode, frames[k + 1])
+            elif then is not None:
+                then = then[0].submit(load, then[1])
             t = time.perf_counter()
             acc.add(codes, tables[k], last=k == len(frames) - 1,
                     weight=None if weights_of is None else weights_of(k, codes))
@@ -353,4 +361,4 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
     return (result, flags, acc.den, acc.variance if variance else None,
-            {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total})
+            {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total} | ({"then": then} if then else {}))
