@@ -621,7 +621,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
         variance added and a ghost / coverage ``factor`` in [0, 1] applied, or None), the
         factor also applied to the frame's censored terms
     den : the summed inverse-variance weights of ``log_e``'s estimate (ML: ``1 / Var E``;
-        :class:`LogMerge`'s ``den``), which lets the first pass drop clipped readings the
+        :class:`LogMerge`'s ``den``; released during the first pass, so a caller that holds
+        no other reference saves its memory), which lets the first pass drop clipped readings the
         estimate makes impossible (motion) and add the censored terms straight into the
         sums where it is positive (without it they wait in two more arrays until every
         frame is in); later passes use their predecessor's
@@ -688,6 +689,9 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
                                float(h * y_full[k]), float(y_full[k]), float(sd_full2), log_hi, *rows,
                                weight if factor is None else factor.reshape(shape2), factor is not None,
                                *targets, direct and variance)
+        # the previous pass's weights and the last frame's codes are not needed any more:
+        # freed before the new sums are finished (the peak memory of the pass)
+        codes = den = prev_den = None
         if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
             # clipped in every frame has no finite ML estimate and keeps its flag; with the
             # variance, certainty 1: w^2 Var = the information itself

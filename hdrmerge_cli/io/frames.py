@@ -377,8 +377,13 @@ def load_codes(frame: Frame) -> np.ndarray:
         import rawpy
 
         try:
-            with _quiet_c_stderr(), rawpy.imread(frame.path) as raw:
-                codes = raw.raw_image_visible.copy()
+            with _quiet_c_stderr():
+                raw = rawpy.imread(frame.path)
+                # LibRaw's buffer itself when it has no margins: the view keeps its RawPy (and
+                # so the buffer) alive, and it is freed with the view (never closed under it);
+                # a copy of the visible area otherwise (compiled kernels take contiguous arrays)
+                codes = np.ascontiguousarray(raw.raw_image_visible)
+                del raw
         except rawpy.LibRawError as exc:
             raise HdrMergeError(f"{frame.path}: not a readable RAW file ({_libraw_reason(exc, frame.path)})") from None
         if frame.kind == "linear":
