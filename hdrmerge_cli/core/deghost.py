@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
@@ -355,6 +354,7 @@ def smooth_ratio_field(r: np.ndarray, ok: np.ndarray, nc: int, tiles: int = FIEL
     ``+-limit`` and interpolated bilinearly.  Dividing it out absorbs what varies slowly
     over the frame (vignetting, in-camera local tone mapping, broad glare) while a compact
     object with sharp edges stays."""
+    from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     h, w = r.shape[0], r.shape[1] // nc
     t = max(8, int(np.ceil(max(h, w) / tiles)))
     gh, gw = -(-h // t), -(-w // t)
@@ -381,6 +381,7 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH) -> 
     (+1: the frame is the longer exposure and may read brighter; -1: the anchor is) within
     ``reach`` times the longer side of the cells ``clipped`` in the longer exposure (veiling
     glare and blooming around clipped highlights grow with exposure), 0 elsewhere."""
+    from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     if not clipped.any() or not sign:
         return np.zeros(clipped.shape, np.int8)
     d = ndimage.distance_transform_edt(~clipped)
@@ -478,6 +479,7 @@ def clean(mask: np.ndarray, open_radius: int = 1, min_cells: int = MIN_BLOB_PX, 
     connected regions smaller than ``min_cells`` (isolated false alarms, and the sparse
     ones along edges, go; a moving object is a large connected region), then a dilation by
     ``grow`` cells (its soft edge is covered)."""
+    from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     st = ndimage.generate_binary_structure(2, 1)
     out = ndimage.binary_opening(mask, st, iterations=open_radius) if open_radius else mask
     if min_cells > 1 and out.any():
@@ -507,6 +509,7 @@ def feather(mask: np.ndarray, sigma: float) -> np.ndarray:
     Gaussian of ``sigma`` (at least 0.98 on the region itself, falling smoothly to 0 about
     ``4 sigma`` outside it).  Weights ``w (1 - m)`` then fade a frame out over a moving
     object instead of cutting it off."""
+    from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     if not mask.any():
         return np.zeros(mask.shape, np.float32)
     grow = int(np.ceil(2 * sigma))
