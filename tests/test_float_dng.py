@@ -273,3 +273,32 @@ def test_rawtherapee_renders(tmp_path):
                          timeout=300, env={"HOME": str(tmp_path), "PATH": "/usr/bin:/bin"})
     assert run.returncode == 0 and out.exists(), run.stdout + run.stderr
     check_colours(read_jpeg(out), "RawTherapee")
+
+
+def test_cell_rgb_is_the_area_mean_of_whole_cells():
+    """The DNG preview's picture (pipeline.output.cell_rgb) against a direct computation:
+    per 2 x 2 cell R, mean of the greens, B; white balance; f x f blocks of cells averaged
+    (f from block_factor, partial blocks dropped); the matrix.  Odd sizes and a GBRG layout."""
+    from types import SimpleNamespace
+
+    from hdrmerge_cli.core.preview import block_factor
+    from hdrmerge_cli.pipeline.output import cell_rgb
+
+    rng = np.random.default_rng(5)
+    mosaic = rng.random((83, 121), dtype=np.float32) * 4
+    frame = SimpleNamespace(cfa_pattern="GBRG", white_balance=np.array([1.8, 1.0, 1.4]))
+    matrix = rng.random((3, 3))
+    got = cell_rgb(mosaic, frame, matrix, 16)
+    ch, cw = 83 // 2, 121 // 2
+    f = block_factor(ch, cw, 16)
+    cells = np.zeros((ch, cw, 3))
+    for y in range(ch):
+        for x in range(cw):
+            cell = mosaic[2 * y:2 * y + 2, 2 * x:2 * x + 2].ravel()
+            greens = [v for v, c in zip(cell, "GBRG") if c == "G"]
+            cells[y, x] = [cell["GBRG".index("R")], np.mean(greens), cell["GBRG".index("B")]]
+    cells *= frame.white_balance
+    hb, wb = ch // f, cw // f
+    want = cells[:hb * f, :wb * f].reshape(hb, f, wb, f, 3).mean(axis=(1, 3)) @ matrix.T
+    assert got.shape == (hb, wb, 3) and max(hb, wb) <= 16
+    np.testing.assert_allclose(got, want, rtol=1e-6)

@@ -399,17 +399,18 @@ def camera_xyz_matrix(frame: Frame) -> np.ndarray:
 def cell_rgb(mosaic: np.ndarray, frame: Frame, matrix: np.ndarray, max_side: int) -> np.ndarray:
     """A small ``(h, w, 3)`` float RGB picture of a mosaic without demosaicing: each 2 x 2
     CFA cell gives one pixel (its greens averaged), white balance and ``matrix`` applied,
-    then area-averaged to at most ``max_side`` pixels on the longer side."""
+    then area-averaged to at most ``max_side`` pixels on the longer side.  Each CFA site's
+    plane is area-averaged first (strided views, one pass over the mosaic; the same means,
+    as every block holds as many cells)."""
     from hdrmerge_cli.core.preview import block_factor
 
-    h, w = (mosaic.shape[0] // 2) * 2, (mosaic.shape[1] // 2) * 2
+    f = block_factor(mosaic.shape[0] // 2, mosaic.shape[1] // 2, max_side)
+    hh, ww = mosaic.shape[0] // 2 // f * f, mosaic.shape[1] // 2 // f * f
     planes = {"R": [], "G": [], "B": []}
     for i, colour in enumerate(frame.cfa_pattern):
-        planes[colour].append(mosaic[i // 2:h:2, i % 2:w:2])
-    rgb = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1) * frame.white_balance.astype(np.float32)
-    f = block_factor(rgb.shape[0], rgb.shape[1], max_side)
-    hh, ww = rgb.shape[0] // f * f, rgb.shape[1] // f * f
-    rgb = rgb[:hh, :ww].reshape(hh // f, f, ww // f, f, 3).mean(axis=(1, 3))
+        site = mosaic[i // 2:2 * hh:2, i % 2:2 * ww:2]
+        planes[colour].append(site.reshape(hh // f, f, ww // f, f).mean(axis=(1, 3), dtype=np.float64))
+    rgb = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1) * frame.white_balance
     return rgb @ np.asarray(matrix, np.float64).T
 
 
