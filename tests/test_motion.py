@@ -192,6 +192,60 @@ def test_mosaic_moves_by_whole_cfa_periods_and_clipping_survives_resampling():
     assert moved[4, 3] == 4095 and moved[4, 4] == 4095  # half-clipped neighbours read as clipped
 
 
+def _bayer(rgb: np.ndarray, cfa: str) -> np.ndarray:
+    out = np.empty(rgb.shape[:2], rgb.dtype)
+    for k, colour in enumerate(cfa):
+        out[k // 2::2, k % 2::2] = rgb[k // 2::2, k % 2::2, "RGB".index(colour)]
+    return out
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "GBRG"])
+def test_resample_mosaic_reads_green_on_its_quincunx_and_interpolates_colour_ratios(cfa):
+    """resample_mosaic against the truth: an identity warp returns the codes; on a sharp,
+    colourful scene (six random sinusoids up to 0.2 cycles/px, times a smooth colour field)
+    rendered at the frame's and the reference's positions, a warp of (0.5, 0.3) px and
+    0.3 deg recovers the reference's mosaic with at most 0.7x the RMS error of resampling
+    each colour's sub-plane on its own (measured 0.56x; 0.50-0.69x for 0.1-0.3 cycles/px);
+    a clipped green code clips the outputs next to it and nothing else reaches the clip code."""
+    rng = np.random.default_rng(3)
+    h, w, black, clip = 96, 128, 256.0, 4095
+    codes = rng.integers(300, 3000, (h, w)).astype(np.uint16)
+    same = align.resample_mosaic(codes, np.array([[1.0, 0, 0], [0, 1.0, 0]]), clip, cfa, black)
+    np.testing.assert_array_equal(same, codes)
+
+    waves = [(rng.uniform(-0.2, 0.2, 2) * 2 * np.pi, rng.uniform(0, 2 * np.pi)) for _ in range(6)]
+    tint = rng.uniform(0.6, 1.4, 3)
+
+    def scene(x, y):  # (..., 3) linear values, 200..2800 codes above black
+        lum = sum(np.cos(k[0] * x + k[1] * y + ph) for k, ph in waves) / 6
+        colour = tint * (1 + 0.3 * np.sin(2 * np.pi * x[..., None] / 97 + np.array([0, 2, 4])))
+        return 200 + 700 * (1 + lum[..., None]) * colour
+
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    warp = np.array([[np.cos(0.005), -np.sin(0.005), 0.5], [np.sin(0.005), np.cos(0.005), 0.3]])
+    # the frame sees at its pixel p what the reference sees at warp^-1(p): render the frame
+    # on its own grid from the inverse map, the reference's truth on the reference grid
+    inv = cv2.invertAffineTransform(warp)
+    gx = inv[0, 0] * xx + inv[0, 1] * yy + inv[0, 2]
+    gy = inv[1, 0] * xx + inv[1, 1] * yy + inv[1, 2]
+    frame = np.rint(_bayer(scene(gx, gy), cfa) + black).astype(np.uint16)
+    truth = _bayer(scene(xx, yy), cfa) + black
+    new = align.resample_mosaic(frame, warp, clip, cfa, black).astype(np.float64)
+    old = np.empty_like(new)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            old[dy::2, dx::2] = align.apply_warp(frame[dy::2, dx::2], align._site_warp(warp, dx, dy), clip)
+    inner = (slice(6, -6), slice(6, -6))
+    err_new = np.sqrt(np.mean((new - truth)[inner] ** 2))
+    err_old = np.sqrt(np.mean((old - truth)[inner] ** 2))
+    assert err_new < 0.7 * err_old, (err_new, err_old)
+
+    frame[40, 61 if cfa == "RGGB" else 60] = clip  # a clipped green code
+    out = align.resample_mosaic(frame, warp, clip, cfa, black)
+    assert (out[38:43, 58:64] == clip).any()
+    assert not (out[:, :40] == clip).any() and not (out[:20] == clip).any()
+
+
 def test_covered_mask_matches_a_pixelwise_test():
     h, w = 37, 53
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)

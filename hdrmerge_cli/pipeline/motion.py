@@ -171,7 +171,10 @@ class AlignedLoader:
             # of benchmarks/motion.py it cost 1-5 dB away from the ghost: the taps' spread is
             # mostly the codes' noise and quantisation there, which the tables already hold)
             return align.apply_warp(codes, w, clip)
-        out = align.apply_warp_mosaic(codes, w, clip, self.periods)
+        from hdrmerge_cli.pipeline.bracket import sample_pattern
+
+        cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
+        out = align.apply_warp_mosaic(codes, w, clip, self.periods, frame.cfa_pattern, np.asarray(frame.black)[cell])
         self.spreads.pop(frame.path, None)
         if not self.periods and not is_identity(w):
             self.spreads[frame.path] = align.tap_variance_mosaic(codes, w)
