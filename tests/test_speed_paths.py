@@ -331,3 +331,17 @@ def test_raw_metadata_carries_the_cfa_cell_and_reads_in_parallel(dng_frames, mon
     assert sorted(f.path for f in read) == sorted(paths)
     assert threads and all(t != "MainThread" for t in threads)
     assert [f.exposure_time for f in read] == sorted(f.exposure_time for f in read)
+
+
+def test_one_malloc_arena_is_set_on_glibc_unless_the_user_chose(monkeypatch):
+    """The command asks glibc for one malloc arena (a thread's freed frames otherwise stay
+    in its own arena and add to the peak); a user's MALLOC_ARENA_MAX is left alone."""
+    import platform
+
+    from hdrmerge_cli.io.memory import one_malloc_arena
+
+    monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
+    if sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc":
+        assert one_malloc_arena() is True
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
+    assert one_malloc_arena() is False

@@ -21,6 +21,8 @@ zoom) and a translation.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -270,21 +272,26 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
     moved = cv2.warpAffine(image, warp.astype(np.float32), (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
                            borderMode=cv2.BORDER_REPLICATE)
     inside = covered_mask(warp, *image.shape)
-    centres, shifts = [], []
     sh, sw = min(th, CONSENSUS_TILE_SIDE), min(tw, CONSENSUS_TILE_SIDE)
-    for i in range(n):
-        for j in range(n):
-            y0, x0 = i * th + (th - sh) // 2, j * tw + (tw - sw) // 2
-            rows, cols = slice(y0, y0 + sh), slice(x0, x0 + sw)
-            if not inside[rows, cols].all():
-                continue
-            tile = np.ascontiguousarray(reference[rows, cols])
-            if textured_pixels(tile) < CONSENSUS_MIN_TEXTURED:
-                continue
-            found = _ecc(tile, np.ascontiguousarray(moved[rows, cols]), np.eye(2, 3), "translation", eps=CONSENSUS_EPS)
-            if found is not None and np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):
-                centres.append((x0 + (sw - 1) / 2, y0 + (sh - 1) / 2))
-                shifts.append(found[:, 2])
+
+    def register(corner):  # one tile: its centre and shift, or None
+        y0, x0 = corner
+        rows, cols = slice(y0, y0 + sh), slice(x0, x0 + sw)
+        if not inside[rows, cols].all():
+            return None
+        tile = np.ascontiguousarray(reference[rows, cols])
+        if textured_pixels(tile) < CONSENSUS_MIN_TEXTURED:
+            return None
+        found = _ecc(tile, np.ascontiguousarray(moved[rows, cols]), np.eye(2, 3), "translation", eps=CONSENSUS_EPS)
+        if found is None or not np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):
+            return None
+        return (x0 + (sw - 1) / 2, y0 + (sh - 1) / 2), found[:, 2]
+
+    corners = [(i * th + (th - sh) // 2, j * tw + (tw - sw) // 2) for i in range(n) for j in range(n)]
+    with ThreadPoolExecutor(2) as pool:  # OpenCV's ECC releases the GIL: both cores
+        results = [r for r in pool.map(register, corners) if r is not None]
+    centres = [c for c, _ in results]
+    shifts = [d for _, d in results]
     if len(shifts) < 4:
         return None
     src = np.asarray(centres, np.float64)

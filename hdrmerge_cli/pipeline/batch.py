@@ -21,6 +21,7 @@ import numpy as np
 from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
+from hdrmerge_cli.io.memory import one_malloc_arena
 from hdrmerge_cli.pipeline.merge import merge
 from hdrmerge_cli.pipeline.options import MergeOptions
 from hdrmerge_cli.pipeline.output import default_profile_path
@@ -232,6 +233,7 @@ def _init_worker(level: int) -> None:
     """Worker processes log like the parent (prefix, level, stderr) and stop on SIGTERM
     or Ctrl-C (removing their temporaries) when the parent stops them."""
     separate_python_stderr()
+    one_malloc_arena()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, _stop_worker)
     handler = logging.StreamHandler()

@@ -3,6 +3,7 @@ moving objects from the frames that disagree with it (see core/align.py, core/de
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -62,51 +63,58 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     ref = reference_index(frames)
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
-    held: dict[int, np.ndarray] = {}  # the registration images of the pair at hand, no more
-
-    def image(k: int) -> np.ndarray:
-        if k not in held:
-            held.pop(next((j for j in held if j not in (k - 1, k + 1)), None), None)
-            held[k] = _linear(frames[k], load(frames[k]), crf)
-        return held[k]
-
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    unaligned, confidence = [], [1.0] * len(frames)
+    confidence = [1.0] * len(frames)
 
-    def step(a: int, b: int) -> np.ndarray:
-        """Warp from frame a's coordinates to frame b's (neighbours in exposure); identity
-        when they cannot be registered."""
+    def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
+        """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
+        identity and why they cannot be registered."""
         y_full = float(np.min(frames[a].white - frames[a].black))
         try:
             lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=min(0.02, 16.0 / y_full))
         except HdrMergeError:
-            lo = hi = None
-        why = None
-        if lo is not None:
-            ia = align.log_irradiance(image(a), exposures[a], lo, hi)
-            ib = align.log_irradiance(image(b), exposures[b], lo, hi)
-            texture = min(align.textured_pixels(ia), align.textured_pixels(ib))
-            if texture < align.MIN_TEXTURED:
-                why = f"only {texture} textured pixels in the range it shares with its neighbour"
-            else:
-                w, rho = align.estimate_warp(ia, ib, motion)
-                confidence[b] = round(rho, 4)
-                if rho >= MIN_CONFIDENCE:
-                    return align.rescale_warp(w, 2, 0.5) if raw else w  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
-                why = f"registration to its neighbour correlates only {rho:.2f}"
-        else:
-            why = "no irradiance range is well exposed in both it and its neighbour"
-        unaligned.append(frames[b].path)
-        log.warning("%s: %s; left unaligned", frames[b].path, why)
-        return identity
+            return identity, "no irradiance range is well exposed in both it and its neighbour"
+        ia = align.log_irradiance(image(a), exposures[a], lo, hi)
+        ib = align.log_irradiance(image(b), exposures[b], lo, hi)
+        texture = min(align.textured_pixels(ia), align.textured_pixels(ib))
+        if texture < align.MIN_TEXTURED:
+            return identity, f"only {texture} textured pixels in the range it shares with its neighbour"
+        w, rho = align.estimate_warp(ia, ib, motion)
+        confidence[b] = round(rho, 4)
+        if rho < MIN_CONFIDENCE:
+            return identity, f"registration to its neighbour correlates only {rho:.2f}"
+        return (align.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+
+    def chain(indices: list[int]) -> dict:
+        """The steps of one side of the reference, outwards; the registration images of the
+        pair at hand are held, no more."""
+        held: dict[int, np.ndarray] = {}
+
+        def image(k: int) -> np.ndarray:
+            if k not in held:
+                held.pop(next((j for j in held if j not in (k - 1, k + 1)), None), None)
+                held[k] = _linear(frames[k], load(frames[k]), crf)
+            return held[k]
+
+        return {j: step(j - 1 if j > ref else j + 1, j, image) for j in indices}
 
     # each frame is registered to its neighbour towards the reference (they share the most
-    # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1)
+    # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1).  The
+    # two sides of the reference run on two threads (OpenCV's ECC releases the GIL)
+    sides = [list(range(ref + 1, len(frames))), list(range(ref - 1, -1, -1))]
+    with ThreadPoolExecutor(2) as pool:
+        steps = {j: st for side in pool.map(chain, [s for s in sides if s]) for j, st in side.items()}
     warps = [None] * len(frames)
     warps[ref] = identity
-    for j in list(range(ref + 1, len(frames))) + list(range(ref - 1, -1, -1)):
-        prev = j - 1 if j > ref else j + 1
-        warps[j] = align.compose(step(prev, j), warps[prev])
+    unaligned = []
+    for j in sides[0] + sides[1]:
+        w, why = steps[j]
+        if why is not None:
+            unaligned.append(frames[j].path)
+        warps[j] = align.compose(w, warps[j - 1 if j > ref else j + 1])
+    for j in sorted(steps):  # the warnings in frame order, whichever side finished first
+        if steps[j][1] is not None:
+            log.warning("%s: %s; left unaligned", frames[j].path, steps[j][1])
     rotated = any(abs(w[1, 0]) > 1e-9 for w in warps)
     if mode == "auto" and not rotated:
         motion = "translation"  # no frame's rotation beat its translation
