@@ -885,3 +885,34 @@ def test_cell_sums_equal_reshaped_sums(ph, pw):
     np.testing.assert_allclose(deghost.cell_sums(a, ph, pw), want, rtol=1e-5, atol=1e-5)
     counts = deghost.cell_sums((a > 0).astype(np.int32), ph, pw)
     np.testing.assert_array_equal(counts, (a[:h, :w] > 0).reshape(h // ph, ph, w // pw, pw).sum(axis=(1, 3)))
+
+
+def test_binned_median_equals_per_bin_numpy_medians():
+    """deghost._binned_median (one sort per array) equals np.median bin by bin (bins of
+    at least 10 samples), ties and odd/even counts included, float32 and float64."""
+    rng = np.random.default_rng(8)
+    for n, dtype in ((50, np.float32), (999, np.float64), (65536, np.float32)):
+        key, val = rng.normal(size=n).astype(dtype), rng.normal(size=n).astype(dtype)
+        key[: n // 3] = key[0]
+        edges = deghost._level_bins(key, 32)
+        which = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, max(edges.size - 2, 0))
+        want = [(np.median(key[which == b]), np.median(val[which == b]), np.count_nonzero(which == b))
+                for b in range(edges.size - 1) if np.count_nonzero(which == b) >= 10]
+        c, m, cnt = deghost._binned_median(key, val, 32)
+        np.testing.assert_array_equal(c, [w[0] for w in want])
+        np.testing.assert_array_equal(m, [w[1] for w in want])
+        np.testing.assert_array_equal(cnt, [w[2] for w in want])
+
+
+def test_glare_excuse_equals_scipy_euclidean_distance():
+    """glare_excuse (OpenCV's exact distance transform, compared as whole squared
+    distances) marks exactly the cells SciPy's EDT puts within reach of a clipped cell."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(2)
+    for shape, frac, reach in (((100, 140), 0.001, 0.05), ((300, 410), 0.01, 0.1), ((37, 5), 0.05, 0.02)):
+        clipped = rng.random(shape) < frac
+        clipped[0, 0] = True
+        want = np.where(ndimage.distance_transform_edt(~clipped) <= reach * max(shape), -1, 0)
+        np.testing.assert_array_equal(deghost.glare_excuse(clipped, -1, reach), want)
+    assert not deghost.glare_excuse(np.zeros((8, 8), bool), 1).any()
