@@ -106,3 +106,26 @@ def test_a_signal_mid_write_removes_the_temporaries(run, tmp_path_factory, sig):
         pytest.skip("the merge finished writing before the signal arrived")
     assert proc.returncode == 128 + sig and "Traceback" not in err, err
     assert len(err.strip().splitlines()) == 1 and os.listdir(out_dir) == []
+
+
+def test_a_signal_right_after_a_temporary_is_created_leaves_nothing(tmp_path, monkeypatch):
+    """The temporary's name is listed before the file exists: a signal that unwinds the
+    moment the file is created (here: the close right after it raises Terminated, as a
+    SIGTERM handler would when the interpreter gets back to this thread) leaves no file."""
+    from hdrmerge_cli.core.errors import Terminated
+    from hdrmerge_cli.io import atomic
+
+    real_close = os.close
+    calls = []
+
+    def close(fd):
+        real_close(fd)
+        calls.append(fd)
+        if len(calls) == 2:  # the second output's temporary was just created
+            raise Terminated(signal.SIGTERM)
+
+    monkeypatch.setattr(atomic.os, "close", close)
+    with pytest.raises(Terminated):
+        with atomic.atomic_paths([tmp_path / "a.exr", tmp_path / "a.profile.json"], overwrite=False):
+            pass
+    assert os.listdir(tmp_path) == []

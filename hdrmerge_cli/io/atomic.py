@@ -4,7 +4,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -77,9 +77,7 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
     tmps: list[str] = []
     try:
         for p in paths:
-            fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=f".part{p.suffix}", dir=p.parent)
-            os.close(fd)
-            tmps.append(tmp)
+            _create_temporary(p, tmps)
         try:
             yield tmps
         except (OSError, HdrMergeError) as exc:
@@ -89,6 +87,23 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
         for tmp in tmps:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+
+
+def _create_temporary(path: Path, tmps: list[str]) -> None:
+    """A new empty file (mode 0600) beside ``path``, named ``.<stem>.<random>.part<suffix>``
+    (the same extension, so writers pick the same format), appended to ``tmps``.  The name
+    is listed before the file is created (``O_EXCL``; a name taken is drawn again), so a
+    signal that unwinds at any point leaves no file that the caller's clean-up does not
+    know of (with ``mkstemp`` the file existed before its name was listed: a SIGTERM in
+    between, while another thread held the interpreter, left it behind)."""
+    while True:
+        tmp = str(path.parent / f".{path.stem}.{secrets.token_hex(4)}.part{path.suffix}")
+        tmps.append(tmp)
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            return
+        except FileExistsError:
+            tmps.pop()  # someone else's: not ours to remove
 
 
 def _commit(tmps: list[str], paths: list[Path], overwrite: bool) -> None:
