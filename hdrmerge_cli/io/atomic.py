@@ -77,7 +77,7 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
     tmps: list[str] = []
     try:
         for p in paths:
-            _create_temporary(p, tmps)
+            create_temporary(p, tmps)
         try:
             yield tmps
         except (OSError, HdrMergeError) as exc:
@@ -89,7 +89,7 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
                 os.unlink(tmp)
 
 
-def _create_temporary(path: Path, tmps: list[str]) -> None:
+def create_temporary(path: Path, tmps: list[str]) -> None:
     """A new empty file (mode 0600) beside ``path``, named ``.<stem>.<random>.part<suffix>``
     (the same extension, so writers pick the same format), appended to ``tmps``.  The name
     is listed before the file is created (``O_EXCL``; a name taken is drawn again), so a

@@ -21,8 +21,9 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
-import tempfile
 from pathlib import Path
+
+from hdrmerge_cli.io.atomic import create_temporary
 
 SCHEMA = 1
 ENV_DIR = "HDRMERGE_CLI_CACHE_DIR"
@@ -94,13 +95,15 @@ def store(key: str | None, used: dict, estimated: dict | None, inputs: list[str]
         entries = _load(path)
         entries[key] = {"used": used, "estimated_from_bracket": estimated, "inputs": [str(p) for p in inputs],
                         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
-        fd, tmp = tempfile.mkstemp(prefix=".noise.", suffix=".tmp", dir=path.parent)
+        tmps: list[str] = []
         try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            create_temporary(path, tmps)  # listed before it exists: a signal leaves no stray file
+            with open(tmps[0], "w", encoding="utf-8") as fh:
                 json.dump({"schema": SCHEMA, "entries": entries}, fh, indent=1, sort_keys=True)
-            os.replace(tmp, path)
+            os.replace(tmps[0], path)
         except BaseException:
-            _unlink_quietly(tmp)
+            for tmp in tmps:
+                _unlink_quietly(tmp)
             raise
     except OSError:
         return None
