@@ -406,6 +406,41 @@ def noise_rows(params: list[NoiseParams]) -> tuple[np.ndarray, np.ndarray, np.nd
                  for i in range(3))
 
 
+@numba.njit(inline="always")
+def _irls_weight(c, le, k, so, sq, ba, linear, floor):  # pragma: no cover
+    """One sample's weight of :func:`irls_weights` (certainty ``c``, current estimate
+    ``le`` = log E, ``k = h y_full``, the row's noise parameters): 0 without certainty."""
+    if not c > 0:
+        return np.float32(0.0)
+    mu = np.float32(np.exp(le) * k)
+    var = max(so + sq * mu + ba * mu * mu, np.float32(1e-12))
+    num = np.float32(k * k) if linear else mu * mu
+    return max(c * (num / var), floor)
+
+
+@numba.njit(inline="always")
+def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode):  # pragma: no cover
+    """One frame's sample ``(i, j)`` (table row ``r``, code ``z``, weight ``w``, weighted
+    value ``wv``) into (7)'s sums, as :class:`LogMerge` keeps them (``mode`` 0: the
+    shortest frame sets the fallback and class; 2: the longest fills the dark fallback)."""
+    if mode == 0:
+        if w > 0:
+            num[i, j] = wv
+            den[i, j] = w
+        else:
+            num[i, j] = fb_tab[r, z]
+            den[i, j] = -1.0 if hi_tab[r, z] else 0.0
+    elif w > 0:
+        if den[i, j] > 0:
+            num[i, j] += wv
+            den[i, j] += w
+        else:
+            num[i, j] = wv
+            den[i, j] = w
+    elif mode == 2 and den[i, j] == 0:
+        num[i, j] = fb_tab[r, z]
+
+
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, linear, out):  # pragma: no cover
     """:func:`irls_weights` fused with the table lookup, per 2-D sample: the row of a
@@ -420,14 +455,8 @@ def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, l
             r = prow[q]
             so, sq, ba = s_o2[r], sqrt_a[r], b_a[r]
             for j in range(q, cols, pw):
-                c = certainty[r, min(codes[i, j], n - 1)]
-                if c > 0:
-                    mu = np.float32(np.exp(log_e[i, j]) * k)
-                    var = max(so + sq * mu + ba * mu * mu, np.float32(1e-12))
-                    num = np.float32(k * k) if linear else mu * mu
-                    out[i, j] = max(c * (num / var), floor)
-                else:
-                    out[i, j] = 0.0
+                out[i, j] = _irls_weight(certainty[r, min(codes[i, j], n - 1)], log_e[i, j], k, so, sq, ba, linear,
+                                         floor)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -447,30 +476,8 @@ def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, 
             so, sq, ba = s_o2[r], sqrt_a[r], b_a[r]
             for j in range(q, cols, pw):
                 z = min(codes[i, j], top)
-                c = certainty[r, z]
-                w = np.float32(0.0)
-                if c > 0:
-                    mu = np.float32(np.exp(log_e[i, j]) * k)
-                    var = max(so + sq * mu + ba * mu * mu, np.float32(1e-12))
-                    nm = np.float32(k * k) if linear else mu * mu
-                    w = max(c * (nm / var), floor)
-                wv = w * num_tab[r, z]
-                if mode == 0:
-                    if w > 0:
-                        num[i, j] = wv
-                        den[i, j] = w
-                    else:
-                        num[i, j] = fb_tab[r, z]
-                        den[i, j] = -1.0 if hi_tab[r, z] else 0.0
-                elif w > 0:
-                    if den[i, j] > 0:
-                        num[i, j] += wv
-                        den[i, j] += w
-                    else:
-                        num[i, j] = wv
-                        den[i, j] = w
-                elif mode == 2 and den[i, j] == 0:
-                    num[i, j] = fb_tab[r, z]
+                w = _irls_weight(certainty[r, z], log_e[i, j], k, so, sq, ba, linear, floor)
+                _add_sample(num, den, i, j, w, w * num_tab[r, z], fb_tab, hi_tab, r, z, mode)
 
 
 def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
@@ -952,22 +959,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
                 else:
                     w = w_tab[c, z]
                     wv = num_tab[c, z]
-                if mode == 0:
-                    if w > 0:
-                        num[r, s] = wv
-                        den[r, s] = w
-                    else:
-                        num[r, s] = fb_tab[c, z]
-                        den[r, s] = -1.0 if hi_tab[c, z] else 0.0
-                elif w > 0:
-                    if den[r, s] > 0:
-                        num[r, s] += wv
-                        den[r, s] += w
-                    else:
-                        num[r, s] = wv
-                        den[r, s] = w
-                elif mode == 2 and den[r, s] == 0:
-                    num[r, s] = fb_tab[c, z]
+                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
