@@ -181,13 +181,13 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     of ``E * h_ref`` under the noise model (float32, like the result) with
     ``with_variance``, else None."""
     ml = models.estimator == "ml"
-    with ThreadPoolExecutor(1) as pool:  # IRLS's decodes, the first while the stream finishes
+    first = []  # IRLS's first decode, started while the stream finishes (handed over, not held)
+    with ThreadPoolExecutor(1) as pool:
         # without IRLS the stream's last pass returns the linear image directly
         out = list(_stream(frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref, load,
                            weights_of, with_variance and not models.n_irls,
-                           then=(pool, frames[0]) if models.n_irls else None))  # result, flags, den, variance, timings
-        first = out[4].pop("then", None)
-        timings.update(out.pop())
+                           then=(lambda: first.append(pool.submit(load, frames[0]))) if models.n_irls else None))
+        timings.update(out.pop())  # out: result, flags, den, variance
         if not models.n_irls:
             return (*out, 0)
         t0 = time.perf_counter()
@@ -197,7 +197,7 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
         # IRLS makes its own flags, and frees the stream's weights once it no longer needs
         # them: nothing here holds either (24 MP x 3: peak 808 -> 784 MB)
         out[1] = None
-        log_e, flags, den, iterations, change, *var = irls(_read_ahead(load, frames, pool, first), models.tables,
+        log_e, flags, den, iterations, change, *var = irls(_read_ahead(load, frames, pool, first.pop()), models.tables,
                                                            models.pattern, result, exposures, y_full, maps, ml,
                                                            models.n_irls, variance=with_variance,
                                                            adjust=None if weights_of is None else weights_of.adjust,
@@ -329,9 +329,9 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
     """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
     decoded frames in memory.  Returns ``log E``, or ``E * scale`` when ``scale`` is given
     (see :meth:`LogMerge.finish`), the flags, the summed weights and, with ``variance``,
-    the result's variance (:attr:`LogMerge.variance`; else None).  ``then``: a
-    ``(pool, frame)`` whose decode starts on ``pool`` once the last frame's is done (IRLS's
-    first frame, decoded while this pass finishes); its future is ``timings["then"]``."""
+    the result's variance (:attr:`LogMerge.variance`; else None).  ``then``: called once
+    the last frame's decode is in hand (IRLS starts decoding its first frame there, while
+    this pass finishes)."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
     acc = LogMerge(shape, pattern, variance=variance)
     decode_time = 0.0
@@ -353,7 +353,7 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
             if k + 1 < len(frames):
                 pending = pool.submit(decode, frames[k + 1])
             elif then is not None:
-                then = then[0].submit(load, then[1])
+                then()
             t = time.perf_counter()
             acc.add(codes, tables[k], last=k == len(frames) - 1,
                     weight=None if weights_of is None else weights_of(k, codes))
@@ -364,4 +364,4 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
     merge_time += time.perf_counter() - t
     total = time.perf_counter() - t_start
     return (result, flags, acc.den, acc.variance if variance else None,
-            {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total} | ({"then": then} if then else {}))
+            {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total})
