@@ -316,6 +316,8 @@ def test_merge_writes_a_preview_with_the_exr(run, tmp_path, dng_bracket):
     assert s["preview"] == str(pic)
     spec = oiio.ImageInput.open(str(pic)).spec()
     assert (spec.width, spec.height, spec.nchannels) == (256 // 3, 192 // 3, 3)  # factor ceil(256 / 100) = 3
+    said = run("merge", *frames_of(folder, meta), "-o", out, "--preview", pic, "--overwrite").stderr
+    assert f"wrote {out}, {tmp_path / 'm.profile.json'} and {pic}" in said  # the preview is named too
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "n.exr", "--preview", tmp_path / "n.exr.gif",
                check=False)
     assert proc.returncode == 1 and "n.exr.gif" in proc.stderr and not (tmp_path / "n.exr").exists()

@@ -155,7 +155,8 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
     if output.is_dir():
         raise click.UsageError(f"{output} is a folder; -o names the EXR or DNG to write (or use --batch DIR)")
     summary = merge(list(images), opts)
-    emit(summary, as_json, f"wrote {summary['output']} and {summary['profile']}")
+    written = [summary["output"], summary["profile"]] + ([summary["preview"]] if summary.get("preview") else [])
+    emit(summary, as_json, f"wrote {', '.join(written[:-1])} and {written[-1]}")
 
 
 def _given(ctx) -> set[str]:
