@@ -8,6 +8,7 @@ import pytest
 
 from conftest import SHARED, frames_of, needs_shared
 from hdrmerge_cli.core import align, deghost
+from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.scene import procedural_scene
 
 
@@ -206,7 +207,8 @@ def test_resample_mosaic_reads_green_on_its_quincunx_and_interpolates_colour_rat
     rendered at the frame's and the reference's positions, a warp of (0.5, 0.3) px and
     0.3 deg recovers the reference's mosaic with at most 0.7x the RMS error of resampling
     each colour's sub-plane on its own (measured 0.56x; 0.50-0.69x for 0.1-0.3 cycles/px);
-    a clipped green code clips the outputs next to it and nothing else reaches the clip code."""
+    a clipped code is left out (its neighbours' weights renormalised), so only the inside of a
+    clipped highlight is clipped."""
     rng = np.random.default_rng(3)
     h, w, black, clip = 96, 128, 256.0, 4095
     codes = rng.integers(300, 3000, (h, w)).astype(np.uint16)
@@ -240,10 +242,21 @@ def test_resample_mosaic_reads_green_on_its_quincunx_and_interpolates_colour_rat
     err_old = np.sqrt(np.mean((old - truth)[inner] ** 2))
     assert err_new < 0.7 * err_old, (err_new, err_old)
 
-    frame[40, 61 if cfa == "RGGB" else 60] = clip  # a clipped green code
-    out = align.resample_mosaic(frame, warp, clip, cfa, black)
-    assert (out[38:43, 58:64] == clip).any()
-    assert not (out[:, :40] == clip).any() and not (out[:20] == clip).any()
+    # a clipped code only bounds its sample: one clipped green code clips no output, and the
+    # outputs around it stay near the truth (its neighbours renormalised; red and blue there
+    # keep their plain estimate: 2.1x the error without the clipped code, measured)
+    one = frame.copy()
+    one[40, 61 if cfa == "RGGB" else 60] = clip
+    out = align.resample_mosaic(one, warp, clip, cfa, black).astype(np.float64)
+    assert not (out == clip).any()
+    near = (slice(36, 45), slice(56, 66))
+    assert np.sqrt(np.mean((out - truth)[near] ** 2)) < 2.5 * np.sqrt(np.mean((new - truth)[near] ** 2))
+    # a clipped highlight: the outputs inside it are clipped, its ring and the rest are not
+    hl = frame.copy()
+    hl[40:52, 60:72] = clip
+    out = align.resample_mosaic(hl, warp, clip, cfa, black)
+    assert (out[43:49, 63:69] == clip).all()
+    assert not (out[:, :56] == clip).any() and not (out[:36] == clip).any()
 
 
 def test_covered_mask_matches_a_pixelwise_test():
@@ -916,3 +929,73 @@ def test_glare_excuse_equals_scipy_euclidean_distance():
         want = np.where(ndimage.distance_transform_edt(~clipped) <= reach * max(shape), -1, 0)
         np.testing.assert_array_equal(deghost.glare_excuse(clipped, -1, reach), want)
     assert not deghost.glare_excuse(np.zeros((8, 8), bool), 1).any()
+
+
+# --- RAW deghosting: readings below black, the reference's noise, regions (issue 17) ---------
+
+
+def test_ghost_tables_with_footroom_read_codes_below_black_linearly():
+    """A linear RAW with its black level above code 0: codes below black are readings
+    (x < 0, continuing the line through black with the same slope), only code 0 is
+    censored; without footroom (an image) every code at or below black is."""
+    noise = NoiseParams(9.0, 0.25, 0.0)
+    x, s, ok = deghost.ghost_tables(1024, 64.0, 1000.0, lambda v: v, 2.0, noise, footroom=True)
+    slope = 1.0 / (936.0 * 2.0)
+    np.testing.assert_allclose(x[[1, 32, 63, 64, 65, 500]], (np.array([1, 32, 63, 64, 65, 500]) - 64) * slope, rtol=1e-12)
+    assert not ok[0] and ok[1:1000].all() and not ok[1000:].any()
+    # below black the variance is the read noise's (9 codes^2) plus quantisation, in x units
+    np.testing.assert_allclose(s[10], (9.0 + 1 / 12) * slope**2, rtol=1e-6)
+    _, _, ok_img = deghost.ghost_tables(1024, 64.0, 1000.0, lambda v: v, 2.0, noise)
+    assert not ok_img[:65].any() and ok_img[65:1000].all()
+
+
+def test_a_dark_bound_carries_the_reference_noise():
+    """A reference reading at black bounds the signal only up to its own read noise: a
+    frame reading within about 3 of the reference's deviations above the lowest measuring
+    code is consistent; far beyond it is motion.  Without ``s_bound`` the bound ignores
+    that noise and fires on the first case."""
+    bound = np.full(4, 0.001, np.float32)  # the x of the lowest measuring code
+    s_ref = np.full(4, 0.01**2, np.float32)  # the reference's read noise: sd 0.01
+    x = np.array([0.02, 0.028, 0.2, 0.5], np.float32)
+    s = np.full(4, 0.002**2, np.float32)
+    assert deghost.violates_bound(x, s, bound, s_bound=s_ref).tolist() == [False, False, True, True]
+    assert deghost.violates_bound(x, s, bound).tolist() == [True, True, True, True]
+
+
+def test_region_ratio_is_not_pulled_by_noise():
+    """The exposure factor between two noisy linear frames of a dark scene (readings below
+    0 included) is found within 2 % by :func:`region_ratio`, where binned medians of
+    per-sample log ratios (``match_anchor`` with degree 0 before) are off by tens of per
+    cent; a moving minority (20 % of the frame, 3x brighter) does not move it."""
+    rng = np.random.default_rng(11)
+    truth = np.exp(rng.uniform(np.log(0.02), np.log(2.0), (64, 64)))
+    truth = cv2.resize(truth, (512, 512), interpolation=cv2.INTER_LINEAR)
+    xa = truth + rng.normal(0, 0.05, truth.shape)
+    x = 0.97 * truth + rng.normal(0, 0.2, truth.shape)  # a noisy short frame, 3 % off
+    x[:100] *= 3.0
+    both = np.ones(truth.shape, bool)
+    assert abs(deghost.region_ratio(x, xa, both) * 0.97 - 1) < 0.02  # measured 1.4 %
+    ok = both & (x > 0) & (xa > 0)
+    naive = np.exp(np.median(np.log(xa[ok] / x[ok])))
+    assert abs(naive * 0.97 - 1) > 0.1
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_region_shifts_false_alarms_and_a_dim_ghost(seed):
+    """Monte-Carlo: on pure noise (with a level-dependent bias and a variance the model
+    under-states by 2x, which the empirical null absorbs) the region test rejects under
+    0.5 % of the cells (its rate is p_fa / m^2 per region, 1e-3 expected area); a region
+    whose cells all shift by 0.5 of their own noise deviation, which the per-cell test
+    cannot see (chi-square at 1e-3 needs 3.3 deviations), is found."""
+    rng = np.random.default_rng(seed)
+    h, w, nc = 256, 256, 4
+    level = np.exp(rng.uniform(-3, 1, (h, w * nc))).astype(np.float32)
+    var = np.full((h, w * nc), 1.0, np.float32)
+    d = (rng.normal(0, np.sqrt(2.0), (h, w * nc)) + 0.3 * np.log(level)).astype(np.float32)
+    quiet = deghost.region_shifts(d, var, level, nc)
+    assert quiet.mean() < 0.005
+    ghost = d.copy()
+    ghost[100:140, 400:560] += np.float32(0.5 * np.sqrt(2.0))  # 40 x 40 cells of 4 channels
+    found = deghost.region_shifts(ghost, var, level, nc)
+    assert found[104:136, 104:136].mean() > 0.9
+    assert (found & ~quiet).sum() < 2 * 48 * 48

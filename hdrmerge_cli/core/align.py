@@ -451,7 +451,7 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
 
     - green on its quincunx (pitch sqrt 2, not the 2 of a same-colour sub-plane): its value
       at the red and blue sites filled by the mean of their four green neighbours, that
-      full-resolution green image warped (bilinear) and read at the output's green sites;
+      full-resolution green image warped (bicubic) and read at the output's green sites;
     - red and blue: each sub-plane warped (bilinear), times ``(G + c) / (G_taps + c)``, the
       warped green at the output site over green interpolated from the same taps' sites:
       the colour ratio is what is interpolated (Cok 1987's smooth-hue transition), so detail
@@ -462,52 +462,67 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     Values are signals above ``black`` (one value or one per site of the 2 x 2 cell).  Its
     RMS error is 0.5-0.7x that of resampling every sub-plane on its own on detail of 0.1-0.3
     cycles per pixel (``tests/test_motion.py``); on the RAW cases of ``benchmarks.motion`` the
-    merge away from the ghost gained 0.5 dB on average (-0.5 to +2.4).  Clipping: an output a
-    clipped code of its own colour was interpolated from is clipped; a red or blue output
-    whose correction touched clipped green keeps its plain estimate; green outputs near
-    clipped green are clipped; other outputs are capped one code below ``clip_code``.
-    Samples from outside the frame repeat its nearest edge."""
+    merge away from the ghost gained 0.5 dB on average (-0.5 to +2.4).  Green is warped by
+    OpenCV's bicubic (the full-resolution green image is not aliased the way a sub-plane is).
+
+    Clipping: a clipped code only bounds its sample, so it is left out and the other taps'
+    weights renormalised; an output is clipped only where most of its taps' weight is
+    clipped.  (Before, any clipped tap clipped the output; on the RAW cases of
+    ``benchmarks.motion`` nearly all the error away from the ghost lay within 3 px of a
+    highlight clipped in the reference, where only the resampled short frame measures: the
+    renormalised ring gained 0.4-4.3 dB there.)  A red or blue output whose correction
+    would touch clipped green keeps its plain estimate; outputs are capped one code below
+    ``clip_code``.  Samples from outside the frame repeat its nearest edge."""
     cv2 = _cv2()
     h, w = codes.shape
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
 
-    def warped(a, m):
+    def warped(a, m, interpolation=cv2.INTER_LINEAR):
         return cv2.warpAffine(np.ascontiguousarray(a), np.asarray(m, np.float32), (a.shape[1], a.shape[0]),
-                              flags=flags, borderMode=cv2.BORDER_REPLICATE)
+                              flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+
+    def normalised(num, den, m, interpolation=cv2.INTER_LINEAR):
+        # the warped num / den (taps weighted by den: 0 on clipped ones), and where most of
+        # the taps' weight is clipped
+        n, d = warped(num, m, interpolation), warped(den, m, interpolation)
+        lost = d < 0.5
+        return n / np.where(lost, 1.0, d), lost
 
     black = np.broadcast_to(np.asarray(black, np.float32).reshape(-1), (4,)).reshape(2, 2)
     sites = [(dy, dx) for dy in (0, 1) for dx in (0, 1)]
     green = {(dy, dx): cfa[2 * dy + dx] == "G" for dy, dx in sites}
+    usable = (codes < clip_code).astype(np.float32)  # a clipped code only bounds its sample
     signal = codes.astype(np.float32)
     for dy, dx in sites:
         signal[dy::2, dx::2] -= black[dy, dx]
-    full_g = signal.copy()  # green everywhere: its four neighbours' mean at red and blue sites
+    signal *= usable
+    # green everywhere: at red and blue sites the mean of their unclipped green neighbours
     cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
-    mean4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
-    clipped = (codes >= clip_code).view(np.uint8) * np.uint8(255)
-    clipped_g = clipped.copy()
+    sum4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+    n4 = cv2.filter2D(usable, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+    full_g, g_ok = signal.copy(), usable.copy()
     for dy, dx in sites:
         if not green[dy, dx]:
-            full_g[dy::2, dx::2] = mean4[dy::2, dx::2]
-            clipped_g[dy::2, dx::2] = 0
-    g_out = warped(full_g, warp)
-    # clipped green within reach of an output's green taps (the fills reach one site further)
-    near_g = warped(cv2.dilate(clipped_g, np.ones((3, 3), np.uint8)), warp)
-    near_g_wide = warped(cv2.dilate(clipped_g, np.ones((5, 5), np.uint8)), warp)
+            n = n4[dy::2, dx::2]
+            full_g[dy::2, dx::2] = sum4[dy::2, dx::2] / np.maximum(n, 1e-6)
+            g_ok[dy::2, dx::2] = n > 0.3
+    full_g *= g_ok
+    g_out, g_lost = normalised(full_g, g_ok, warp, cv2.INTER_CUBIC)
+    # clipped green within reach of a red or blue output's correction (cubic: 2 px, plus the fills)
+    near_g = warped(cv2.dilate(((g_ok == 0) * 255).astype(np.uint8), np.ones((7, 7), np.uint8)), warp) > 0
     c = np.float32(COLOUR_RATIO_FLOOR * (clip_code - float(black.mean())))
     out = np.empty((h, w), np.float32)
     clip_out = np.zeros((h, w), bool)
     for dy, dx in sites:
         if green[dy, dx]:
             out[dy::2, dx::2] = g_out[dy::2, dx::2]
-            clip_out[dy::2, dx::2] = near_g[dy::2, dx::2] > 0
+            clip_out[dy::2, dx::2] = g_lost[dy::2, dx::2]
             continue
         m = _site_warp(warp, dx, dy)
-        plain = warped(signal[dy::2, dx::2], m)
+        plain, lost = normalised(signal[dy::2, dx::2], usable[dy::2, dx::2], m)
         g_taps = warped(full_g[dy::2, dx::2], m)
         ratio = (np.maximum(g_out[dy::2, dx::2], 0) + c) / (np.maximum(g_taps, 0) + c)
-        out[dy::2, dx::2] = np.where(near_g_wide[dy::2, dx::2] > 0, plain, plain * ratio)
-        clip_out[dy::2, dx::2] = warped(clipped[dy::2, dx::2], m) > 0
+        out[dy::2, dx::2] = np.where(near_g[dy::2, dx::2], plain, plain * ratio)
+        clip_out[dy::2, dx::2] = lost
     for dy, dx in sites:
         out[dy::2, dx::2] += black[dy, dx]
     np.rint(out, out=out)

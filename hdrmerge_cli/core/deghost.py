@@ -80,6 +80,8 @@ AUTO_FRACTION = 0.002
 #: motion: in-camera tone mapping, glare and a response unlike the assumed one differ by a
 #: few tenths at most between static frames, a moving object usually by much more
 MIN_LOG_CHANGE = 0.3
+#: region sides (cells) of :func:`region_shifts`, the test of a shift shared by a region
+COARSE_SCALES = (2, 4, 8)
 #: tiles across the longer side of the frame for :func:`smooth_ratio_field`
 FIELD_TILES = 16
 #: largest |log ratio| :func:`smooth_ratio_field` absorbs
@@ -90,14 +92,21 @@ GLARE_REACH = 0.05
 
 
 def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: float,
-                 noise: NoiseParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 noise: NoiseParams, footroom: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per stored code ``r = 0..N-1`` of one channel: ``x`` (exposure-normalised linear
     value), its predicted variance ``s`` and whether it measures (strictly between black
-    and white).  ``lin_of(v)``: the inverse CRF on the normalised code ``v``."""
+    and white).  ``lin_of(v)``: the inverse CRF on the normalised code ``v``.  With
+    ``footroom`` (a linear RAW whose black level lies above code 0) a code below black is a
+    reading too, ``x < 0``: read noise spreads a dark signal's codes to both sides of black,
+    so dropping those below it would bias the mean of a dark region upwards (by more in the
+    noisier frame) and leave a reference that reads a dark object without a reading there;
+    only code 0, where the converter itself clips, is censored."""
     y_full = white - black
     v = (np.arange(n_codes, dtype=np.float64) - black) / y_full
-    valid = (v > 0) & (v < 1)
+    valid = (v > (-black / y_full if footroom else 0.0)) & (v < 1)
     lin = lin_of(np.clip(v, 0.0, 1.0))
+    if footroom:
+        lin = np.where(v < 0, v, lin)  # a linear response continues below black
     step = np.gradient(lin)  # linear value per code step
     var = code_variance(np.maximum(lin, 0.0) * y_full, noise) / y_full**2 + step * step / 12.0
     return lin / exposure, var / exposure**2, valid
@@ -211,7 +220,8 @@ def _inlier_range(coef: np.ndarray, c: np.ndarray, d: np.ndarray) -> tuple[float
     return (float(d[keep].min()), float(d[keep].max())) if keep.any() else (0.0, 0.0)
 
 
-def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32) -> np.ndarray:
+def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32,
+                 degree: int = MATCH_DEGREE) -> np.ndarray:
     """``x`` mapped onto the anchor's scale: ``x exp(p(log x))`` with ``p`` a low-degree
     polynomial fitted robustly (:func:`robust_poly`) to the median log-ratio
     ``log xa - log x`` in equal-count bins of ``log x`` (over samples both measure).  It
@@ -220,6 +230,8 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32
     slow curve).  A bin-by-bin curve would also absorb a moving object that is the only
     thing at its brightness in both frames (e.g. a bright object in the short frame over
     what the reference sees dark): the robust smooth fit leaves it out."""
+    if degree == 0:
+        return x * np.float32(region_ratio(x, xa, both))
     ok = both & (x > 0) & (xa > 0)
     n_ok = np.count_nonzero(ok)
     if n_ok < 10 * bins:
@@ -229,7 +241,7 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32
     c, m, n = _binned_median(lx, np.log(xa.ravel()[pick]) - lx, bins)
     if c.size == 0:
         return x
-    coef = robust_poly(c, m, n)
+    coef = robust_poly(c, m, n, degree=degree)
     lo, hi = _inlier_range(coef, c, m)
     with np.errstate(divide="ignore", invalid="ignore"):
         lxx = np.clip(np.log(np.maximum(x, 1e-30)), c[0], c[-1])
@@ -237,17 +249,38 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32
     return (x * np.exp(shift)).astype(x.dtype)
 
 
-def match_channels(x: np.ndarray, xa: np.ndarray, both: np.ndarray, nc: int) -> np.ndarray:
+def region_ratio(x: np.ndarray, xa: np.ndarray, both: np.ndarray, m: int = 8) -> float:
+    """The constant ``c`` with ``xa ~ c x`` (``(H, W)`` readings, used where ``both``): the
+    median over ``m x m`` regions of ``sum xa / sum x``, weighted by the anchor's sum (its
+    signal: the ratio of a dark region is mostly noise).
+    Sums over a region first, so readings of any noise (zero or negative ones of a linear
+    RAW near black included) enter unbiased: a median of per-sample ratios, or of ratios
+    binned by one frame's own noisy reading, is pulled away from 1 by the noise (regression
+    dilution: 0.42-0.88 on a static dark RAW frame); the median over regions ignores a
+    moving minority.  1 when no region has both sums positive."""
+    sx = cell_sums(np.where(both, x, 0.0).astype(np.float64), m, m)
+    sa = cell_sums(np.where(both, xa, 0.0).astype(np.float64), m, m)
+    n = cell_sums(both.astype(np.float64), m, m)
+    ok = (sx > 0) & (sa > 0) & (n >= m * m / 2)
+    if not ok.any():
+        return 1.0
+    r, wt = np.log(sa[ok] / sx[ok]), sa[ok]
+    order = np.argsort(r)
+    cw = np.cumsum(wt[order])
+    return float(np.exp(r[order][np.searchsorted(cw, cw[-1] / 2)]))
+
+
+def match_channels(x: np.ndarray, xa: np.ndarray, both: np.ndarray, nc: int, degree: int = MATCH_DEGREE) -> np.ndarray:
     """:func:`match_anchor` for each of the ``nc`` interleaved channels of ``(H, W * nc)``
     samples on its own: a camera applies its tone curve per channel after white balance,
     so where the assumed response is not the camera's, each channel is off by a curve of
     its own, which one curve over all channels cannot absorb (a coloured surface then
     differs between exposures by tens of per cent in one channel)."""
     if nc == 1:
-        return match_anchor(x, xa, both)
+        return match_anchor(x, xa, both, degree=degree)
     out = np.empty_like(x)
     for c in range(nc):
-        out[:, c::nc] = match_anchor(x[:, c::nc], xa[:, c::nc], both[:, c::nc])
+        out[:, c::nc] = match_anchor(x[:, c::nc], xa[:, c::nc], both[:, c::nc], degree=degree)
     return out
 
 
@@ -281,12 +314,15 @@ def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, 
 
 
 def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float = P_FALSE_ALARM,
-                   adapt: bool = False) -> np.ndarray:
+                   adapt: bool = False, s_bound: np.ndarray | None = None) -> np.ndarray:
     """Where the reference does not measure a sample it still bounds it: a dark reading
     says ``x <= bound`` (``bound > 0``, the x of its lowest measuring code), a clipped one
-    ``x >= -bound`` (``bound < 0``).  True where a frame's reading is beyond that bound by
-    more than :data:`BOUND_FACTOR` and the one-sided ``p_fa`` quantile of its noise: it
-    shows another moment (e.g. a moving object where the reference saw dark background).
+    ``x >= -bound`` (``bound < 0``), each up to the bounding reading's own noise ``s_bound``
+    (same shape as ``x``; a RAW reading at black is read noise about the signal, so the
+    signal may lie some noise above the lowest measuring code; None: no such noise).  True
+    where a frame's reading is beyond that bound by more than :data:`BOUND_FACTOR` and the
+    one-sided ``p_fa`` quantile of the two readings' noise: it shows another moment (e.g. a
+    moving object where the reference saw dark background).
     The factor absorbs camera-response errors, which are largest far from mid-grey.  With
     ``adapt`` the bounds are also measured on the frame: a JPEG's tone curve may crush to
     code 0 (or clip) values far beyond what the assumed response puts at the lowest (highest)
@@ -299,7 +335,8 @@ def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float 
     out = np.zeros(x.shape, bool)
     where = np.flatnonzero(bound)  # only where the reference reads dark or clipped
     xb, bb = x.ravel()[where], bound.ravel()[where]
-    k = np.float32(-ndtri(p_fa)) * np.sqrt(s.ravel()[where])  # the normal's upper p_fa quantile
+    var = s.ravel()[where] if s_bound is None else s.ravel()[where] + s_bound.ravel()[where]
+    k = np.float32(-ndtri(p_fa)) * np.sqrt(var)  # the normal's upper p_fa quantile
     up, down = np.float32(BOUND_FACTOR), np.float32(BOUND_FACTOR)
     if adapt:
         dark = (bb > 0) & (xb > 0)
@@ -429,7 +466,9 @@ def envelope_residual(x: np.ndarray, xa: np.ndarray, nc: int, reach: int) -> np.
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
                        valid_a: np.ndarray, grad2: np.ndarray, cell: tuple[int, int],
                        p_fa: float = P_FALSE_ALARM, scale: bool = True, smooth: bool = False,
-                       min_change: float = 0.0, excuse: np.ndarray | None = None, reach: int = 0) -> np.ndarray:
+                       min_change: float = 0.0, excuse: np.ndarray | None = None, reach: int = 0,
+                       coarse: tuple[int, ...] = (), steady: np.ndarray | None = None,
+                       match_degree: int = MATCH_DEGREE) -> np.ndarray:
     """Cells where a frame disagrees with the anchor: all inputs ``(H, W')`` per sample
     (``W' = W * C`` for interleaved channels), ``grad2`` the anchor's squared gradient
     times the squared registration tolerance in its units (:func:`squared_gradient`;
@@ -443,7 +482,7 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     (:func:`glare_excuse`, per cell) is non-zero, does not have its sign.  Returns
     ``(H // ph, W' // pw)`` bool."""
     both = valid & valid_a
-    x = match_channels(x, xa, both, cell[1])
+    x = match_channels(x, xa, both if steady is None else both & steady, cell[1], match_degree)
     r = None
     if smooth or min_change > 0 or excuse is not None:
         pos = both & (x > 0) & (xa > 0)
@@ -465,17 +504,86 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     with np.errstate(over="ignore"):
         t = np.where(both, d * d / np.maximum(var, 1e-30), 0.0).astype(np.float32)
     if scale:
-        t /= level_scale(t, x, xa, both)
+        lam = level_scale(t, x, xa, both)
+        t /= lam
+        var = var * lam
     stat = cell_sums(t, *cell)
     k = cell_sums(both.astype(np.int32), *cell)
     bad = stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
+    if cell[0] == 1 and coarse:
+        use = both if steady is None else both & steady
+        bad |= region_shifts(np.where(use, d, 0.0), np.where(use, var, 0.0),
+                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), cell[1], p_fa, coarse)
     if r is not None and (min_change > 0 or excuse is not None):
         rm = cell_sums(r, *cell) / np.maximum(cell_sums(pos.astype(np.int32), *cell), 1)
+        if coarse:  # a region's change is its mean change (a noisy cell's own mean may not pass)
+            rm = np.where(np.abs(rm) > min_change, rm, region_mean(r, pos, cell[1], coarse))
         if min_change > 0:
             bad &= np.abs(rm) > min_change
         if excuse is not None:
             bad &= ~(excuse * rm > 0)
     return bad
+
+
+def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_fa: float = P_FALSE_ALARM,
+                  scales: tuple[int, ...] = COARSE_SCALES, bins: int = 16) -> np.ndarray:
+    """Cells inside an ``m x m`` region (for each ``m`` of ``scales``, regions on a grid)
+    whose differences ``d`` (frame minus anchor, ``(H, W * nc)`` with ``nc`` interleaved
+    channels, 0 where not both measure) are shifted together.  Per region and channel the
+    standardised mean ``z = sum d / sqrt(sum var)``; a moving object changes every cell it
+    covers the same way, so a region finds an object whose change is below each cell's
+    noise (a dim ghost in a short, noisy frame) that the per-cell test cannot.  But what a
+    static scene's cells leave (a noise model's bias where readings are truncated at black
+    or at clipping, resampling, texture) adds up over a region too, so ``z`` is measured
+    against the empirical null of the pair itself (Efron 2004): its centre and spread as
+    smooth robust curves (:func:`robust_poly`) of the region's level (log of the lower of
+    the two mean readings, ``level`` = ``min(x, xa)`` per sample, as in
+    :func:`level_scale`; medians, which a moving minority does not move), the spread at
+    least 1.  A cell is rejected when ``sum_c z'^2`` of its region exceeds the chi-square
+    quantile of the region's channels at ``p_fa / m^2`` (the same expected false-alarm area
+    at every scale).  Returns ``(H, W)`` bool per cell."""
+    h, w = d.shape[0], d.shape[1] // nc
+    out = np.zeros((h, w), bool)
+    for m in scales:
+        if h < 2 * m or w < 2 * m:
+            continue
+        sd = np.stack([cell_sums(d[:, c::nc], m, m) for c in range(nc)], axis=-1).astype(np.float64)
+        sv = np.stack([cell_sums(var[:, c::nc], m, m) for c in range(nc)], axis=-1).astype(np.float64)
+        n = np.stack([cell_sums((var[:, c::nc] > 0).astype(np.float32), m, m) for c in range(nc)], axis=-1)
+        lv = np.stack([cell_sums(level[:, c::nc], m, m) for c in range(nc)], axis=-1)
+        has = (sv > 0) & (n > 0) & (lv > 0)
+        z = np.where(has, sd / np.sqrt(np.where(has, sv, 1.0)), 0.0)
+        key = np.log(np.where(has, lv / np.maximum(n, 1), 1.0))
+        if np.count_nonzero(has) < 10 * bins:
+            continue
+        c, centre, cnt = _binned_median(key[has], z[has], bins)
+        coef = robust_poly(c, centre, cnt, degree=2)
+        kk = np.clip(key, c[0], c[-1])
+        dz = z - np.polyval(coef, kk)
+        c2, spread, cnt2 = _binned_median(key[has], np.abs(dz[has]), bins)
+        coef2 = robust_poly(c2, np.log(np.maximum(spread * 1.4826, 1.0)), cnt2, degree=2)
+        top = _inlier_range(coef2, c2, np.log(np.maximum(spread * 1.4826, 1.0)))[1]
+        s = np.exp(np.clip(np.polyval(coef2, np.clip(key, c2[0], c2[-1])), 0.0, top))
+        stat = np.where(has, (dz / s) ** 2, 0.0).sum(axis=-1)
+        hit = stat > chi2_thresholds(nc, p_fa / (m * m))[has.sum(axis=-1)]
+        out |= expand(hit, (m, m), (h, w))
+    return out
+
+
+def region_mean(r: np.ndarray, pos: np.ndarray, nc: int, scales: tuple[int, ...] = COARSE_SCALES) -> np.ndarray:
+    """Per cell of ``(H, W * nc)`` samples, the mean of ``r`` over ``pos`` in the ``m x m``
+    region around it (grid regions as in :func:`region_shifts`) with the largest magnitude
+    over ``scales`` (0 where none is measured)."""
+    h, w = r.shape[0], r.shape[1] // nc
+    best = np.zeros((h, w), np.float32)
+    rr, pp = np.where(pos, r, 0.0).astype(np.float32), pos.astype(np.float32)
+    for m in scales:
+        if h < m or w < m:
+            continue
+        mean = cell_sums(cell_sums(rr, 1, nc), m, m) / np.maximum(cell_sums(cell_sums(pp, 1, nc), m, m), 1)
+        full = expand(mean.astype(np.float32), (m, m), (h, w))
+        best = np.where(np.abs(full) > np.abs(best), full, best)
+    return best
 
 
 def clean(mask: np.ndarray, open_radius: int = 1, min_cells: int = MIN_BLOB_PX, grow: int = 2) -> np.ndarray:

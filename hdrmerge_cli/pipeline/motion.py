@@ -226,6 +226,22 @@ def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, table
     return x, s, ok, bound
 
 
+def _untruncated(x: np.ndarray, s: np.ndarray, frame: Frame, pattern: np.ndarray, tables: list, b: int) -> np.ndarray:
+    """Where a frame's block readings ``(h, w, C)`` lie more than 3 sample noise deviations
+    inside its measuring range (per channel, the x of its lowest and highest measuring
+    code): there no reading of a block was lost to black or to clipping, which biases the
+    mean of those kept (the region test of ``core.deghost.region_shifts`` adds such
+    biases up)."""
+    sd = np.sqrt(s) * np.float32(3 * b)
+    out = np.empty(x.shape, bool)
+    rows = [int(pattern[dy, dx]) for dy in (0, 1) for dx in (0, 1)] if frame.kind == "raw" else range(x.shape[-1])
+    for c, row in enumerate(rows):
+        x_t, _, ok_t = tables[row]
+        lo, hi = (x_t[ok_t][0], x_t[ok_t][-1]) if ok_t.any() else (np.inf, -np.inf)
+        out[..., c] = (x[..., c] - sd[..., c] > lo) & (x[..., c] + sd[..., c] < hi)
+    return out
+
+
 def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
                 mode: str, p_fa: float = deghost.P_FALSE_ALARM) -> dict:
     """Per frame, the blocks inconsistent with the anchor (``core.deghost``), cleaned and
@@ -257,38 +273,56 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
                 (0.5 * float(f.white[c] - f.black[c]) / 255.0) ** 2, 1e-12, 0.0)
             x_t, s_t, ok_t = deghost.ghost_tables(f.n_codes, f.black[c], f.white[c],
-                                                  lambda v, c=c: crf.inverse(v, 0 if raw else c), exposures[k], nz)
+                                                  lambda v, c=c: crf.inverse(v, 0 if raw else c), exposures[k], nz,
+                                                  footroom=raw and f.black[c] > 0)
             out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
         return out
 
     def estimate(k: int):  # decoded again for each pass: the block estimates of every frame at
         # once would make the memory grow with the frame count (9 frames: +245 MB at 0.7 MP)
-        return _block_estimates(frames[k], load(frames[k]), pattern, tables(k), b)
+        t_k = tables(k)
+        x, s, ok, bound = _block_estimates(frames[k], load(frames[k]), pattern, t_k, b)
+        return x, s, ok, bound, (_untruncated(x, s, frames[k], pattern, t_k, b) & ok) if raw else ok
+
+    # A RAW mosaic is linear, with a physical noise model: a code below black is a reading
+    # (footroom in ``tables``), the reference's dark bound carries its read noise, none of
+    # the corrections for image processing applies (bounds measured on the frame, a smooth
+    # ratio field, a tone-curve match: a constant exposure factor, measured over regions,
+    # suffices), and a region test (``core.deghost.region_shifts``) finds the ghosts that
+    # each cell's noise hides.  Images keep the per-cell test: on the real static JPEG
+    # brackets the region test raised the false rejections (eos70d_kitchen_jpg 0.36 ->
+    # 3.85 % of a frame's cells, stack_jpg 0.50 -> 2.48 %)
+    per_kind = (dict(smooth=False, coarse=deghost.COARSE_SCALES, match_degree=0) if raw else
+                dict(smooth=True, coarse=(), match_degree=deghost.MATCH_DEGREE))
 
     # the anchor: the reference where it measures, else the nearest frame consistent with it
     order = sorted(range(len(frames)), key=lambda k: (k != ref, abs(np.log(exposures[k] / exposures[ref])), k))
-    xa = sa = va = source = bound_r = None
+    xa = sa = va = ua = source = bound_r = s_r = None
     clipped, beyond = {}, {}  # per frame: blocks clipped in a channel; readings far outside the
     for k in order:  # reference's dark / clipped bound
-        x, s, ok, bound = estimate(k)
-        bound_r = bound if bound_r is None else bound_r
+        x, s, ok, bound, untruncated = estimate(k)
+        if bound_r is None:
+            bound_r, s_r = bound, s.copy()
         clipped[k] = (bound < 0).any(axis=-1)
-        beyond[k] = deghost.violates_bound(x, s, bound_r, adapt=k != ref) & ok
+        # an image's tone curve may crush far more than its assumed response says, so its
+        # bound is measured (adapt)
+        beyond[k] = deghost.violates_bound(x, s, bound_r, adapt=k != ref and not raw,
+                                           s_bound=s_r if raw else None) & ok
         ok = ok & ~beyond[k]
         if xa is None:
-            xa, sa, va = x, s, ok
+            xa, sa, va, ua = x, s, ok, untruncated & ok
             source = np.where(ok, k, -1).astype(np.int16)
             continue
         take = ok & ~va
-        xa[take], sa[take], source[take] = x[take], s[take], k
+        xa[take], sa[take], ua[take], source[take] = x[take], s[take], untruncated[take], k
         va |= ok
-        del x, s, ok, bound
+        del x, s, ok, bound, untruncated
     hb, wb, nc = xa.shape
     # registration tolerance: a shift within reach (blocks) is not motion.  Images only: the
     # envelope excuses what image processing does to edges (JPEG ringing, 4:2:0 chroma,
     # sharpening halos); a RAW mosaic has none of it, and there the envelope hid a ghost's
     # low-contrast parts (motion benchmark, RAW cases 0, 16, 24: 99 -> 91-78 % removed)
-    reach = 0 if frames[0].kind == "raw" else deghost.ENVELOPE_REACH
+    reach = 0 if raw else deghost.ENVELOPE_REACH
     grad2 = None
     if not reach:  # the older tolerance: the anchor's contrast along half a pixel of misregistration
         reg = (deghost.ALIGN_TOLERANCE_PX / (b * per_px)) ** 2
@@ -297,7 +331,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     min_cells = deghost.min_blob(b * per_px)
     masks, fractions = [], []
     for k in range(len(frames)):
-        x, s, ok, bound_k = estimate(k)
+        x, s, ok, bound_k, untruncated = estimate(k)
         longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
         impossible = np.zeros(clipped[k].shape, bool)
         if longer > 0:
@@ -310,10 +344,11 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         # glare spreads from what is bright in every frame, not from such an object
         excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer)
         bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
-                                         _samples(va), grad2, (1, nc), p_fa, smooth=True,
-                                         min_change=deghost.MIN_LOG_CHANGE, excuse=excuse, reach=reach)
+                                         _samples(va), grad2, (1, nc), p_fa, min_change=deghost.MIN_LOG_CHANGE,
+                                         excuse=excuse, reach=reach, steady=_samples(untruncated & ua) if raw else None,
+                                         **per_kind)
         bad |= beyond.pop(k).any(axis=-1) | impossible
-        del x, s, ok
+        del x, s, ok, untruncated
         bad = deghost.clean(bad, min_cells=min_cells)
         anchor = (source == k).any(axis=-1)  # the anchor itself stays
         bad &= ~anchor
