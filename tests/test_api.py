@@ -38,6 +38,18 @@ def test_api_is_lazy_and_exported():
         hdrmerge_cli.no_such_name  # noqa: B018
 
 
+def test_version_lives_in_a_leaf_module():
+    """No module imports ``__version__`` from the package root (whose lazy API import would
+    close a cycle through ``hdrmerge_cli/__init__.py``): all take it from ``_version``."""
+    from hdrmerge_cli._version import __version__
+
+    assert hdrmerge_cli.__version__ == __version__
+    package = Path(hdrmerge_cli.__file__).parent
+    offenders = [str(p.relative_to(package)) for p in package.rglob("*.py")
+                 if "from hdrmerge_cli import __version__" in p.read_text()]
+    assert not offenders
+
+
 def test_merge_arrays_equals_the_files(jpeg_bracket, dng_bracket):
     """Decoded frames give the merge of their files: images exactly, RAW mosaics to float
     rounding (the simulator's camera: white balance 1, identity matrix)."""

@@ -130,7 +130,7 @@ def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_ne
     else:
         thumb = _rough_thumbnail(mosaic, cfa, matrix, neutral, white, baseline_exposure)
     if software is None:
-        from hdrmerge_cli import __version__
+        from hdrmerge_cli._version import __version__
         software = f"hdrmerge-cli {__version__}"
     stamp = _stamp(where, datetime)
     try:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli import __version__
+from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic
 from hdrmerge_cli.core.colorspace import COLORSPACES, camera_chromaticities, rec709_to
 from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
