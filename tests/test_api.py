@@ -70,6 +70,22 @@ def test_merge_arrays_equals_the_files(jpeg_bracket, dng_bracket):
     np.testing.assert_allclose(a.image, b.image, rtol=1e-4, atol=1e-6 * float(b.image.max()))
 
 
+def test_time_options_take_numbers(jpeg_bracket):
+    """``reference`` and ``times`` take seconds as numbers as well as text; bad values are
+    an HdrMergeError naming the option, raised before any frame is read."""
+    folder, meta = jpeg_bracket
+    paths = frames_of(folder, meta)
+    a = hdrmerge_cli.merge(paths, crf="srgb", reference=0.01, times=meta["exposure_times"])
+    b = hdrmerge_cli.merge(paths, crf="srgb", reference="1/100",
+                           times=",".join(repr(t) for t in meta["exposure_times"]))
+    assert a.h_ref == b.h_ref == 0.01
+    np.testing.assert_array_equal(a.image, b.image)
+    for kw, what in [({"reference": -1.0}, "--reference"), ({"reference": float("nan")}, "--reference"),
+                     ({"reference": "soon"}, "--reference"), ({"times": [0.01, None, 1]}, "times")]:
+        with pytest.raises(HdrMergeError, match=what):
+            hdrmerge_cli.merge(["/no/such/frame.jpg"], **kw)
+
+
 def test_merge_arrays_refuses_bad_input():
     ok = np.zeros((8, 8, 3), np.uint8)
     for codes, times, kw, what in [

@@ -68,6 +68,7 @@ def check_options(opts: MergeOptions) -> None:
     exr_compression(opts.compression, opts.half)  # an unknown name fails before any work
     if opts.colorspace not in COLORSPACES:
         raise HdrMergeError(f"unknown colour space {opts.colorspace!r} (choose from {', '.join(COLORSPACES)})")
+    reference_exposure(opts.reference, np.ones(1))  # a bad --reference fails before any work
     if opts.cfa and opts.colorspace != "rec709":
         log.warning("--cfa writes the camera's mosaic: --colorspace %s does not apply", opts.colorspace)
 
