@@ -60,6 +60,20 @@ def test_colorspace_of_images_converts_from_srgb_primaries(tmp_path, run, jpeg_b
     np.testing.assert_allclose(b, a @ rec709_to("acescg").T, rtol=1e-4, atol=1e-6)
 
 
+def test_colorspace_camera_of_images_warns_and_writes_rec709(tmp_path, run, jpeg_bracket):
+    """Images carry no camera matrix: ``--colorspace camera`` says so once, in one line,
+    and writes the Rec.709 merge (same pixels and tags)."""
+    folder, meta = jpeg_bracket
+    frames = frames_of(folder, meta)
+    run("merge", *frames, "-o", tmp_path / "a.exr", "--crf", "srgb", "-q")
+    proc = run("merge", *frames, "-o", tmp_path / "b.exr", "--crf", "srgb", "--colorspace", "camera")
+    warned = [ln for ln in proc.stderr.splitlines() if "--colorspace camera" in ln]
+    assert len(warned) == 1 and "no camera matrix" in warned[0] and "Rec.709" in warned[0], proc.stderr
+    (a, attrs_a), (b, attrs_b) = read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr")
+    np.testing.assert_array_equal(a, b)
+    assert attrs_b["colorInteropID"] == attrs_a["colorInteropID"] == "lin_rec709_scene"
+
+
 @pytest.mark.skipif(not shutil.which("oiiotool", path=str(Path(sys.executable).parent)), reason="no oiiotool")
 def test_oiiotool_shows_the_colour_space(raw_by_space):
     _, out = raw_by_space
@@ -111,6 +125,22 @@ def test_dng_output_refused_for_images_and_extra_channels(tmp_path, run, jpeg_br
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "y.dng", "--extra-channels", "clipped", check=False)
     assert proc.returncode == 1 and "--extra-channels" in proc.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_dng_output_warns_about_exr_only_options(tmp_path, run, dng_bracket):
+    """--colorspace and --compression do not apply to a DNG: one warning line each, and
+    the DNG is written as without them (32-bit floats, Deflate)."""
+    folder, meta = dng_bracket
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "w.dng", "--colorspace", "acescg",
+               "--compression", "zip", *NOISE)
+    for option in ("--colorspace acescg", "--compression zip"):
+        warned = [ln for ln in proc.stderr.splitlines() if option in ln]
+        assert len(warned) == 1 and "does not apply" in warned[0] and "w.dng" in warned[0], proc.stderr
+    import tifffile
+
+    with tifffile.TiffFile(tmp_path / "w.dng") as tif:
+        raw = tif.pages.first.pages[0]
+        assert raw.compression == tifffile.COMPRESSION.ADOBE_DEFLATE and raw.dtype == np.float32
 
 
 @pytest.mark.skipif(shutil.which("darktable-cli") is None, reason="darktable-cli not installed (Debian: darktable)")

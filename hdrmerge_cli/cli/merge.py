@@ -65,11 +65,12 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--colorspace", type=click.Choice(list(COLORSPACES)), default="rec709", show_default=True,
               help="Output colour space, stated in the EXR header (chromaticities and the Color Interop Forum's "
                    "colorInteropID): " + "; ".join(f"{k}: {v.description}" for k, v in COLORSPACES.items())
-                   + ".  RAW converts through the camera matrix; images are taken as sRGB primaries.")
+                   + ".  RAW converts through the camera matrix; images are taken as sRGB primaries (camera: "
+                     "Rec.709, with a warning).  EXR only: a DNG keeps the camera's colour (a warning).")
 @click.option("--cfa", is_flag=True, help="RAW: write the merged mosaic (channel Y, camera-native, no demosaic).")
 @click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats (EXR and DNG).")
 @click.option("--compression", type=click.Choice(list(EXR_COMPRESSIONS)), default="auto", show_default=True,
-              help="OpenEXR compression: " + "; ".join(f"{k}: {v}" for k, v in EXR_COMPRESSIONS.items()) + ".")
+              help="OpenEXR compression (EXR only: a DNG is always Deflate; a warning): " + "; ".join(f"{k}: {v}" for k, v in EXR_COMPRESSIONS.items()) + ".")
 @click.option("--no-cache", "no_cache", is_flag=True,
               help="Measure the noise on this bracket even if an earlier merge of the same camera and ISO stored it "
                    "in the per-camera cache ($HDRMERGE_CLI_CACHE_DIR, else $XDG_CACHE_HOME/hdrmerge-cli, else "
