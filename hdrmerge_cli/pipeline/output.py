@@ -284,9 +284,9 @@ class Merged:
         profile_text = dumps(self.profile())
         if output.suffix.lower() == ".dng":
             with atomic_paths([output, profile_out], overwrite, list(inputs)) as tmps:
-                self.write_dng(tmps[0])
+                baseline = self.write_dng(tmps[0])
                 Path(tmps[1]).write_text(profile_text, encoding="utf-8")
-            return {"output": str(output), "profile": str(profile_out)}
+            return {"output": str(output), "profile": str(profile_out), "dng_baseline_exposure_ev": round(baseline, 2)}
         attrs = self.header(profile_out.name, profile_text)
         extra = opts.extra_channels
         wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
@@ -307,13 +307,15 @@ class Merged:
                 write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
         return {"output": str(output), "profile": str(profile_out)} | ({"preview": str(preview)} if thumb else {})
 
-    def write_dng(self, path) -> None:
+    def write_dng(self, path) -> float:
         """The merged CFA mosaic as a floating-point DNG (:func:`hdrmerge_cli.io.dng.write_float_dng`)
         that raw editors open like the camera's own raw files: black 0, WhiteLevel the
-        smallest whole number above the brightest value, BaselineExposure log2 of it (so
-        the default rendering shows the reference exposure: 1.0 = white), the camera
-        matrix and as-shot white balance that the EXR path uses (:func:`camera_xyz_matrix`),
-        32-bit floats (``--half``: 16), and an embedded preview."""
+        smallest whole number above the brightest value (no highlight clipped), BaselineExposure
+        log2 of it (so the default rendering shows the reference exposure: 1.0 = white), the
+        camera matrix and as-shot white balance that the EXR path uses (:func:`camera_xyz_matrix`),
+        32-bit floats (``--half``: 16), and an embedded preview.  Returns the BaselineExposure
+        (EV), which editors that ignore the tag (darktable 4.2) leave to the user to apply:
+        they show the image that much darker."""
         from hdrmerge_cli.core.errors import HdrMergeError
         from hdrmerge_cli.core.preview import tonemap_srgb
         from hdrmerge_cli.io.dng import write_float_dng
@@ -323,13 +325,15 @@ class Merged:
             raise HdrMergeError(f"{path}: a DNG output holds a CFA mosaic; {first.path} is not a Bayer RAW frame "
                                 "(write an EXR)")
         white = max(1.0, float(np.ceil(np.max(self.result))))
+        baseline = float(np.log2(white))
         preview = tonemap_srgb(cell_rgb(self.result, first, first.color_matrix, DNG_PREVIEW_SIZE))
         write_float_dng(path, self.result, cfa_pattern=first.cfa_pattern, xyz_to_camera=camera_xyz_matrix(first),
                         as_shot_neutral=1.0 / first.white_balance, make=first.make or "hdrmerge-cli",
                         model=first.model or "merged", exposure_time=self.h_ref, iso=first.iso,
-                        aperture=first.aperture, baseline_exposure=float(np.log2(white)),
+                        aperture=first.aperture, baseline_exposure=baseline,
                         orientation=self.orientation, preview=preview, bits=16 if self.options.half else 32,
                         white_level=white, datetime=first.timestamp)
+        return baseline
 
     def summary(self) -> dict:
         """What ``merge --json`` prints (without the paths written)."""
