@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli._version import __version__
-from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic, demosaic_variance
 from hdrmerge_cli.core.colorspace import COLORSPACES, camera_chromaticities, rec709_to
 from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
 from hdrmerge_cli.core.crf import CRF
@@ -179,18 +179,20 @@ class Merged:
         return {"chromaticities": list(space.chromaticities), "colorInteropID": space.interop_id}
 
     def variance_rows(self, y0: int, y1: int) -> np.ndarray:
-        """Rows ``y0:y1`` of the variance of :meth:`colour_rows`, per channel, under the
-        noise model: each value's variance scaled as the colour is (gain^2 for the white
-        balance, the matrix's squared entries), correlations between channels ignored.
-        RAW RGB: each colour's variance is that of the pixel's own 2 x 2 CFA cell (the
-        mean over its sites of that colour); the demosaic's averaging of neighbours, which
-        lowers the variance of interpolated values, is not counted (an upper bound there).
-        Exact for a mosaic (``--cfa``) and for images in their own colour space."""
+        """Rows ``y0:y1`` of the variance of :meth:`colour_rows`, ``(y1 - y0, W, C)``
+        float32 in the colour's units squared, under the noise model: each value's variance
+        scaled as the colour is (gain^2 for the white balance, the matrix's squared
+        entries), correlations between channels ignored.  RAW RGB: the white-balanced
+        samples' variances through the demosaic's squared weights
+        (:func:`~hdrmerge_cli.core.color.demosaic_variance`; the samples are independent,
+        so exact before the matrix).  Exact for a mosaic (``--cfa``), for images in their
+        own colour space, and for RAW RGB through an identity matrix."""
         first, matrix = self.first, self.colour_matrix
         sq = None if matrix is None else np.square(np.asarray(matrix, np.float32))
         if first.kind == "raw" and not self.options.cfa:
-            var = _cell_planes(self.variance_samples, first.cfa_pattern, y0, y1)
-            var *= np.square(first.white_balance).astype(np.float32)
+            a, b = max(0, y0 - STRIP_HALO), min(self.shape[0], y1 + STRIP_HALO)  # y0, a even: same CFA phase
+            gains = np.square(first.white_balance)[bayer_channels(first.cfa_pattern, (b - a, self.shape[1]))]
+            var = demosaic_variance(self.variance_samples[a:b] * gains, first.cfa_pattern)[y0 - a:y1 - a]
         else:
             var = self.variance_samples[y0:y1].reshape(y1 - y0, first.width, -1)
             if first.kind == "linear" and first.channels == 3:
@@ -368,20 +370,6 @@ class Merged:
             **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
             "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
         }
-
-
-def _cell_planes(mosaic: np.ndarray, pattern: str, y0: int, y1: int) -> np.ndarray:
-    """Rows ``y0:y1`` (``y0`` even) of ``(rows, W, 3)``: at every pixel, the mean of each
-    colour's sites in the pixel's 2 x 2 CFA cell (a nearest-cell upsampling)."""
-    h, w = mosaic.shape
-    part = mosaic[y0:min(h, y1 + (y1 % 2))]
-    if part.shape[0] % 2 or w % 2:  # odd edges: repeat the last row / column
-        part = np.pad(part, ((0, part.shape[0] % 2), (0, w % 2)), mode="edge")
-    planes = {"R": [], "G": [], "B": []}
-    for i, colour in enumerate(pattern):
-        planes[colour].append(part[i // 2::2, i % 2::2])
-    cells = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1).astype(np.float32)
-    return np.repeat(np.repeat(cells, 2, axis=0), 2, axis=1)[:y1 - y0, :w]
 
 
 #: longest side of the preview embedded in a DNG
