@@ -4,12 +4,7 @@ Implements Goossens, Luong, Aelterman, Pizurica, Philips, "Realistic camera nois
 modeling with application to improved HDR synthesis", EURASIP J. Adv. Signal Process.
 2012:171 ("the paper"; equations cited as (N)).
 """
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("hdrmerge-cli")
-except PackageNotFoundError:  # running from a source tree without installing
-    __version__ = "0.0.0+source"
+from hdrmerge_cli._version import __version__
 
 #: the Python API (:mod:`hdrmerge_cli.api`), imported on first use so that the command
 #: line's start-up does not pay for it

@@ -55,8 +55,7 @@ def merge(paths: Sequence[str | Path], **options) -> Merged:
     HdrMergeError
         Unreadable or inconsistent frames, bad options (one-line message).
     """
-    opts = MergeOptions(**options)
-    check_options(opts)
+    opts = _options(options)
     return merge_bracket([str(p) for p in paths], opts)
 
 
@@ -119,8 +118,7 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
     grey = frames[0].kind == "image" and first.ndim == 2  # decoded images are (H, W, C)
     by_path = {f.path: a[..., None] if grey else a for f, a in zip(frames, arrays)}
     options.setdefault("noise_cache", False)  # no camera to key a cache entry by
-    opts = MergeOptions(**options)
-    check_options(opts)
+    opts = _options(options)
     if frames[0].kind == "raw":
         response = CRF("linear")
     elif isinstance(crf, CRF):
@@ -130,6 +128,25 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
 
         response = choose_crf(frames, crf)
     return merge_frames(frames, response, opts, load=lambda f: by_path[f.path])
+
+
+def _options(options: dict) -> MergeOptions:
+    """The checked :class:`MergeOptions` of the API's keywords.  Times may be numbers
+    (seconds) or text as on the command line: ``reference=0.01`` or ``"1/100"``,
+    ``times=[0.01, 0.04]``, ``"1/100,1/25"`` or ``"estimate"``."""
+    from hdrmerge_cli.io.times import ESTIMATE, parse_times, seconds
+
+    times = options.get("times")
+    if isinstance(times, str):
+        options["times"] = ESTIMATE if times.strip().lower() == ESTIMATE else parse_times(times)
+    elif times is not None:
+        try:
+            options["times"] = [seconds(t) for t in times]
+        except (HdrMergeError, TypeError) as exc:
+            raise HdrMergeError(f"times: {exc}") from None
+    opts = MergeOptions(**options)
+    check_options(opts)
+    return opts
 
 
 def _frame(name: str, a: np.ndarray, t: float, cfa_pattern: str | None, black: float, white: float, bits: int,

@@ -50,7 +50,7 @@ def write(target_dir: str) -> None:
     import click_man.core
     from click_man.core import write_man_pages
 
-    from hdrmerge_cli import __version__
+    from hdrmerge_cli._version import __version__
     from hdrmerge_cli.cli import COMMANDS, cli
 
     for name in COMMANDS:  # click-man walks ``cli.commands``; the group loads them lazily

@@ -38,6 +38,18 @@ def test_api_is_lazy_and_exported():
         hdrmerge_cli.no_such_name  # noqa: B018
 
 
+def test_version_lives_in_a_leaf_module():
+    """No module imports ``__version__`` from the package root (whose lazy API import would
+    close a cycle through ``hdrmerge_cli/__init__.py``): all take it from ``_version``."""
+    from hdrmerge_cli._version import __version__
+
+    assert hdrmerge_cli.__version__ == __version__
+    package = Path(hdrmerge_cli.__file__).parent
+    offenders = [str(p.relative_to(package)) for p in package.rglob("*.py")
+                 if "from hdrmerge_cli import __version__" in p.read_text()]
+    assert not offenders
+
+
 def test_merge_arrays_equals_the_files(jpeg_bracket, dng_bracket):
     """Decoded frames give the merge of their files: images exactly, RAW mosaics to float
     rounding (the simulator's camera: white balance 1, identity matrix)."""
@@ -56,6 +68,22 @@ def test_merge_arrays_equals_the_files(jpeg_bracket, dng_bracket):
                                   black=float(frame.black[0]), white=float(frame.white[0]), noise=noise)
     b = hdrmerge_cli.merge(paths, noise=noise)
     np.testing.assert_allclose(a.image, b.image, rtol=1e-4, atol=1e-6 * float(b.image.max()))
+
+
+def test_time_options_take_numbers(jpeg_bracket):
+    """``reference`` and ``times`` take seconds as numbers as well as text; bad values are
+    an HdrMergeError naming the option, raised before any frame is read."""
+    folder, meta = jpeg_bracket
+    paths = frames_of(folder, meta)
+    a = hdrmerge_cli.merge(paths, crf="srgb", reference=0.01, times=meta["exposure_times"])
+    b = hdrmerge_cli.merge(paths, crf="srgb", reference="1/100",
+                           times=",".join(repr(t) for t in meta["exposure_times"]))
+    assert a.h_ref == b.h_ref == 0.01
+    np.testing.assert_array_equal(a.image, b.image)
+    for kw, what in [({"reference": -1.0}, "--reference"), ({"reference": float("nan")}, "--reference"),
+                     ({"reference": "soon"}, "--reference"), ({"times": [0.01, None, 1]}, "times")]:
+        with pytest.raises(HdrMergeError, match=what):
+            hdrmerge_cli.merge(["/no/such/frame.jpg"], **kw)
 
 
 def test_merge_arrays_refuses_bad_input():

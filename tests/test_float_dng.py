@@ -186,6 +186,23 @@ def test_thumbnail_without_preview_is_rough_rendering(tmp_path):
     assert red[0] > red[1] + 40 and blue[2] > blue[0] + 40
 
 
+@pytest.mark.parametrize("bits", [16, 32])
+@pytest.mark.parametrize("shape", [(192, 256), (256, 256), (128, 130), (130, 128), (640, 960)])
+def test_raw_has_at_least_two_tiles(tmp_path, shape, bits):
+    """RawTherapee renders a one-tile float DNG black: from 128 x 128 up, tiles never
+    cover the whole image (multiples of 16, no larger than the image); LibRaw reads the
+    data back."""
+    mosaic = np.random.default_rng(2).uniform(1e-3, 0.95, shape).astype(np.float32)
+    path = write(tmp_path / "t.dng", mosaic, bits=bits)
+    with tifffile.TiffFile(path) as tif:
+        raw = raw_page(tif)
+        th, tw = raw.tilelength, raw.tilewidth
+        assert raw.is_tiled and th % 16 == 0 and tw % 16 == 0 and th <= shape[0] and tw <= shape[1]
+        assert len(raw.dataoffsets) == -(-shape[0] // th) * -(-shape[1] // tw) >= 2
+    with rawpy.imread(str(path)) as raw:  # LibRaw: float data as integers, 1.0 -> 16383
+        np.testing.assert_allclose(raw.raw_image_visible / raw.white_level, mosaic, atol=1 / 16383 + 2.0 ** -11)
+
+
 def test_small_image_is_written_in_strips(tmp_path):
     mosaic = np.random.default_rng(1).random((10, 40)).astype(np.float32)
     path = write(tmp_path / "s.dng", mosaic)
@@ -266,8 +283,8 @@ def test_darktable_renders(tmp_path, bits):
                     reason="rawtherapee-cli not installed (Debian: rawtherapee)")
 def test_rawtherapee_renders(tmp_path):
     # RawTherapee 5.9 (Debian 12) reads float DNGs only when they are 32-bit and Deflate
-    # compressed, and refuses images 512 rows high or less ("Error loading file")
-    path = write(tmp_path / "rt.dng", patch_mosaic(640, 960))
+    # compressed; it rendered this size black when the raw was a single tile (io/dng.py)
+    path = write(tmp_path / "rt.dng", patch_mosaic(192, 256))
     out = tmp_path / "rt.jpg"
     run = subprocess.run(["rawtherapee-cli", "-o", str(out), "-Y", "-c", str(path)], capture_output=True, text=True,
                          timeout=300, env={"HOME": str(tmp_path), "PATH": "/usr/bin:/bin"})

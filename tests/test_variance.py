@@ -17,6 +17,8 @@ evaluated at its own noisy reading, ``E[v(y) / y^2] > v(mu) / mu^2``, +3 cv^2).
 import numpy as np
 import pytest
 
+import hdrmerge_cli
+
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams, clipping_safe_range_exact
 from hdrmerge_cli.core.reconstruct import (
@@ -274,3 +276,41 @@ def test_variance_agrees_with_monte_carlo_8bit_crf():
     out, flag, _, var = merge_frames(frames, TIMES, crf, 0.0, 255.0, "triangle", [p8], "model", "log",
                                      with_variance=True, variance_tables=vt)
     _check(*_compare(e, measured, out, flag, var))
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
+def test_demosaic_variance_is_the_squared_weights(pattern):
+    """Away from the edges (2 pixels, where the kernels reflect), the variance of each
+    demosaiced value equals sum_k (d out / d sample_k)^2 var_k, the derivatives taken by
+    demosaicing impulses."""
+    from hdrmerge_cli.core.color import demosaic, demosaic_variance
+
+    rng = np.random.default_rng(5)
+    var = rng.uniform(0.5, 2.0, (12, 14))
+    exact = np.zeros(var.shape + (3,))
+    for k in np.ndindex(var.shape):
+        impulse = np.zeros(var.shape)
+        impulse[k] = 1.0
+        exact += demosaic(impulse, pattern).astype(np.float64) ** 2 * var[k]
+    np.testing.assert_allclose(demosaic_variance(var, pattern)[2:-2, 2:-2], exact[2:-2, 2:-2], rtol=1e-5)
+
+
+@pytest.mark.parametrize("colour", [(0.25, 1.0, 0.25), (2.0, 1.0, 0.5)])
+def test_raw_rgb_variance_agrees_with_monte_carlo(colour):
+    """The default RAW output (demosaiced RGB; merge_arrays: white balance 1, identity
+    matrix) of a flat coloured field: per channel and CFA site, the predicted variance
+    over the empirical variance across the field is within 10 % (measured 0.97-1.04; the
+    former cell estimate, which left out the demosaic's weights, ranged 0.08-3.6)."""
+    rng = np.random.default_rng(21)
+    alpha, times, black, white, size = 0.5, [1.0, 4.0, 16.0], 64.0, 4095.0, 192
+    cell = np.array([[colour[0], colour[1]], [colour[1], colour[2]]])
+    electrons = 200.0 * np.tile(cell, (size // 2, size // 2)) / np.sqrt(alpha)
+    codes = [np.clip(np.round(np.sqrt(alpha) * rng.poisson(electrons * t) + 2.0 * rng.standard_normal(electrons.shape)
+                              + black), 0, white).astype(np.uint16) for t in times]
+    m = hdrmerge_cli.merge_arrays(codes, times, cfa_pattern="RGGB", black=black, white=white, bits=12,
+                                  extra_channels=("variance",), reference="1", noise="sigma_o2=4,alpha=0.5,beta=0")
+    image, variance = m.image[8:-8, 8:-8], m.variance[8:-8, 8:-8]
+    for c in range(3):
+        for i, j in np.ndindex(2, 2):
+            ratio = variance[i::2, j::2, c].mean() / image[i::2, j::2, c].var()
+            assert 0.9 < ratio < 1.1, (c, i, j, ratio)

@@ -8,7 +8,7 @@ import warnings
 
 import click
 
-from hdrmerge_cli import __version__
+from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
 
 

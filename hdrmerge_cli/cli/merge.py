@@ -31,8 +31,10 @@ log = logging.getLogger("hdrmerge_cli")
 @click.command("merge")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
-              help="The EXR to write, or from RAW a floating-point DNG (*.dng: the merged mosaic, for raw editors) "
-                   "(with --batch: the folder to write one EXR per bracket to).")
+              help="The EXR to write, or from RAW a floating-point DNG (*.dng: the merged mosaic, for raw editors; "
+                   "its BaselineExposure, printed in the closing line and --json's dng_baseline_exposure_ev, makes "
+                   "the default rendering show the --reference exposure: darktable ignores it, so raise darktable's "
+                   "exposure by that many EV) (with --batch: the folder to write one EXR per bracket to).")
 @click.option("--batch", "batch_dir", type=click.Path(exists=True, file_okay=False),
               help="Merge every bracket in this folder instead of IMAGES: frames are grouped by capture-time gaps "
                    "(--gap) and by the exposure sequence starting again; each bracket's EXR is named after its "
@@ -65,11 +67,13 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--colorspace", type=click.Choice(list(COLORSPACES)), default="rec709", show_default=True,
               help="Output colour space, stated in the EXR header (chromaticities and the Color Interop Forum's "
                    "colorInteropID): " + "; ".join(f"{k}: {v.description}" for k, v in COLORSPACES.items())
-                   + ".  RAW converts through the camera matrix; images are taken as sRGB primaries.")
+                   + ".  RAW converts through the camera matrix; images are taken as sRGB primaries (camera: "
+                     "Rec.709, with a warning).  EXR only: a DNG keeps the camera's colour (a warning).")
 @click.option("--cfa", is_flag=True, help="RAW: write the merged mosaic (channel Y, camera-native, no demosaic).")
 @click.option("--half", is_flag=True, help="Write 16-bit half floats instead of 32-bit floats (EXR and DNG).")
 @click.option("--compression", type=click.Choice(list(EXR_COMPRESSIONS)), default="auto", show_default=True,
-              help="OpenEXR compression: " + "; ".join(f"{k}: {v}" for k, v in EXR_COMPRESSIONS.items()) + ".")
+              help="OpenEXR compression (EXR only: a DNG is always Deflate; a warning): "
+                   + "; ".join(f"{k}: {v}" for k, v in EXR_COMPRESSIONS.items()) + ".")
 @click.option("--no-cache", "no_cache", is_flag=True,
               help="Measure the noise on this bracket even if an earlier merge of the same camera and ISO stored it "
                    "in the per-camera cache ($HDRMERGE_CLI_CACHE_DIR, else $XDG_CACHE_HOME/hdrmerge-cli, else "
@@ -156,7 +160,12 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         raise click.UsageError(f"{output} is a folder; -o names the EXR or DNG to write (or use --batch DIR)")
     summary = merge(list(images), opts)
     written = [summary["output"], summary["profile"]] + ([summary["preview"]] if summary.get("preview") else [])
-    emit(summary, as_json, f"wrote {', '.join(written[:-1])} and {written[-1]}")
+    said = f"wrote {', '.join(written[:-1])} and {written[-1]}"
+    if "dng_baseline_exposure_ev" in summary:  # darktable 4.2 ignores the tag
+        ev = summary["dng_baseline_exposure_ev"]
+        said += (f"; the DNG's BaselineExposure is {ev:+.2f} EV: in an editor that ignores it (darktable) raise the "
+                 f"exposure by {ev:.2f} EV to see the reference exposure")
+    emit(summary, as_json, said)
 
 
 def _given(ctx) -> set[str]:

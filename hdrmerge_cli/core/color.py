@@ -71,6 +71,43 @@ def demosaic(cfa: np.ndarray, pattern: str) -> np.ndarray:
     return np.asarray(malvar(cfa, pattern), dtype=np.float32)
 
 
+#: Malvar-He-Cutler (2004)'s kernels (x 8, as colour-demosaicing has them): G at R/B sites,
+#: R/B at G sites in an R/B row (``RB_ROW``; transposed: in a B/R row), R at B and B at R
+_G_AT_RB = np.array([[0, 0, -1, 0, 0], [0, 0, 2, 0, 0], [-1, 2, 4, 2, -1], [0, 0, 2, 0, 0], [0, 0, -1, 0, 0]]) / 8
+_RB_ROW = np.array([[0, 0, .5, 0, 0], [0, -1, 0, -1, 0], [-1, 4, 5, 4, -1], [0, -1, 0, -1, 0], [0, 0, .5, 0, 0]]) / 8
+_RB_AT_BR = np.array([[0, 0, -1.5, 0, 0], [0, 2, 0, 2, 0], [-1.5, 0, 6, 0, -1.5], [0, 2, 0, 2, 0],
+                      [0, 0, -1.5, 0, 0]]) / 8
+
+
+def demosaic_variance(var: np.ndarray, pattern: str) -> np.ndarray:
+    """The variance of :func:`demosaic`'s ``(H, W, 3)`` output for a mosaic of independent
+    samples whose variances are ``var`` ``(H, W)`` (in the squared units of the mosaic):
+    the demosaic is linear, so each output's variance is the sum of its kernel's squared
+    weights times the samples' variances (the same kernels and sites as colour-demosaicing's
+    Malvar 2004, the same ``reflect`` edges, where a sample counted twice is taken as
+    independent).  float32."""
+    from scipy.ndimage import convolve
+
+    var = np.asarray(var, np.float64)
+    idx = bayer_channels(pattern, var.shape)
+    r_row = (idx == 0).any(axis=1)[:, None]
+    r_col = (idx == 0).any(axis=0)[None, :]
+    b_row, b_col = ~r_row, ~r_col  # a Bayer row (column) holds R or B, not both
+    at_rb = convolve(var, np.square(_G_AT_RB))
+    in_rb_row = convolve(var, np.square(_RB_ROW))
+    in_br_row = convolve(var, np.square(_RB_ROW.T))
+    across = convolve(var, np.square(_RB_AT_BR))
+    out = np.empty(var.shape + (3,), np.float32)
+    out[..., 1] = np.where(idx == 1, var, at_rb)
+    for c, (own_row, own_col, other_row, other_col) in ((0, (r_row, r_col, b_row, b_col)),
+                                                        (2, (b_row, b_col, r_row, r_col))):
+        plane = np.where(idx == c, var, 0.0)
+        plane = np.where(own_row & other_col, in_rb_row, plane)  # G site in this colour's rows
+        plane = np.where(other_row & own_col, in_br_row, plane)  # G site in the other colour's rows
+        out[..., c] = np.where(other_row & other_col, across, plane)
+    return out
+
+
 def camera_to_rec709(rgb: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """Apply a 3 x 3 camera-RGB -> linear Rec.709 matrix to ``(H, W, 3)`` in place-free form."""
     out = rgb @ np.asarray(matrix, dtype=np.float32).T

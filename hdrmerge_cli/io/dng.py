@@ -18,9 +18,12 @@ What the readers need, beyond the DNG specification:
   (as HDRMerge writes small images) makes it treat the data as untiled and fail with
   "Corrupted data".  Tiles are therefore at most the image size, multiples of 16 as TIFF
   requires; an image under 16 pixels in a dimension is written in strips.
-* RawTherapee 5.9 (Debian 12) opens only 32-bit Deflate float DNGs, and only more than 512
-  rows high; its uncompressed-float path needs the raw in IFD0 alone (with a thumbnail IFD
-  it renders black).  darktable 4.2 (rawspeed) reads 16/24/32 bits, Deflate or not; LibRaw
+* RawTherapee 5.9 (Debian 12) opens only 32-bit Deflate float DNGs, renders one whose raw
+  is a single tile (or strips) all black with exit 0 (an HDRMerge DNG of that size too), so
+  :func:`_tiling` makes at least two tiles, and refuses some small ones ("Error loading
+  file": 128 x 192, 192 x 128 and 192 x 160 pixels; 176 x 176 and 128 x 256 open); its
+  uncompressed-float path needs the raw in IFD0 alone (with a thumbnail IFD it renders
+  black).  darktable 4.2 (rawspeed) reads 16/24/32 bits, Deflate or not; LibRaw
   (rawpy 0.28) all of them too.  Hence the default: 32 bits, Deflate, Predictor 3.
 * Shooting data (ExposureTime, FNumber, ISOSpeedRatings) go in IFD0 as TIFF/EP tags:
   tifffile writes no EXIF IFD, and LibRaw reads ISO only from one (exposure and aperture
@@ -130,7 +133,7 @@ def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_ne
     else:
         thumb = _rough_thumbnail(mosaic, cfa, matrix, neutral, white, baseline_exposure)
     if software is None:
-        from hdrmerge_cli import __version__
+        from hdrmerge_cli._version import __version__
         software = f"hdrmerge-cli {__version__}"
     stamp = _stamp(where, datetime)
     try:
@@ -219,10 +222,19 @@ def _exposure_rational(t: float) -> tuple:
 
 def _tiling(height: int, width: int) -> tuple | None:
     """Tile shape: at most 256 x 256 and never larger than the image (LibRaw reads a tile
-    larger than the image as untiled data), multiples of 16 (TIFF); None = strips."""
+    larger than the image as untiled data), multiples of 16 (TIFF), and at least two tiles
+    from 128 x 128 up (RawTherapee 5.9 renders a float DNG of one tile, or of strips, all
+    black; below that it opens none, and LibRaw fails on some small tiles, e.g. 16-bit
+    64 x 48); None = strips."""
     if height < 16 or width < 16:
         return None
-    return min(_TILE, height // 16 * 16), min(_TILE, width // 16 * 16)
+    th, tw = min(_TILE, height // 16 * 16), min(_TILE, width // 16 * 16)
+    if th >= height and tw >= width and min(height, width) >= 128:  # one tile: halve the longer side
+        if height >= width:
+            th = height // 2 // 16 * 16
+        else:
+            tw = width // 2 // 16 * 16
+    return th, tw
 
 
 def _write(where, mosaic, *, cfa, matrix, neutral, white, make, model, exposure_time, iso, aperture,

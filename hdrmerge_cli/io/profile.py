@@ -25,7 +25,7 @@ import os
 
 import numpy as np
 
-from hdrmerge_cli import __version__
+from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import atomic_text

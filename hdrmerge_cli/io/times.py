@@ -3,6 +3,7 @@ and :func:`parse_number`, the strict decimal parser of every number read from te
 from __future__ import annotations
 
 import math
+import numbers
 import re
 from pathlib import Path
 
@@ -46,6 +47,18 @@ def parse_seconds(text: str) -> float:
     if not MIN_SECONDS <= value <= MAX_SECONDS:
         raise HdrMergeError(f"{text[:40]!r}: exposure times must be between {MIN_SECONDS:g} and {MAX_SECONDS:g} s")
     return value
+
+
+def seconds(value) -> float:
+    """An exposure time given as a number of seconds (the Python API) or as text
+    (:func:`parse_seconds`), checked alike."""
+    if isinstance(value, str):
+        return parse_seconds(value)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise HdrMergeError(f"{value!r} is not an exposure time (use seconds, e.g. 0.5 or '1/100')")
+    if not MIN_SECONDS <= float(value) <= MAX_SECONDS:  # NaN fails too
+        raise HdrMergeError(f"{value!r}: exposure times must be between {MIN_SECONDS:g} and {MAX_SECONDS:g} s")
+    return float(value)
 
 
 def parse_times(text: str) -> list[float]:

@@ -106,17 +106,21 @@ def fmt_time(t: float) -> str:
     return f"1/{1 / t:.4g} s" if t < 1 else f"{t:.4g} s"
 
 
-def reference_exposure(spec: str, exposures: np.ndarray) -> float:
-    """``geomean`` (default), ``shortest``, ``longest`` or a number of seconds."""
+def reference_exposure(spec: str | float, exposures: np.ndarray) -> float:
+    """``geomean`` (default), ``shortest``, ``longest`` or seconds (a number, or text such
+    as ``1/100``: :func:`~hdrmerge_cli.io.times.seconds`)."""
     if spec == "geomean":
         return float(np.exp(np.mean(np.log(exposures))))
     if spec == "shortest":
         return float(exposures[0])
     if spec == "longest":
         return float(exposures[-1])
-    from hdrmerge_cli.io.times import parse_seconds
+    from hdrmerge_cli.io.times import seconds
 
-    return parse_seconds(spec)
+    try:
+        return seconds(spec)
+    except HdrMergeError as exc:
+        raise HdrMergeError(f"--reference: {exc} (or geomean, shortest, longest)") from None
 
 
 def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False) -> CRF:

@@ -68,6 +68,7 @@ def check_options(opts: MergeOptions) -> None:
     exr_compression(opts.compression, opts.half)  # an unknown name fails before any work
     if opts.colorspace not in COLORSPACES:
         raise HdrMergeError(f"unknown colour space {opts.colorspace!r} (choose from {', '.join(COLORSPACES)})")
+    reference_exposure(opts.reference, np.ones(1))  # a bad --reference fails before any work
     if opts.cfa and opts.colorspace != "rec709":
         log.warning("--cfa writes the camera's mosaic: --colorspace %s does not apply", opts.colorspace)
 
@@ -82,6 +83,12 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
     if output.suffix.lower() == ".dng" and (opts.extra_channels or opts.preview is not None):
         raise HdrMergeError(f"{output}: a DNG holds the colour mosaic only (it embeds its own preview); "
                             "--extra-channels and --preview need an EXR output")
+    if output.suffix.lower() == ".dng":
+        for name, value, default in (("colorspace", opts.colorspace, "rec709"),
+                                     ("compression", opts.compression, "auto")):
+            if value != default:
+                log.warning("%s: a DNG holds the camera's mosaic (Deflate-compressed): --%s %s does not apply",
+                            output, name, value)
     check_writable(output, opts.overwrite)
     check_writable(profile_out, opts.overwrite)
     if opts.preview is not None:
@@ -125,6 +132,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         timings["align"] = time.perf_counter() - t1
     aligned = motion.loader(frames, alignment, load)
     load, frames, exposures, checks = prepare_loader(frames, exposures, crf, opts, aligned)
+    if opts.colorspace == "camera" and frames[0].kind == "image":
+        log.warning("--colorspace camera: %s carries no camera matrix (camera-processed image); the output is "
+                    "Rec.709 (sRGB primaries)", frames[0].path)
     if opts.cfa and frames[0].kind == "linear":
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
     models = choose_models(frames, exposures, crf, opts, load, noise)

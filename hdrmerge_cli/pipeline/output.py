@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli import __version__
-from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic
+from hdrmerge_cli._version import __version__
+from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic, demosaic_variance
 from hdrmerge_cli.core.colorspace import COLORSPACES, camera_chromaticities, rec709_to
 from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
 from hdrmerge_cli.core.crf import CRF
@@ -179,18 +179,20 @@ class Merged:
         return {"chromaticities": list(space.chromaticities), "colorInteropID": space.interop_id}
 
     def variance_rows(self, y0: int, y1: int) -> np.ndarray:
-        """Rows ``y0:y1`` of the variance of :meth:`colour_rows`, per channel, under the
-        noise model: each value's variance scaled as the colour is (gain^2 for the white
-        balance, the matrix's squared entries), correlations between channels ignored.
-        RAW RGB: each colour's variance is that of the pixel's own 2 x 2 CFA cell (the
-        mean over its sites of that colour); the demosaic's averaging of neighbours, which
-        lowers the variance of interpolated values, is not counted (an upper bound there).
-        Exact for a mosaic (``--cfa``) and for images in their own colour space."""
+        """Rows ``y0:y1`` of the variance of :meth:`colour_rows`, ``(y1 - y0, W, C)``
+        float32 in the colour's units squared, under the noise model: each value's variance
+        scaled as the colour is (gain^2 for the white balance, the matrix's squared
+        entries), correlations between channels ignored.  RAW RGB: the white-balanced
+        samples' variances through the demosaic's squared weights
+        (:func:`~hdrmerge_cli.core.color.demosaic_variance`; the samples are independent,
+        so exact before the matrix).  Exact for a mosaic (``--cfa``), for images in their
+        own colour space, and for RAW RGB through an identity matrix."""
         first, matrix = self.first, self.colour_matrix
         sq = None if matrix is None else np.square(np.asarray(matrix, np.float32))
         if first.kind == "raw" and not self.options.cfa:
-            var = _cell_planes(self.variance_samples, first.cfa_pattern, y0, y1)
-            var *= np.square(first.white_balance).astype(np.float32)
+            a, b = max(0, y0 - STRIP_HALO), min(self.shape[0], y1 + STRIP_HALO)  # y0, a even: same CFA phase
+            gains = np.square(first.white_balance)[bayer_channels(first.cfa_pattern, (b - a, self.shape[1]))]
+            var = demosaic_variance(self.variance_samples[a:b] * gains, first.cfa_pattern)[y0 - a:y1 - a]
         else:
             var = self.variance_samples[y0:y1].reshape(y1 - y0, first.width, -1)
             if first.kind == "linear" and first.channels == 3:
@@ -284,9 +286,9 @@ class Merged:
         profile_text = dumps(self.profile())
         if output.suffix.lower() == ".dng":
             with atomic_paths([output, profile_out], overwrite, list(inputs)) as tmps:
-                self.write_dng(tmps[0])
+                baseline = self.write_dng(tmps[0])
                 Path(tmps[1]).write_text(profile_text, encoding="utf-8")
-            return {"output": str(output), "profile": str(profile_out)}
+            return {"output": str(output), "profile": str(profile_out), "dng_baseline_exposure_ev": round(baseline, 2)}
         attrs = self.header(profile_out.name, profile_text)
         extra = opts.extra_channels
         wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
@@ -307,13 +309,15 @@ class Merged:
                 write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
         return {"output": str(output), "profile": str(profile_out)} | ({"preview": str(preview)} if thumb else {})
 
-    def write_dng(self, path) -> None:
+    def write_dng(self, path) -> float:
         """The merged CFA mosaic as a floating-point DNG (:func:`hdrmerge_cli.io.dng.write_float_dng`)
         that raw editors open like the camera's own raw files: black 0, WhiteLevel the
-        smallest whole number above the brightest value, BaselineExposure log2 of it (so
-        the default rendering shows the reference exposure: 1.0 = white), the camera
-        matrix and as-shot white balance that the EXR path uses (:func:`camera_xyz_matrix`),
-        32-bit floats (``--half``: 16), and an embedded preview."""
+        smallest whole number above the brightest value (no highlight clipped), BaselineExposure
+        log2 of it (so the default rendering shows the reference exposure: 1.0 = white), the
+        camera matrix and as-shot white balance that the EXR path uses (:func:`camera_xyz_matrix`),
+        32-bit floats (``--half``: 16), and an embedded preview.  Returns the BaselineExposure
+        (EV), which editors that ignore the tag (darktable 4.2) leave to the user to apply:
+        they show the image that much darker."""
         from hdrmerge_cli.core.errors import HdrMergeError
         from hdrmerge_cli.core.preview import tonemap_srgb
         from hdrmerge_cli.io.dng import write_float_dng
@@ -323,13 +327,15 @@ class Merged:
             raise HdrMergeError(f"{path}: a DNG output holds a CFA mosaic; {first.path} is not a Bayer RAW frame "
                                 "(write an EXR)")
         white = max(1.0, float(np.ceil(np.max(self.result))))
+        baseline = float(np.log2(white))
         preview = tonemap_srgb(cell_rgb(self.result, first, first.color_matrix, DNG_PREVIEW_SIZE))
         write_float_dng(path, self.result, cfa_pattern=first.cfa_pattern, xyz_to_camera=camera_xyz_matrix(first),
                         as_shot_neutral=1.0 / first.white_balance, make=first.make or "hdrmerge-cli",
                         model=first.model or "merged", exposure_time=self.h_ref, iso=first.iso,
-                        aperture=first.aperture, baseline_exposure=float(np.log2(white)),
+                        aperture=first.aperture, baseline_exposure=baseline,
                         orientation=self.orientation, preview=preview, bits=16 if self.options.half else 32,
                         white_level=white, datetime=first.timestamp)
+        return baseline
 
     def summary(self) -> dict:
         """What ``merge --json`` prints (without the paths written)."""
@@ -364,20 +370,6 @@ class Merged:
             **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
             "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
         }
-
-
-def _cell_planes(mosaic: np.ndarray, pattern: str, y0: int, y1: int) -> np.ndarray:
-    """Rows ``y0:y1`` (``y0`` even) of ``(rows, W, 3)``: at every pixel, the mean of each
-    colour's sites in the pixel's 2 x 2 CFA cell (a nearest-cell upsampling)."""
-    h, w = mosaic.shape
-    part = mosaic[y0:min(h, y1 + (y1 % 2))]
-    if part.shape[0] % 2 or w % 2:  # odd edges: repeat the last row / column
-        part = np.pad(part, ((0, part.shape[0] % 2), (0, w % 2)), mode="edge")
-    planes = {"R": [], "G": [], "B": []}
-    for i, colour in enumerate(pattern):
-        planes[colour].append(part[i // 2::2, i % 2::2])
-    cells = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1).astype(np.float32)
-    return np.repeat(np.repeat(cells, 2, axis=0), 2, axis=1)[:y1 - y0, :w]
 
 
 #: longest side of the preview embedded in a DNG

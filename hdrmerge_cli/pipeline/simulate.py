@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli import __version__
+from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.color import REC709_CHROMATICITIES, mosaic
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
