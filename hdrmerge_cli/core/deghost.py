@@ -24,6 +24,13 @@ moving minority does not move.  Where the reference reads dark or clipped it sti
 bounds the signal (censoring, :func:`violates_bound`): a frame reading far outside that
 bound shows another moment and is dropped too, and never becomes the anchor.
 
+A RAW mosaic (linear, physical noise model) is also tested over regions
+(:func:`region_shifts`): a dim object in a short, noisy frame shifts every cell it covers
+by less than each cell's noise, but a region's mean by many of its deviations; the
+region statistics are measured against the pair's own empirical null.  There a code
+below black is a reading too (:func:`ghost_tables` with ``footroom``), and the exposure
+factor is one constant measured over regions (:func:`region_ratio`).
+
 Rejections are decided over regions: an opening removes isolated false alarms, connected
 regions smaller than :data:`MIN_BLOB_PX` go, a dilation covers the soft edges of moving
 objects, and the mask is feathered (:func:`feather`), so a frame's weight falls smoothly
