@@ -588,10 +588,14 @@ def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excuse
 
 
 def test_feathered_mask_has_no_seam():
+    """1 - Phi(3) of a frame leaks through the region's edge at most (a Gaussian of sigma
+    3 px around a region grown by 9 px), nothing far away, and no step."""
+    from scipy.stats import norm
+
     mask = np.zeros((80, 80), bool)
     mask[30:50, 30:50] = True
     soft = deghost.feather(mask, 3.0)
-    assert soft[mask].min() > 0.97 and soft[:5].max() < 0.01
+    assert soft[mask].min() >= norm.cdf(3.0) - 1e-4 and soft[:3].max() < 0.01
     assert np.abs(np.diff(soft, axis=1)).max() < 0.2 and np.abs(np.diff(soft, axis=0)).max() < 0.2
 
 
