@@ -475,3 +475,38 @@ def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
     want, want_flag = ref.finish(linear)
     np.testing.assert_array_equal(flag, want_flag)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("variance", [False, True])
+@pytest.mark.parametrize("layout", ["rgb", "mosaic"])
+def test_add_with_a_per_pixel_factor_equals_add_with_the_weights(layout, variance):
+    """LogMerge.add(factor=f) (the table's weight times a per-pixel factor, shared by an
+    image's channels, inside the accumulation) gives the sums, flags and variance of
+    LogMerge.add(weight=w(z) sigma^-2 f) built with NumPy, with zero and partial factors,
+    black and clipped codes (float rounding apart)."""
+    rng = np.random.default_rng(5)
+    exposures = [0.004, 0.02, 0.1]
+    if layout == "rgb":
+        shape, n, pattern = (17, 21, 3), 256, np.array([[0, 1, 2]])
+        black, white = np.zeros(3), np.full(3, 255.0)
+    else:
+        shape, n, pattern = (18, 26), 4096, np.array([[0, 1], [3, 2]])
+        black, white = np.full(4, 64.0), np.full(4, 4000.0)
+    tables = [exposure_tables(n, black, white, CRF("linear"), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
+                              prior_rate=1e4, exposures=tuple(exposures), with_variance=variance) for h in exposures]
+    frames = [rng.choice([0, 1, n - 1, *rng.integers(0, n, 30)], size=shape).astype(np.uint8 if n == 256 else np.uint16)
+              for _ in exposures]
+    fused, ref = LogMerge(shape, pattern, variance=variance), LogMerge(shape, pattern, variance=variance)
+    for k, (z, tab) in enumerate(zip(frames, tables)):
+        f = rng.choice([0.0, 0.3, 1.0], size=shape[:2]).astype(np.float32)
+        w = reconstruct.lookup(tab.weight.ravel(), n, z, pattern) * (f[..., None] if z.ndim == 3 else f)
+        fused.add(z, tab, last=k == 2, factor=f)
+        ref.add(z, tab, last=k == 2, weight=w)
+    np.testing.assert_allclose(fused.num, ref.num, rtol=1e-5, atol=1e-30)
+    np.testing.assert_allclose(fused.den, ref.den, rtol=1e-5, atol=1e-30)
+    got, flag = fused.finish()
+    want, want_flag = ref.finish()
+    np.testing.assert_array_equal(flag, want_flag)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    if variance:
+        np.testing.assert_allclose(fused.variance, ref.variance, rtol=1e-5)

@@ -856,10 +856,14 @@ class LogMerge:
         return a.reshape(_rows_cols(self.shape))
 
     def add(self, codes: np.ndarray, tables: ExposureTables, last: bool = False,
-            weight: np.ndarray | None = None, information: bool = False) -> None:
+            weight: np.ndarray | None = None, information: bool = False,
+            factor: np.ndarray | None = None) -> None:
         """Add one frame of stored code values ``codes`` (``shape``, uint8/uint16); ``last``
         for the longest exposure; ``weight`` per-sample weights (IRLS, deghosting) instead
-        of the table's ``w(z) sigma^-2``, combined with the table's ``value``.
+        of the table's ``w(z) sigma^-2``, combined with the table's ``value``; or ``factor``
+        ``(H, W)`` float32, the table's weight times it per pixel (an image's channels share
+        it; deghosting and alignment coverage), applied in the same pass, so that no
+        frame-sized weight array is built (8 MP RGB: 96 MB).
 
         With ``variance``: ``var += w^2 Var(x_j)`` with the table's ``variance``; or, with
         ``information`` (IRLS), where ``weight = w(z) I_j`` is the certainty times the
@@ -867,6 +871,15 @@ class LogMerge:
         (:func:`irls_weights`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
+        if factor is not None and (self.var is not None or weight is not None):
+            per_pixel = lookup(tables.weight, n, codes, self.pattern).reshape(factor.shape + (-1,))
+            weight, factor = (per_pixel * factor[..., None]).reshape(codes.shape), None
+        if factor is not None:
+            _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), tables.weighted_log.reshape(-1, n),
+                        tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
+                        np.ascontiguousarray(factor, np.float32), 2, mode, self._2d(self.num), self._2d(self.den))
+            self._added(tables)
+            return
         if weight is None:
             num_tab, per_sample = tables.weighted_log, _NO_WEIGHT
         else:
@@ -874,7 +887,7 @@ class LogMerge:
         if self.var is None:
             _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
-                        weight is not None, mode, self._2d(self.num), self._2d(self.den))
+                        int(weight is not None), mode, self._2d(self.num), self._2d(self.den))
         else:
             use_cert = information and weight is not None
             q_tab = tables.certainty if use_cert else tables.variance
@@ -943,19 +956,27 @@ _NO_WEIGHT = np.zeros((1, 1), np.float32)
 def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den):  # pragma: no cover
     """One frame of (7) into ``num``/``den`` (2-D views), rows in parallel.  ``mode`` 0:
     the shortest frame (sets the fallback and the saturated/dark class), 1: a middle
-    frame, 2: the longest (dark samples take its fallback).  See :class:`LogMerge`."""
+    frame, 2: the longest (dark samples take its fallback).  ``use_weight`` 0: the table's
+    weights; 1: ``weight`` per sample (``num_tab`` the values); 2: the table's weights
+    times ``weight`` per pixel (``(rows, cols / channels)``, ``num_tab`` the weighted
+    values).  See :class:`LogMerge`."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
     top = w_tab.shape[1] - 1  # codes above the table (never valid data) read its last, clipped entry
+    per_pixel = cols // weight.shape[1] if use_weight == 2 else 1
     for r in numba.prange(rows):
         prow = pattern[r % ph]
         for q in range(min(pw, cols)):
             c = prow[q]
             for s in range(q, cols, pw):
                 z = min(codes[r, s], top)
-                if use_weight:
+                if use_weight == 1:
                     w = weight[r, s]
                     wv = w * num_tab[c, z]
+                elif use_weight == 2:
+                    f = weight[r, s // per_pixel]
+                    w = w_tab[c, z] * f
+                    wv = num_tab[c, z] * f
                 else:
                     w = w_tab[c, z]
                     wv = num_tab[c, z]

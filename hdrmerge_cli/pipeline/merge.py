@@ -365,8 +365,9 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
             elif then is not None:
                 then()
             t = time.perf_counter()
-            acc.add(codes, tables[k], last=k == len(frames) - 1,
-                    weight=None if weights_of is None else weights_of(k, codes))
+            weight, factor = (None, None) if weights_of is None else weights_of(k, codes)
+            acc.add(codes, tables[k], last=k == len(frames) - 1, weight=weight, factor=factor)
+            del weight, factor
             del codes
             merge_time += time.perf_counter() - t
     t = time.perf_counter()

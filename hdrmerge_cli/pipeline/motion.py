@@ -431,7 +431,8 @@ class SampleWeights:
         frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
         out = None
         if ghosts is not None and ghosts["masks"][k].any():
-            out = np.subtract(np.float32(1.0), ghost_weight(ghosts, k, frame.height, frame.width))
+            out = ghost_weight(ghosts, k, frame.height, frame.width)
+            np.subtract(np.float32(1.0), out, out=out)
         if alignment is not None:
             inside = covered(frame, alignment["warps"][k], alignment["resampling"] == "cfa-periods")
             out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
@@ -460,9 +461,15 @@ class SampleWeights:
             f = np.repeat(f, out.shape[1] // f.shape[1], axis=1)
         return out, f
 
-    def __call__(self, k: int, codes: np.ndarray) -> np.ndarray:
+    def __call__(self, k: int, codes: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(weight, factor)`` for :meth:`LogMerge.add`, one of them None: where the frame
+        was not resampled with a spread (images; RAW moved by whole CFA periods) only the
+        per-pixel :meth:`factor`, which the merge applies to the table's weights in its own
+        pass; else the per-sample weights (``codes``' shape, float32)."""
+        if self.load is None or self.load.spread(self.frames[k]) is None:
+            return None, self.factor(k)
         w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
-        return self._weighted(k, codes, w, own=True)[0].reshape(codes.shape).astype(np.float32, copy=False)
+        return self._weighted(k, codes, w, own=True)[0].reshape(codes.shape).astype(np.float32, copy=False), None
 
 
 def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray) -> np.ndarray:
