@@ -513,7 +513,9 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     if scale:
         lam = level_scale(t, x, xa, both)
         t /= lam
-        var = var * lam
+        if coarse:  # the region test's variances
+            var *= lam
+        del lam
     stat = cell_sums(t, *cell)
     k = cell_sums(both.astype(np.int32), *cell)
     bad = stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
