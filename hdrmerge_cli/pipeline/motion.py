@@ -329,6 +329,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         grad2 = _samples(deghost.squared_gradient(xa, "rgb") * np.float32(reg))
     sigma = max(1.5, deghost.FEATHER_PX / (b * per_px))
     min_cells = deghost.min_blob(b * per_px)
+
     def test(k: int) -> tuple[float, np.ndarray]:  # frame k against the anchor: (fraction, mask)
         x, s, ok, bound_k, untruncated = estimate(k)
         longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
@@ -346,7 +347,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
                                          _samples(va), grad2, (1, nc), p_fa, min_change=deghost.MIN_LOG_CHANGE,
                                          excuse=excuse, reach=reach, steady=_samples(untruncated & ua) if raw else None,
                                          **per_kind)
-        bad |= beyond[k].any(axis=-1) | impossible
+        bad |= beyond.pop(k).any(axis=-1) | impossible
         del x, s, ok, untruncated
         bad = deghost.clean(bad, min_cells=min_cells)
         anchor = (source == k).any(axis=-1)  # the anchor itself stays
