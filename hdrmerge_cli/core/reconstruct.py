@@ -860,8 +860,8 @@ class LogMerge:
             factor: np.ndarray | None = None) -> None:
         """Add one frame of stored code values ``codes`` (``shape``, uint8/uint16); ``last``
         for the longest exposure; ``weight`` per-sample weights (IRLS, deghosting) instead
-        of the table's ``w(z) sigma^-2``, combined with the table's ``value``; or ``factor``
-        ``(H, W)`` float32, the table's weight times it per pixel (an image's channels share
+        of the table's ``w(z) sigma^-2``, combined with the table's ``value``; or (not both)
+        ``factor`` ``(H, W)`` float32, the table's weight times it per pixel (an image's channels share
         it; deghosting and alignment coverage), applied in the same pass, so that no
         frame-sized weight array is built (8 MP RGB: 96 MB).
 
@@ -871,10 +871,10 @@ class LogMerge:
         (:func:`irls_weights`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
-        if factor is not None and (self.var is not None or weight is not None):
+        if factor is not None and self.var is not None:  # the variance pass takes per-sample weights
             per_pixel = lookup(tables.weight, n, codes, self.pattern).reshape(factor.shape + (-1,))
-            weight, factor = (per_pixel * factor[..., None]).reshape(codes.shape), None
-        if factor is not None:
+            weight = (per_pixel * factor[..., None]).reshape(codes.shape)
+        elif factor is not None:
             _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), tables.weighted_log.reshape(-1, n),
                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
                         np.ascontiguousarray(factor, np.float32), 2, mode, self._2d(self.num), self._2d(self.den))
