@@ -274,7 +274,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
                 (0.5 * float(f.white[c] - f.black[c]) / 255.0) ** 2, 1e-12, 0.0)
             x_t, s_t, ok_t = deghost.ghost_tables(f.n_codes, f.black[c], f.white[c],
                                                   lambda v, c=c: crf.inverse(v, 0 if raw else c), exposures[k], nz,
-                                                  footroom=raw and f.black[c] > 0)
+                                                  footroom=raw)
             out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
         return out
 
