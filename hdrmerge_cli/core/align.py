@@ -383,11 +383,13 @@ def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarra
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     m = np.asarray(warp, np.float32)
     # OpenCV interpolates 8/16-bit codes in fixed point and rounds: no float copy of the frame
-    out = cv2.warpAffine(np.ascontiguousarray(codes), m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-    clipped = cv2.warpAffine((codes >= clip_code).view(np.uint8) * np.uint8(255), m, (w, h), flags=flags,
-                             borderMode=cv2.BORDER_REPLICATE)  # 255: any share of a clipped code survives
-    out = out.reshape(codes.shape)
-    out[clipped.reshape(codes.shape) > 0] = clip_code
+    out = cv2.warpAffine(np.ascontiguousarray(codes), m, (w, h), flags=flags,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(codes.shape)
+    clipped = codes >= clip_code
+    if clipped.any():  # a short frame often has none: no second warp
+        spread = cv2.warpAffine(clipped.view(np.uint8) * np.uint8(255), m, (w, h), flags=flags,
+                                borderMode=cv2.BORDER_REPLICATE)  # 255: any share of a clipped code survives
+        out[spread.reshape(codes.shape) > 0] = clip_code
     return out
 
 
