@@ -436,6 +436,19 @@ def test_fused_censored_terms_match_the_reference(use_den, use_factor):
         assert reconstruct._inverse_mills(a) == pytest.approx(ref, rel=1e-10, abs=1e-300)
 
 
+def _layout(layout: str):
+    """``(shape, n_codes, pattern, black, white)`` of a small 8-bit RGB image or 12-bit
+    RGGB mosaic."""
+    if layout == "rgb":
+        return (17, 21, 3), 256, np.array([[0, 1, 2]]), np.zeros(3), np.full(3, 255.0)
+    return (18, 26), 4096, np.array([[0, 1], [3, 2]]), np.full(4, 64.0), np.full(4, 4000.0)
+
+
+def _codes(rng, shape, n: int) -> np.ndarray:
+    """Random codes with black (0, 1) and clipped (n - 1) ones among them."""
+    return rng.choice([0, 1, n - 1, *rng.integers(0, n, 30)], size=shape).astype(np.uint8 if n == 256 else np.uint16)
+
+
 @pytest.mark.parametrize("linear", [True, False])
 @pytest.mark.parametrize("layout", ["rgb", "mosaic"])
 def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
@@ -444,20 +457,14 @@ def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
     sample's own noise parameters), frame for frame, with black and clipped codes."""
     rng = np.random.default_rng(21)
     exposures = [0.004, 0.02, 0.1]
-    if layout == "rgb":
-        shape, n, pattern = (17, 21, 3), 256, np.array([[0, 1, 2]])
-        black, white = np.zeros(3), np.full(3, 255.0)
-    else:
-        shape, n, pattern = (18, 26), 4096, np.array([[0, 1], [3, 2]])
-        black, white = np.full(4, 64.0), np.full(4, 4000.0)
+    shape, n, pattern, black, white = _layout(layout)
     rows_n = pattern.max() + 1
     params = [NoiseParams(float(rng.uniform(1, 20)), float(rng.uniform(0.5, 4)), float(rng.uniform(0, 1e-3)))
               for _ in range(rows_n)]
     tables = [exposure_tables(n, black, white, CRF("linear"), "probabilistic", h, noise=params,
                               estimator="ml" if linear else "log", prior_rate=1e4, exposures=tuple(exposures))
               for h in exposures]
-    frames = [rng.choice([0, 1, n - 1, *rng.integers(0, n, 30)], size=shape).astype(np.uint8 if n == 256 else np.uint16)
-              for _ in exposures]
+    frames = [_codes(rng, shape, n) for _ in exposures]
     log_e = rng.normal(-1, 1.5, shape).astype(np.float32)
     per_row = reconstruct.noise_rows(params)
     idx = reconstruct.channel_index(shape, pattern)
@@ -486,16 +493,10 @@ def test_add_with_a_per_pixel_factor_equals_add_with_the_weights(layout, varianc
     black and clipped codes (float rounding apart)."""
     rng = np.random.default_rng(5)
     exposures = [0.004, 0.02, 0.1]
-    if layout == "rgb":
-        shape, n, pattern = (17, 21, 3), 256, np.array([[0, 1, 2]])
-        black, white = np.zeros(3), np.full(3, 255.0)
-    else:
-        shape, n, pattern = (18, 26), 4096, np.array([[0, 1], [3, 2]])
-        black, white = np.full(4, 64.0), np.full(4, 4000.0)
+    shape, n, pattern, black, white = _layout(layout)
     tables = [exposure_tables(n, black, white, CRF("linear"), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
                               prior_rate=1e4, exposures=tuple(exposures), with_variance=variance) for h in exposures]
-    frames = [rng.choice([0, 1, n - 1, *rng.integers(0, n, 30)], size=shape).astype(np.uint8 if n == 256 else np.uint16)
-              for _ in exposures]
+    frames = [_codes(rng, shape, n) for _ in exposures]
     fused, ref = LogMerge(shape, pattern, variance=variance), LogMerge(shape, pattern, variance=variance)
     for k, (z, tab) in enumerate(zip(frames, tables)):
         f = rng.choice([0.0, 0.3, 1.0], size=shape[:2]).astype(np.float32)

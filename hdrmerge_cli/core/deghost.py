@@ -492,7 +492,8 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     (:func:`glare_excuse`, per cell) is non-zero, does not have its sign.  Returns
     ``(H // ph, W' // pw)`` bool."""
     both = valid & valid_a
-    x = match_channels(x, xa, both if steady is None else both & steady, cell[1], match_degree)
+    use = both if steady is None else both & steady  # what the match and the region test read
+    x = match_channels(x, xa, use, cell[1], match_degree)
     r = None
     if smooth or min_change > 0 or excuse is not None:
         pos = both & (x > 0) & (xa > 0)
@@ -523,7 +524,6 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     k = cell_sums(both.astype(np.int32), *cell)
     bad = stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
     if cell[0] == 1 and coarse:
-        use = both if steady is None else both & steady
         bad |= region_shifts(np.where(use, d, 0.0), np.where(use, var, 0.0),
                              np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), cell[1], p_fa, coarse)
     if r is not None and (min_change > 0 or excuse is not None):

@@ -204,13 +204,23 @@ def _samples(codes: np.ndarray) -> np.ndarray:
     return codes.reshape(codes.shape[0], -1)
 
 
+def _rows(frame: Frame, pattern: np.ndarray, channels: int) -> list[int]:
+    """The table row of each channel of :func:`_planes`: an image's own channels, or the
+    colours of a RAW mosaic's four CFA positions."""
+    if frame.kind == "raw":
+        return [int(pattern[dy, dx]) for dy in (0, 1) for dx in (0, 1)]
+    return list(range(channels))
+
+
 def _planes(frame: Frame, codes: np.ndarray, pattern: np.ndarray) -> list[tuple[np.ndarray, int]]:
     """(2-D plane, table row) per channel: an image's channels, or the four CFA positions
     of a RAW mosaic (one plane per position, one sample per 2 x 2 period)."""
     if frame.kind == "raw":
-        return [(codes[dy::2, dx::2], int(pattern[dy, dx])) for dy in (0, 1) for dx in (0, 1)]
-    codes = codes if codes.ndim == 3 else codes[..., None]
-    return [(codes[..., c], c) for c in range(codes.shape[-1])]
+        planes = [codes[dy::2, dx::2] for dy in (0, 1) for dx in (0, 1)]
+    else:
+        codes = codes if codes.ndim == 3 else codes[..., None]
+        planes = [codes[..., c] for c in range(codes.shape[-1])]
+    return list(zip(planes, _rows(frame, pattern, len(planes))))
 
 
 def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list, b: int):
@@ -234,8 +244,7 @@ def _untruncated(x: np.ndarray, s: np.ndarray, frame: Frame, pattern: np.ndarray
     biases up)."""
     sd = np.sqrt(s) * np.float32(3 * b)
     out = np.empty(x.shape, bool)
-    rows = [int(pattern[dy, dx]) for dy in (0, 1) for dx in (0, 1)] if frame.kind == "raw" else range(x.shape[-1])
-    for c, row in enumerate(rows):
+    for c, row in enumerate(_rows(frame, pattern, x.shape[-1])):
         x_t, _, ok_t = tables[row]
         lo, hi = (x_t[ok_t][0], x_t[ok_t][-1]) if ok_t.any() else (np.inf, -np.inf)
         out[..., c] = (x[..., c] - sd[..., c] > lo) & (x[..., c] + sd[..., c] < hi)
