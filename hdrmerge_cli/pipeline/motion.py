@@ -200,6 +200,15 @@ def is_identity(warp: np.ndarray) -> bool:
     return bool(np.allclose(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), rtol=0.0, atol=1e-9))
 
 
+def _any(a: np.ndarray) -> np.ndarray:
+    """``a.any(axis=-1)`` of ``(h, w, C)`` bool, as an OR of the channel planes (NumPy's
+    reduction over a short trailing axis is several times slower)."""
+    out = a[..., 0].copy()
+    for c in range(1, a.shape[-1]):
+        out |= a[..., c]
+    return out
+
+
 def _samples(codes: np.ndarray) -> np.ndarray:
     return codes.reshape(codes.shape[0], -1)
 
@@ -327,6 +336,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         va |= ok
         del x, s, ok, bound, untruncated
     hb, wb, nc = xa.shape
+    # the anchor's level per block (its brightest channel; unknown where it is clipped: no
+    # frame measures it), what a clipped region can spread as glare
+    level_a = np.where(va, xa, np.where(bound_r < 0, np.float32(np.inf), np.float32(0.0))).max(axis=-1)
     # registration tolerance: a shift within reach (blocks) is not motion.  Images only: the
     # envelope excuses what image processing does to edges (JPEG ringing, 4:2:0 chroma,
     # sharpening halos); a RAW mosaic has none of it, and there the envelope hid a ghost's
@@ -347,9 +359,12 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             # a clipped reading of the longer frame that the anchor makes impossible (it measures
             # far below the frame's clipping level): something bright was there in this frame
             # only, unless glare from what is clipped in agreement with the anchor spread there
+            # (by more than glare adds: a tenth of the anchor's level of what clips beside it)
             clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
-            impossible = (deghost.violates_bound(xa, sa, clip_bound, p_fa) & va).any(axis=-1)
-            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer) == 0
+            violated = deghost.violates_bound(xa, sa, clip_bound, p_fa) & va
+            impossible = _any(violated)
+            need = np.where(violated, -clip_bound - xa, np.float32(0.0)).max(axis=-1)
+            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer, source=level_a, need=need) == 0
         # glare spreads from what is bright in every frame, not from such an object
         excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer)
         bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
