@@ -587,6 +587,55 @@ def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excuse
     assert ghost_weight(g, 2, 160, 200)[halo].max() < 0.05
 
 
+def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare():
+    """A dark object (code 30) in the reference only, over a surround that the long frame
+    clips but the reference measures (a person before a window): the long frame's clipped
+    readings there are impossible, and glare from the surround (at most GLARE_FRACTION of
+    its level, which the reference measures) cannot explain them, so the long frame is
+    dropped over the object although all of it lies within the glare reach of the clipped
+    surround (before: excused, and the long frame's unclipped blue tinted the object); only
+    its rim within BLOOM_PX of the surround may be excused."""
+    rng = np.random.default_rng(2)
+    obj = (slice(60, 120), slice(320, 380))  # the glare reach is 30 cells: all of it within reach
+    inner = (slice(69, 111), slice(329, 371))
+    frames, codes, times = _gamma_bracket(rng, h=180, w=600, step=3.3, paint={1: (obj, 30)})
+    wide = (slice(50, 130), slice(310, 390))
+    assert (codes[2][wide] == 255).any(axis=-1).mean() > 0.95 and codes[1][wide].max() < 255  # clipped, measured
+    codes[2][obj] = (255, 255, 250)
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    g = _ghosts_of(frames, codes, times, "auto")
+    assert g["applied"]
+    assert ghost_weight(g, 2, 180, 600)[inner].min() > 0.95
+    assert ghost_weight(g, 2, 180, 600)[:, :150].max() < 0.05
+
+
+def test_glare_excuse_bounds_the_light_glare_adds():
+    """With ``source`` and ``need``: excused exactly where the cell is within reach (the
+    exact disc) and GLARE_FRACTION of the brightest clipped source in the square window of
+    side 2 reach + 1 reaches ``need``, or within ``bloom`` of a clipped cell (brute force);
+    inf sources excuse as before."""
+    rng = np.random.default_rng(8)
+    shape, reach = (60, 80), 0.1
+    r = reach * max(shape)
+    clipped = rng.random(shape) < 0.01
+    source = np.where(rng.random(shape) < 0.2, np.inf, rng.uniform(1, 10, shape)).astype(np.float32)
+    need = rng.uniform(0, 1.2, shape).astype(np.float32)
+    got = deghost.glare_excuse(clipped, 1, reach, source=source, need=need, bloom=2.5)
+    ys, xs = np.nonzero(clipped)
+    want = np.zeros(shape, np.int8)
+    h = int(r)
+    for i in range(shape[0]):
+        for j in range(shape[1]):
+            d2 = (ys - i) ** 2 + (xs - j) ** 2
+            square = (np.abs(ys - i) <= h) & (np.abs(xs - j) <= h)
+            bright = deghost.GLARE_FRACTION * source[ys[square], xs[square]].max(initial=0) >= need[i, j]
+            if (d2 <= r * r).any() and (bright or (d2 <= 2.5**2).any()):
+                want[i, j] = 1
+    np.testing.assert_array_equal(got, want)
+    assert 0 < want.sum() < (deghost.glare_excuse(clipped, 1, reach) != 0).sum()
+
+
 def test_feathered_mask_has_no_seam():
     """1 - Phi(3) of a frame leaks through the region's edge at most (a Gaussian of sigma
     3 px around a region grown by 9 px), nothing far away, and no step."""

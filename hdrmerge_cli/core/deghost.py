@@ -100,6 +100,9 @@ GLARE_REACH = 0.05
 #: (ISO 9358's veiling glare index, a black patch in a bright surround, is a few per cent for
 #: camera lenses): glare cannot make a reading clip that needs more (:func:`glare_excuse`)
 GLARE_FRACTION = 0.1
+#: pixels from a clipped region within which it may spread without that bound (blooming,
+#: the lens's point-spread core, sharpening halos)
+BLOOM_PX = 8.0
 
 
 def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: float,
@@ -428,7 +431,7 @@ def smooth_ratio_field(r: np.ndarray, ok: np.ndarray, nc: int, tiles: int = FIEL
 
 
 def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH, source: np.ndarray | None = None,
-                 need: np.ndarray | None = None) -> np.ndarray:
+                 need: np.ndarray | None = None, bloom: float = 0.0) -> np.ndarray:
     """Per cell, the sign of a difference (frame minus anchor) that is not motion: ``sign``
     (+1: the frame is the longer exposure and may read brighter; -1: the anchor is) within
     ``reach`` times the longer side of the cells ``clipped`` in the longer exposure (veiling
@@ -437,8 +440,9 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH, sou
     every frame) and ``need`` (per cell, the light glare would have to add, same units) a
     cell is excused only where :data:`GLARE_FRACTION` of the brightest clipped cell's
     ``source`` within reach (a square of side ``2 reach + 1``, a little more than the
-    disc) reaches ``need``: a dark object in the anchor where a longer frame clips on a
-    surround only a few times brighter is not glare but another moment."""
+    disc) reaches ``need``, or within ``bloom`` cells of a clipped cell: a dark object in
+    the anchor where a longer frame clips on a surround only a few times brighter is not
+    glare but another moment."""
     import cv2
 
     if not clipped.any() or not sign:
@@ -447,13 +451,14 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH, sou
     # the exact Euclidean distance to the nearest clipped cell (OpenCV's, 3-4x SciPy's EDT
     # here), compared as a whole squared distance so that no rounding moves the boundary
     d = cv2.distanceTransform(np.ascontiguousarray(~clipped, np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    near = np.rint(np.square(d, dtype=np.float64)) <= r**2
+    d2 = np.rint(np.square(d, dtype=np.float64))
+    near = d2 <= r**2
     if source is not None:
         side = 2 * int(r) + 1
         level = np.where(clipped, source, 0.0).astype(np.float32)
         brightest = cv2.dilate(level, cv2.getStructuringElement(cv2.MORPH_RECT, (side, side)),
                                borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
-        near &= np.float32(GLARE_FRACTION) * brightest >= need
+        near &= (np.float32(GLARE_FRACTION) * brightest >= need) | (d2 <= bloom**2)
     return np.where(near, np.int8(sign), np.int8(0))
 
 

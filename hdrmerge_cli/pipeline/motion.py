@@ -200,13 +200,18 @@ def is_identity(warp: np.ndarray) -> bool:
     return bool(np.allclose(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), rtol=0.0, atol=1e-9))
 
 
-def _any(a: np.ndarray) -> np.ndarray:
-    """``a.any(axis=-1)`` of ``(h, w, C)`` bool, as an OR of the channel planes (NumPy's
-    reduction over a short trailing axis is several times slower)."""
+def _reduce(op, a: np.ndarray) -> np.ndarray:
+    """``op.reduce(a, axis=-1)`` of ``(h, w, C)``, as ``op`` over the channel planes
+    (NumPy's reduction over a short trailing axis is about ten times slower)."""
     out = a[..., 0].copy()
     for c in range(1, a.shape[-1]):
-        out |= a[..., c]
+        op(out, a[..., c], out=out)
     return out
+
+
+def _any(a: np.ndarray) -> np.ndarray:
+    """``a.any(axis=-1)`` of ``(h, w, C)`` bool (:func:`_reduce`)."""
+    return _reduce(np.logical_or, a)
 
 
 def _samples(codes: np.ndarray) -> np.ndarray:
@@ -321,7 +326,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         x, s, ok, bound, untruncated = estimate(k)
         if bound_r is None:
             bound_r, s_r = bound, s.copy()
-        clipped[k] = (bound < 0).any(axis=-1)
+        clipped[k] = _any(bound < 0)
         # an image's tone curve may crush far more than its assumed response says, so its
         # bound is measured (adapt)
         beyond[k] = deghost.violates_bound(x, s, bound_r, adapt=k != ref and not raw,
@@ -338,7 +343,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     hb, wb, nc = xa.shape
     # the anchor's level per block (its brightest channel; unknown where it is clipped: no
     # frame measures it), what a clipped region can spread as glare
-    level_a = np.where(va, xa, np.where(bound_r < 0, np.float32(np.inf), np.float32(0.0))).max(axis=-1)
+    level_a = _reduce(np.maximum, np.where(va, xa, np.where(bound_r < 0, np.float32(np.inf), np.float32(0.0))))
     # registration tolerance: a shift within reach (blocks) is not motion.  Images only: the
     # envelope excuses what image processing does to edges (JPEG ringing, 4:2:0 chroma,
     # sharpening halos); a RAW mosaic has none of it, and there the envelope hid a ghost's
@@ -359,22 +364,24 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             # a clipped reading of the longer frame that the anchor makes impossible (it measures
             # far below the frame's clipping level): something bright was there in this frame
             # only, unless glare from what is clipped in agreement with the anchor spread there
-            # (by more than glare adds: a tenth of the anchor's level of what clips beside it)
+            # (beyond its bloom, by more than glare adds: a tenth of the anchor's level of what
+            # clips nearby)
             clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
             violated = deghost.violates_bound(xa, sa, clip_bound, p_fa) & va
             impossible = _any(violated)
-            need = np.where(violated, -clip_bound - xa, np.float32(0.0)).max(axis=-1)
-            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer, source=level_a, need=need) == 0
+            need = _reduce(np.maximum, np.where(violated, -clip_bound - xa, np.float32(0.0)))
+            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer, source=level_a, need=need,
+                                                  bloom=deghost.BLOOM_PX / (b * per_px)) == 0
         # glare spreads from what is bright in every frame, not from such an object
         excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer)
         bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
                                          _samples(va), grad2, (1, nc), p_fa, min_change=deghost.MIN_LOG_CHANGE,
                                          excuse=excuse, reach=reach, steady=_samples(untruncated & ua) if raw else None,
                                          **per_kind)
-        bad |= beyond.pop(k).any(axis=-1) | impossible
+        bad |= _any(beyond.pop(k)) | impossible
         del x, s, ok, untruncated
         bad = deghost.clean(bad, min_cells=min_cells)
-        anchor = (source == k).any(axis=-1)  # the anchor itself stays
+        anchor = _any(source == k)  # the anchor itself stays
         bad &= ~anchor
         soft = deghost.feather(bad, sigma)
         soft[anchor] = 0.0
