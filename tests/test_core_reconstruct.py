@@ -485,12 +485,46 @@ def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
 
 
 @pytest.mark.parametrize("variance", [False, True])
+@pytest.mark.parametrize("per_sample", [False, True])
+def test_a_dark_sample_takes_the_fallback_of_the_longest_frame_that_is_its_own(per_sample, variance):
+    """Where no frame has weight (dark in every frame), the result is the longest frame's
+    fallback, ``log(max(lin(z), lin(1/2)) / h)``, of the frames whose factor is at least
+    1/2 there: a frame rejected as a ghost or not covering the pixel (factor < 1/2) does
+    not set it (before: the longest frame always did, so a dark object in the reference
+    took the brighter background of a rejected long frame).  Same with per-sample weights
+    (resampled RAW, IRLS) and with the variance accumulator."""
+    shape = (4, 6, 3)
+    exposures = [0.01, 0.04, 0.16]
+    tables = [exposure_tables(256, 0.0, 255.0, CRF("srgb"), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
+                              prior_rate=1e4, exposures=tuple(exposures), with_variance=variance) for h in exposures]
+    codes = [np.zeros(shape, np.uint8) for _ in exposures]  # dark in the short frames
+    codes[2][:, [0, 1, 5]] = 40  # the long frame measures columns 0, 1 and 5
+    factors = [np.ones(shape[:2], np.float32) for _ in exposures]
+    factors[2][:, :3] = 0.0  # the long frame is rejected in columns 0-2 ...
+    factors[2][:, 3] = 0.4  # ... mostly rejected in column 3, kept in 4 and 5
+    acc = LogMerge(shape, variance=variance)
+    for k, (z, tab, f) in enumerate(zip(codes, tables, factors)):
+        if per_sample:
+            w = reconstruct.lookup(tab.weight.ravel(), 256, z, np.zeros((1, 1), np.intp)) * f[..., None]
+            acc.add(z, tab, last=k == 2, weight=w.astype(np.float32), factor=f)
+        else:
+            acc.add(z, tab, last=k == 2, factor=f)
+    out, flag = acc.finish()
+    lin = CRF("srgb").inverse(np.array([0.5 / 255.0, 40 / 255.0]), 0)
+    assert np.all(flag[:, :5] == -1) and np.all(flag[:, 5] == 0)
+    np.testing.assert_allclose(out[:, :4], np.log(lin[0] / 0.04), rtol=1e-5)  # the middle frame's half code
+    np.testing.assert_allclose(out[:, 4], np.log(lin[0] / 0.16), rtol=1e-5)  # the long frame's, kept there
+    np.testing.assert_allclose(out[:, 5], np.log(lin[1] / 0.16), rtol=1e-3)  # measured
+
+
+@pytest.mark.parametrize("variance", [False, True])
 @pytest.mark.parametrize("layout", ["rgb", "mosaic"])
 def test_add_with_a_per_pixel_factor_equals_add_with_the_weights(layout, variance):
     """LogMerge.add(factor=f) (the table's weight times a per-pixel factor, shared by an
     image's channels, inside the accumulation) gives the sums, flags and variance of
-    LogMerge.add(weight=w(z) sigma^-2 f) built with NumPy, with zero and partial factors,
-    black and clipped codes (float rounding apart)."""
+    LogMerge.add(weight=w(z) sigma^-2 f, factor=f) built with NumPy (the factor then only
+    says which frame's dark fallback a sample takes), with zero and partial factors, black
+    and clipped codes (float rounding apart)."""
     rng = np.random.default_rng(5)
     exposures = [0.004, 0.02, 0.1]
     shape, n, pattern, black, white = _layout(layout)
@@ -502,7 +536,7 @@ def test_add_with_a_per_pixel_factor_equals_add_with_the_weights(layout, varianc
         f = rng.choice([0.0, 0.3, 1.0], size=shape[:2]).astype(np.float32)
         w = reconstruct.lookup(tab.weight.ravel(), n, z, pattern) * (f[..., None] if z.ndim == 3 else f)
         fused.add(z, tab, last=k == 2, factor=f)
-        ref.add(z, tab, last=k == 2, weight=w)
+        ref.add(z, tab, last=k == 2, weight=w, factor=f)
     np.testing.assert_allclose(fused.num, ref.num, rtol=1e-5, atol=1e-30)
     np.testing.assert_allclose(fused.den, ref.den, rtol=1e-5, atol=1e-30)
     got, flag = fused.finish()

@@ -419,10 +419,11 @@ def _irls_weight(c, le, k, so, sq, ba, linear, floor):  # pragma: no cover
 
 
 @numba.njit(inline="always")
-def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode):  # pragma: no cover
+def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, own):  # pragma: no cover
     """One frame's sample ``(i, j)`` (table row ``r``, code ``z``, weight ``w``, weighted
     value ``wv``) into (7)'s sums, as :class:`LogMerge` keeps them (``mode`` 0: the
-    shortest frame sets the fallback and class; 2: the longest fills the dark fallback)."""
+    shortest frame sets the fallback and class; later frames fill the dark fallback, so
+    the longest ``own`` one's stays: not a frame rejected or not covering there)."""
     if mode == 0:
         if w > 0:
             num[i, j] = wv
@@ -437,7 +438,7 @@ def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode):  # pragma: n
         else:
             num[i, j] = wv
             den[i, j] = w
-    elif mode == 2 and den[i, j] == 0:
+    elif own and den[i, j] == 0:
         num[i, j] = fb_tab[r, z]
 
 
@@ -477,7 +478,7 @@ def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, 
             for j in range(q, cols, pw):
                 z = min(codes[i, j], top)
                 w = _irls_weight(certainty[r, z], log_e[i, j], k, so, sq, ba, linear, floor)
-                _add_sample(num, den, i, j, w, w * num_tab[r, z], fb_tab, hi_tab, r, z, mode)
+                _add_sample(num, den, i, j, w, w * num_tab[r, z], fb_tab, hi_tab, r, z, mode, True)
 
 
 def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
@@ -671,7 +672,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
                 _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
                                    np.float32(h * y_full[k]), *rows, linear, weight)
                 w, factor = (weight, None) if adjust is None else adjust(k, codes, weight)
-                acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True)
+                acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True,
+                        factor=factor)
             if linear and tab.saturated is not None:
                 # a clipped reading whose current estimate lies more than CENSORED_SDS noise
                 # sds above full scale carries no information (weight ~ phi(8)): skipped; one
@@ -860,10 +862,14 @@ class LogMerge:
             factor: np.ndarray | None = None) -> None:
         """Add one frame of stored code values ``codes`` (``shape``, uint8/uint16); ``last``
         for the longest exposure; ``weight`` per-sample weights (IRLS, deghosting) instead
-        of the table's ``w(z) sigma^-2``, combined with the table's ``value``; or (not both)
+        of the table's ``w(z) sigma^-2``, combined with the table's ``value``; or
         ``factor`` ``(H, W)`` float32, the table's weight times it per pixel (an image's channels share
         it; deghosting and alignment coverage), applied in the same pass, so that no
-        frame-sized weight array is built (8 MP RGB: 96 MB).
+        frame-sized weight array is built (8 MP RGB: 96 MB).  With both, ``weight`` holds
+        the factor already and ``factor`` (per pixel or per sample) only says where the
+        frame is a sample's own (``>= 1/2``): where no frame has weight, a sample takes the
+        longest own frame's fallback, not that of a frame rejected as a ghost there or not
+        covering it.
 
         With ``variance``: ``var += w^2 Var(x_j)`` with the table's ``variance``; or, with
         ``information`` (IRLS), where ``weight = w(z) I_j`` is the certainty times the
@@ -871,13 +877,14 @@ class LogMerge:
         (:func:`irls_weights`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
-        if factor is not None and self.var is not None:  # the variance pass takes per-sample weights
+        keep = _NO_WEIGHT if factor is None else np.ascontiguousarray(factor, np.float32).reshape(factor.shape[0], -1)
+        if factor is not None and weight is None and self.var is not None:  # the variance pass takes per-sample weights
             per_pixel = lookup(tables.weight, n, codes, self.pattern).reshape(factor.shape + (-1,))
             weight = (per_pixel * factor[..., None]).reshape(codes.shape)
-        elif factor is not None:
+        elif factor is not None and weight is None:
             _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), tables.weighted_log.reshape(-1, n),
                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
-                        np.ascontiguousarray(factor, np.float32), 2, mode, self._2d(self.num), self._2d(self.den))
+                        keep, 2, mode, self._2d(self.num), self._2d(self.den), keep, True)
             self._added(tables)
             return
         if weight is None:
@@ -887,7 +894,7 @@ class LogMerge:
         if self.var is None:
             _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
-                        int(weight is not None), mode, self._2d(self.num), self._2d(self.den))
+                        int(weight is not None), mode, self._2d(self.num), self._2d(self.den), keep, factor is not None)
         else:
             use_cert = information and weight is not None
             q_tab = tables.certainty if use_cert else tables.variance
@@ -896,7 +903,7 @@ class LogMerge:
             _accumulate_var(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
                             tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
                             q_tab.reshape(-1, n), per_sample, weight is not None, use_cert, mode,
-                            self._2d(self.num), self._2d(self.den), self._2d(self.var))
+                            self._2d(self.num), self._2d(self.den), self._2d(self.var), keep, factor is not None)
         self._added(tables)
 
     def add_irls(self, codes: np.ndarray, tables: ExposureTables, last: bool, log_e: np.ndarray, k: float, rows,
@@ -953,17 +960,21 @@ _NO_WEIGHT = np.zeros((1, 1), np.float32)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den):  # pragma: no cover
+def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den,
+                keep, use_keep):  # pragma: no cover
     """One frame of (7) into ``num``/``den`` (2-D views), rows in parallel.  ``mode`` 0:
     the shortest frame (sets the fallback and the saturated/dark class), 1: a middle
-    frame, 2: the longest (dark samples take its fallback).  ``use_weight`` 0: the table's
-    weights; 1: ``weight`` per sample (``num_tab`` the values); 2: the table's weights
-    times ``weight`` per pixel (``(rows, cols / channels)``, ``num_tab`` the weighted
-    values).  See :class:`LogMerge`."""
+    frame, 2: the longest (a dark sample takes the longest own frame's fallback).
+    ``use_weight`` 0: the table's weights; 1: ``weight`` per sample (``num_tab`` the
+    values); 2: the table's weights times ``weight`` per pixel (``(rows, cols /
+    channels)``, ``num_tab`` the weighted values).  With ``use_keep`` the frame is a
+    sample's own only where ``keep`` (per pixel or per sample) is at least 1/2.  See
+    :class:`LogMerge`."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
     top = w_tab.shape[1] - 1  # codes above the table (never valid data) read its last, clipped entry
     per_pixel = cols // weight.shape[1] if use_weight == 2 else 1
+    per_keep = cols // keep.shape[1] if use_keep else 1
     for r in numba.prange(rows):
         prow = pattern[r % ph]
         for q in range(min(pw, cols)):
@@ -980,7 +991,8 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
                 else:
                     w = w_tab[c, z]
                     wv = num_tab[c, z]
-                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode)
+                own = keep[r, s // per_keep] >= 0.5 if use_keep else True
+                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, own)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -1017,7 +1029,7 @@ def _finish(num, den, pattern, dark_floor, linear, scale, flag):  # pragma: no c
 
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
-                    num, den, var):  # pragma: no cover
+                    num, den, var, keep, use_keep):  # pragma: no cover
     """:func:`_accumulate` with the third accumulator of ``LogMerge(variance=True)``:
     ``var += w^2 q`` (``q_tab`` the frame's per-code variance of its value), or with
     ``use_cert`` ``var += q w`` (``q_tab`` the certainty ``w(z)``, ``w`` an IRLS weight
@@ -1025,6 +1037,7 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
     rows, cols = codes.shape
     ph, pw = pattern.shape
     top = w_tab.shape[1] - 1
+    per_keep = cols // keep.shape[1] if use_keep else 1
     for r in numba.prange(rows):
         prow = pattern[r % ph]
         for q in range(min(pw, cols)):
@@ -1050,7 +1063,7 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
                 elif mode == 0:
                     num[r, s] = fb_tab[c, z]
                     den[r, s] = -1.0 if hi_tab[c, z] else 0.0
-                elif mode == 2 and den[r, s] == 0:
+                elif den[r, s] == 0 and (not use_keep or keep[r, s // per_keep] >= 0.5):
                     num[r, s] = fb_tab[c, z]
 
 

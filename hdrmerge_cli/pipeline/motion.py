@@ -494,14 +494,16 @@ class SampleWeights:
         return out, f
 
     def __call__(self, k: int, codes: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """``(weight, factor)`` for :meth:`LogMerge.add`, one of them None: where the frame
-        was not resampled with a spread (images; RAW moved by whole CFA periods) only the
-        per-pixel :meth:`factor`, which the merge applies to the table's weights in its own
-        pass; else the per-sample weights (``codes``' shape, float32)."""
+        """``(weight, factor)`` for :meth:`LogMerge.add`: where the frame was not resampled
+        with a spread (images; RAW moved by whole CFA periods) only the per-pixel
+        :meth:`factor` (weight None), which the merge applies to the table's weights in its
+        own pass; else the per-sample weights (``codes``' shape, float32) with the factor in
+        them, and the factor, which then only says where the frame is a sample's own."""
         if self.load is None or self.load.spread(self.frames[k]) is None:
             return None, self.factor(k)
         w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
-        return self._weighted(k, codes, w, own=True)[0].reshape(codes.shape).astype(np.float32, copy=False), None
+        w, f = self._weighted(k, codes, w, own=True)
+        return w.reshape(codes.shape).astype(np.float32, copy=False), f
 
 
 def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray) -> np.ndarray:
