@@ -1033,6 +1033,62 @@ def test_region_ratio_is_not_pulled_by_noise():
     assert abs(naive * 0.97 - 1) > 0.1
 
 
+def test_the_log_change_of_a_reading_at_zero_is_bounded_by_the_noise_not_undefined():
+    """A RAW anchor reading exactly 0 (at black) where the frame reads 5 (noise sd 0.01):
+    the log change counts each reading as at least the pair's noise deviation, log(5 /
+    0.014) ~ 5.9, so the min_change gate passes and the cells are rejected (before: a
+    reading <= 0 had no log and counted as no change); readings within the noise of each
+    other are not."""
+    rng = np.random.default_rng(3)
+    shape = (64, 64 * 4)
+    xa = np.zeros(shape, np.float32)
+    x = np.where(np.arange(shape[1]) < 128, 5.0, 0.0).astype(np.float32) + rng.normal(0, 0.01, shape).astype(np.float32)
+    s = np.full(shape, 1e-4, np.float32)
+    ok = np.ones(shape, bool)
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros(shape, np.float32), (1, 4), scale=False,
+                                     min_change=deghost.MIN_LOG_CHANGE)
+    assert bad[:, :32].all() and not bad[:, 32:].any()
+
+
+def test_raw_glare_is_bounded_by_the_light_of_what_clips(tmp_path):
+    """RAW: a dark object (at black) in the reference only, 8-28 px beside a region that
+    the long frame clips (and the reference measures at half scale), over a surround the
+    long frame reads at 30 % of full scale.  Glare from the region (at most GLARE_FRACTION
+    of its level, 0.1 x 6.7 = 0.67x the surround) cannot explain the long frame's reading,
+    so the long frame is dropped over the object (before: excused as glare, unbounded
+    within 5 % of the frame, and the object took the surround's brightness); the static
+    twin rejects nothing there."""
+    from hdrmerge_cli.core import sensor as sm
+    from hdrmerge_cli.core.color import mosaic
+    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.pipeline import merge as pm
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    h, w = 480, 640
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = 4.75e5 * (1 + 0.2 * np.sin(xx / 9.0) * np.sin(yy / 7.0))
+    base[:, 400:] = 3.17e6  # clipped in the long frame, half scale in the reference
+    obj = (slice(200, 280), slice(372, 392))
+    model = sm.SensorModel()
+    times = (1 / 800, 1 / 200, 1 / 50)
+    masks = {}
+    for kind in ("static", "moving"):
+        paths = []
+        for k, t in enumerate(times):
+            scene = base.copy()
+            if kind == "moving" and k == 1:
+                scene[obj] = 1.0  # dark, in the reference only
+            z = sm.quantise_raw(sm.expose(mosaic(np.repeat(scene[..., None], 3, -1), "RGGB"), t, model,
+                                          np.random.default_rng([5, k]), np.zeros((h, w))), model)
+            p = tmp_path / f"{kind}{k}.dng"
+            write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
+            paths.append(str(p))
+        merged = pm.merge_bracket(paths, pm.MergeOptions(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
+        masks[kind] = ghost_weight(merged.ghosts, 2, h, w)
+    assert masks["moving"][204:276, 376:388].min() > 0.95
+    assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_region_shifts_false_alarms_and_a_dim_ghost(seed):
     """Monte-Carlo: on pure noise (with a level-dependent bias and a variance the model

@@ -519,9 +519,16 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     x = match_channels(x, xa, use, cell[1], match_degree)
     r = None
     if smooth or min_change > 0 or excuse is not None:
-        pos = both & (x > 0) & (xa > 0)
+        # the log change, each reading at least the pair's noise deviation: a reading within
+        # its noise of zero (a RAW one at or below black) is about that dark, so the change
+        # of a dark object over a bright surround is large, not undefined (before: left out
+        # as 0, which failed the min_change gate)
+        floor = np.sqrt(s + sa, dtype=np.float32)
+        xf, xaf = np.maximum(x, floor), np.maximum(xa, floor)
+        pos = both & (xf > 0) & (xaf > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.where(pos, np.log(np.maximum(x, 1e-30) / np.maximum(xa, 1e-30)), 0.0).astype(np.float32)
+            r = np.where(pos, np.log(np.maximum(xf, 1e-30) / np.maximum(xaf, 1e-30)), 0.0).astype(np.float32)
+        del xf
         if smooth:
             f = smooth_ratio_field(r, pos, cell[1])
             x = x * np.exp(-f).astype(np.float32)
@@ -531,7 +538,7 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         d = envelope_residual(x, xa, cell[1], reach)
         if r is not None:  # the log change beyond what a shift within reach explains
             with np.errstate(divide="ignore", invalid="ignore"):
-                r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xa, 1e-30))), 0.0).astype(np.float32)
+                r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xaf, 1e-30))), 0.0).astype(np.float32)
     else:
         d = x - xa
         var = var + grad2
