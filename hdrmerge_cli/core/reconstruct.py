@@ -935,7 +935,8 @@ class LogMerge:
         ``FLAG_SATURATED`` (above mid-scale in the shortest frame): the clipping level of
         the shortest frame, ``log(gamma^-1(z_max) / h_min)``, a lower bound;
         ``FLAG_DARK``: the longest frame's value with a floor of half a code value,
-        ``log(max(gamma^-1(z), gamma^-1(1/2)) / h_max)``, an upper bound.
+        ``log(max(gamma^-1(z), gamma^-1(1/2)) / h_max)``, an upper bound (the longest frame
+        that is the sample's own, see :meth:`add`).
         ``linear``: the sums hold linear values (the ML estimator); a sample whose weighted
         mean is not positive (every weighted frame read black) is dark, with the floor
         ``log(gamma^-1(1/2) / h_max)`` of its channel.
