@@ -180,3 +180,12 @@ def test_a_profile_that_is_not_json_is_named_as_the_profile(run, tmp_path, jpeg_
                check=False)
     assert proc.returncode == 1 and "truth.exr" in proc.stderr and "unknown CRF" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.exr").exists()
+
+
+def test_preview_followed_by_an_option_names_the_mistake(run, tmp_path):
+    """`--preview --overwrite`: click takes the option as the preview's path; the error
+    says so (usage error, exit 2) instead of complaining about a '.jpg' suffix."""
+    a = _jpeg(tmp_path / "a.jpg")
+    b = _jpeg(tmp_path / "b.jpg", ExposureTime=0.1)
+    proc = _fails(run, tmp_path, a, b, "--preview", "--overwrite", code=2, expect=["--preview", "needs a file name"])
+    assert "suffix" not in proc.stderr

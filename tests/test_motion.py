@@ -805,7 +805,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     true = [np.float64([[1, 0, shift if k != 1 else 0.0], [0, 1, 0]]) for k in range(3)]
 
     def given(frames, exposures, crf, mode, load=None):
-        return {"mode": mode, "motion": "translation", "resampling": "bilinear", "reference": frames[1].path,
+        return {"mode": mode, "motion": "translation", "resampling": "per-colour", "reference": frames[1].path,
                 "applied": True, "shift_px": [], "largest_displacement_px": [], "confidence": [], "unaligned": [],
                 "warps": true}
 

@@ -146,6 +146,8 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         compression=compression, noise_cache=not no_cache, colorspace=colorspace,
     )
     given = _given(click.get_current_context())
+    if preview is not None and str(preview).startswith("-"):  # `--preview --overwrite`: click took the option as the path
+        raise click.BadParameter(f"needs a file name (got {preview}, an option?)", param_hint="--preview")
     if "preview_size" in given and preview is None:
         raise click.UsageError("--preview-size applies to --preview only")
     if "ghost" in extra_channels and deghost == "off":

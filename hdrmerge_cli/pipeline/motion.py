@@ -123,7 +123,8 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     periods = raw and motion == "translation" and (mode == "translation" or whole_periods_suffice(warps))
     if periods:
         applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
-    resampling = "none" if not raw else "cfa-periods" if periods else "bilinear"
+    # RAW: moved by whole CFA periods, or resampled colour by colour (core.align.resample_mosaic)
+    resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
     out = {"mode": mode, "motion": motion, "resampling": resampling, "reference": frames[ref].path,
            "applied": bool(applied),
            "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
@@ -140,7 +141,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
 
 def whole_periods_suffice(warps) -> bool:
     """RAW: a translation by whole 2 x 2 CFA periods moves codes without resampling them;
-    ``auto`` resamples each colour's sites (bilinear) instead only when whole periods would
+    ``auto`` resamples each colour's sites (``core.align.resample_mosaic``) instead only when whole periods would
     leave some frame more than :data:`AUTO_ALIGN_PX` off along either axis."""
     return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
 
