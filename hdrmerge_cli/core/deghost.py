@@ -96,9 +96,9 @@ FIELD_MAX = 0.5
 #: glare reach (fraction of the frame's longer side): within it of a clipped region of the
 #: longer exposure of a pair, that frame reading brighter is not motion (:func:`glare_excuse`)
 GLARE_REACH = 0.05
-#: the most of a bright region's level that veiling glare adds to a dark patch beside it
-#: (ISO 9358's veiling glare index, a black patch in a bright surround, is a few per cent for
-#: camera lenses): glare cannot make a reading clip that needs more (:func:`glare_excuse`)
+#: the most of its surround's mean light that veiling glare adds to a dark patch (ISO 9358's
+#: veiling glare index, a black patch in a bright field, is a few per cent for camera
+#: lenses): glare cannot explain a reading that needs more (:func:`glare_excuse`)
 GLARE_FRACTION = 0.1
 #: pixels from a clipped region within which it may spread without that bound (blooming,
 #: the lens's point-spread core, sharpening halos)
@@ -438,11 +438,14 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH, sou
     glare and blooming around clipped highlights grow with exposure), 0 elsewhere.
     With ``source`` (per cell, the anchor's level; inf where it is unknown, e.g. clipped in
     every frame) and ``need`` (per cell, the light glare would have to add, same units) a
-    cell is excused only where :data:`GLARE_FRACTION` of the brightest clipped cell's
-    ``source`` within reach (a square of side ``2 reach + 1``, a little more than the
-    disc) reaches ``need``, or within ``bloom`` cells of a clipped cell: a dark object in
-    the anchor where a longer frame clips on a surround only a few times brighter is not
-    glare but another moment."""
+    cell is excused only where :data:`GLARE_FRACTION` of the mean light of the clipped cells
+    around it (``source`` where clipped, 0 elsewhere, averaged over the part of the square
+    of side ``2 reach + 1`` inside the frame) reaches ``need``, where a clipped cell of
+    unknown level lies in that square, or within ``bloom`` cells of a clipped cell.  Glare
+    scales with how much of the surround is bright, not only with its brightest point (the
+    veiling glare index, :data:`GLARE_FRACTION`'s bound, is that of a bright field all
+    around): a dark object in the anchor where a longer frame clips on a surround only a few
+    times brighter, or beside a small bright source, is not glare but another moment."""
     import cv2
 
     if not clipped.any() or not sign:
@@ -455,10 +458,15 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH, sou
     near = d2 <= r**2
     if source is not None:
         side = 2 * int(r) + 1
-        level = np.where(clipped, source, 0.0).astype(np.float32)
-        brightest = cv2.dilate(level, cv2.getStructuringElement(cv2.MORPH_RECT, (side, side)),
-                               borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
-        near &= (np.float32(GLARE_FRACTION) * brightest >= need) | (d2 <= bloom**2)
+        unknown = clipped & ~np.isfinite(source)
+        light = np.where(clipped & ~unknown, source, 0.0).astype(np.float64)
+
+        def box_sum(a):
+            return cv2.boxFilter(a, cv2.CV_64F, (side, side), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+        mean = box_sum(light) / box_sum(np.ones(clipped.shape, np.float64))
+        near &= ((GLARE_FRACTION * mean >= need) | (box_sum(unknown.astype(np.float64)) > 0.5)
+                 | (d2 <= bloom**2))
     return np.where(near, np.int8(sign), np.int8(0))
 
 
