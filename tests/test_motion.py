@@ -743,33 +743,25 @@ def test_dark_bound_adapts_to_a_crushed_toe_but_still_finds_a_bright_object():
 
 
 # ---------------------------------------------------------------- resampling variance (issue 17, RAW cases)
-def test_interpolation_variance_is_the_linear_interpolation_error_of_a_quadratic():
-    """``k e^2`` with ``e`` the linear-interpolation error: exact for a quadratic
-    ``z = a x^2`` at fraction ``f`` (``e = a f (1 - f)``, computed here as the bilinear
-    interpolation of the samples minus the true value), 0 on a linear ramp and where the
-    warp lands on samples, per colour on a mosaic."""
-    a = 3.0
-    x = np.arange(40, dtype=np.float64)
-    codes = np.repeat((a * (x - 20) ** 2 + 100)[None, :], 30, axis=0).astype(np.uint16)
-    f = 0.3
-    v = align.interpolation_variance(codes, np.float64([[1, 0, f], [0, 1, 0]]))
-    src = x[5:35] + f
-    interp = np.interp(src, x, a * (x - 20) ** 2 + 100)  # linear interpolation between samples
-    e = interp - (a * (src - 20) ** 2 + 100)  # = a f (1 - f)
-    np.testing.assert_allclose(e, a * f * (1 - f), rtol=1e-9)
-    np.testing.assert_allclose(v[5:25, 5:35], np.broadcast_to(align.INTERPOLATION_ERROR_FACTOR * e**2, (20, 30)), rtol=1e-4)
-    assert np.all(align.interpolation_variance(codes, np.float64([[1, 0, 2], [0, 1, -1]])) == 0)
-    ramp = np.repeat((10 * x)[None, :], 30, axis=0).astype(np.uint16)
-    assert np.abs(align.interpolation_variance(ramp, np.float64([[1, 0, f], [0, 1, 0.4]]))[2:-2, 2:-2]).max() < 1e-6
-    # per colour on a mosaic: a flat colour plane has no error whatever the others do
+def test_tap_variance_is_zero_on_the_grid_and_the_contrast_inside_an_edge():
+    """The spread of the bilinear taps: nothing where the warp lands on samples or the
+    image is flat, ``t (1 - t) (b - a)^2`` between two samples ``a``, ``b`` at fraction ``t``."""
+    codes = np.zeros((20, 30), np.uint16)
+    codes[:, 15:] = 1000
+    whole = align.tap_variance(codes, np.float64([[1, 0, 2], [0, 1, -1]]))
+    assert np.all(whole == 0)
+    quarter = align.tap_variance(codes, np.float64([[1, 0, 0.25], [0, 1, 0]]))
+    np.testing.assert_allclose(quarter[5, 14], 0.25 * 0.75 * 1000**2, rtol=1e-3)  # between columns 14 and 15
+    assert np.all(quarter[:, :13] == 0) and np.all(quarter[:, 16:] == 0)
+    # per colour on a mosaic: a flat colour plane has no spread whatever the others do
     mosaic = np.full((20, 30), 500, np.uint16)
-    mosaic[0::2, 1::2] = (np.arange(15)[None, :] ** 2) * 20
-    u = align.interpolation_variance_mosaic(mosaic, np.float64([[1, 0, 0.7], [0, 1, 0.3]]))
-    assert np.all(u[1::2, 0::2] == 0) and u[0::2, 1::2][2:-2, 2:-2].min() > 0
+    mosaic[0::2, 1::2] = np.arange(15)[None, :] * 60
+    v = align.tap_variance_mosaic(mosaic, np.float64([[1, 0, 0.7], [0, 1, 0.3]]))
+    assert np.all(v[1::2, 0::2] == 0) and v[0::2, 1::2][2:-2, 2:-2].min() > 0
 
 
 def test_resampled_weight_adds_the_interpolation_variance():
-    """A table weight ``c / v`` becomes ``c / (v + u)``, ``u`` the interpolation variance through the
+    """A table weight ``c / v`` becomes ``c / (v + u)``, ``u`` the tap variance through the
     value table's slope: unchanged with no spread, ~1/u when it dominates."""
     from hdrmerge_cli.core.reconstruct import ExposureTables
     from hdrmerge_cli.pipeline.motion import resampled_weight
@@ -832,7 +824,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     static = run("static", paths["static"])
     monkeypatch.setattr(motion, "estimate_alignment", given)
     weighted = run("weighted", paths["moving"])
-    monkeypatch.setattr(align, "interpolation_variance_mosaic", lambda codes, warp: np.zeros(codes.shape, np.float32))
+    monkeypatch.setattr(align, "tap_variance_mosaic", lambda codes, warp: np.zeros(codes.shape, np.float32))
     unweighted = run("unweighted", paths["moving"])
 
     def rms(out):

@@ -533,59 +533,35 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     return out.astype(codes.dtype)
 
 
-#: the interpolation variance's factor over the squared linear-interpolation error estimate
-#: (the second difference at a sub-plane's pitch under-states the curvature of detail near
-#: its Nyquist frequency, by up to 2.5x): chosen on the motion benchmark's RAW cases 0, 2, 8,
-#: 18 and 30 (PSNR summed over the five: 1 -> 224.2 dB, 2 -> 225.2, 4 -> 225.4, 8 -> 224.7;
-#: the taps' spread before: 220.9), flat between 2 and 8
-INTERPOLATION_ERROR_FACTOR = 4.0
-
-
-def _fractions(warp: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per output sample ``(h, w)``, the fractional part of its source position along x and
-    y under ``warp`` (output -> source, as OpenCV's ``WARP_INVERSE_MAP``), float32."""
-    x, y = np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)
-    out = []
-    for row in np.asarray(warp, np.float32):
-        src = (row[0] * x)[None, :] + (row[1] * y + row[2])[:, None]
-        out.append(src - np.floor(src))
-    return out[0], out[1]
-
-
-def interpolation_variance(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
-    """The variance of resampling's error at each output sample, float32 in squared codes,
-    shape of ``codes`` ``(H, W)``: ``k e^2`` with ``e = (fx (1 - fx) D_xx + fy (1 - fy)
-    D_yy) / 2`` the error of linear interpolation at the fractional source position ``(fx,
-    fy)`` (:func:`_fractions`) for the local second differences ``D`` (exact for a
-    quadratic; the differences warped bilinearly), ``k`` = :data:`INTERPOLATION_ERROR_FACTOR`.
-    It is 0 where the warp lands on samples or the scene is locally linear, and large
-    inside an edge or on detail near the sample pitch.  The merge adds it to a resampled
-    sample's variance (:func:`hdrmerge_cli.pipeline.motion.resampled_weight`), so that where
-    resampling cannot reproduce the scene the frames that were not resampled decide.
-    (The taps' spread used before also counted a gradient, which linear interpolation
-    follows exactly, and the taps' noise: on the motion benchmark's RAW cases the merge
-    away from the ghost gained 0.5-1.6 dB with this, one case -0.02 dB.)"""
+def tap_variance(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """The spread of the source samples bilinear resampling (:func:`apply_warp`) mixes into
+    each output sample, float32 in squared codes, shape of ``codes``: ``sum_i w_i z_i^2 -
+    (sum_i w_i z_i)^2`` over the (up to 4) taps ``z_i`` with their bilinear weights ``w_i``
+    (two float warps).  It is the variance of the interpolated value if the true one were
+    any of the taps, in proportion to their weights: 0 where the warp lands on a sample or
+    the neighbourhood is flat, the squared contrast across an edge the warp falls inside.
+    The merge adds it to a resampled sample's variance (:func:`hdrmerge_cli.pipeline.motion.sample_weights`),
+    so that where resampling cannot reproduce the scene (sharp edges, detail finer than the
+    sample pitch, e.g. a CFA colour's sub-plane) the frames that were not resampled decide.
+    float32 round-off of ``z^2`` is ``6e-8 z^2``, far below the noise of a reading ``z``."""
     cv2 = _cv2()
-    h, w = codes.shape
-    z = np.ascontiguousarray(codes, np.float32)
+    h, w = codes.shape[:2]
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     m = np.asarray(warp, np.float32)
-    fx, fy = _fractions(warp, h, w)
-    e = np.zeros((h, w), np.float32)
-    for kernel, f in ((np.float32([[1, -2, 1]]), fx), (np.float32([[1], [-2], [1]]), fy)):
-        second = cv2.filter2D(z, -1, kernel, borderType=cv2.BORDER_REPLICATE)
-        second = cv2.warpAffine(second, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        e += f * (1 - f) * second
-    e *= 0.5
-    return np.float32(INTERPOLATION_ERROR_FACTOR) * e * e
+    z = np.ascontiguousarray(codes, np.float32)
+    mean = cv2.warpAffine(z, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    np.multiply(z, z, out=z)
+    second = cv2.warpAffine(z, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    second -= mean * mean
+    return np.maximum(second, 0.0, out=second).reshape(codes.shape)
 
 
-def interpolation_variance_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
-    """:func:`interpolation_variance` of each same-colour sub-plane on its own (a Bayer
-    mosaic ``(H, W)``): the error of interpolating a colour between its own samples (an
-    upper bound for green, which :func:`resample_mosaic` reads on its denser lattice)."""
+def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """:func:`tap_variance` of each same-colour sub-plane on its own: the spread of the
+    colour's own samples that :func:`resample_mosaic` interpolates between (an upper bound
+    for green, which it reads on its denser lattice)."""
     out = np.empty(codes.shape, np.float32)
     for dy in (0, 1):
         for dx in (0, 1):
-            out[dy::2, dx::2] = interpolation_variance(codes[dy::2, dx::2], _site_warp(warp, dx, dy))
+            out[dy::2, dx::2] = tap_variance(codes[dy::2, dx::2], _site_warp(warp, dx, dy))
     return out

@@ -156,9 +156,9 @@ def loader(frames: list[Frame], alignment: dict | None, load=load_codes):
 
 class AlignedLoader:
     """``frame -> codes`` brought onto the reference.  A RAW frame resampled per CFA
-    colour also leaves the variance of each value's interpolation error
-    (:func:`~hdrmerge_cli.core.align.interpolation_variance`) for :class:`SampleWeights`;
-    those of the :data:`KEEP` latest decodes are kept (the merge holds two frames)."""
+    colour also leaves the spread of the samples each value was interpolated from
+    (:func:`~hdrmerge_cli.core.align.tap_variance`) for :class:`SampleWeights`; the
+    spreads of the :data:`KEEP` latest decodes are kept (the merge holds two frames)."""
 
     KEEP = 3
 
@@ -166,34 +166,34 @@ class AlignedLoader:
         self.load = load
         self.warps = {f.path: w for f, w in zip(frames, alignment["warps"])}
         self.periods = alignment["resampling"] == "cfa-periods"
-        self.variances: dict[str, np.ndarray] = {}
+        self.spreads: dict[str, np.ndarray] = {}
 
     def __call__(self, frame: Frame) -> np.ndarray:
         codes = self.load(frame)
         clip = int(np.max(frame.white))
         w = self.warps[frame.path]
         if is_identity(w):  # the reference: nothing to resample
-            self.variances.pop(frame.path, None)
+            self.spreads.pop(frame.path, None)
             return codes
         if frame.kind != "raw":
-            # full-resolution bilinear resampling of images: no interpolation variance (on the
-            # 8-bit cases of benchmarks/motion.py the taps' spread cost 1-5 dB away from the
-            # ghost, the curvature estimate 2.1-2.7 dB on cases 1, 5 and 13)
+            # full-resolution bilinear resampling of images: no tap variance (on the 8-bit cases
+            # of benchmarks/motion.py it cost 1-5 dB away from the ghost: the taps' spread is
+            # mostly the codes' noise and quantisation there, which the tables already hold)
             return align.apply_warp(codes, w, clip)
         from hdrmerge_cli.pipeline.bracket import sample_pattern
 
         cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
         out = align.apply_warp_mosaic(codes, w, clip, self.periods, frame.cfa_pattern, np.asarray(frame.black)[cell])
-        self.variances.pop(frame.path, None)
+        self.spreads.pop(frame.path, None)
         if not self.periods and not is_identity(w):
-            self.variances[frame.path] = align.interpolation_variance_mosaic(codes, w)
-            while len(self.variances) > self.KEEP:
-                self.variances.pop(next(iter(self.variances)))
+            self.spreads[frame.path] = align.tap_variance_mosaic(codes, w)
+            while len(self.spreads) > self.KEEP:
+                self.spreads.pop(next(iter(self.spreads)))
         return out
 
-    def variance(self, frame: Frame) -> np.ndarray | None:
-        """The interpolation variance (squared codes) of the frame's latest decode, or None."""
-        return self.variances.get(frame.path)
+    def spread(self, frame: Frame) -> np.ndarray | None:
+        """The tap variance (squared codes) of the frame's latest decode, or None."""
+        return self.spreads.get(frame.path)
 
 
 def is_identity(warp: np.ndarray) -> bool:
@@ -447,7 +447,7 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
                    load=None):
     """The per-sample weights of the merge (a :class:`SampleWeights`), or None when
     neither the deghosting nor the alignment is applied.  ``load``: the merge's
-    :class:`AlignedLoader` (for the interpolation variances)."""
+    :class:`AlignedLoader` (for the resampling spreads)."""
     ghosts = ghosts if ghosts and ghosts["applied"] else None
     alignment = alignment if alignment and alignment["applied"] else None
     if ghosts is None and alignment is None:
@@ -482,9 +482,9 @@ class SampleWeights:
         """``w`` with the resampling's variance added and times :meth:`factor` (broadcast
         over an image's channels), and the factor; ``own``: ``w`` may be overwritten (a
         fresh full-size array costs its page faults, tenths of a second at 24 MP)."""
-        u = self.load.variance(self.frames[k]) if self.load is not None else None
-        if u is not None:
-            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(u)), True
+        spread = self.load.spread(self.frames[k]) if self.load is not None else None
+        if spread is not None:
+            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread)), True
         f = self.factor(k)
         if f is None:
             return w, None
@@ -503,28 +503,28 @@ class SampleWeights:
 
     def __call__(self, k: int, codes: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
         """``(weight, factor)`` for :meth:`LogMerge.add`: where the frame was not resampled
-        with an interpolation variance (images; RAW moved by whole CFA periods) only the per-pixel
+        with a spread (images; RAW moved by whole CFA periods) only the per-pixel
         :meth:`factor` (weight None), which the merge applies to the table's weights in its
         own pass; else the per-sample weights (``codes``' shape, float32) with the factor in
         them, and the factor, which then only says where the frame is a sample's own."""
-        if self.load is None or self.load.variance(self.frames[k]) is None:
+        if self.load is None or self.load.spread(self.frames[k]) is None:
             return None, self.factor(k)
         w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
         w, f = self._weighted(k, codes, w, own=True)
         return w.reshape(codes.shape).astype(np.float32, copy=False), f
 
 
-def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, variance: np.ndarray) -> np.ndarray:
+def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray) -> np.ndarray:
     """Inverse-variance weights of resampled samples: a table weight ``w = c / v`` (``c``
     the weighting function ``w(z)``, ``v`` the variance of the sample's value) becomes
-    ``c / (v + u)``, ``u`` the interpolation's variance: ``variance`` in squared codes
-    (:func:`~hdrmerge_cli.core.align.interpolation_variance`) times the squared slope of the value
+    ``c / (v + u)``, ``u`` the interpolation's variance: the tap variance in squared codes
+    (:func:`~hdrmerge_cli.core.align.tap_variance`) times the squared slope of the value
     table (linear or log value per code) at the sample's code.  Both ``(H, W')``."""
     n = tables.n_codes
     slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
     u = _samples(lookup(slope, n, codes, pattern))
     u *= u
-    u *= variance
+    u *= spread
     c = _samples(lookup(tables.certainty, n, codes, pattern))
     den = c + w * u
     return np.where(den > 0, w * c / np.where(den > 0, den, 1.0), 0.0).astype(np.float32)
