@@ -366,8 +366,8 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             # a clipped reading of the longer frame that the anchor makes impossible (it measures
             # far below the frame's clipping level): something bright was there in this frame
             # only, unless glare from what is clipped in agreement with the anchor spread there
-            # (beyond its bloom, by more than glare adds: a tenth of the anchor's level of what
-            # clips nearby)
+            # (beyond its bloom, by more than glare adds: a tenth of the mean light, in the
+            # anchor, of what clips around it)
             clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
             violated = deghost.violates_bound(xa, sa, clip_bound, p_fa) & va
             impossible = _any(violated)
