@@ -274,7 +274,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     measures the rest).  The test runs on block means
     (:func:`~hdrmerge_cli.core.deghost.block_size`); each frame is decoded twice, for the
     anchor and for its test, so that only the anchor's block estimates are held (memory flat
-    in the frame count).  Returns ``{"mode", "applied",
+    in the frame count); the anchor pass's last frame is tested first, on its estimates.  Returns ``{"mode", "applied",
     "p_false_alarm", "rejected_fraction": [...], "masks": [(h, w) uint8 soft masks, 255 =
     dropped], "block", "covered"}``, masks over blocks of ``block`` x ``block`` pixels
     (RAW: CFA periods) covering the first ``covered`` = (rows, cols) samples; ``auto``
@@ -323,8 +323,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     order = sorted(range(len(frames)), key=lambda k: (k != ref, abs(np.log(exposures[k] / exposures[ref])), k))
     xa = sa = va = ua = source = bound_r = s_r = None
     clipped, beyond = {}, {}  # per frame: blocks clipped in a channel; readings far outside the
+    held = None  # the anchor pass's last frame's estimates: its test runs first, on them
     for k in order:  # reference's dark / clipped bound
-        x, s, ok, bound, untruncated = estimate(k)
+        x, s, ok, bound, untruncated = estimates = estimate(k)
         if bound_r is None:
             bound_r, s_r = bound, s.copy()
         clipped[k] = _any(bound < 0)
@@ -340,7 +341,8 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         take = ok & ~va
         xa[take], sa[take], ua[take], source[take] = x[take], s[take], untruncated[take], k
         va |= ok
-        del x, s, ok, bound, untruncated
+        held = (k, estimates) if k == order[-1] else None
+        del x, s, ok, bound, untruncated, estimates
     hb, wb, nc = xa.shape
     # the anchor's level per block (its brightest channel; unknown where it is clipped: no
     # frame measures it), what a clipped region can spread as glare
@@ -359,7 +361,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     min_cells = deghost.min_blob(b * per_px)
 
     def test(k: int) -> tuple[float, np.ndarray]:  # frame k against the anchor: (fraction, mask)
-        x, s, ok, bound_k, untruncated = estimate(k)
+        nonlocal held
+        x, s, ok, bound_k, untruncated = held[1] if held is not None and held[0] == k else estimate(k)
+        held = None
         longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
         impossible = np.zeros(clipped[k].shape, bool)
         if longer > 0:
@@ -397,7 +401,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
 
     # one frame at a time: two on two threads took 12-15 % less time on the real JPEG
     # brackets but 110-145 MB more memory (the tests' frame-sized temporaries)
-    fractions, masks = (list(v) for v in zip(*map(test, range(len(frames)))))
+    first = [held[0]] if held is not None else []
+    results = {k: test(k) for k in first + [k for k in range(len(frames)) if k not in first]}
+    fractions, masks = (list(v) for v in zip(*(results[k] for k in range(len(frames)))))
     applied = mode == "on" or max(fractions) > deghost.AUTO_FRACTION
     log.info("deghosting (blocks of %d px): up to %.2f %% of a frame's blocks move; %s", b * per_px,
              100 * max(fractions), "applied" if applied else "not needed")
