@@ -418,12 +418,18 @@ def _irls_weight(c, le, k, so, sq, ba, linear, floor):  # pragma: no cover
     return max(c * (num / var), floor)
 
 
+#: a stand-in for an absent per-sample or per-pixel array of the compiled kernels
+_NO_WEIGHT = np.zeros((1, 1), np.float32)
+
+
 @numba.njit(inline="always")
-def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, own):  # pragma: no cover
+def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_keep, use_keep):  # pragma: no cover
     """One frame's sample ``(i, j)`` (table row ``r``, code ``z``, weight ``w``, weighted
     value ``wv``) into (7)'s sums, as :class:`LogMerge` keeps them (``mode`` 0: the
-    shortest frame sets the fallback and class; later frames fill the dark fallback, so
-    the longest ``own`` one's stays: not a frame rejected or not covering there)."""
+    shortest frame sets the fallback and class; 2: the longest fills the dark fallback;
+    with ``use_keep`` every later frame fills it where it is the sample's own, ``keep[i,
+    j // per_keep] >= 1/2``, so the longest own one's stays, not that of a frame rejected
+    or not covering there; ``keep`` is read on that branch only, off the hot path)."""
     if mode == 0:
         if w > 0:
             num[i, j] = wv
@@ -438,7 +444,7 @@ def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, own):  # prag
         else:
             num[i, j] = wv
             den[i, j] = w
-    elif own and den[i, j] == 0:
+    elif (keep[i, j // per_keep] >= 0.5 if use_keep else mode == 2) and den[i, j] == 0:
         num[i, j] = fb_tab[r, z]
 
 
@@ -478,7 +484,7 @@ def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, 
             for j in range(q, cols, pw):
                 z = min(codes[i, j], top)
                 w = _irls_weight(certainty[r, z], log_e[i, j], k, so, sq, ba, linear, floor)
-                _add_sample(num, den, i, j, w, w * num_tab[r, z], fb_tab, hi_tab, r, z, mode, True)
+                _add_sample(num, den, i, j, w, w * num_tab[r, z], fb_tab, hi_tab, r, z, mode, _NO_WEIGHT, 1, False)
 
 
 def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
@@ -957,8 +963,6 @@ class LogMerge:
         return self.num, flag
 
 
-_NO_WEIGHT = np.zeros((1, 1), np.float32)
-
 
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den,
@@ -992,8 +996,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
                 else:
                     w = w_tab[c, z]
                     wv = num_tab[c, z]
-                own = keep[r, s // per_keep] >= 0.5 if use_keep else True
-                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, own)
+                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, keep, per_keep, use_keep)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -1064,7 +1067,7 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
                 elif mode == 0:
                     num[r, s] = fb_tab[c, z]
                     den[r, s] = -1.0 if hi_tab[c, z] else 0.0
-                elif den[r, s] == 0 and (not use_keep or keep[r, s // per_keep] >= 0.5):
+                elif (keep[r, s // per_keep] >= 0.5 if use_keep else mode == 2) and den[r, s] == 0:
                     num[r, s] = fb_tab[c, z]
 
 

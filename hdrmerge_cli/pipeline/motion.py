@@ -327,7 +327,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     for k in order:  # reference's dark / clipped bound
         x, s, ok, bound, untruncated = estimates = estimate(k)
         if bound_r is None:
-            bound_r, s_r = bound, s.copy()
+            bound_r, s_r = bound, (s.copy() if raw else None)  # RAW: the reference's noise bounds (sa becomes s)
         clipped[k] = _any(bound < 0)
         # an image's tone curve may crush far more than its assumed response says, so its
         # bound is measured (adapt)
