@@ -1021,6 +1021,42 @@ def test_a_dark_bound_carries_the_reference_noise():
     assert deghost.violates_bound(x, s, bound).tolist() == [True, True, True, True]
 
 
+def test_region_mean_against_brute_force():
+    """:func:`region_mean`: per cell, over each scale's grid region holding it, the mean of
+    ``r`` over the ``pos`` samples of its channels, the largest in magnitude over the scales
+    (0 where none is measured); cells beyond the last whole region take its neighbour's
+    (``expand``).  Checked cell by cell, float64, to 1e-5."""
+    rng = np.random.default_rng(12)
+    h, w, nc, scales = 19, 22, 3, (2, 4, 8)
+    r = rng.normal(0, 1, (h, w * nc)).astype(np.float32)
+    pos = rng.random((h, w * nc)) < 0.7
+    got = deghost.region_mean(r, pos, nc, scales)
+    want = np.zeros((h, w))
+    for i in range(h):
+        for j in range(w):
+            best = 0.0
+            for m in scales:
+                gi, gj = min(i // m, h // m - 1), min(j // m, w // m - 1)  # partial regions: the last whole one
+                rows, cols = slice(gi * m, gi * m + m), slice(gj * m * nc, (gj * m + m) * nc)
+                n = pos[rows, cols].sum()
+                mean = r[rows, cols][pos[rows, cols]].astype(np.float64).sum() / max(n, 1)
+                if abs(mean) > abs(best):
+                    best = mean
+            want[i, j] = best
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_channel_reductions_equal_numpy():
+    """``motion._reduce``/``_any`` (plane by plane) equal NumPy's reductions over the last axis."""
+    from hdrmerge_cli.pipeline.motion import _any, _reduce
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(7, 9, 3)).astype(np.float32)
+    np.testing.assert_array_equal(_reduce(np.maximum, a), a.max(axis=-1))
+    b = rng.random((7, 9, 4)) < 0.2
+    np.testing.assert_array_equal(_any(b), b.any(axis=-1))
+
+
 def test_region_ratio_is_not_pulled_by_noise():
     """The exposure factor between two noisy linear frames of a dark scene (readings below
     0 included) is found within 2 % by :func:`region_ratio`, where binned medians of
