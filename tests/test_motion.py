@@ -57,10 +57,10 @@ def test_euclidean_fit_matches_opencv_without_scale():
 
 
 @pytest.mark.parametrize("motion, rotation", [("translation", 0.0), ("similarity", 0.4)])
-def test_a_moving_object_does_not_bias_the_registration(motion, rotation, monkeypatch):
+def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
     """A flat object in one frame only (an object that moved; 6 % of the frame, hard edges)
-    over a textured scene: the whole-image registration alone is pulled by it (measured
-    0.14 px translation, 3.0 px similarity), the tile consensus (_tile_consensus: tiles
+    over a textured scene: whole-image ECC is pulled away by it even when started at the
+    true warp (measured 14 and 11 px), the tile consensus (_tile_consensus: tiles
     registered on their own, a least-median fit) recovers the true warp within 0.1 px at
     every corner (measured 0.015, 0.034)."""
     from scipy import ndimage as ndi
@@ -77,9 +77,7 @@ def test_a_moving_object_does_not_bias_the_registration(motion, rotation, monkey
     ib[100:230, 150:300] = 1.5  # the moved object, brighter than the scene around it
     warp, _ = align.estimate_warp(ia, ib, motion)
     assert align.corner_distance(warp, true, *size) < 0.1, (warp, true)
-    monkeypatch.setattr(align, "_tile_consensus", lambda *args: None)
-    whole, _ = align.estimate_warp(ia, ib, motion)
-    assert align.corner_distance(whole, true, *size) > 0.1
+    assert align.corner_distance(align._fine_ecc(ia, ib, true, motion), true, *size) > 0.1
 
 
 def _bracket_pngs(folder, times, warps, size=(300, 400), seed=2):

@@ -7,7 +7,7 @@ irradiance range *both* frames of a pair measure (so clipping and darkness look 
 in both), in log units (:func:`log_irradiance`).  Registration engages whenever the pair
 shares :data:`MIN_TEXTURED` textured pixels, however small a fraction of the frame that
 is (in an HDR pair the shared band is narrow).  Phase correlation (OpenCV) finds the
-translation on area-averaged images at most :data:`COARSE_SIDE` wide; the enhanced
+translation on area-averaged images at most :data:`PHASE_SIDE` wide; the enhanced
 correlation coefficient maximisation (Evangelidis and Psarakis 2008,
 ``cv2.findTransformECC``, invariant to gain and offset) refines it on a pyramid down to a
 central full-resolution window, and for ``similarity`` adds a rotation (ECC's Euclidean
@@ -29,6 +29,10 @@ from hdrmerge_cli.core.errors import HdrMergeError
 
 #: longest side of the coarse registration level
 COARSE_SIDE = 1024
+#: longest side of the phase correlation's images: only ECC's start (within
+#: :data:`MAX_REFINE_PX`), so half the coarse level suffices.  1024 -> 512: 8-bit
+#: alignment 10-25 % faster on the motion benchmark, every warp within 0.01 px
+PHASE_SIDE = 512
 #: side of the full-resolution refinement window
 FINE_SIDE = 1024
 #: longest side of the coarsest ECC pyramid level (at least)
@@ -219,7 +223,7 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
     averaged images against no motion, the one matching more pixels kept (a bright object
     crossing a still scene can win the correlation peak, but not the vote of the pixels)."""
     h, w = reference.shape
-    f = max(1, -(-max(h, w) // COARSE_SIDE))
+    f = max(1, -(-max(h, w) // PHASE_SIDE))
     ref_c, img_c = block_mean(reference, f), block_mean(image, f)
     candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
     return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
