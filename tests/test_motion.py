@@ -60,9 +60,11 @@ def test_euclidean_fit_matches_opencv_without_scale():
 def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
     """A flat object in one frame only (an object that moved; 6 % of the frame, hard edges)
     over a textured scene: whole-image ECC is pulled away by it even when started at the
-    true warp (measured 14 and 11 px), the tile consensus (_tile_consensus: tiles
-    registered on their own, a least-median fit) recovers the true warp within 0.1 px at
-    every corner (measured 0.015, 0.034)."""
+    true warp (measured 14 and 22 px), so the full-resolution similarity step refuses the
+    jump (_fine_ecc: None beyond FINE_REACH pixels of the pyramid's finest level, 8 px
+    here), and the tile consensus (_tile_consensus: tiles registered on their own, a
+    least-median fit) recovers the true warp within 0.1 px at every corner (measured
+    0.0006, 0.006)."""
     from scipy import ndimage as ndi
 
     size = (480, 640)
@@ -77,7 +79,11 @@ def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
     ib[100:230, 150:300] = 1.5  # the moved object, brighter than the scene around it
     warp, _ = align.estimate_warp(ia, ib, motion)
     assert align.corner_distance(warp, true, *size) < 0.1, (warp, true)
-    assert align.corner_distance(align._fine_ecc(ia, ib, true, motion), true, *size) > 0.1
+    pulled = align._ecc(ia, ib, true, motion)
+    assert align.corner_distance(pulled, true, *size) > 0.1
+    if motion == "similarity":
+        assert align.corner_distance(pulled, true, *size) > align.FINE_REACH * align._finest_level(size)
+        assert align._fine_ecc(ia, ib, true, motion) is None
 
 
 def _bracket_pngs(folder, times, warps, size=(300, 400), seed=2):
@@ -1181,3 +1187,10 @@ def test_static_raw_bracket_deghosting_rejects_nothing_wherever_the_camera_puts_
         paths.append(str(p))
     summary = pm.merge(paths, pm.MergeOptions(output=tmp_path / "m.exr", cfa=True, deghost="on", irls=0))
     assert max(summary["deghost"]["rejected_fraction"]) <= 0.002
+
+
+@pytest.mark.parametrize("side", [300, 1000, 1024, 1025, 3000, 6000])
+def test_finest_level_is_the_pyramids_finest(side):
+    """_finest_level (the unit of _fine_ecc's reach) is the finest of _pyramid_ecc's levels."""
+    levels = [2**k for k in range(1, 16) if align.PYRAMID_MIN <= side / 2**k <= align.COARSE_SIDE]
+    assert align._finest_level((side // 2, side)) == min(levels)
