@@ -259,3 +259,30 @@ def test_photon_transfer_needs_three_levels_of_pairs():
     flat = [[np.zeros((8, 8)), np.zeros((8, 8))]]
     with pytest.raises(HdrMergeError, match="three or more exposures"):
         photon_transfer(None, flat * 2, 100)
+
+
+def test_frames_that_moved_fall_back_to_the_local_statistics(monkeypatch):
+    """A hand-held bracket: the frames see the scene shifted by a few pixels, so the
+    exposure pairs measure texture, not noise (their alpha comes out over twice the
+    truth); their model then predicts more than PAIR_EXCESS times the variance of the
+    frames' own flat windows, and the local statistics give the fit (within 10 % of the
+    truth; no pair ratios returned).  The same bracket without the shifts keeps its pairs."""
+    import hdrmerge_cli.core.calibrate as calibrate
+
+    rng = np.random.default_rng(21)
+    n = 400
+    e = 3000 * np.exp(ndimage.gaussian_filter(rng.normal(0, 1.0, (n + 16, n + 16)), 12) * 25)
+    sigma_o2, alpha = 9.0, 0.25
+    shifts = [(0, 0), (3, 5), (-4, 2)]
+    times = (0.1, 0.4, 1.6)
+    still = [np.clip(expose(e[8:-8, 8:-8], t, sigma_o2, alpha, rng), -50, 16000) for t in times]
+    moved = [np.clip(expose(e[8 + dy:8 + dy + n, 8 + dx:8 + dx + n], t, sigma_o2, alpha, rng), -50, 16000)
+             for t, (dy, dx) in zip(times, shifts)]
+    fit, ratios = estimate_noise(still, -50, 16000)
+    assert len(ratios) == 2 and fit.alpha == pytest.approx(alpha, rel=0.05)
+    fit, ratios = estimate_noise(moved, -50, 16000)
+    assert ratios == []
+    assert fit.alpha == pytest.approx(alpha, rel=0.1) and fit.sigma_o2 == pytest.approx(sigma_o2, rel=0.1)
+    monkeypatch.setattr(calibrate, "PAIR_EXCESS", np.inf)  # the pairs' own fit
+    pairs, ratios = estimate_noise(moved, -50, 16000)
+    assert len(ratios) == 2 and pairs.alpha > 2 * alpha

@@ -125,7 +125,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
     exposures = exposure_values(frames)
     noise = resolve_noise(opts, frames)
-    alignment = None
+    alignment, unaligned = None, load
     if opts.align != "off":
         t1 = time.perf_counter()
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
@@ -137,7 +137,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
                     "Rec.709 (sRGB primaries)", frames[0].path)
     if opts.cfa and frames[0].kind == "linear":
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
-    models = choose_models(frames, exposures, crf, opts, load, noise)
+    # the noise is measured on the frames as decoded: resampling smooths it, and frames that
+    # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
+    models = choose_models(frames, exposures, crf, opts, unaligned, noise)
     timings.update(models.timings)
     timings["read_metadata"] = (time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
                                 - timings.get("align", 0.0) - timings["tables"])
