@@ -496,18 +496,46 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     highlight clipped in the reference, where only the resampled short frame measures: the
     renormalised ring gained 0.4-4.3 dB there.)  A red or blue output whose correction
     would touch clipped green keeps its plain estimate; outputs are capped one code below
-    ``clip_code``.  Samples from outside the frame repeat its nearest edge."""
-    cv2 = _cv2()
-    h, w = codes.shape
+    ``clip_code``.  Samples from outside the frame repeat its nearest edge.
 
-    def warped(a, m, interpolation=cv2.INTER_LINEAR):
-        return cv2.warpAffine(np.ascontiguousarray(a), np.asarray(m, np.float32), (a.shape[1], a.shape[0]),
+    Bands of :data:`BAND_ROWS` output rows are resampled one at a time, each from the source
+    rows its warp reaches plus :data:`BAND_MARGIN` (the fills', cubic's and the dilation's
+    reach): a band's temporaries, not a frame's (a 24 MP frame: 1.0 GB above its codes
+    whole)."""
+    h, w = codes.shape
+    out = np.empty_like(codes)
+    for r0 in range(0, h, BAND_ROWS):
+        r1 = min(h, r0 + BAND_ROWS)
+        ys = [warp[1, 0] * x + warp[1, 1] * y + warp[1, 2] for x in (0, w - 1) for y in (r0, r1 - 1)]
+        s0 = max(0, min(int(np.floor(min(ys))) - BAND_MARGIN, h - 2)) // 2 * 2  # whole CFA periods
+        s1 = min(h, max(int(np.ceil(max(ys))) + BAND_MARGIN + 1, s0 + 2))
+        band = np.asarray(warp, np.float64).copy()
+        band[:, 2] += band[:, 1] * r0  # output rows from r0, source rows from s0
+        band[1, 2] -= s0
+        out[r0:r1] = _resample_band(codes[s0:s1], band, clip_code, cfa, black, r1 - r0)
+    return out
+
+
+#: output rows per band of :func:`resample_mosaic` (even: whole CFA periods)
+BAND_ROWS = 256
+#: source rows beyond a band's reach that it also reads
+BAND_MARGIN = 16
+
+
+def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str, black, out_rows: int) -> np.ndarray:
+    """:func:`resample_mosaic` of ``out_rows`` output rows from the source rows ``codes``
+    (``warp``: output to source coordinates of this band)."""
+    cv2 = _cv2()
+    w = codes.shape[1]
+
+    def warped(a, m, rows, interpolation=cv2.INTER_LINEAR):
+        return cv2.warpAffine(np.ascontiguousarray(a), np.asarray(m, np.float32), (a.shape[1], rows),
                               flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
-    def normalised(num, den, m, interpolation=cv2.INTER_LINEAR):
+    def normalised(num, den, m, rows, interpolation=cv2.INTER_LINEAR):
         # the warped num / den (taps weighted by den: 0 on clipped ones), and where most of
         # the taps' weight is clipped
-        n, d = warped(num, m, interpolation), warped(den, m, interpolation)
+        n, d = warped(num, m, rows, interpolation), warped(den, m, rows, interpolation)
         lost = d < 0.5
         return n / np.where(lost, 1.0, d), lost
 
@@ -530,20 +558,20 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
             full_g[dy::2, dx::2] = sum4[dy::2, dx::2] / np.maximum(n, 1e-6)
             g_ok[dy::2, dx::2] = n > 0.3
     full_g *= g_ok
-    g_out, g_lost = normalised(full_g, g_ok, warp, cv2.INTER_CUBIC)
+    g_out, g_lost = normalised(full_g, g_ok, warp, out_rows, cv2.INTER_CUBIC)
     # clipped green within reach of a red or blue output's correction (cubic: 2 px, plus the fills)
-    near_g = warped(cv2.dilate(((g_ok == 0) * 255).astype(np.uint8), np.ones((7, 7), np.uint8)), warp) > 0
+    near_g = warped(cv2.dilate(((g_ok == 0) * 255).astype(np.uint8), np.ones((7, 7), np.uint8)), warp, out_rows) > 0
     c = np.float32(COLOUR_RATIO_FLOOR * (clip_code - float(black.mean())))
-    out = np.empty((h, w), np.float32)
-    clip_out = np.zeros((h, w), bool)
+    out = np.empty((out_rows, w), np.float32)
+    clip_out = np.zeros((out_rows, w), bool)
     for dy, dx in sites:
         if green[dy, dx]:
             out[dy::2, dx::2] = g_out[dy::2, dx::2]
             clip_out[dy::2, dx::2] = g_lost[dy::2, dx::2]
             continue
-        m = _site_warp(warp, dx, dy)
-        plain, lost = normalised(signal[dy::2, dx::2], usable[dy::2, dx::2], m)
-        g_taps = warped(full_g[dy::2, dx::2], m)
+        m, rows = _site_warp(warp, dx, dy), (out_rows - dy + 1) // 2
+        plain, lost = normalised(signal[dy::2, dx::2], usable[dy::2, dx::2], m, rows)
+        g_taps = warped(full_g[dy::2, dx::2], m, rows)
         ratio = (np.maximum(g_out[dy::2, dx::2], 0) + c) / (np.maximum(g_taps, 0) + c)
         out[dy::2, dx::2] = np.where(near_g[dy::2, dx::2], plain, plain * ratio)
         clip_out[dy::2, dx::2] = lost
