@@ -525,15 +525,27 @@ def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: 
     the weighting function ``w(z)``, ``v`` the variance of the sample's value) becomes
     ``c / (v + u)``, ``u`` the interpolation's variance: the tap variance in squared codes
     (:func:`~hdrmerge_cli.core.align.tap_variance`) times the squared slope of the value
-    table (linear or log value per code) at the sample's code.  Both ``(H, W')``."""
+    table (linear or log value per code) at the sample's code.  Both ``(H, W')``.  In bands
+    of about :data:`WEIGHT_ROWS` rows (whole periods of ``pattern``), so that the
+    temporaries are a band's (at 24 MP a frame's were 0.5 GB)."""
     n = tables.n_codes
     slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
-    u = _samples(lookup(slope, n, codes, pattern))
-    u *= u
-    u *= spread
-    c = _samples(lookup(tables.certainty, n, codes, pattern))
-    den = c + w * u
-    return np.where(den > 0, w * c / np.where(den > 0, den, 1.0), 0.0).astype(np.float32)
+    out = np.empty(w.shape, np.float32)
+    period = 1 if pattern is None else np.shape(pattern)[0]
+    step = max(1, WEIGHT_ROWS // period) * period
+    for r0 in range(0, w.shape[0], step):
+        rows = slice(r0, r0 + step)
+        u = _samples(lookup(slope, n, codes[rows], pattern))
+        u *= u
+        u *= spread[rows]
+        c = _samples(lookup(tables.certainty, n, codes[rows], pattern))
+        den = c + w[rows] * u
+        out[rows] = np.where(den > 0, w[rows] * c / np.where(den > 0, den, 1.0), 0.0)
+    return out
+
+
+#: rows per band of :func:`resampled_weight`
+WEIGHT_ROWS = 256
 
 
 def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
