@@ -51,6 +51,11 @@ rejections, cost), moving ``--align auto --deghost auto`` (what a user gets), mo
 oracle (below).  Wall time and peak RSS of the whole command: ``/usr/bin/time -f %M`` when
 present, else ``resource.getrusage(RUSAGE_CHILDREN)`` in a fresh Python per run.
 
+**Size.**  The cost targets are stated at 6 and 24 MP: the full run also renders one moving
+bracket at 3000 x 2000 (8-bit; case 1's draw at that size) and one at 6000 x 4000 (RAW; case
+0's) and times a plain merge against ``--align auto --deghost auto`` on it, with the
+alignment's error (no static twin, no peers).
+
 **Scores.**
 
 - *Alignment error* (per non-reference frame, the case's worst frame reported): warps from
@@ -138,6 +143,9 @@ TIME_RATIO, MEM_RATIO = 2.0, 1.5
 GAMMA = 2.2
 HANDHELD = ("iphone6_window_jpg", "stack_handheld_jpg")
 GHOST = ("stack_ghost_jpg",)
+#: the cost targets' sizes (issue 17: "at 6 and 24 MP"): one moving bracket each, (case
+#: index, width, height); even indices are RAW, odd 8-bit (:func:`draw_case`)
+LARGE = ((0, 6000, 4000), (1, 3000, 2000))
 SETTINGS = {"plain": ("off", "off"), "auto": ("auto", "auto"), "similarity": ("similarity", "auto")}
 
 
@@ -571,6 +579,23 @@ def run_case(case: Case, work: Path, peers: bool = True) -> dict:
     return res
 
 
+def run_large(index: int, width: int, height: int, work: Path) -> dict:
+    """One moving bracket at the issue's sizes: plain and auto/auto, time, peak RSS and the
+    alignment's error (the cost targets are stated at 6 and 24 MP)."""
+    case = draw_case(index, width, height, scene_names())
+    folder = work / f"large{index}"
+    r = render(case, folder)
+    extra = ["--reference", repr(float(r.times[case.ref]))] + (["--cfa"] if case.fmt == "raw" else
+                                                               ["--crf", f"gamma:{GAMMA:g}"])
+    plain = merge(r.moving, folder / "plain.exr", "off", "off", extra)
+    auto = merge(r.moving, folder / "auto.exr", "auto", "auto", extra)
+    w = warp_errors(case, auto["alignment"]["warps"])
+    shutil.rmtree(folder, ignore_errors=True)
+    return {"case": case, "s_plain": plain["_s"], "mib_plain": plain["_mib"], "s_auto": auto["_s"],
+            "mib_auto": auto["_mib"], "shift": max(w["shift"]), "corner": max(w["corner"]), "rot": max(w["rot"]),
+            "stages": auto.get("timing_seconds", {})}
+
+
 # --- real brackets -----------------------------------------------------------------------
 
 
@@ -621,7 +646,7 @@ def _pct(a) -> str:
 
 
 def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, seconds: float, width: int,
-           height: int) -> list[str]:
+           height: int, large: list[dict] = ()) -> list[str]:
     ok = [r for r in rows if "error" not in r]
     lines = ["# Motion: alignment and ghost removal on randomised brackets", "",
              f"`python -m benchmarks.motion{' --quick' if quick else ''}` at revision {revision()}; {seconds:.0f} s; "
@@ -684,6 +709,12 @@ def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, se
                  f"{_pct([x <= TIME_RATIO for x in tr])}; {np.median(tr):.2f}x, {max(tr):.2f}x | |")
     lines.append(f"| peak RSS of auto/auto <= {MEM_RATIO:g}x plain: brackets; median, worst | "
                  f"{_pct([x <= MEM_RATIO for x in mr])}; {np.nanmedian(mr):.2f}x, {np.nanmax(mr):.2f}x | |")
+    big = [x for x in large if "error" not in x]
+    if big:
+        lines.append(f"| ... at 6 and 24 MP (one moving bracket each): time; peak RSS | "
+                     + "; ".join(f"{x['case'].width * x['case'].height / 1e6:.0f} MP {x['case'].fmt} "
+                                 f"{x['s_auto'] / x['s_plain']:.2f}x, {x['mib_auto'] / x['mib_plain']:.2f}x" for x in big)
+                     + " | |")
     lines += ["", "Shift/rotation errors are of the warps merge reports (`alignment.warps` in `--json`), whether "
               "or not `auto` decided to apply them; 'aligned' below says whether it did.", ""]
 
@@ -752,6 +783,20 @@ def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, se
             + f" | {100 * r['static_rejected']:.2f} % / {100 * max(r['rejected_auto'] or [float('nan')]):.2f} %"
             + f" | {r['s_static_plain']:.1f} / {r['s_auto']:.1f} | {r['mib_static_plain']:.0f} / {r['mib_auto']:.0f}"
             + (f" | {hmr['psnr_static']:.2f} / {hmr['psnr']:.2f} |" if hmr else " | - |"))
+    if large:
+        lines += ["", "## Cost at the issue's sizes (one moving bracket each, a fresh render; no peers)", "",
+                  "| case | fmt | size | frames | s plain / auto (ratio) | MiB plain / auto (ratio) | shift / corner err px, "
+                  "rot err deg | auto's stages s |", "|" + "---|" * 8]
+        for x in large:
+            c = x["case"]
+            if "error" in x:
+                lines.append(f"| {c.index} | {c.fmt} | {c.width} x {c.height} | failed: {x['error']} |" + " |" * 4)
+                continue
+            st = ", ".join(f"{k} {v:.2f}" for k, v in x["stages"].items() if v >= 0.05)
+            lines.append(f"| {c.index} | {c.fmt} | {c.width} x {c.height} | {c.n} | {x['s_plain']:.1f} / "
+                         f"{x['s_auto']:.1f} ({x['s_auto'] / x['s_plain']:.2f}x) | {x['mib_plain']:.0f} / "
+                         f"{x['mib_auto']:.0f} ({x['mib_auto'] / x['mib_plain']:.2f}x) | {x['shift']:.3f} / "
+                         f"{x['corner']:.2f}, {x['rot']:.4f} | {st} |")
     if real:
         lines += ["", "## Real brackets (`--crf srgb`, no truth)", "",
                   "| bracket | kind | frames | size | aligned | largest displacement px | rotation deg | AlignMTB largest "
@@ -799,6 +844,13 @@ def main(quick: bool = False, cases: int | None = None, size: tuple[int, int] | 
             except Exception as exc:  # noqa: BLE001 - reported in the table
                 rows.append({"case": case, "error": str(exc)[:200]})
             print(f"[motion] case {i}: {time.perf_counter() - t_start:.0f} s", file=sys.stderr, flush=True)
+        large = []
+        for index, w, h in (() if quick else LARGE):
+            try:
+                large.append(run_large(index, w, h, tmp))
+            except Exception as exc:  # noqa: BLE001 - reported in the table
+                large.append({"case": draw_case(index, w, h, names), "error": str(exc)[:200]})
+            print(f"[motion] {w} x {h}: {time.perf_counter() - t_start:.0f} s", file=sys.stderr, flush=True)
         if real:
             for b in real_brackets(None if not quick else ("stack_jpg", "stack_handheld_jpg", "stack_ghost_jpg")):
                 try:
@@ -809,7 +861,7 @@ def main(quick: bool = False, cases: int | None = None, size: tuple[int, int] | 
     if not any("error" not in r for r in rows):
         return write_result(out, ["# Motion benchmark", "", "every case failed:", ""]
                             + [f"- case {r['case'].index}: {r['error']}" for r in rows])
-    return write_result(out, report(rows, reals, notes, quick, time.perf_counter() - t_start, width, height))
+    return write_result(out, report(rows, reals, notes, quick, time.perf_counter() - t_start, width, height, large))
 
 
 if __name__ == "__main__":
