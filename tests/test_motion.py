@@ -765,8 +765,11 @@ def test_tap_variance_is_zero_on_the_grid_and_the_contrast_inside_an_edge():
 
 
 def test_resampled_weight_adds_the_interpolation_variance():
-    """A table weight ``c / v`` becomes ``c / (v + u)``, ``u`` the tap variance through the
-    value table's slope: unchanged with no spread, ~1/u when it dominates."""
+    """A table weight ``c / v`` becomes ``c / (e v + max(u - (1 - e) v, 0))``, ``u`` the tap
+    variance through the value table's slope, ``e`` the interpolation's sum of squared
+    weights: on the taps (a shift by whole CFA periods, e = 1) ``c / (v + u)``; midway
+    between four taps (e = 1/4) the averaged noise weighs 4x, and a spread of noise alone
+    (3/4 v) adds nothing."""
     from hdrmerge_cli.core.reconstruct import ExposureTables
     from hdrmerge_cli.pipeline.motion import resampled_weight
 
@@ -778,8 +781,45 @@ def test_resampled_weight_adds_the_interpolation_variance():
     codes = np.full((2, 3), 100, np.uint8)
     w = (cert / var)[codes].astype(np.float32)
     spread = np.array([[0.0, 255.0**2 * 1e-6, 255.0**2 * 1e-2]] * 2, np.float32)  # u = 0, = v, = 1e4 v
-    out = resampled_weight(w, tab, codes, None, spread)
+    on_taps = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
+    out = resampled_weight(w, tab, codes, None, spread, on_taps)
     np.testing.assert_allclose(out[0], [1e6, 5e5, 1e6 / 10001], rtol=1e-3)
+    midway = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])  # each colour's sub-plane moves by half a site
+    out = resampled_weight(w, tab, codes, None, spread, midway)
+    np.testing.assert_allclose(out[0], [4e6, 2e6, 1e6 / 9999.5], rtol=1e-3)
+    noise_only = np.full((2, 3), 0.75 * 255.0**2 * 1e-6, np.float32)
+    np.testing.assert_allclose(resampled_weight(w, tab, codes, None, noise_only, midway), 4e6, rtol=1e-3)
+
+
+def test_tap_weight_energy_against_monte_carlo():
+    """Pure noise (sigma 10 codes) resampled colour by colour by bilinear interpolation
+    (OpenCV's, as tap_variance_mosaic reads it) under a rotation and a shift: the
+    interpolated values' variance is sigma^2 sum w^2 and the taps' spread averages
+    sigma^2 (1 - sum w^2), sum w^2 from tap_weight_energy_mosaic (both within 3 %)."""
+    from hdrmerge_cli.core import align
+
+    rng = np.random.default_rng(7)
+    h, w, sigma = 400, 600, 10.0
+    a = np.radians(0.7)
+    warp = np.array([[np.cos(a), -np.sin(a), 3.3], [np.sin(a), np.cos(a), -1.7]])
+    e = align.tap_weight_energy_mosaic(warp, 0, h, w)
+    assert e.min() >= 0.25 - 1e-6 and e.max() <= 1.0 + 1e-6
+    inner = np.zeros((h, w), bool)
+    inner[20:-20, 20:-20] = True  # away from the replicated edges
+    var_i, spreads = [], []
+    for _ in range(20):
+        codes = (1000.0 + rng.normal(0.0, sigma, (h, w))).astype(np.float32)
+        interp = np.empty_like(codes)
+        for dy in (0, 1):
+            for dx in (0, 1):
+                m = align._site_warp(warp, dx, dy).astype(np.float32)
+                sub = np.ascontiguousarray(codes[dy::2, dx::2])
+                interp[dy::2, dx::2] = cv2.warpAffine(sub, m, sub.shape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                                      borderMode=cv2.BORDER_REPLICATE)
+        var_i.append(((interp - 1000.0) ** 2)[inner])
+        spreads.append(align.tap_variance_mosaic(codes, warp)[inner])
+    assert np.mean(var_i) == pytest.approx(sigma**2 * np.mean(e[inner]), rel=0.03)
+    assert np.mean(spreads) == pytest.approx(sigma**2 * np.mean(1 - e[inner]), rel=0.03)
 
 
 def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, monkeypatch):

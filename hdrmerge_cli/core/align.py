@@ -606,6 +606,28 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
     return np.maximum(second, 0.0, out=second).reshape(codes.shape)
 
 
+def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> np.ndarray:
+    """``sum_i w_i^2`` of the bilinear weights with which :func:`tap_variance_mosaic` reads
+    each mosaic site of output rows ``r0:r1`` (``r0`` even; ``(r1 - r0, width)`` float32),
+    from the fractional position ``(fx, fy)`` of the site in its colour's sub-plane:
+    ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``.  For taps carrying independent noise of
+    variance ``s``, the interpolated value's noise variance is ``s sum w_i^2`` and the taps'
+    spread holds ``s (1 - sum w_i^2)`` of it on average (in 1 at a tap, 1/4 and 3/4 midway
+    between four)."""
+    out = np.empty((r1 - r0, width), np.float32)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            m = _site_warp(warp, dx, dy)
+            v = np.arange((r0 + dy) // 2, (r1 - dy + 1) // 2, dtype=np.float64)[:, None]  # sub-plane rows
+            u = np.arange((width - dx + 1) // 2, dtype=np.float64)[None, :]
+            fx = m[0, 0] * u + m[0, 1] * v + m[0, 2]
+            fy = m[1, 0] * u + m[1, 1] * v + m[1, 2]
+            fx -= np.floor(fx)
+            fy -= np.floor(fy)
+            out[dy::2, dx::2] = (fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2)
+    return out
+
+
 def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
     """:func:`tap_variance` of each same-colour sub-plane on its own: the spread of the
     colour's own samples that :func:`resample_mosaic` interpolates between (an upper bound
