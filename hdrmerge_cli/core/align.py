@@ -612,8 +612,8 @@ def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> 
     from the fractional position ``(fx, fy)`` of the site in its colour's sub-plane:
     ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``.  For taps carrying independent noise of
     variance ``s``, the interpolated value's noise variance is ``s sum w_i^2`` and the taps'
-    spread holds ``s (1 - sum w_i^2)`` of it on average (in 1 at a tap, 1/4 and 3/4 midway
-    between four)."""
+    spread holds ``s (1 - sum w_i^2)`` of noise on average (``sum w_i^2`` is 1 on a tap and
+    1/4 midway between four)."""
     out = np.empty((r1 - r0, width), np.float32)
     for dy in (0, 1):
         for dx in (0, 1):

@@ -963,7 +963,6 @@ class LogMerge:
         return self.num, flag
 
 
-
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den,
                 keep, use_keep):  # pragma: no cover
@@ -1054,21 +1053,13 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
                 else:
                     w = w_tab[c, z]
                     wv = num_tab[c, z]
-                if w > 0:
+                if w > 0:  # var follows den, which _add_sample then sets or adds to
                     wq = w * q_tab[c, z] if use_cert else (w * q_tab[c, z]) * w
                     if mode != 0 and den[r, s] > 0:
-                        num[r, s] += wv
-                        den[r, s] += w
                         var[r, s] += wq
                     else:
-                        num[r, s] = wv
-                        den[r, s] = w
                         var[r, s] = wq
-                elif mode == 0:
-                    num[r, s] = fb_tab[c, z]
-                    den[r, s] = -1.0 if hi_tab[c, z] else 0.0
-                elif (keep[r, s // per_keep] >= 0.5 if use_keep else mode == 2) and den[r, s] == 0:
-                    num[r, s] = fb_tab[c, z]
+                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, keep, per_keep, use_keep)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
