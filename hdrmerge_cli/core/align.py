@@ -613,7 +613,8 @@ def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> 
     ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``.  For taps carrying independent noise of
     variance ``s``, the interpolated value's noise variance is ``s sum w_i^2`` and the taps'
     spread holds ``s (1 - sum w_i^2)`` of noise on average (``sum w_i^2`` is 1 on a tap and
-    1/4 midway between four)."""
+    1/4 midway between four): the variance of a resampled reading ``x_j`` in the
+    inverse-variance weights of (7), (17)'s noise through the interpolation."""
     out = np.empty((r1 - r0, width), np.float32)
     for dy in (0, 1):
         for dx in (0, 1):
