@@ -489,14 +489,15 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     merge away from the ghost gained 0.5 dB on average (-0.5 to +2.4).  Green is warped by
     OpenCV's bicubic (the full-resolution green image is not aliased the way a sub-plane is).
 
-    Clipping: a clipped code only bounds its sample, so it is left out and the other taps'
-    weights renormalised; an output is clipped only where most of its taps' weight is
-    clipped.  (Before, any clipped tap clipped the output; on the RAW cases of
-    ``benchmarks.motion`` nearly all the error away from the ghost lay within 3 px of a
-    highlight clipped in the reference, where only the resampled short frame measures: the
-    renormalised ring gained 0.4-4.3 dB there.)  A red or blue output whose correction
-    would touch clipped green keeps its plain estimate; outputs are capped one code below
-    ``clip_code``.  Samples from outside the frame repeat its nearest edge.
+    Clipping: a clipped code bounds its sample from below, so it is interpolated at that
+    floor, the clipping level; an output is clipped only where most of its taps' weight is
+    clipped.  (Any clipped tap clipping the output lost the ring of every highlight, where
+    only the resampled short frame measures.  Leaving clipped taps out and renormalising
+    the others read that ring far too dark -- the left-out tap is the brightest: on
+    ``benchmarks.motion``'s case 2 a red lamp's ring came out at half its level; the floor
+    gained 2.0 dB there, 0.5 dB on case 18, and lost nothing on the other RAW cases.)  A red
+    or blue output whose correction would touch clipped green keeps its plain estimate;
+    outputs are capped one code below ``clip_code``.  Samples from outside the frame repeat its nearest edge.
 
     Bands of :data:`BAND_ROWS` output rows are resampled one at a time, each from the source
     rows its warp reaches plus :data:`BAND_MARGIN` (the fills', cubic's and the dilation's
@@ -532,33 +533,27 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
         return cv2.warpAffine(np.ascontiguousarray(a), np.asarray(m, np.float32), (a.shape[1], rows),
                               flags=interpolation | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
-    def normalised(num, den, m, rows, interpolation=cv2.INTER_LINEAR):
-        # the warped num / den (taps weighted by den: 0 on clipped ones), and where most of
-        # the taps' weight is clipped
-        n, d = warped(num, m, rows, interpolation), warped(den, m, rows, interpolation)
-        lost = d < 0.5
-        return n / np.where(lost, 1.0, d), lost
+    def lost(usable, m, rows):  # where most of the taps' weight is clipped
+        return warped(usable, m, rows) < 0.5
 
     black = np.broadcast_to(np.asarray(black, np.float32).reshape(-1), (4,)).reshape(2, 2)
     sites = [(dy, dx) for dy in (0, 1) for dx in (0, 1)]
     green = {(dy, dx): cfa[2 * dy + dx] == "G" for dy, dx in sites}
-    usable = (codes < clip_code).astype(np.float32)  # a clipped code only bounds its sample
-    signal = codes.astype(np.float32)
+    usable = (codes < clip_code).astype(np.float32)
+    signal = codes.astype(np.float32)  # a clipped code stays at its floor, the clipping level
     for dy, dx in sites:
         signal[dy::2, dx::2] -= black[dy, dx]
-    signal *= usable
-    # green everywhere: at red and blue sites the mean of their unclipped green neighbours
+    # green everywhere: at red and blue sites the mean of their four green neighbours
     cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
     sum4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
     n4 = cv2.filter2D(usable, -1, cross, borderType=cv2.BORDER_REFLECT_101)
     full_g, g_ok = signal.copy(), usable.copy()
     for dy, dx in sites:
         if not green[dy, dx]:
-            n = n4[dy::2, dx::2]
-            full_g[dy::2, dx::2] = sum4[dy::2, dx::2] / np.maximum(n, 1e-6)
-            g_ok[dy::2, dx::2] = n > 0.3
-    full_g *= g_ok
-    g_out, g_lost = normalised(full_g, g_ok, warp, out_rows, cv2.INTER_CUBIC)
+            full_g[dy::2, dx::2] = sum4[dy::2, dx::2]
+            g_ok[dy::2, dx::2] = n4[dy::2, dx::2] > 0.3
+    g_out = warped(full_g, warp, out_rows, cv2.INTER_CUBIC)
+    g_lost = lost(g_ok, warp, out_rows)
     # clipped green within reach of a red or blue output's correction (cubic: 2 px, plus the fills)
     near_g = warped(cv2.dilate(((g_ok == 0) * 255).astype(np.uint8), np.ones((7, 7), np.uint8)), warp, out_rows) > 0
     c = np.float32(COLOUR_RATIO_FLOOR * (clip_code - float(black.mean())))
@@ -570,11 +565,11 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
             clip_out[dy::2, dx::2] = g_lost[dy::2, dx::2]
             continue
         m, rows = _site_warp(warp, dx, dy), (out_rows - dy + 1) // 2
-        plain, lost = normalised(signal[dy::2, dx::2], usable[dy::2, dx::2], m, rows)
+        plain = warped(signal[dy::2, dx::2], m, rows)
         g_taps = warped(full_g[dy::2, dx::2], m, rows)
         ratio = (np.maximum(g_out[dy::2, dx::2], 0) + c) / (np.maximum(g_taps, 0) + c)
         out[dy::2, dx::2] = np.where(near_g[dy::2, dx::2], plain, plain * ratio)
-        clip_out[dy::2, dx::2] = lost
+        clip_out[dy::2, dx::2] = lost(usable[dy::2, dx::2], m, rows)
     for dy, dx in sites:
         out[dy::2, dx::2] += black[dy, dx]
     np.rint(out, out=out)
