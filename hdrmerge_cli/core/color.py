@@ -66,9 +66,14 @@ def demosaic(cfa: np.ndarray, pattern: str) -> np.ndarray:
     malvar = quiet_import("colour_demosaicing").demosaicing_CFA_Bayer_Malvar2004
     # colour computes in its default float dtype (float64); the result is stored as float32
     # anyway, and float32 arithmetic makes the demosaic 1.5x faster (differences ~1 ulp).
-    # This sets colour's process-wide default, which nothing else here relies on.
-    quiet_import("colour").utilities.set_default_float_dtype(np.float32)
-    return np.asarray(malvar(cfa, pattern), dtype=np.float32)
+    # The default is process-wide, so it is put back (2 ms): colour's other functions in the
+    # same process (a Python API user's, tests against colour-hdri) keep float64.
+    utilities = quiet_import("colour").utilities
+    utilities.set_default_float_dtype(np.float32)
+    try:
+        return np.asarray(malvar(cfa, pattern), dtype=np.float32)
+    finally:
+        utilities.set_default_float_dtype(np.float64)
 
 
 #: Malvar-He-Cutler (2004)'s kernels (x 8, as colour-demosaicing has them): G at R/B sites,
