@@ -224,11 +224,16 @@ def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion
     than :data:`FINE_REACH` pixels of the pyramid's finest level: a refinement does not
     jump, a false optimum does (a moving object filling half the window of a 6 MP frame
     took it 82 px and 3.6 degrees off; parallax in the hand-held iphone6_window_jpg moves it
-    up to 8.4 px from the 4 x 4 level's estimate).  At most :data:`FINE_ITERATIONS`."""
+    up to 8.4 px from the 4 x 4 level's estimate).  At most :data:`FINE_ITERATIONS`
+    iterations, and None if the run has not settled by then."""
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
+    ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
     start = shift_warp(warp, (x0, y0))
-    found = _ecc(np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1]),
-                 start, motion, count=FINE_ITERATIONS)
+    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS)
+    if found is not None:  # settled: one more iteration moves no corner by FINE_SETTLED_PX
+        step = _ecc(ref, img, found, motion, count=1)
+        if step is None or corner_distance(step, found, y1 - y0, x1 - x0) > FINE_SETTLED_PX:
+            return None
     reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
     if found is None or (motion == "similarity" and corner_distance(found, start, y1 - y0, x1 - x0) > reach):
         return None
@@ -237,9 +242,12 @@ def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion
 
 #: iterations of :func:`_fine_ecc`: from the pyramid's estimate it converges in 8-15 (the
 #: warps of the motion benchmark's 32 cases and of the real brackets are the same with 15 as
-#: with 100); a run drifting to a false optimum, which the reach then refuses, stops here
-#: (it ran all 100, 2 of the 3.2 s of aligning the benchmark's 6 MP render)
+#: with 100); a run drifting to a false optimum stops here (it ran all 100 before the reach
+#: refused it: 2 of the 3.2 s of aligning the benchmark's 6 MP render)
 FINE_ITERATIONS = 30
+#: a fine run has settled when one more iteration moves no window corner farther (pixels):
+#: after 30 iterations the benchmark's runs move 0.00-0.14 px, the drifting ones 4-7 px
+FINE_SETTLED_PX = 0.5
 
 
 def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
