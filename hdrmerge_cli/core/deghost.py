@@ -531,17 +531,25 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         # its noise of zero (a RAW one at or below black) is about that dark, so the change
         # of a dark object over a bright surround is large, not undefined (before: left out
         # as 0, which failed the min_change gate)
+        # (frame-sized temporaries are released as soon as they are dead: at 0.7 MP an 8-bit
+        # frame's samples are 8.4 MB per float32 array)
         floor = np.sqrt(s + sa, dtype=np.float32)
         xf, xaf = np.maximum(x, floor), np.maximum(xa, floor)
+        del floor
         pos = both & (xf > 0) & (xaf > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.where(pos, np.log(np.maximum(xf, 1e-30) / np.maximum(xaf, 1e-30)), 0.0).astype(np.float32)
         del xf
         if smooth:
             f = smooth_ratio_field(r, pos, cell[1])
-            x = x * np.exp(-f).astype(np.float32)
             r = np.where(pos, r - f, 0.0).astype(np.float32)
-    var = s + sa + (MODEL_TOLERANCE * xa) ** 2
+            x = x * np.exp(-f).astype(np.float32)
+            del f
+    var = s + sa
+    tol = MODEL_TOLERANCE * xa
+    tol *= tol
+    var += tol
+    del tol
     if reach:
         d = envelope_residual(x, xa, cell[1], reach)
         if r is not None:  # the log change beyond what a shift within reach explains
@@ -550,8 +558,12 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     else:
         d = x - xa
         var = var + grad2
-    with np.errstate(over="ignore"):
-        t = np.where(both, d * d / np.maximum(var, 1e-30), 0.0).astype(np.float32)
+    if r is not None:
+        del xaf
+    with np.errstate(over="ignore", invalid="ignore"):
+        t = d * d
+        t /= np.maximum(var, 1e-30)
+    t[~both] = 0.0
     if scale:
         lam = level_scale(t, x, xa, both)
         t /= lam
