@@ -129,3 +129,27 @@ def test_a_signal_right_after_a_temporary_is_created_leaves_nothing(tmp_path, mo
         with atomic.atomic_paths([tmp_path / "a.exr", tmp_path / "a.profile.json"], overwrite=False):
             pass
     assert os.listdir(tmp_path) == []
+
+
+def test_a_stop_signal_during_the_clean_up_still_removes_every_temporary(tmp_path, monkeypatch):
+    """A stop signal (here Ctrl-C) raised while the transaction removes its temporaries
+    (right after the first) does not leave the others behind: all are removed, then it
+    unwinds (a batch worker stopped just after committing kept its profile's temporary)."""
+    import hdrmerge_cli.io.atomic as atomic
+
+    real_unlink, calls = os.unlink, []
+
+    def unlink(path):
+        real_unlink(path)
+        calls.append(path)
+        if len(calls) == 1:
+            raise KeyboardInterrupt  # as a signal handler would, between two removals
+
+    outs = [tmp_path / "a.exr", tmp_path / "a.profile.json", tmp_path / "a.jpg"]
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_paths(outs, overwrite=False) as tmps:
+            for t in tmps:
+                Path(t).write_text("x")
+            monkeypatch.setattr(atomic.os, "unlink", unlink)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.jpg", "a.profile.json"]

@@ -84,9 +84,25 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
             raise _user_error(exc, tmps, paths) from None
         _commit(tmps, paths, overwrite)
     finally:
-        for tmp in tmps:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
+        _remove(tmps)
+
+
+def _remove(tmps: list[str]) -> None:
+    """Remove the temporaries, every one of them even when a stop signal (SIGTERM, Ctrl-C)
+    unwinds in between: it is raised again once all are gone.  (A signal between two
+    removals left the second behind: a batch worker stopped just after committing its
+    outputs kept its profile's temporary.)"""
+    pending = None
+    for tmp in tmps:
+        while True:
+            try:
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
+                break
+            except BaseException as exc:  # raised by a signal handler: finish first
+                pending = pending or exc
+    if pending is not None:
+        raise pending
 
 
 def create_temporary(path: Path, tmps: list[str]) -> None:
