@@ -1191,6 +1191,44 @@ def test_raw_glare_is_bounded_by_the_light_of_what_clips(tmp_path):
     assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
 
 
+def test_raw_glare_is_no_excuse_beyond_blooming(tmp_path):
+    """RAW: a dark object in the short frame only, 16-40 px beside a lamp that clips in every
+    frame.  Optics are linear, so glare from the lamp adds the same light per second to
+    every frame and cannot make the reference read brighter than the short frame; only
+    blooming (within BLOOM_PX) is a sensor effect of one frame.  So the short frame is
+    dropped over the object (before: the lamp, of unknown level, excused every darker
+    reading within glare's reach; benchmark case 10 lost half its ghost), and the static
+    twin rejects nothing."""
+    from hdrmerge_cli.core import sensor as sm
+    from hdrmerge_cli.core.color import mosaic
+    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.pipeline import merge as pm
+    from hdrmerge_cli.pipeline.motion import ghost_weight
+
+    h, w = 480, 640
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = 4.75e5 * (1 + 0.2 * np.sin(xx / 9.0) * np.sin(yy / 7.0))
+    base[:, 400:] = 1e8  # a lamp, clipped in every frame
+    obj = (slice(200, 280), slice(360, 384))
+    model = sm.SensorModel()
+    times = (1 / 800, 1 / 200, 1 / 50)
+    masks = {}
+    for kind in ("static", "moving"):
+        paths = []
+        for k, t in enumerate(times):
+            scene = base.copy()
+            if kind == "moving" and k == 0:
+                scene[obj] = 1.0  # dark, in the short frame only
+            z = sm.quantise_raw(sm.expose(mosaic(np.repeat(scene[..., None], 3, -1), "RGGB"), t, model,
+                                          np.random.default_rng([6, k]), np.zeros((h, w))), model)
+            p = tmp_path / f"{kind}{k}.dng"
+            write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
+            paths.append(str(p))
+        merged = pm.merge_bracket(paths, pm.MergeOptions(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
+        masks[kind] = ghost_weight(merged.ghosts, 0, h, w)
+    assert masks["moving"][204:276, 364:380].min() > 0.95
+    assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_region_shifts_false_alarms_and_a_dim_ghost(seed):
     """Monte-Carlo: on pure noise (with a level-dependent bias and a variance the model
