@@ -513,7 +513,8 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     ``benchmarks.motion``'s case 2 a red lamp's ring came out at half its level; the floor
     gained 2.0 dB there, 0.5 dB on case 18, and lost nothing on the other RAW cases.)  A red
     or blue output whose correction would touch clipped green keeps its plain estimate;
-    outputs are capped one code below ``clip_code``.  Samples from outside the frame repeat its nearest edge.
+    outputs are capped one code below ``clip_code``.  Samples from outside the frame repeat
+    its nearest edge.
 
     Bands of :data:`BAND_ROWS` output rows are resampled one at a time, each from the source
     rows its warp reaches plus :data:`BAND_MARGIN` (the fills', cubic's and the dilation's

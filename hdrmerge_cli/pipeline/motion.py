@@ -356,8 +356,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         del x, s, ok, bound, untruncated, estimates
     hb, wb, nc = xa.shape
     # the anchor's level per block (its brightest channel; unknown where it is clipped: no
-    # frame measures it), what a clipped region can spread as glare
-    level_a = _reduce(np.maximum, np.where(va, xa, np.where(bound_r < 0, np.float32(np.inf), np.float32(0.0))))
+    # frame measures it), what a clipped region can spread as glare (images; RAW: blooming only)
+    level_a = None if raw else _reduce(np.maximum, np.where(va, xa, np.where(bound_r < 0, np.float32(np.inf),
+                                                                           np.float32(0.0))))
     # registration tolerance: a shift within reach (blocks) is not motion.  Images only: the
     # envelope excuses what image processing does to edges (JPEG ringing, 4:2:0 chroma,
     # sharpening halos); a RAW mosaic has none of it, and there the envelope hid a ghost's
@@ -387,14 +388,14 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             # are linear, so glare adds the same light per second to every frame and cancels
             # in the comparison; what a clipped area does to its surround in one frame only is
             # the sensor's blooming, within BLOOM_PX (before, glare bounded as for images
-            # excused a dark object in the short frame beside a lamp the reference clips:
+            # excused a dark object in the short frame beside a lamp clipped in every frame:
             # benchmark case 10, 51 -> 91 % of the ghost removed)
             clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
             violated = deghost.violates_bound(xa, sa, clip_bound, p_fa) & va
             impossible = _any(violated)
-            need = _reduce(np.maximum, np.where(violated, -clip_bound - xa, np.float32(0.0)))
-            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer,
-                                               **(blooming if raw else dict(source=level_a, need=need, bloom=bloom))) == 0
+            glare = blooming if raw else dict(
+                source=level_a, need=_reduce(np.maximum, np.where(violated, -clip_bound - xa, np.float32(0.0))), bloom=bloom)
+            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer, **glare) == 0
         # glare spreads from what is bright in every frame, not from such an object.  Images
         # keep it unbounded: in-camera local tone mapping also brightens around clipped areas
         # (bounded, the real static JPEG brackets lost more: stack_jpg 0.50 -> 1.11 % of a
