@@ -1229,6 +1229,7 @@ def test_raw_glare_is_no_excuse_beyond_blooming(tmp_path):
     assert masks["moving"][204:276, 364:380].min() > 0.95
     assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
 
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_region_shifts_false_alarms_and_a_dim_ghost(seed):
     """Monte-Carlo: on pure noise (with a level-dependent bias and a variance the model
