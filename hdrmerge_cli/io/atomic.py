@@ -94,7 +94,7 @@ def _remove(tmps: list[str]) -> None:
     outputs kept its profile's temporary.)"""
     pending = None
     for tmp in tmps:
-        while True:
+        for _ in range(3):  # a signal may land before or after the removal itself
             try:
                 with contextlib.suppress(OSError):
                     os.unlink(tmp)
