@@ -1152,14 +1152,11 @@ def test_the_log_change_of_a_reading_at_zero_is_bounded_by_the_noise_not_undefin
     assert bad[:, :32].all() and not bad[:, 32:].any()
 
 
-def test_raw_glare_is_bounded_by_the_light_of_what_clips(tmp_path):
-    """RAW: a dark object (at black) in the reference only, 8-28 px beside a region that
-    the long frame clips (and the reference measures at half scale), over a surround the
-    long frame reads at 30 % of full scale.  Glare from the region (at most GLARE_FRACTION
-    of its level, 0.1 x 6.7 = 0.67x the surround) cannot explain the long frame's reading,
-    so the long frame is dropped over the object (before: excused as glare, unbounded
-    within 5 % of the frame, and the object took the surround's brightness); the static
-    twin rejects nothing there."""
+def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, seed: int) -> dict:
+    """The deghosting masks of frame ``masked`` (``(480, 640)``, 0..1) for a 3-frame RAW
+    bracket (1/800, 1/200, 1/50 s) of a textured wall (the long frame reads it at 30 % of
+    full scale) whose columns from 400 on are ``bright``, with a dark object (at black)
+    over ``obj`` in frame ``frame`` only ("moving"), and for its static twin ("static")."""
     from hdrmerge_cli.core import sensor as sm
     from hdrmerge_cli.core.color import mosaic
     from hdrmerge_cli.io.raw import write_dng
@@ -1169,24 +1166,34 @@ def test_raw_glare_is_bounded_by_the_light_of_what_clips(tmp_path):
     h, w = 480, 640
     yy, xx = np.mgrid[0:h, 0:w]
     base = 4.75e5 * (1 + 0.2 * np.sin(xx / 9.0) * np.sin(yy / 7.0))
-    base[:, 400:] = 3.17e6  # clipped in the long frame, half scale in the reference
-    obj = (slice(200, 280), slice(372, 392))
+    base[:, 400:] = bright
     model = sm.SensorModel()
-    times = (1 / 800, 1 / 200, 1 / 50)
     masks = {}
     for kind in ("static", "moving"):
         paths = []
-        for k, t in enumerate(times):
+        for k, t in enumerate((1 / 800, 1 / 200, 1 / 50)):
             scene = base.copy()
-            if kind == "moving" and k == 1:
-                scene[obj] = 1.0  # dark, in the reference only
+            if kind == "moving" and k == frame:
+                scene[obj] = 1.0
             z = sm.quantise_raw(sm.expose(mosaic(np.repeat(scene[..., None], 3, -1), "RGGB"), t, model,
-                                          np.random.default_rng([5, k]), np.zeros((h, w))), model)
+                                          np.random.default_rng([seed, k]), np.zeros((h, w))), model)
             p = tmp_path / f"{kind}{k}.dng"
             write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
             paths.append(str(p))
         merged = pm.merge_bracket(paths, pm.MergeOptions(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
-        masks[kind] = ghost_weight(merged.ghosts, 2, h, w)
+        masks[kind] = ghost_weight(merged.ghosts, masked, h, w)
+    return masks
+
+
+def test_raw_glare_is_bounded_by_the_light_of_what_clips(tmp_path):
+    """RAW: a dark object (at black) in the reference only, 8-28 px beside a region that
+    the long frame clips (and the reference measures at half scale), over a surround the
+    long frame reads at 30 % of full scale.  Glare from the region (at most GLARE_FRACTION
+    of its level, 0.1 x 6.7 = 0.67x the surround) cannot explain the long frame's reading,
+    so the long frame is dropped over the object (before: excused as glare, unbounded
+    within 5 % of the frame, and the object took the surround's brightness); the static
+    twin rejects nothing there."""
+    masks = _raw_object_masks(tmp_path, 3.17e6, (slice(200, 280), slice(372, 392)), frame=1, masked=2, seed=5)
     assert masks["moving"][204:276, 376:388].min() > 0.95
     assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
 
@@ -1199,33 +1206,7 @@ def test_raw_glare_is_no_excuse_beyond_blooming(tmp_path):
     dropped over the object (before: the lamp, of unknown level, excused every darker
     reading within glare's reach; benchmark case 10 lost half its ghost), and the static
     twin rejects nothing."""
-    from hdrmerge_cli.core import sensor as sm
-    from hdrmerge_cli.core.color import mosaic
-    from hdrmerge_cli.io.raw import write_dng
-    from hdrmerge_cli.pipeline import merge as pm
-    from hdrmerge_cli.pipeline.motion import ghost_weight
-
-    h, w = 480, 640
-    yy, xx = np.mgrid[0:h, 0:w]
-    base = 4.75e5 * (1 + 0.2 * np.sin(xx / 9.0) * np.sin(yy / 7.0))
-    base[:, 400:] = 1e8  # a lamp, clipped in every frame
-    obj = (slice(200, 280), slice(360, 384))
-    model = sm.SensorModel()
-    times = (1 / 800, 1 / 200, 1 / 50)
-    masks = {}
-    for kind in ("static", "moving"):
-        paths = []
-        for k, t in enumerate(times):
-            scene = base.copy()
-            if kind == "moving" and k == 0:
-                scene[obj] = 1.0  # dark, in the short frame only
-            z = sm.quantise_raw(sm.expose(mosaic(np.repeat(scene[..., None], 3, -1), "RGGB"), t, model,
-                                          np.random.default_rng([6, k]), np.zeros((h, w))), model)
-            p = tmp_path / f"{kind}{k}.dng"
-            write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
-            paths.append(str(p))
-        merged = pm.merge_bracket(paths, pm.MergeOptions(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
-        masks[kind] = ghost_weight(merged.ghosts, 0, h, w)
+    masks = _raw_object_masks(tmp_path, 1e8, (slice(200, 280), slice(360, 384)), frame=0, masked=0, seed=6)
     assert masks["moving"][204:276, 364:380].min() > 0.95
     assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
 
