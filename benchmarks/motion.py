@@ -505,11 +505,17 @@ def run_hdrmerge(paths, out: Path) -> tuple[np.ndarray, float, float]:
     return read_float_dng(out)[0], wall, mib
 
 
+def merge_options(r: Rendered) -> list[str]:
+    """The merge options of a rendered bracket: its reference frame's time; RAW scored per CFA
+    site (``--cfa``), 8-bit through its known response."""
+    return ["--reference", repr(float(r.times[r.case.ref]))] + (["--cfa"] if r.case.fmt == "raw" else
+                                                                ["--crf", f"gamma:{GAMMA:g}"])
+
+
 def run_case(case: Case, work: Path, peers: bool = True) -> dict:
     folder = work / f"case{case.index:02d}"
     r = render(case, folder)
-    ref_t = ["--reference", repr(float(r.times[case.ref]))]
-    extra = ref_t + (["--cfa"] if case.fmt == "raw" else ["--crf", f"gamma:{GAMMA:g}"])
+    extra = merge_options(r)
     res = {"case": case}
     runs = {}
     runs["static_plain"] = merge(r.static, folder / "static" / "plain.exr", "off", "off", extra)
@@ -585,8 +591,7 @@ def run_large(index: int, width: int, height: int, work: Path) -> dict:
     case = draw_case(index, width, height, scene_names())
     folder = work / f"large{index}"
     r = render(case, folder)
-    extra = ["--reference", repr(float(r.times[case.ref]))] + (["--cfa"] if case.fmt == "raw" else
-                                                               ["--crf", f"gamma:{GAMMA:g}"])
+    extra = merge_options(r)
     plain = merge(r.moving, folder / "plain.exr", "off", "off", extra)
     auto = merge(r.moving, folder / "auto.exr", "auto", "auto", extra)
     w = warp_errors(case, auto["alignment"]["warps"])

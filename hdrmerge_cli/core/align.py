@@ -230,12 +230,12 @@ def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion
     ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
     start = shift_warp(warp, (x0, y0))
     found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS)
-    if found is not None:  # settled: one more iteration moves no corner by FINE_SETTLED_PX
-        step = _ecc(ref, img, found, motion, count=1)
-        if step is None or corner_distance(step, found, y1 - y0, x1 - x0) > FINE_SETTLED_PX:
-            return None
+    if found is None:
+        return None
+    step = _ecc(ref, img, found, motion, count=1)  # settled: it moves no corner by FINE_SETTLED_PX
     reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
-    if found is None or (motion == "similarity" and corner_distance(found, start, y1 - y0, x1 - x0) > reach):
+    if (step is None or corner_distance(step, found, y1 - y0, x1 - x0) > FINE_SETTLED_PX
+            or (motion == "similarity" and corner_distance(found, start, y1 - y0, x1 - x0) > reach)):
         return None
     return shift_warp(found, (-x0, -y0))
 
@@ -562,12 +562,12 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
         signal[dy::2, dx::2] -= black[dy, dx]
     # green everywhere: at red and blue sites the mean of their four green neighbours
     cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
-    sum4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+    mean4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
     n4 = cv2.filter2D(usable, -1, cross, borderType=cv2.BORDER_REFLECT_101)
     full_g, g_ok = signal.copy(), usable.copy()
     for dy, dx in sites:
         if not green[dy, dx]:
-            full_g[dy::2, dx::2] = sum4[dy::2, dx::2]
+            full_g[dy::2, dx::2] = mean4[dy::2, dx::2]
             g_ok[dy::2, dx::2] = n4[dy::2, dx::2] > 0.3
     g_out = warped(full_g, warp, out_rows, cv2.INTER_CUBIC)
     g_lost = lost(g_ok, warp, out_rows)
