@@ -18,8 +18,8 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 ## Compile and cache the numba kernels (merge of a tiny RAW, JPEG and 16-bit TIFF bracket, the first two
-## with deghosting), so that a user's first merge does not pay for compilation; run again after editing
-## a kernel.
+## with deghosting; the weights of a resampled RAW frame, which a static bracket does not reach), so
+## that a user's first merge does not pay for compilation; run again after editing a kernel.
 warm:
 	@tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && export HDRMERGE_CLI_CACHE_DIR="$$tmp/cache" && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/raw" --size 96x64 --frames 3 -q && \
@@ -28,6 +28,9 @@ warm:
 	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --crf srgb --deghost on -q && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/tif" --format tif --out-bits 16 --size 96x64 --frames 3 -q && \
 	$(BIN)/hdrmerge-cli merge "$$tmp"/tif/frame_*.tif -o "$$tmp/tif.exr" --crf srgb -q && \
+	$(BIN)/python -c "import numpy as np; from hdrmerge_cli.core.align import resampled_weight_mosaic as f; \
+	z = np.zeros((4, 4), np.uint16); z.flags.writeable = False; w = np.ones((4, 4), np.float32); \
+	f(w, z, np.zeros((2, 2), np.intp), w.ravel(), w.ravel(), 16, w, np.eye(2, 3), out=w)" && \
 	echo "numba kernels compiled and cached"
 
 ## Render a bracket with the built-in scene and merge it.

@@ -807,6 +807,39 @@ def test_resampled_weight_adds_the_interpolation_variance():
     np.testing.assert_allclose(resampled_weight(w, tab, codes, None, noise_only, midway), 4e6, rtol=1e-3)
 
 
+def test_resampled_weight_mosaic_equals_its_formula_per_colour():
+    """The one-pass kernel against the formula written out with numpy on a rotated, shifted
+    RGGB mosaic with a table row per colour: ``c / (e v + max(u - (1 - e) v, 0))`` with
+    ``e`` from :func:`tap_weight_energy_mosaic`, ``u`` the spread through the row's slope
+    (float32 round-off)."""
+    from hdrmerge_cli.core import align
+
+    rng = np.random.default_rng(3)
+    h, w, n = 36, 50, 1024
+    pattern = np.array([[0, 1], [1, 2]])
+    slope = rng.uniform(1e-4, 1e-3, 3 * n).astype(np.float32)
+    cert = rng.uniform(0.0, 1.0, 3 * n).astype(np.float32)
+    cert[::7] = 0.0  # no weight: 0 out
+    codes = rng.integers(0, n + 40, (h, w)).astype(np.uint16)  # beyond the table: its last entry
+    wt = rng.uniform(1e3, 1e6, (h, w)).astype(np.float32)
+    spread = rng.uniform(0.0, 400.0, (h, w)).astype(np.float32)
+    a = np.radians(1.3)
+    warp = np.array([[np.cos(a), -np.sin(a), 2.6], [np.sin(a), np.cos(a), -7.1]])
+    row = np.tile(pattern, (h // 2, w // 2))
+    i = row * n + np.minimum(codes, n - 1)
+    e = align.tap_weight_energy_mosaic(warp, 0, h, w).astype(np.float64)
+    u = slope[i].astype(np.float64) ** 2 * spread
+    c = cert[i].astype(np.float64)
+    den = e * c + np.maximum(wt * u - (1 - e) * c, 0.0)
+    want = np.where(den > 0, wt * c / np.where(den > 0, den, 1.0), 0.0)
+    got = align.resampled_weight_mosaic(wt, codes, pattern, slope, cert, n, spread, warp)
+    assert np.count_nonzero(got == 0) == np.count_nonzero(want == 0) > 0
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    same = wt.copy()  # in place
+    align.resampled_weight_mosaic(same, codes, pattern, slope, cert, n, spread, warp, out=same)
+    np.testing.assert_array_equal(same, got)
+
+
 def test_tap_weight_energy_against_monte_carlo():
     """Pure noise (sigma 10 codes) resampled colour by colour by bilinear interpolation
     (OpenCV's, as tap_variance_mosaic reads it) under a rotation and a shift: the

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
@@ -639,6 +640,54 @@ def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> 
             fy -= np.floor(fy)
             out[dy::2, dx::2] = (fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2)
     return out
+
+
+def resampled_weight_mosaic(w: np.ndarray, codes: np.ndarray, pattern: np.ndarray | None, slope: np.ndarray,
+                            certainty: np.ndarray, n_codes: int, spread: np.ndarray, warp: np.ndarray,
+                            out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse-variance weights of the samples of a mosaic resampled by ``warp``
+    (:func:`resample_mosaic`), the variance of a resampled reading in the weights of (7):
+    a table weight ``w = c / v`` (``c`` the weighting function ``w(z)``, ``v`` the variance
+    of the sample's value) becomes ``c / (e v + max(u - (1 - e) v, 0))``, ``u`` the taps'
+    spread ``spread`` (:func:`tap_variance_mosaic`, squared codes) times the squared slope
+    of the value table at the sample's code, ``e`` the interpolation's ``sum w_i^2``
+    (:func:`tap_weight_energy_mosaic`, computed per sample here).  Interpolating between
+    taps averages their noise (``e v``, (17)'s noise through the interpolation), and the
+    spread holds ``(1 - e) v`` of that noise on average, which is not interpolation error.
+    ``w``, ``codes``, ``spread``: ``(H, W)`` (``out`` may be ``w``); ``slope``,
+    ``certainty``: flattened ``(C * n_codes,)`` tables, the row of a sample from
+    ``pattern`` (``(ph, pw)`` table rows tiled over the mosaic; None: row 0).  One pass,
+    no temporaries (numba): before, numpy in bands took 0.4 s per 24 MP frame and pass."""
+    sites = np.array([[_site_warp(warp, dx, dy) for dx in (0, 1)] for dy in (0, 1)], np.float64)
+    rows = np.zeros((1, 1), np.intp) if pattern is None else np.asarray(pattern, np.intp)
+    if out is None:
+        out = np.empty(w.shape, np.float32)
+    _resampled_weight_rows(w, codes, rows, np.asarray(slope, np.float32), np.asarray(certainty, np.float32),
+                           n_codes, spread, sites, out)
+    return out
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _resampled_weight_rows(w, codes, rows, slope, certainty, n_codes, spread, sites, out):  # pragma: no cover - compiled
+    h, width = codes.shape
+    ph, pw = rows.shape
+    one, zero = np.float32(1.0), np.float32(0.0)
+    for r in numba.prange(h):
+        dy, v = r & 1, r >> 1
+        for col in range(width):
+            dx, u = col & 1, col >> 1
+            fx = sites[dy, dx, 0, 0] * u + sites[dy, dx, 0, 1] * v + sites[dy, dx, 0, 2]
+            fy = sites[dy, dx, 1, 0] * u + sites[dy, dx, 1, 1] * v + sites[dy, dx, 1, 2]
+            fx -= np.floor(fx)
+            fy -= np.floor(fy)
+            e = np.float32((fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2))
+            i = rows[r % ph, col % pw] * n_codes + min(codes[r, col], n_codes - 1)
+            g = slope[i]
+            spread_u = g * g * spread[r, col]
+            c = certainty[i]
+            wr = w[r, col]
+            den = e * c + max(wr * spread_u - (one - e) * c, zero)
+            out[r, col] = wr * c / den if den > 0 else zero
 
 
 def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:

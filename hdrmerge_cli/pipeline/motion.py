@@ -507,7 +507,7 @@ class SampleWeights:
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
             w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread),
-                                      self.alignment["warps"][k]), True
+                                      self.alignment["warps"][k], out=w if own else None), True
         f = self.factor(k)
         if f is None:
             return w, None
@@ -538,40 +538,15 @@ class SampleWeights:
 
 
 def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray,
-                     warp: np.ndarray) -> np.ndarray:
-    """Inverse-variance weights of samples of a mosaic resampled by ``warp``: a table weight
-    ``w = c / v`` (``c`` the weighting function ``w(z)``, ``v`` the variance of the
-    sample's value) becomes ``c / (e v + max(u - (1 - e) v, 0))``.  ``u`` is the taps'
-    spread (:func:`~hdrmerge_cli.core.align.tap_variance`, squared codes) times the squared
-    slope of the value table (linear or log value per code) at the sample's code, and ``e``
-    the interpolation's ``sum w_i^2`` (:func:`~hdrmerge_cli.core.align.tap_weight_energy_mosaic`):
-    interpolating between taps averages their noise (``e v``), and the spread holds
-    ``(1 - e) v`` of that noise on average, which is not interpolation error.  (Before,
-    ``c / (v + u)`` overstated a flat area's variance up to 7 times: ``1.75 v`` against
-    ``v / 4`` midway between four taps.)  All ``(H, W)``; in bands
-    of about :data:`WEIGHT_ROWS` rows (whole periods of ``pattern``), so that the
-    temporaries are a band's (at 24 MP a frame's were 0.5 GB)."""
+                     warp: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse-variance weights ``w`` (``(H, W)``) of the samples of a mosaic resampled by
+    ``warp`` with the interpolation's variance added
+    (:func:`~hdrmerge_cli.core.align.resampled_weight_mosaic`), from frame's ``tables``:
+    the slope of its value table (linear or log value per code) and its certainty
+    ``w(z)``.  ``out`` may be ``w``."""
     n = tables.n_codes
     slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
-    out = np.empty(w.shape, np.float32)
-    period = 2 if pattern is None else max(2, np.shape(pattern)[0])
-    step = max(1, WEIGHT_ROWS // period) * period
-    for r0 in range(0, w.shape[0], step):
-        rows = slice(r0, r0 + step)
-        u = _samples(lookup(slope, n, codes[rows], pattern))
-        u *= u
-        u *= spread[rows]
-        c = _samples(lookup(tables.certainty, n, codes[rows], pattern))
-        e = align.tap_weight_energy_mosaic(warp, r0, min(r0 + step, w.shape[0]), w.shape[1])
-        wr = w[rows]
-        # multiplied through by w: c e + max(w u - (1 - e) c, 0), weight w c / that
-        den = e * c + np.maximum(wr * u - (1 - e) * c, 0.0)
-        out[rows] = np.where(den > 0, wr * c / np.where(den > 0, den, 1.0), 0.0)
-    return out
-
-
-#: rows per band of :func:`resampled_weight`
-WEIGHT_ROWS = 256
+    return align.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out)
 
 
 def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
