@@ -436,10 +436,14 @@ def ghost_weight(ghosts: dict, k: int, height: int, width: int) -> np.ndarray:
 
     m = ghosts["masks"][k]
     ch, cw = ghosts["covered"]
-    up = cv2.resize(m.astype(np.float32) * np.float32(1 / 255), (cw, ch), interpolation=cv2.INTER_LINEAR)
-    if (ch, cw) != (height, width):
-        up = np.pad(up, ((0, height - ch), (0, width - cw)), mode="edge")
-    return up
+    hb, wb = m.shape
+    # pixel centre (x + 1/2) lands on block coordinate (x + 1/2) wb / cw - 1/2, as a resize
+    # to the covered pixels reads it; beyond them the border repeats (one pass: a resize
+    # and an edge pad of a 24 MP frame took 0.2 s more in a merge)
+    sx, sy = wb / cw, hb / ch
+    a = np.float64([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5]])
+    return cv2.warpAffine(m.astype(np.float32) * np.float32(1 / 255), a, (width, height),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
 def ghost_image(ghosts: dict | None, height: int, width: int) -> np.ndarray:
