@@ -557,42 +557,55 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     black = np.broadcast_to(np.asarray(black, np.float32).reshape(-1), (4,)).reshape(2, 2)
     sites = [(dy, dx) for dy in (0, 1) for dx in (0, 1)]
     green = {(dy, dx): cfa[2 * dy + dx] == "G" for dy, dx in sites}
-    usable = (codes < clip_code).astype(np.float32)
+    # a band without a clipped code (most of a frame but its highlights) needs none of the
+    # clipping's bookkeeping (24 MP: 0.6 -> 0.4 s a frame; the same output)
+    clipped = bool((codes >= clip_code).any())
+    usable = (codes < clip_code).astype(np.float32) if clipped else None
     signal = codes.astype(np.float32)  # a clipped code stays at its floor, the clipping level
     for dy, dx in sites:
         signal[dy::2, dx::2] -= black[dy, dx]
     # green everywhere: at red and blue sites the mean of their four green neighbours
     cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
     mean4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
-    n4 = cv2.filter2D(usable, -1, cross, borderType=cv2.BORDER_REFLECT_101)
-    full_g, g_ok = signal.copy(), usable.copy()
+    full_g = signal.copy()
     for dy, dx in sites:
         if not green[dy, dx]:
             full_g[dy::2, dx::2] = mean4[dy::2, dx::2]
-            g_ok[dy::2, dx::2] = n4[dy::2, dx::2] > 0.3
     g_out = warped(full_g, warp, out_rows, cv2.INTER_CUBIC)
-    g_lost = lost(g_ok, warp, out_rows)
-    # clipped green within reach of a red or blue output's correction (cubic: 2 px, plus the fills)
-    near_g = warped(cv2.dilate(((g_ok == 0) * 255).astype(np.uint8), np.ones((7, 7), np.uint8)), warp, out_rows) > 0
+    g_lost = near_g = None
+    if clipped:
+        n4 = cv2.filter2D(usable, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+        g_ok = usable.copy()
+        for dy, dx in sites:
+            if not green[dy, dx]:
+                g_ok[dy::2, dx::2] = n4[dy::2, dx::2] > 0.3
+        g_lost = lost(g_ok, warp, out_rows)
+        # clipped green within reach of a red or blue output's correction (cubic: 2 px, plus the fills)
+        near_g = warped(cv2.dilate(((g_ok == 0) * 255).astype(np.uint8), np.ones((7, 7), np.uint8)), warp, out_rows) > 0
     c = np.float32(COLOUR_RATIO_FLOOR * (clip_code - float(black.mean())))
     out = np.empty((out_rows, w), np.float32)
     clip_out = np.zeros((out_rows, w), bool)
     for dy, dx in sites:
         if green[dy, dx]:
             out[dy::2, dx::2] = g_out[dy::2, dx::2]
-            clip_out[dy::2, dx::2] = g_lost[dy::2, dx::2]
+            if clipped:
+                clip_out[dy::2, dx::2] = g_lost[dy::2, dx::2]
             continue
         m, rows = _site_warp(warp, dx, dy), (out_rows - dy + 1) // 2
         plain = warped(signal[dy::2, dx::2], m, rows)
         g_taps = warped(full_g[dy::2, dx::2], m, rows)
         ratio = (np.maximum(g_out[dy::2, dx::2], 0) + c) / (np.maximum(g_taps, 0) + c)
-        out[dy::2, dx::2] = np.where(near_g[dy::2, dx::2], plain, plain * ratio)
-        clip_out[dy::2, dx::2] = lost(usable[dy::2, dx::2], m, rows)
+        if clipped:
+            out[dy::2, dx::2] = np.where(near_g[dy::2, dx::2], plain, plain * ratio)
+            clip_out[dy::2, dx::2] = lost(usable[dy::2, dx::2], m, rows)
+        else:
+            out[dy::2, dx::2] = plain * ratio
     for dy, dx in sites:
         out[dy::2, dx::2] += black[dy, dx]
     np.rint(out, out=out)
     np.clip(out, 0, clip_code - 1, out=out)
-    out[clip_out] = clip_code
+    if clipped:
+        out[clip_out] = clip_code
     return out.astype(codes.dtype)
 
 
