@@ -838,6 +838,10 @@ def test_resampled_weight_mosaic_equals_its_formula_per_colour():
     same = wt.copy()  # in place
     align.resampled_weight_mosaic(same, codes, pattern, slope, cert, n, spread, warp, out=same)
     np.testing.assert_array_equal(same, got)
+    table = rng.uniform(1e3, 1e6, 3 * n).astype(np.float32)  # the weights read from a table
+    np.testing.assert_array_equal(align.resampled_weight_mosaic(None, codes, pattern, slope, cert, n, spread, warp,
+                                                                weight=table),
+                                  align.resampled_weight_mosaic(table[i], codes, pattern, slope, cert, n, spread, warp))
 
 
 def test_tap_weight_energy_against_monte_carlo():

@@ -655,9 +655,9 @@ def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> 
     return out
 
 
-def resampled_weight_mosaic(w: np.ndarray, codes: np.ndarray, pattern: np.ndarray | None, slope: np.ndarray,
+def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np.ndarray | None, slope: np.ndarray,
                             certainty: np.ndarray, n_codes: int, spread: np.ndarray, warp: np.ndarray,
-                            out: np.ndarray | None = None) -> np.ndarray:
+                            out: np.ndarray | None = None, weight: np.ndarray | None = None) -> np.ndarray:
     """Inverse-variance weights of the samples of a mosaic resampled by ``warp``
     (:func:`resample_mosaic`), the variance of a resampled reading in the weights of (7):
     a table weight ``w = c / v`` (``c`` the weighting function ``w(z)``, ``v`` the variance
@@ -667,21 +667,25 @@ def resampled_weight_mosaic(w: np.ndarray, codes: np.ndarray, pattern: np.ndarra
     (:func:`tap_weight_energy_mosaic`, computed per sample here).  Interpolating between
     taps averages their noise (``e v``, (17)'s noise through the interpolation), and the
     spread holds ``(1 - e) v`` of that noise on average, which is not interpolation error.
-    ``w``, ``codes``, ``spread``: ``(H, W)`` (``out`` may be ``w``); ``slope``,
-    ``certainty``: flattened ``(C * n_codes,)`` tables, the row of a sample from
-    ``pattern`` (``(ph, pw)`` table rows tiled over the mosaic; None: row 0).  One pass,
-    no temporaries (numba): before, numpy in bands took 0.4 s per 24 MP frame and pass."""
+    ``w``, ``codes``, ``spread``: ``(H, W)`` (``out`` may be ``w``); ``w`` None: the
+    table ``weight`` at each code.  ``slope``, ``certainty``, ``weight``: flattened
+    ``(C * n_codes,)`` tables, the row of a sample from ``pattern`` (``(ph, pw)`` table
+    rows tiled over the mosaic; None: row 0).  One pass, no temporaries (numba): before,
+    numpy in bands took 0.4 s per 24 MP frame and pass."""
     sites = np.array([[_site_warp(warp, dx, dy) for dx in (0, 1)] for dy in (0, 1)], np.float64)
     rows = np.zeros((1, 1), np.intp) if pattern is None else np.asarray(pattern, np.intp)
     if out is None:
-        out = np.empty(w.shape, np.float32)
-    _resampled_weight_rows(w, codes, rows, np.asarray(slope, np.float32), np.asarray(certainty, np.float32),
-                           n_codes, spread, sites, out)
+        out = np.empty(codes.shape, np.float32)
+    table = w is None
+    _resampled_weight_rows(np.empty((1, 1), np.float32) if table else w,
+                           np.asarray(weight if table else np.empty(1), np.float32), table, codes, rows,
+                           np.asarray(slope, np.float32), np.asarray(certainty, np.float32), n_codes, spread, sites, out)
     return out
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _resampled_weight_rows(w, codes, rows, slope, certainty, n_codes, spread, sites, out):  # pragma: no cover - compiled
+def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, sites,
+                           out):  # pragma: no cover - compiled
     h, width = codes.shape
     ph, pw = rows.shape
     one, zero = np.float32(1.0), np.float32(0.0)
@@ -698,7 +702,7 @@ def _resampled_weight_rows(w, codes, rows, slope, certainty, n_codes, spread, si
             g = slope[i]
             spread_u = g * g * spread[r, col]
             c = certainty[i]
-            wr = w[r, col]
+            wr = weight[i] if table else w[r, col]
             den = e * c + max(wr * spread_u - (one - e) * c, zero)
             out[r, col] = wr * c / den if den > 0 else zero
 

@@ -11,7 +11,6 @@ from hdrmerge_cli.core import align, deghost
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.core.reconstruct import lookup
 from hdrmerge_cli.io.frames import Frame, load_codes
 
 log = logging.getLogger("hdrmerge_cli")
@@ -504,10 +503,11 @@ class SampleWeights:
             out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
         return out
 
-    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray, own: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """``w`` with the resampling's variance added and times :meth:`factor` (broadcast
-        over an image's channels), and the factor; ``own``: ``w`` may be overwritten (a
-        fresh full-size array costs its page faults, tenths of a second at 24 MP)."""
+    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray | None, own: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """``w`` (None: the table's, for a resampled frame) with the resampling's variance
+        added and times :meth:`factor` (broadcast over an image's channels), and the
+        factor; ``own``: ``w`` may be overwritten (a fresh full-size array costs its page
+        faults, tenths of a second at 24 MP)."""
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
             w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread),
@@ -536,21 +536,21 @@ class SampleWeights:
         them, and the factor, which then only says where the frame is a sample's own."""
         if self.load is None or self.load.spread(self.frames[k]) is None:
             return None, self.factor(k)
-        w = _samples(lookup(self.tables[k].weight, self.tables[k].n_codes, codes, self.pattern))
-        w, f = self._weighted(k, codes, w, own=True)
+        w, f = self._weighted(k, codes, None, own=True)  # the table's weights, read in the same pass
         return w.reshape(codes.shape).astype(np.float32, copy=False), f
 
 
-def resampled_weight(w: np.ndarray, tables, codes: np.ndarray, pattern, spread: np.ndarray,
+def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, spread: np.ndarray,
                      warp: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """Inverse-variance weights ``w`` (``(H, W)``) of the samples of a mosaic resampled by
-    ``warp`` with the interpolation's variance added
-    (:func:`~hdrmerge_cli.core.align.resampled_weight_mosaic`), from frame's ``tables``:
-    the slope of its value table (linear or log value per code) and its certainty
-    ``w(z)``.  ``out`` may be ``w``."""
+    """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
+    mosaic resampled by ``warp`` with the interpolation's variance added
+    (:func:`~hdrmerge_cli.core.align.resampled_weight_mosaic`), from the frame's
+    ``tables``: the slope of its value table (linear or log value per code) and its
+    certainty ``w(z)``.  ``out`` may be ``w``."""
     n = tables.n_codes
     slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
-    return align.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out)
+    return align.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out,
+                                         weight=tables.weight)
 
 
 def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
