@@ -470,16 +470,19 @@ def _image_frame(name, t, h, w):
                  channels=3)
 
 
-def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None):
+def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None, curve=None):
     """Three 8-bit frames through x^(1/2.2), ``step`` stops apart, of a textured ramp;
-    ``paint``: {frame: (slice, code)} objects seen by one frame only."""
+    ``paint``: {frame: (slice, code)} objects seen by one frame only; ``curve``: {frame:
+    f}, that frame's encoded values ``v`` (unclipped) through ``f`` before clipping."""
     yy, xx = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
     e = (2.0 ** (9 * xx - 8) * (0.6 + 0.3 * np.sin(12 * yy)))[..., None] * np.array([1.0, 0.9, 0.8])
     times = 2.0 ** (step * np.arange(-1, 2))
     frames, codes = [], []
     for k, t in enumerate(times):
-        lin = np.clip(e * t * 4 + rng.normal(0, 0.003, e.shape), 0, 1)
-        z = np.rint(lin ** (1 / 2.2) * 255).astype(np.uint8)
+        lin = np.maximum(e * t * 4 + rng.normal(0, 0.003, e.shape), 0)
+        v = lin ** (1 / 2.2)
+        v = curve[k](v) if curve and k in curve else v
+        z = np.rint(np.clip(v, 0, 1) * 255).astype(np.uint8)
         if paint and k in paint:
             where, code = paint[k]
             z[where] = code
@@ -746,6 +749,28 @@ def test_glare_near_the_clipped_highlights_of_the_longer_frame_is_not_motion():
     bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros_like(xa), (1, 3),
                                      min_change=deghost.MIN_LOG_CHANGE, excuse=e)
     assert not bad[36:40, 42:58].any() and bad[60:64, 42:58].all() and bad[80:84, 42:58].all()
+
+
+@pytest.mark.parametrize("seed", [31, 32])
+def test_an_image_reference_rolling_off_towards_white_bounds_the_light_from_below(seed):
+    """The reference's tone curve rolls off above 0.6 of white and clips far beyond it (a
+    camera's highlight shoulder, which the assumed response lacks): its codes near white
+    stand for more light than the response says, and the static short frame reads
+    brighter there, beside where the reference clips.  That is no motion (without the
+    shoulder excuse 3.2-4.1 % of the short frame's cells were rejected); a dark object in
+    the short frame over the same highlights still is."""
+    def shoulder(v):
+        return np.where(v < 0.6, v, 0.6 + 0.4 * (1 - np.exp(-(v - 0.6) / 0.2)))
+
+    frames, codes, times = _gamma_bracket(np.random.default_rng(seed), curve={1: shoulder})
+    near_white = (codes[1].min(axis=-1) >= 0.9 * 255) & (codes[1].max(axis=-1) < 255)
+    assert near_white.mean() > 0.1 and (codes[1] == 255).all(axis=-1).mean() > 0.02
+    assert max(_ghosts_of(frames, codes, times)["rejected_fraction"]) <= deghost.AUTO_FRACTION
+    rows = np.flatnonzero(near_white[:, 150:170].all(axis=1))
+    where = (slice(rows[0], rows[0] + 12), slice(150, 170))
+    assert near_white[where].all()
+    frames, codes, times = _gamma_bracket(np.random.default_rng(seed), curve={1: shoulder}, paint={0: (where, 5)})
+    assert _ghosts_of(frames, codes, times)["masks"][0][where].min() > 0.9 * 255
 
 
 def test_dark_bound_adapts_to_a_crushed_toe_but_still_finds_a_bright_object():

@@ -53,6 +53,9 @@ FIT_SAMPLES = 1 << 16
 #: most (about): a 24 MP RAW frame's 2 x 2 regions are 665 000, whose binned medians took
 #: 0.25 s a frame; a 0.7 MP frame's are fewer, all read
 NULL_SAMPLES = 1 << 18
+#: an image's anchor reading at or above this fraction of the code range is a bound from
+#: below (:func:`shoulder_excuse`; registration's margin)
+SHOULDER_CODE = 0.9
 #: degree of the polynomial (in log x) of :func:`match_anchor`
 MATCH_DEGREE = 3
 #: smallest robust scale of :func:`robust_poly` (log units)
@@ -131,6 +134,24 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     step = np.gradient(lin)  # linear value per code step
     var = code_variance(np.maximum(lin, 0.0) * y_full, noise) / y_full**2 + step * step / 12.0
     return lin / exposure, var / exposure**2, valid
+
+
+def shoulder_excuse(xa: np.ndarray, valid_a: np.ndarray, exposure_a: np.ndarray, lin_hi: np.ndarray) -> np.ndarray:
+    """Per cell, +1 (a brighter reading is no evidence of motion) where an image's anchor
+    reads near white: at or above ``lin_hi`` (linear, full scale 1, per channel) in some
+    channel; 0 elsewhere (int8, as :func:`glare_excuse`).  ``xa``, ``valid_a``,
+    ``exposure_a`` ``(h, w, C)``: the anchor's readings, where it measures, and the
+    exposure of the frame each came from.  A camera's JPEG tone curve rolls off towards
+    white and desaturates highlights where the assumed response (sRGB) runs straight on,
+    so there a code stands for more light than that response says, and a static shorter
+    frame reads brighter: the reference's blue codes 240-251 of ``eos5d3_foyer_jpg`` span
+    the light its short frame reads at codes 150-180 (1.5x, against 1.1x by sRGB), and
+    that frame was rejected over a lamp-lit wall (0.26 % of its cells), leaving the
+    reference's washed-out reading there (blue 1.85x too low against the plain merge).
+    Such a reading bounds the light from below, as a clipped one does; the margin is
+    registration's (:func:`~hdrmerge_cli.core.align.common_range`)."""
+    near_white = (valid_a & (xa * exposure_a >= lin_hi)).any(axis=-1)
+    return near_white.astype(np.int8)
 
 
 def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int, out=None):
@@ -524,7 +545,8 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     (:func:`match_channels`, ``pw`` the channels per cell).  With ``smooth`` the frame is also divided by
     :func:`smooth_ratio_field` (``pw`` the channels per cell); a cell is then kept only
     where its mean log ratio exceeds ``min_change`` in size and, where ``excuse``
-    (:func:`glare_excuse`, per cell) is non-zero, does not have its sign.  Returns
+    (:func:`glare_excuse`, :func:`shoulder_excuse`, per cell) is +1 or -1, does not have
+    its sign (2: either sign is excused).  Returns
     ``(H // ph, W' // pw)`` bool."""
     both = valid & valid_a
     use = both if steady is None else both & steady  # what the match and the region test read
@@ -587,7 +609,7 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         if min_change > 0:
             bad &= np.abs(rm) > min_change
         if excuse is not None:
-            bad &= ~(excuse * rm > 0)
+            bad &= ~((excuse * rm > 0) | (excuse == 2))
     return bad
 
 
