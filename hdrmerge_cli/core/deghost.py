@@ -53,7 +53,7 @@ FIT_SAMPLES = 1 << 16
 #: most (about): a 24 MP RAW frame's 2 x 2 regions are 665 000, whose binned medians took
 #: 0.25 s a frame; a 0.7 MP frame's are fewer, all read
 NULL_SAMPLES = 1 << 18
-#: an image's anchor reading at or above this fraction of the code range is a bound from
+#: an image's reading at or above this fraction of the code range bounds the light from
 #: below (:func:`shoulder_excuse`; registration's margin)
 SHOULDER_CODE = 0.9
 #: degree of the polynomial (in log x) of :func:`match_anchor`
@@ -136,22 +136,37 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     return lin / exposure, var / exposure**2, valid
 
 
-def shoulder_excuse(xa: np.ndarray, valid_a: np.ndarray, exposure_a: np.ndarray, lin_hi: np.ndarray) -> np.ndarray:
-    """Per cell, +1 (a brighter reading is no evidence of motion) where an image's anchor
-    reads near white: at or above ``lin_hi`` (linear, full scale 1, per channel) in some
-    channel; 0 elsewhere (int8, as :func:`glare_excuse`).  ``xa``, ``valid_a``,
-    ``exposure_a`` ``(h, w, C)``: the anchor's readings, where it measures, and the
-    exposure of the frame each came from.  A camera's JPEG tone curve rolls off towards
-    white and desaturates highlights where the assumed response (sRGB) runs straight on,
-    so there a code stands for more light than that response says, and a static shorter
-    frame reads brighter: the reference's blue codes 240-251 of ``eos5d3_foyer_jpg`` span
-    the light its short frame reads at codes 150-180 (1.5x, against 1.1x by sRGB), and
-    that frame was rejected over a lamp-lit wall (0.26 % of its cells), leaving the
-    reference's washed-out reading there (blue 1.85x too low against the plain merge).
-    Such a reading bounds the light from below, as a clipped one does; the margin is
-    registration's (:func:`~hdrmerge_cli.core.align.common_range`)."""
-    near_white = (valid_a & (xa * exposure_a >= lin_hi)).any(axis=-1)
-    return near_white.astype(np.int8)
+def near_white(x: np.ndarray, valid: np.ndarray, exposure: np.ndarray | float, lin_hi: np.ndarray) -> np.ndarray:
+    """Per cell, whether an image's readings ``x`` ``(h, w, C)`` (where ``valid``; from
+    frames of ``exposure``, a scalar or per reading) reach ``lin_hi`` (linear, full scale
+    1, per channel; the :data:`SHOULDER_CODE` of the response) in some channel."""
+    return (valid & (x * exposure >= lin_hi)).any(axis=-1)
+
+
+def shoulder_excuse(anchor_near: np.ndarray, frame_near: np.ndarray) -> np.ndarray:
+    """Per cell, the sign of change that an image's readings near white
+    (:func:`near_white`) leave unexplained (int8, as :func:`glare_excuse`): +1 where the
+    anchor reads near white, -1 where the tested frame does, 2 (either sign) where both
+    do, 0 elsewhere.  A camera's JPEG tone curve rolls off towards white and desaturates
+    highlights where the assumed response (sRGB) runs straight on, so there a code stands
+    for more light than that response says: such a reading bounds the light from below,
+    as a clipped one does, and a static frame compared with it reads brighter (the anchor
+    near white) or darker (the frame near white).  On the real static JPEG brackets: the
+    reference's blue codes 240-251 of ``eos5d3_foyer_jpg`` span the light its short frame
+    reads at codes 150-180 (1.5x, against 1.1x by sRGB), and that frame was rejected over
+    a lamp-lit wall (0.26 % of its cells), leaving the reference's washed-out reading
+    (blue 1.85x too low against the plain merge); longer frames near white were rejected
+    against the reference in ``eos70d_kitchen_jpg`` (0.30 %), ``eos350d_lamps_night_jpg``
+    (0.42 %) and ``ex2f_trees_jpg`` (0.21 %).  The margin is registration's
+    (:func:`~hdrmerge_cli.core.align.common_range`)."""
+    return (anchor_near.astype(np.int8) - frame_near.astype(np.int8)
+            + 2 * (anchor_near & frame_near).astype(np.int8))
+
+
+def either_excuse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Two per-cell excuses (int8: +1, -1, 2 = either sign, 0 = none) in one: a sign one
+    excuses and the other does not stays; opposite signs (or a 2) excuse either."""
+    return np.where(a == 0, b, np.where((b == 0) | (a == b), a, np.int8(2))).astype(np.int8)
 
 
 def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int, out=None):

@@ -367,10 +367,10 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     if not reach:  # the older tolerance: the anchor's contrast along half a pixel of misregistration
         reg = (deghost.ALIGN_TOLERANCE_PX / (b * per_px)) ** 2
         grad2 = _samples(deghost.squared_gradient(xa, "rgb") * np.float32(reg))
-    shoulder = None
-    if not raw:  # an image's anchor reading near white bounds the light from below
+    lin_hi = anchor_near = None
+    if not raw:  # an image's reading near white bounds the light from below
         lin_hi = np.float32([crf.inverse(np.float64(deghost.SHOULDER_CODE), c) for c in range(nc)])
-        shoulder = deghost.shoulder_excuse(xa, va, exposures[np.maximum(source, 0)].astype(np.float32), lin_hi)
+        anchor_near = deghost.near_white(xa, va, exposures[np.maximum(source, 0)].astype(np.float32), lin_hi)
     sigma = max(1.5, deghost.FEATHER_PX / (b * per_px))
     bloom = deghost.BLOOM_PX / (b * per_px)
     blooming = dict(reach=bloom / max(hb, wb))  # glare_excuse within the bloom alone (RAW)
@@ -405,9 +405,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         # frame's cells).  RAW, as above, only within blooming
         excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer,
                                       **(blooming if raw else {}))
-        if shoulder is not None:
-            # glare and the shoulder may excuse opposite signs in one cell: then either (2)
-            excuse = np.where(excuse == 0, shoulder, np.where(shoulder * excuse < 0, np.int8(2), excuse))
+        if anchor_near is not None:
+            shoulder = deghost.shoulder_excuse(anchor_near, deghost.near_white(x, ok, np.float32(exposures[k]), lin_hi))
+            excuse = deghost.either_excuse(excuse, shoulder)
         bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
                                          _samples(va), grad2, (1, nc), p_fa, min_change=deghost.MIN_LOG_CHANGE,
                                          excuse=excuse, reach=reach, steady=_samples(untruncated & ua) if raw else None,
