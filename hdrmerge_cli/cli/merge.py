@@ -109,7 +109,8 @@ log = logging.getLogger("hdrmerge_cli")
                    "where that suffices, else each colour's sites are resampled.")
 @click.option("--deghost", type=click.Choice(DEGHOST_MODES), default="off", show_default=True,
               help="Drop moving objects: per cell, a chi-square test of each frame against the reference (the "
-                   "middle exposure) under the noise model, and the bounds a dark or clipped reading sets; "
+                   "middle exposure) under the noise model, and the bounds a dark, clipped or (JPEG/TIFF/PNG) "
+                   "near-white reading sets; "
                    "false-alarm rate 1e-3; regions feathered so that no seam shows; auto acts only when more than "
                    "0.2 % of a frame moves.  --extra-channels ghost shows where.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
