@@ -558,7 +558,8 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     sites = [(dy, dx) for dy in (0, 1) for dx in (0, 1)]
     green = {(dy, dx): cfa[2 * dy + dx] == "G" for dy, dx in sites}
     # a band without a clipped code (most of a frame but its highlights) needs none of the
-    # clipping's bookkeeping (24 MP: 0.6 -> 0.4 s a frame; the same output)
+    # clipping's bookkeeping (24 MP: 0.59 -> 0.23 s for a frame with little clipping, 0.79 ->
+    # 0.70 s with 3.8 % clipped; the same output)
     clipped = bool((codes >= clip_code).any())
     usable = (codes < clip_code).astype(np.float32) if clipped else None
     signal = codes.astype(np.float32)  # a clipped code stays at its floor, the clipping level
