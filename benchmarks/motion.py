@@ -84,7 +84,8 @@ alignment's error (no static twin, no peers).
   merged plain.  F = F0 where the oracle's |log error| is <= min(|c| / 2, 0.3) (the pixels a
   ghost remover can get right at all: not where the only frames without the ghost are clipped
   or dark there); tolerance = max(0.05, 99th percentile of the oracle's
-  |log error| over F); *removed* = fraction of F whose |log error| is within the tolerance.
+  |log error| over F) + 1e-4 (round-off); *removed* = fraction of F whose |log error| is
+  within the tolerance.
 - *False rejections*: ``deghost.rejected_fraction`` of merge's summary, the largest over the
   frames (fraction of cells), on the static twins and on the real static brackets.
 - *Cost*: time and peak RSS of the moving bracket's ``--align auto --deghost auto`` over
@@ -555,7 +556,10 @@ def run_case(case: Case, work: Path, peers: bool = True) -> dict:
     if e_oracle is not None:
         f = f0 & (np.abs(e_oracle) <= np.minimum(np.abs(r.contrast) / 2, ORACLE_MAX))
         res["ghost_f"] = int(f.sum())
-        tol = max(0.05, float(np.percentile(np.abs(e_oracle[f]), 99))) if f.any() else float("nan")
+        # (+ 1e-4: a merge that reads a pixel as the oracle does must not fail it on round-off;
+        # case 12's dark ghost at black in the RAW reference: 30 % of F at the oracle's very
+        # error plus 6e-6 after a change that moved no decision there)
+        tol = max(0.05, float(np.percentile(np.abs(e_oracle[f]), 99))) + 1e-4 if f.any() else float("nan")
         res["ghost_tol"] = tol
     for name in ("auto", "similarity"):
         s = runs[name]

@@ -922,6 +922,60 @@ def test_tap_weight_energy_against_monte_carlo():
     assert np.mean(spreads) == pytest.approx(sigma**2 * np.mean(1 - e[inner]), rel=0.03)
 
 
+def test_filled_green_noise_against_monte_carlo():
+    """Pure noise (sigma 10 codes) on an RGGB mosaic, green resampled bilinearly from the
+    filled full-resolution green image (taps 1 px apart; red and blue sites the mean of
+    their four greens) under a rotation and a shift: the interpolated green's variance is
+    sigma^2 e and the taps' spread (tap_variance_mosaic with the CFA) averages
+    sigma^2 (s - e) (both within 3 %), with e and s written out here from the taps'
+    covariance and recovered from resampled_weight_mosaic's weights (exactly)."""
+    from hdrmerge_cli.core import align
+
+    rng = np.random.default_rng(8)
+    h, w, sigma = 400, 600, 10.0
+    a = np.radians(0.7)
+    warp = np.array([[np.cos(a), -np.sin(a), 3.3], [np.sin(a), np.cos(a), -1.7]])
+    green = np.zeros((h, w), bool)
+    green[0::2, 1::2] = green[1::2, 0::2] = True
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = warp[0, 0] * xx + warp[0, 1] * yy + warp[0, 2], warp[1, 0] * xx + warp[1, 1] * yy + warp[1, 2]
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    taps = [(0, 0), (1, 0), (0, 1), (1, 1)]  # (dx, dy) from the top-left tap
+    wt = np.stack([(fx if dx else 1 - fx) * (fy if dy else 1 - fy) for dx, dy in taps], -1)
+    tl_green = ((y0.astype(int) + x0.astype(int)) % 2) == 1  # RGGB: green where row + col is odd
+    real = np.stack([tl_green == ((dx + dy) % 2 == 0) for dx, dy in taps], -1)  # which taps are greens
+    cov = np.where(real[..., :, None] & real[..., None, :], np.eye(4), 0.0)  # real greens: independent
+    fill = ~real
+    cov = np.where(fill[..., :, None] & fill[..., None, :], np.where(np.eye(4, dtype=bool), 0.25, 0.125), cov)
+    cov = np.where(real[..., :, None] ^ real[..., None, :], 0.25, cov)  # a filled tap holds both real ones
+    e = np.einsum("...i,...ij,...j->...", wt, cov, wt)
+    s_ = np.einsum("...i,...ii->...", wt, cov)
+    # the kernel's: with no spread the weight is w / e; with spread u, 1 / (2 e + u - s)
+    ones = np.ones((h, w), np.float32)
+    codes = np.full((h, w), 100, np.uint16)
+    table = np.ones(256, np.float32)
+    got_e = 1.0 / align.resampled_weight_mosaic(ones, codes, None, table, table, 256, np.zeros((h, w), np.float32),
+                                                warp, cfa="RGGB")
+    u = 10.0
+    got_s = 2 * got_e + u - 1.0 / align.resampled_weight_mosaic(ones, codes, None, table, table, 256,
+                                                                np.full((h, w), u, np.float32), warp, cfa="RGGB")
+    np.testing.assert_allclose(got_e[green], e[green], rtol=1e-5)
+    np.testing.assert_allclose(got_s[green], s_[green], rtol=1e-4)
+    inner = green.copy()
+    inner[:20], inner[-20:], inner[:, :20], inner[:, -20:] = False, False, False, False
+    var_i, spreads = [], []
+    for _ in range(20):
+        mosaic = (1000.0 + rng.normal(0.0, sigma, (h, w))).astype(np.float32)
+        full_g = align._green_image(mosaic, "RGGB")
+        interp = cv2.warpAffine(full_g, warp.astype(np.float32), (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                borderMode=cv2.BORDER_REPLICATE)
+        var_i.append(((interp - 1000.0) ** 2)[inner])
+        spreads.append(align.tap_variance_mosaic(mosaic, warp, "RGGB")[inner])
+    assert np.mean(var_i) == pytest.approx(sigma**2 * np.mean(e[inner]), rel=0.03)
+    assert np.mean(spreads) == pytest.approx(sigma**2 * np.mean((s_ - e)[inner]), rel=0.03)
+
+
 def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, monkeypatch):
     """A RAW frame resampled per CFA colour cannot reproduce a sharp edge; with the tap
     variance in its weights the merged edge is several times closer to the static
@@ -968,7 +1022,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     static = run("static", paths["static"])
     monkeypatch.setattr(motion, "estimate_alignment", given)
     weighted = run("weighted", paths["moving"])
-    monkeypatch.setattr(align, "tap_variance_mosaic", lambda codes, warp: np.zeros(codes.shape, np.float32))
+    monkeypatch.setattr(align, "tap_variance_mosaic", lambda codes, warp, *a: np.zeros(codes.shape, np.float32))
     unweighted = run("unweighted", paths["moving"])
 
     def rms(out):

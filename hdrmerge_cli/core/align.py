@@ -521,8 +521,18 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     rows its warp reaches plus :data:`BAND_MARGIN` (the fills', cubic's and the dilation's
     reach): a band's temporaries, not a frame's (a 24 MP frame: 1.0 GB above its codes
     whole)."""
-    h, w = codes.shape
     out = np.empty_like(codes)
+    for r0, r1, source, band in _bands(codes, warp):
+        out[r0:r1] = _resample_band(source, band, clip_code, cfa, black, r1 - r0)
+    return out
+
+
+def _bands(codes: np.ndarray, warp: np.ndarray):
+    """``(r0, r1, source rows, band warp)`` for each band of :data:`BAND_ROWS` output rows
+    ``r0:r1`` of a mosaic warped by ``warp``: the source rows its warp reaches plus
+    :data:`BAND_MARGIN` (whole CFA periods), and the warp from the band's output rows to
+    them."""
+    h, w = codes.shape
     for r0 in range(0, h, BAND_ROWS):
         r1 = min(h, r0 + BAND_ROWS)
         ys = [warp[1, 0] * x + warp[1, 1] * y + warp[1, 2] for x in (0, w - 1) for y in (r0, r1 - 1)]
@@ -531,8 +541,7 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
         band = np.asarray(warp, np.float64).copy()
         band[:, 2] += band[:, 1] * r0  # output rows from r0, source rows from s0
         band[1, 2] -= s0
-        out[r0:r1] = _resample_band(codes[s0:s1], band, clip_code, cfa, black, r1 - r0)
-    return out
+        yield r0, r1, codes[s0:s1], band
 
 
 #: output rows per band of :func:`resample_mosaic` (even: whole CFA periods)
@@ -562,16 +571,9 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     # 0.70 s with 3.8 % clipped; the same output)
     clipped = bool((codes >= clip_code).any())
     usable = (codes < clip_code).astype(np.float32) if clipped else None
-    signal = codes.astype(np.float32)  # a clipped code stays at its floor, the clipping level
-    for dy, dx in sites:
-        signal[dy::2, dx::2] -= black[dy, dx]
-    # green everywhere: at red and blue sites the mean of their four green neighbours
+    signal = _above_black(codes, black)  # a clipped code stays at its floor, the clipping level
+    full_g = _green_image(signal, cfa)
     cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
-    mean4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
-    full_g = signal.copy()
-    for dy, dx in sites:
-        if not green[dy, dx]:
-            full_g[dy::2, dx::2] = mean4[dy::2, dx::2]
     g_out = warped(full_g, warp, out_rows, cv2.INTER_CUBIC)
     g_lost = near_g = None
     if clipped:
@@ -610,9 +612,10 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     return out.astype(codes.dtype)
 
 
-def tap_variance(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
+def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = None) -> np.ndarray:
     """The spread of the source samples bilinear resampling (:func:`apply_warp`) mixes into
-    each output sample, float32 in squared codes, shape of ``codes``: ``sum_i w_i z_i^2 -
+    each output sample, float32 in squared codes, shape of ``codes`` (``out_rows`` rows if
+    given: the warp's output rows read from these source rows): ``sum_i w_i z_i^2 -
     (sum_i w_i z_i)^2`` over the (up to 4) taps ``z_i`` with their bilinear weights ``w_i``
     (two float warps).  It is the variance of the interpolated value if the true one were
     any of the taps, in proportion to their weights: 0 where the warp lands on a sample or
@@ -623,14 +626,15 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
     float32 round-off of ``z^2`` is ``6e-8 z^2``, far below the noise of a reading ``z``."""
     cv2 = _cv2()
     h, w = codes.shape[:2]
+    rows = h if out_rows is None else out_rows
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     m = np.asarray(warp, np.float32)
     z = np.ascontiguousarray(codes, np.float32)
-    mean = cv2.warpAffine(z, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    mean = cv2.warpAffine(z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
     np.multiply(z, z, out=z)
-    second = cv2.warpAffine(z, m, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    second = cv2.warpAffine(z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
     second -= mean * mean
-    return np.maximum(second, 0.0, out=second).reshape(codes.shape)
+    return np.maximum(second, 0.0, out=second).reshape((rows,) + codes.shape[1:])
 
 
 def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> np.ndarray:
@@ -658,7 +662,8 @@ def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> 
 
 def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np.ndarray | None, slope: np.ndarray,
                             certainty: np.ndarray, n_codes: int, spread: np.ndarray, warp: np.ndarray,
-                            out: np.ndarray | None = None, weight: np.ndarray | None = None) -> np.ndarray:
+                            out: np.ndarray | None = None, weight: np.ndarray | None = None,
+                            cfa: str | None = None) -> np.ndarray:
     """Inverse-variance weights of the samples of a mosaic resampled by ``warp``
     (:func:`resample_mosaic`), the variance of a resampled reading in the weights of (7):
     a table weight ``w = c / v`` (``c`` the weighting function ``w(z)``, ``v`` the variance
@@ -675,45 +680,109 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
     numpy in bands took 0.4 s per 24 MP frame and pass."""
     sites = np.array([[_site_warp(warp, dx, dy) for dx in (0, 1)] for dy in (0, 1)], np.float64)
     rows = np.zeros((1, 1), np.intp) if pattern is None else np.asarray(pattern, np.intp)
+    green = np.zeros((2, 2), np.bool_) if cfa is None else np.array([[c == "G" for c in cfa[:2]], [c == "G" for c in cfa[2:4]]])
     if out is None:
         out = np.empty(codes.shape, np.float32)
     table = w is None
     _resampled_weight_rows(np.empty((1, 1), np.float32) if table else w,
                            np.asarray(weight if table else np.empty(1), np.float32), table, codes, rows,
-                           np.asarray(slope, np.float32), np.asarray(certainty, np.float32), n_codes, spread, sites, out)
+                           np.asarray(slope, np.float32), np.asarray(certainty, np.float32), n_codes, spread, sites,
+                           np.asarray(warp, np.float64), green, out)
     return out
 
 
+@numba.njit(inline="always")
+def _filled_green_noise(fx, fy, on_green):  # pragma: no cover - compiled
+    """``(e, s)`` of bilinear taps 1 px apart on the filled green image, in units of a
+    green reading's noise variance: ``e = w' C w`` the interpolated value's, ``s = sum
+    w_i C_ii`` the taps' mean; ``C``: real greens 1 and independent, a filled site (the
+    mean of four greens) 1/4, its covariance with each real tap 1/4 (both real taps are
+    among its four), between the two filled taps 1/8 (two greens shared).  ``on_green``:
+    the top-left tap is a real green (then the bottom-right too)."""
+    w00, w11 = (1 - fx) * (1 - fy), fx * fy
+    w10, w01 = fx * (1 - fy), (1 - fx) * fy
+    if on_green:
+        a, b, p, q = w00, w11, w10, w01
+    else:
+        a, b, p, q = w10, w01, w00, w11
+    e = a * a + b * b + 0.25 * (p * p + q * q) + 0.5 * (a + b) * (p + q) + 0.25 * p * q
+    s = a + b + 0.25 * (p + q)
+    return e, s
+
+
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, sites,
+def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, sites, warp, green,
                            out):  # pragma: no cover - compiled
     h, width = codes.shape
     ph, pw = rows.shape
-    one, zero = np.float32(1.0), np.float32(0.0)
+    zero = np.float32(0.0)
     for r in numba.prange(h):
         dy, v = r & 1, r >> 1
         for col in range(width):
             dx, u = col & 1, col >> 1
-            fx = sites[dy, dx, 0, 0] * u + sites[dy, dx, 0, 1] * v + sites[dy, dx, 0, 2]
-            fy = sites[dy, dx, 1, 0] * u + sites[dy, dx, 1, 1] * v + sites[dy, dx, 1, 2]
-            fx -= np.floor(fx)
-            fy -= np.floor(fy)
-            e = np.float32((fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2))
+            if green[dy, dx]:  # read on the filled full-resolution green image
+                x = warp[0, 0] * col + warp[0, 1] * r + warp[0, 2]
+                y = warp[1, 0] * col + warp[1, 1] * r + warp[1, 2]
+                x0, y0 = np.floor(x), np.floor(y)
+                e, s = _filled_green_noise(x - x0, y - y0, green[int(y0) & 1, int(x0) & 1])
+            else:
+                fx = sites[dy, dx, 0, 0] * u + sites[dy, dx, 0, 1] * v + sites[dy, dx, 0, 2]
+                fy = sites[dy, dx, 1, 0] * u + sites[dy, dx, 1, 1] * v + sites[dy, dx, 1, 2]
+                fx -= np.floor(fx)
+                fy -= np.floor(fy)
+                e, s = (fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2), 1.0
+            e32, s32 = np.float32(e), np.float32(s)
             i = rows[r % ph, col % pw] * n_codes + min(codes[r, col], n_codes - 1)
             g = slope[i]
             spread_u = g * g * spread[r, col]
             c = certainty[i]
             wr = weight[i] if table else w[r, col]
-            den = e * c + max(wr * spread_u - (one - e) * c, zero)
+            den = e32 * c + max(wr * spread_u - (s32 - e32) * c, zero)
             out[r, col] = wr * c / den if den > 0 else zero
 
 
-def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
+def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray, cfa: str | None = None, black=0.0) -> np.ndarray:
     """:func:`tap_variance` of each same-colour sub-plane on its own: the spread of the
-    colour's own samples that :func:`resample_mosaic` interpolates between (an upper bound
-    for green, which it reads on its denser lattice)."""
+    colour's own samples that :func:`resample_mosaic` interpolates between.  With ``cfa``
+    (and ``black``, as :func:`resample_mosaic`'s), green's is read on the lattice green is
+    resampled from: the full-resolution green image (red and blue sites filled by the mean
+    of their four green neighbours), bilinear taps 1 px apart, not 2 (the sub-plane's
+    spread overstates green's interpolation error)."""
     out = np.empty(codes.shape, np.float32)
+    sites = [(dy, dx) for dy in (0, 1) for dx in (0, 1)]
+    green = {(dy, dx): cfa is not None and cfa[2 * dy + dx] == "G" for dy, dx in sites}
+    for dy, dx in sites:
+        if not green[dy, dx]:
+            out[dy::2, dx::2] = tap_variance(codes[dy::2, dx::2], _site_warp(warp, dx, dy))
+    if any(green.values()):  # in bands: a band's temporaries, not a frame's (24 MP: 0.5 GB)
+        for r0, r1, source, band in _bands(codes, warp):
+            g = tap_variance(_green_image(_above_black(source, black), cfa), band, r1 - r0)
+            for dy, dx in sites:
+                if green[dy, dx]:
+                    out[r0 + dy:r1:2, dx::2] = g[dy::2, dx::2]
+    return out
+
+
+def _above_black(codes: np.ndarray, black) -> np.ndarray:
+    """A mosaic's codes minus ``black`` (one value or one per site of the 2 x 2 cell), float32."""
+    black = np.broadcast_to(np.asarray(black, np.float32).reshape(-1), (4,)).reshape(2, 2)
+    signal = codes.astype(np.float32)
     for dy in (0, 1):
         for dx in (0, 1):
-            out[dy::2, dx::2] = tap_variance(codes[dy::2, dx::2], _site_warp(warp, dx, dy))
-    return out
+            signal[dy::2, dx::2] -= black[dy, dx]
+    return signal
+
+
+def _green_image(signal: np.ndarray, cfa: str) -> np.ndarray:
+    """Green at every site of a mosaic's ``signal`` (float32, a new array): green sites as
+    read, red and blue sites the mean of their four green neighbours (green's quincunx
+    filled, as :func:`resample_mosaic` reads it)."""
+    cv2 = _cv2()
+    cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
+    mean4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+    full_g = signal.copy()
+    for dy in (0, 1):
+        for dx in (0, 1):
+            if cfa[2 * dy + dx] != "G":
+                full_g[dy::2, dx::2] = mean4[dy::2, dx::2]
+    return full_g

@@ -193,7 +193,7 @@ class AlignedLoader:
             cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
             out = align.apply_warp_mosaic(codes, w, clip, self.periods, frame.cfa_pattern, np.asarray(frame.black)[cell])
             if not self.periods:
-                spread = align.tap_variance_mosaic(codes, w)
+                spread = align.tap_variance_mosaic(codes, w, frame.cfa_pattern, np.asarray(frame.black)[cell])
         out.flags.writeable = False  # handed out again: read-only
         self.kept[frame.path] = (out, spread)
         while len(self.kept) > self.KEEP and sum(a.nbytes + (0 if b is None else b.nbytes)
@@ -518,7 +518,8 @@ class SampleWeights:
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
             w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread),
-                                      self.alignment["warps"][k], out=w if own else None), True
+                                      self.alignment["warps"][k], out=w if own else None,
+                                      cfa=self.frames[k].cfa_pattern), True
         f = self.factor(k)
         if f is None:
             return w, None
@@ -548,7 +549,7 @@ class SampleWeights:
 
 
 def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, spread: np.ndarray,
-                     warp: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+                     warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None) -> np.ndarray:
     """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
     mosaic resampled by ``warp`` with the interpolation's variance added
     (:func:`~hdrmerge_cli.core.align.resampled_weight_mosaic`), from the frame's
@@ -557,7 +558,7 @@ def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, s
     n = tables.n_codes
     slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
     return align.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out,
-                                         weight=tables.weight)
+                                         weight=tables.weight, cfa=cfa)
 
 
 def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
