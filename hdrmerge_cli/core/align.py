@@ -544,6 +544,8 @@ def _bands(codes: np.ndarray, warp: np.ndarray):
         yield r0, r1, codes[s0:s1], band
 
 
+#: the mean of a site's four edge neighbours (green's at a red or blue site of a Bayer mosaic)
+_MEAN4 = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
 #: output rows per band of :func:`resample_mosaic` (even: whole CFA periods)
 BAND_ROWS = 256
 #: source rows beyond a band's reach that it also reads
@@ -573,11 +575,10 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     usable = (codes < clip_code).astype(np.float32) if clipped else None
     signal = _above_black(codes, black)  # a clipped code stays at its floor, the clipping level
     full_g = _green_image(signal, cfa)
-    cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
     g_out = warped(full_g, warp, out_rows, cv2.INTER_CUBIC)
     g_lost = near_g = None
     if clipped:
-        n4 = cv2.filter2D(usable, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+        n4 = cv2.filter2D(usable, -1, _MEAN4, borderType=cv2.BORDER_REFLECT_101)
         g_ok = usable.copy()
         for dy, dx in sites:
             if not green[dy, dx]:
@@ -778,8 +779,7 @@ def _green_image(signal: np.ndarray, cfa: str) -> np.ndarray:
     read, red and blue sites the mean of their four green neighbours (green's quincunx
     filled, as :func:`resample_mosaic` reads it)."""
     cv2 = _cv2()
-    cross = np.array([[0, 0.25, 0], [0.25, 0, 0.25], [0, 0.25, 0]], np.float32)
-    mean4 = cv2.filter2D(signal, -1, cross, borderType=cv2.BORDER_REFLECT_101)
+    mean4 = cv2.filter2D(signal, -1, _MEAN4, borderType=cv2.BORDER_REFLECT_101)
     full_g = signal.copy()
     for dy in (0, 1):
         for dx in (0, 1):

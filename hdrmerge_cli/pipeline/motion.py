@@ -374,6 +374,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     sigma = max(1.5, deghost.FEATHER_PX / (b * per_px))
     bloom = deghost.BLOOM_PX / (b * per_px)
     blooming = dict(reach=bloom / max(hb, wb))  # glare_excuse within the bloom alone (RAW)
+
+    def bounded(need: np.ndarray) -> dict:  # glare_excuse as far as glare can add the light ``need`` (images)
+        return dict(source=level_a, need=need, bloom=bloom)
     min_cells = deghost.min_blob(b * per_px)
 
     def test(k: int) -> tuple[float, np.ndarray]:  # frame k against the anchor: (fraction, mask)
@@ -396,8 +399,7 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
             clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
             violated = deghost.violates_bound(xa, sa, clip_bound, p_fa) & va
             impossible = _any(violated)
-            glare = blooming if raw else dict(
-                source=level_a, need=_reduce(np.maximum, np.where(violated, -clip_bound - xa, np.float32(0.0))), bloom=bloom)
+            glare = blooming if raw else bounded(_reduce(np.maximum, np.where(violated, -clip_bound - xa, np.float32(0.0))))
             impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer, **glare) == 0
         # glare spreads from what is bright in every frame, not from such an object.  A longer
         # image reading brighter beside its clipped areas is excused as far as glare can add
@@ -407,12 +409,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         # bounding it had cost the real static brackets more false rejections (stack_jpg 0.50
         # -> 1.11 %) until readings near white became bounds (shoulder_excuse: 0.38 % either
         # way).  RAW, as above, only within blooming
-        if longer > 0 and not raw:
-            brighter = _reduce(np.maximum, np.where(ok & va, x - xa, np.float32(0.0)))
-            excuse = deghost.glare_excuse(clipped[k] & ~impossible, longer, source=level_a, need=brighter, bloom=bloom)
-        else:
-            excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer,
-                                          **(blooming if raw else {}))
+        brighter = _reduce(np.maximum, np.where(ok & va, x - xa, np.float32(0.0))) if longer > 0 and not raw else None
+        glare = blooming if raw else (bounded(brighter) if longer > 0 else {})
+        excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer, **glare)
         if anchor_near is not None:
             shoulder = deghost.shoulder_excuse(anchor_near, deghost.near_white(x, ok, np.float32(exposures[k]), lin_hi))
             excuse = deghost.either_excuse(excuse, shoulder)
