@@ -871,10 +871,30 @@ def test_resampled_weight_adds_the_interpolation_variance():
     np.testing.assert_allclose(resampled_weight(w, tab, codes, None, noise_only, midway), 4e6, rtol=1e-3)
 
 
+def _tap_weight_energy(warp: np.ndarray, h: int, w: int) -> np.ndarray:
+    """The reference ``sum_i w_i^2`` of bilinear taps on each colour's sub-plane, written out
+    with numpy: ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``, ``(fx, fy)`` a site's
+    fractional position in its sub-plane under :func:`align._site_warp`."""
+    from hdrmerge_cli.core import align
+
+    out = np.empty((h, w), np.float64)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            m = align._site_warp(warp, dx, dy)
+            v = np.arange(dy // 2, (h - dy + 1) // 2, dtype=np.float64)[:, None]  # sub-plane rows
+            u = np.arange((w - dx + 1) // 2, dtype=np.float64)[None, :]
+            fx = m[0, 0] * u + m[0, 1] * v + m[0, 2]
+            fy = m[1, 0] * u + m[1, 1] * v + m[1, 2]
+            fx -= np.floor(fx)
+            fy -= np.floor(fy)
+            out[dy::2, dx::2] = (fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2)
+    return out
+
+
 def test_resampled_weight_mosaic_equals_its_formula_per_colour():
     """The one-pass kernel against the formula written out with numpy on a rotated, shifted
     RGGB mosaic with a table row per colour: ``c / (e v + max(u - (1 - e) v, 0))`` with
-    ``e`` from :func:`tap_weight_energy_mosaic`, ``u`` the spread through the row's slope
+    ``e`` from :func:`_tap_weight_energy`, ``u`` the spread through the row's slope
     (float32 round-off)."""
     from hdrmerge_cli.core import align
 
@@ -891,7 +911,7 @@ def test_resampled_weight_mosaic_equals_its_formula_per_colour():
     warp = np.array([[np.cos(a), -np.sin(a), 2.6], [np.sin(a), np.cos(a), -7.1]])
     row = np.tile(pattern, (h // 2, w // 2))
     i = row * n + np.minimum(codes, n - 1)
-    e = align.tap_weight_energy_mosaic(warp, 0, h, w).astype(np.float64)
+    e = _tap_weight_energy(warp, h, w)
     u = slope[i].astype(np.float64) ** 2 * spread
     c = cert[i].astype(np.float64)
     den = e * c + np.maximum(wt * u - (1 - e) * c, 0.0)
@@ -912,14 +932,14 @@ def test_tap_weight_energy_against_monte_carlo():
     """Pure noise (sigma 10 codes) resampled colour by colour by bilinear interpolation
     (OpenCV's, as tap_variance_mosaic reads it) under a rotation and a shift: the
     interpolated values' variance is sigma^2 sum w^2 and the taps' spread averages
-    sigma^2 (1 - sum w^2), sum w^2 from tap_weight_energy_mosaic (both within 3 %)."""
+    sigma^2 (1 - sum w^2), sum w^2 from _tap_weight_energy (both within 3 %)."""
     from hdrmerge_cli.core import align
 
     rng = np.random.default_rng(7)
     h, w, sigma = 400, 600, 10.0
     a = np.radians(0.7)
     warp = np.array([[np.cos(a), -np.sin(a), 3.3], [np.sin(a), np.cos(a), -1.7]])
-    e = align.tap_weight_energy_mosaic(warp, 0, h, w)
+    e = _tap_weight_energy(warp, h, w)
     assert e.min() >= 0.25 - 1e-6 and e.max() <= 1.0 + 1e-6
     inner = np.zeros((h, w), bool)
     inner[20:-20, 20:-20] = True  # away from the replicated edges

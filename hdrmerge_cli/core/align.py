@@ -638,29 +638,6 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = Non
     return np.maximum(second, 0.0, out=second).reshape((rows,) + codes.shape[1:])
 
 
-def tap_weight_energy_mosaic(warp: np.ndarray, r0: int, r1: int, width: int) -> np.ndarray:
-    """``sum_i w_i^2`` of the bilinear weights with which :func:`tap_variance_mosaic` reads
-    each mosaic site of output rows ``r0:r1`` (``r0`` even; ``(r1 - r0, width)`` float32),
-    from the fractional position ``(fx, fy)`` of the site in its colour's sub-plane:
-    ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``.  For taps carrying independent noise of
-    variance ``s``, the interpolated value's noise variance is ``s sum w_i^2`` and the taps'
-    spread holds ``s (1 - sum w_i^2)`` of noise on average (``sum w_i^2`` is 1 on a tap and
-    1/4 midway between four): the variance of a resampled reading ``x_j`` in the
-    inverse-variance weights of (7), (17)'s noise through the interpolation."""
-    out = np.empty((r1 - r0, width), np.float32)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            m = _site_warp(warp, dx, dy)
-            v = np.arange((r0 + dy) // 2, (r1 - dy + 1) // 2, dtype=np.float64)[:, None]  # sub-plane rows
-            u = np.arange((width - dx + 1) // 2, dtype=np.float64)[None, :]
-            fx = m[0, 0] * u + m[0, 1] * v + m[0, 2]
-            fy = m[1, 0] * u + m[1, 1] * v + m[1, 2]
-            fx -= np.floor(fx)
-            fy -= np.floor(fy)
-            out[dy::2, dx::2] = (fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2)
-    return out
-
-
 def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np.ndarray | None, slope: np.ndarray,
                             certainty: np.ndarray, n_codes: int, spread: np.ndarray, warp: np.ndarray,
                             out: np.ndarray | None = None, weight: np.ndarray | None = None,
@@ -670,10 +647,14 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
     a table weight ``w = c / v`` (``c`` the weighting function ``w(z)``, ``v`` the variance
     of the sample's value) becomes ``c / (e v + max(u - (1 - e) v, 0))``, ``u`` the taps'
     spread ``spread`` (:func:`tap_variance_mosaic`, squared codes) times the squared slope
-    of the value table at the sample's code, ``e`` the interpolation's ``sum w_i^2``
-    (:func:`tap_weight_energy_mosaic`, computed per sample here).  Interpolating between
-    taps averages their noise (``e v``, (17)'s noise through the interpolation), and the
-    spread holds ``(1 - e) v`` of that noise on average, which is not interpolation error.
+    of the value table at the sample's code, ``e`` the interpolation's ``sum w_i^2``: for
+    bilinear taps on a colour's sub-plane ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``, ``(fx,
+    fy)`` the sample's fractional position there (1 on a tap, 1/4 midway between four).
+    Interpolating between taps with independent noise averages it (``e v``, (17)'s noise
+    through the interpolation), and the spread holds ``(1 - e) v`` of that noise on
+    average, which is not interpolation error.  Green, read on its filled full-resolution
+    image, has correlated taps: there ``e v + max(u - (s - e) v, 0)`` with ``e`` and ``s``
+    from the taps' covariance (:func:`_filled_green_noise`).
     ``w``, ``codes``, ``spread``: ``(H, W)`` (``out`` may be ``w``); ``w`` None: the
     table ``weight`` at each code.  ``slope``, ``certainty``, ``weight``: flattened
     ``(C * n_codes,)`` tables, the row of a sample from ``pattern`` (``(ph, pw)`` table
