@@ -912,7 +912,7 @@ def test_resampled_weight_mosaic_equals_its_formula_per_colour():
     row = np.tile(pattern, (h // 2, w // 2))
     i = row * n + np.minimum(codes, n - 1)
     e = _tap_weight_energy(warp, h, w)
-    u = slope[i].astype(np.float64) ** 2 * spread
+    u = slope[i].astype(np.float64) ** 2 * align.spread_value(align.spread_code(spread))  # as it is kept
     c = cert[i].astype(np.float64)
     den = e * c + np.maximum(wt * u - (1 - e) * c, 0.0)
     want = np.where(den > 0, wt * c / np.where(den > 0, den, 1.0), 0.0)
@@ -926,6 +926,25 @@ def test_resampled_weight_mosaic_equals_its_formula_per_colour():
     np.testing.assert_array_equal(align.resampled_weight_mosaic(None, codes, pattern, slope, cert, n, spread, warp,
                                                                 weight=table),
                                   align.resampled_weight_mosaic(table[i], codes, pattern, slope, cert, n, spread, warp))
+
+
+def test_spread_code_round_trip():
+    """A spread kept as a 16-bit code comes back within 2.2e-4 of ``u + SPREAD_FLOOR``
+    (half a step of SPREAD_STEPS per octave) from far below a code's noise to a 16-bit
+    range squared, 0 exactly, codes increasing with the spread; beyond, the last code."""
+    from hdrmerge_cli.core import align
+
+    u = np.exp(np.random.default_rng(0).uniform(np.log(1e-4), np.log(2.0**32), (200, 500))).astype(np.float32)
+    u[0, :3] = 0.0, 0.0, 2.0**32
+    code = align.spread_code(u)
+    assert code.dtype == np.uint16 and code.shape == u.shape
+    back = align.spread_value(code).astype(np.float64)
+    assert back[0, 0] == 0.0
+    # half a step, 2^(1/3276) - 1 = 2.116e-4, and float32 round-off
+    assert np.max(np.abs(back - u) / (u + align.SPREAD_FLOOR)) <= 2.2e-4
+    order = np.argsort(u.ravel())
+    assert np.all(np.diff(code.ravel()[order].astype(np.int64)) >= 0)
+    assert align.spread_code(np.float32([[1e12]]))[0, 0] == 65535
 
 
 def test_tap_weight_energy_against_monte_carlo():
@@ -994,9 +1013,9 @@ def test_filled_green_noise_against_monte_carlo():
     table = np.ones(256, np.float32)
     got_e = 1.0 / align.resampled_weight_mosaic(ones, codes, None, table, table, 256, np.zeros((h, w), np.float32),
                                                 warp, cfa="RGGB")
-    u = 10.0
-    got_s = 2 * got_e + u - 1.0 / align.resampled_weight_mosaic(ones, codes, None, table, table, 256,
-                                                                np.full((h, w), u, np.float32), warp, cfa="RGGB")
+    u = np.full((h, w), 10.0, np.float32)
+    got_s = 2 * got_e + align.spread_value(align.spread_code(u)) - 1.0 / align.resampled_weight_mosaic(
+        ones, codes, None, table, table, 256, u, warp, cfa="RGGB")
     np.testing.assert_allclose(got_e[green], e[green], rtol=1e-5)
     np.testing.assert_allclose(got_s[green], s_[green], rtol=1e-4)
     inner = green.copy()

@@ -221,31 +221,45 @@ def _finest_level(shape: tuple[int, ...]) -> int:
 
 def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
     """ECC at full resolution on the central :data:`FINE_SIDE` window, from ``warp``; None
-    when it does not converge or, for ``similarity``, moves a corner of the window by more
-    than :data:`FINE_REACH` pixels of the pyramid's finest level: a refinement does not
-    jump, a false optimum does (a moving object filling half the window of a 6 MP frame
-    took it 82 px and 3.6 degrees off; parallax in the hand-held iphone6_window_jpg moves it
-    up to 8.4 px from the 4 x 4 level's estimate).  At most :data:`FINE_ITERATIONS`
-    iterations, and None if the run has not settled by then."""
+    when it does not converge or moves a corner of the window farther than its reach from
+    ``warp``: :data:`MAX_REFINE_PX` for ``translation``; for ``similarity``
+    :data:`FINE_REACH` pixels of the pyramid's finest level (at least
+    :data:`MAX_REFINE_PX`).  A refinement does not jump, a false optimum does (a moving
+    object filling half the window of a 6 MP frame took it 82 px and 3.6 degrees off;
+    parallax in the hand-held iphone6_window_jpg moves it up to 8.4 px from the 4 x 4
+    level's estimate).  It runs :data:`FINE_CHUNK` iterations at a time and stops as soon
+    as it is beyond its reach (a drifting run went all :data:`FINE_ITERATIONS` before it
+    was refused), or when a chunk moves no corner by more than :data:`FINE_CONVERGED_PX`;
+    at most :data:`FINE_ITERATIONS` iterations, and None if the run has not settled by
+    then."""
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
+    h, w = y1 - y0, x1 - x0
     ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
-    start = shift_warp(warp, (x0, y0))
-    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS)
-    if found is None:
-        return None
+    start = found = shift_warp(warp, (x0, y0))
+    reach = MAX_REFINE_PX if motion == "translation" else max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
+    for _ in range(0, FINE_ITERATIONS, FINE_CHUNK):
+        step = _ecc(ref, img, found, motion, count=FINE_CHUNK)
+        if step is None or corner_distance(step, start, h, w) > reach:
+            return None
+        found, moved = step, corner_distance(step, found, h, w)
+        if moved <= FINE_CONVERGED_PX:
+            break
     step = _ecc(ref, img, found, motion, count=1)  # settled: it moves no corner by FINE_SETTLED_PX
-    reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
-    if (step is None or corner_distance(step, found, y1 - y0, x1 - x0) > FINE_SETTLED_PX
-            or (motion == "similarity" and corner_distance(found, start, y1 - y0, x1 - x0) > reach)):
+    if step is None or corner_distance(step, found, h, w) > FINE_SETTLED_PX:
         return None
     return shift_warp(found, (-x0, -y0))
 
 
 #: iterations of :func:`_fine_ecc`: from the pyramid's estimate it converges in 8-15 (the
 #: warps of the motion benchmark's 32 cases and of the real brackets are the same with 15 as
-#: with 100); a run drifting to a false optimum stops here (it ran all 100 before the reach
-#: refused it: 2 of the 3.2 s of aligning the benchmark's 6 MP render)
+#: with 100); a run drifting to a false optimum stops at its reach, or here
 FINE_ITERATIONS = 30
+#: :func:`_fine_ecc` checks its reach every this many iterations: a drifting run is 9-16 px
+#: off after 5 (the 6 MP render of the motion benchmark; 0.29 and 0.58 s of its alignment's
+#: 1.9 s went to two such runs)
+FINE_CHUNK = 5
+#: a chunk of iterations moving no corner farther than this (pixels) has converged
+FINE_CONVERGED_PX = 0.01
 #: a fine run has settled when one more iteration moves no window corner farther (pixels):
 #: after 30 iterations the benchmark's runs move 0.00-0.14 px, the drifting ones 4-7 px
 FINE_SETTLED_PX = 0.5
@@ -655,7 +669,8 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
     average, which is not interpolation error.  Green, read on its filled full-resolution
     image, has correlated taps: there ``e v + max(u - (s - e) v, 0)`` with ``e`` and ``s``
     from the taps' covariance (:func:`_filled_green_noise`).
-    ``w``, ``codes``, ``spread``: ``(H, W)`` (``out`` may be ``w``); ``w`` None: the
+    ``w``, ``codes``, ``spread``: ``(H, W)`` (``out`` may be ``w``; ``spread`` as
+    :func:`spread_code` codes, or float32, then coded first); ``w`` None: the
     table ``weight`` at each code.  ``slope``, ``certainty``, ``weight``: flattened
     ``(C * n_codes,)`` tables, the row of a sample from ``pattern`` (``(ph, pw)`` table
     rows tiled over the mosaic; None: row 0).  One pass, no temporaries (numba): before,
@@ -668,9 +683,52 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
     table = w is None
     _resampled_weight_rows(np.empty((1, 1), np.float32) if table else w,
                            np.asarray(weight if table else np.empty(1), np.float32), table, codes, rows,
-                           np.asarray(slope, np.float32), np.asarray(certainty, np.float32), n_codes, spread, sites,
+                           np.asarray(slope, np.float32), np.asarray(certainty, np.float32), n_codes,
+                           spread if spread.dtype == np.uint16 else spread_code(spread), _spread_table(), sites,
                            np.asarray(warp, np.float64), green, out)
     return out
+
+
+#: :func:`spread_code`'s scale (squared codes) and steps per octave: ``2^32`` (a 16-bit
+#: range squared) takes code 65520
+SPREAD_FLOOR = 2.0**-8
+SPREAD_STEPS = 1638
+
+
+def spread_code(u: np.ndarray) -> np.ndarray:
+    """Resampling spreads ``u`` (:func:`tap_variance_mosaic`, squared codes, ``(H, W)``
+    float32) as uint16 codes ``round(SPREAD_STEPS log2(1 + u / SPREAD_FLOOR))``, up to ``u
+    = 2^32`` (a 16-bit range squared); ``u + SPREAD_FLOOR`` within 2.2e-4 (half a step).
+    :func:`spread_value` inverts it.  The spread of a moved frame is kept for every pass of
+    the merge: in half the memory of float32 (24 MP: 48 MB less per moved frame, held at
+    the merge's peak)."""
+    out = np.empty(u.shape, np.uint16)
+    _spread_code_rows(np.ascontiguousarray(u, np.float32).reshape(u.shape[0], -1), out.reshape(u.shape[0], -1),
+                      np.float32(1.0 / SPREAD_FLOOR), np.float32(SPREAD_STEPS))
+    return out
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _spread_code_rows(u, out, inv_floor, steps):  # pragma: no cover - compiled
+    for r in numba.prange(u.shape[0]):
+        for c in range(u.shape[1]):
+            v = np.log2(np.float32(1.0) + max(u[r, c], np.float32(0.0)) * inv_floor) * steps + np.float32(0.5)
+            out[r, c] = min(int(v), 65535)
+
+
+_SPREAD_TABLE: list[np.ndarray] = []
+
+
+def _spread_table() -> np.ndarray:
+    """The spread (squared codes, float32) of each :func:`spread_code` code, ``(65536,)``."""
+    if not _SPREAD_TABLE:
+        _SPREAD_TABLE.append((SPREAD_FLOOR * (np.exp2(np.arange(65536) / SPREAD_STEPS) - 1.0)).astype(np.float32))
+    return _SPREAD_TABLE[0]
+
+
+def spread_value(code: np.ndarray) -> np.ndarray:
+    """The spreads (squared codes, float32) that :func:`spread_code` codes stand for."""
+    return _spread_table()[code]
 
 
 @numba.njit(inline="always")
@@ -693,8 +751,8 @@ def _filled_green_noise(fx, fy, on_green):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, sites, warp, green,
-                           out):  # pragma: no cover - compiled
+def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, spread_of, sites, warp,
+                           green, out):  # pragma: no cover - compiled
     h, width = codes.shape
     ph, pw = rows.shape
     zero = np.float32(0.0)
@@ -716,7 +774,7 @@ def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_co
             e32, s32 = np.float32(e), np.float32(s)
             i = rows[r % ph, col % pw] * n_codes + min(codes[r, col], n_codes - 1)
             g = slope[i]
-            spread_u = g * g * spread[r, col]
+            spread_u = g * g * spread_of[spread[r, col]]
             c = certainty[i]
             wr = weight[i] if table else w[r, col]
             den = e32 * c + max(wr * spread_u - (s32 - e32) * c, zero)

@@ -630,10 +630,11 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
     y_full : per frame, the full-scale code value ``white - black``
     rows : :func:`noise_rows`
-    adjust : optional ``(k, codes, w) -> (w', factor)``: frame k's weights ``w``
+    adjust : optional ``(k, codes, w, own) -> (w', factor)``: frame k's weights ``w``
         (``(rows, cols)`` of the samples) as the merge uses them (e.g. with a resampling
         variance added and a ghost / coverage ``factor`` in [0, 1] applied, or None), the
-        factor also applied to the frame's censored terms
+        factor also applied to the frame's censored terms; ``own``: ``w`` is not read
+        again, so ``w'`` may be written into it (24 MP: a 96 MB array less at the peak)
     den : the summed inverse-variance weights of ``log_e``'s estimate (ML: ``1 / Var E``;
         :class:`LogMerge`'s ``den``; released during the first pass, so a caller that holds
         no other reference saves its memory), which lets the first pass drop clipped readings the
@@ -677,7 +678,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             else:
                 _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
                                    np.float32(h * y_full[k]), *rows, linear, weight)
-                w, factor = (weight, None) if adjust is None else adjust(k, codes, weight)
+                # the censored terms of a pass without the previous den read the weights after
+                w, factor = (weight, None) if adjust is None else adjust(k, codes, weight, prev_den is not None)
                 acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True,
                         factor=factor)
             if linear and tab.saturated is not None:

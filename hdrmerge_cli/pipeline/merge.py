@@ -25,6 +25,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import LogMerge, irls, noise_rows
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.memory import return_free_memory
 from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.noisespec import per_channel
 from hdrmerge_cli.io.times import ESTIMATE
@@ -125,7 +126,10 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
     exposures = exposure_values(frames)
     noise = resolve_noise(opts, frames)
-    alignment, unaligned = None, load
+    alignment = None
+    if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
+        load = motion.DecodedOnce(load)
+    unaligned = load
     if opts.align != "off":
         t1 = time.perf_counter()
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
@@ -149,6 +153,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         ghosts = motion.find_ghosts(frames, exposures, crf, motion.require_noise(models.noise, frames, crf, load),
                                     load, opts.deghost)
         timings["deghost"] = time.perf_counter() - t0
+    if isinstance(unaligned, motion.DecodedOnce):
+        unaligned.release()
+        return_free_memory()  # what the motion passes freed, before the merge's own peak
     h_ref = reference_exposure(opts.reference, exposures)
     result, flags, den, variance, iterations = reconstruct(
         frames, exposures, h_ref, models, load,
