@@ -1465,3 +1465,37 @@ def test_finest_level_is_the_pyramids_finest(side):
     """_finest_level (the unit of _fine_ecc's reach) is the finest of _pyramid_ecc's levels."""
     levels = [2**k for k in range(1, 16) if align.PYRAMID_MIN <= side / 2**k <= align.COARSE_SIDE]
     assert align._finest_level((side // 2, side)) == min(levels)
+
+
+def test_decoded_once_decodes_each_frame_once_until_released():
+    """The motion passes' loader: frames asked for again (and by two threads at once, as
+    alignment's two sides ask for the reference) are decoded once and handed out
+    read-only; a released frame is decoded again, and after ``release()`` every call
+    decodes and nothing is kept."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from hdrmerge_cli.pipeline.motion import DecodedOnce
+
+    calls = []
+
+    def load(frame):
+        calls.append(frame.path)
+        time.sleep(0.05)  # long enough for the other thread to ask meanwhile
+        return np.full((4, 5), len(calls), np.uint16)
+
+    a, b = SimpleNamespace(path="a.tif"), SimpleNamespace(path="b.tif")
+    once = DecodedOnce(load)
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(once(a))) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert calls == ["a.tif"] and got[0] is got[1] and not got[0].flags.writeable
+    assert once(a) is got[0] and once(b)[0, 0] == 2 and calls == ["a.tif", "b.tif"]
+    once.release("a.tif")
+    assert once(a)[0, 0] == 3 and once(b)[0, 0] == 2
+    once.release()
+    assert once(b)[0, 0] == 4 and once(b)[0, 0] == 5 and once.kept is None
