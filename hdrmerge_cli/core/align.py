@@ -500,7 +500,7 @@ COLOUR_RATIO_FLOOR = 0.002
 
 
 def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str = "RGGB",
-                    black=0.0) -> np.ndarray:
+                    black=0.0, spread: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Resample a Bayer mosaic ``(H, W)`` (codes) onto the reference, colour by colour, using
     green's denser lattice:
 
@@ -534,11 +534,20 @@ def resample_mosaic(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: st
     Bands of :data:`BAND_ROWS` output rows are resampled one at a time, each from the source
     rows its warp reaches plus :data:`BAND_MARGIN` (the fills', cubic's and the dilation's
     reach): a band's temporaries, not a frame's (a 24 MP frame: 1.0 GB above its codes
-    whole)."""
+    whole).
+
+    With ``spread``, also the taps' spread of every output (:func:`tap_variance` of what it
+    is interpolated from, made from the same band's images): red and blue on their own
+    sub-plane (taps 2 px apart); green on the full-resolution green image it is resampled
+    from (taps 1 px apart: the sub-plane's spread overstates green's interpolation error),
+    as :func:`spread_code` codes: returns ``(codes, spread codes)``."""
     out = np.empty_like(codes)
+    coded = np.empty(codes.shape, np.uint16) if spread else None
     for r0, r1, source, band in _bands(codes, warp):
-        out[r0:r1] = _resample_band(source, band, clip_code, cfa, black, r1 - r0)
-    return out
+        out[r0:r1], u = _resample_band(source, band, clip_code, cfa, black, r1 - r0, spread)
+        if spread:
+            coded[r0:r1] = spread_code(u)
+    return (out, coded) if spread else out
 
 
 def _bands(codes: np.ndarray, warp: np.ndarray):
@@ -566,9 +575,11 @@ BAND_ROWS = 256
 BAND_MARGIN = 16
 
 
-def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str, black, out_rows: int) -> np.ndarray:
+def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str, black, out_rows: int,
+                   spread: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`resample_mosaic` of ``out_rows`` output rows from the source rows ``codes``
-    (``warp``: output to source coordinates of this band)."""
+    (``warp``: output to source coordinates of this band), and with ``spread`` their taps'
+    spread (float32; else None)."""
     cv2 = _cv2()
     w = codes.shape[1]
 
@@ -603,14 +614,22 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     c = np.float32(COLOUR_RATIO_FLOOR * (clip_code - float(black.mean())))
     out = np.empty((out_rows, w), np.float32)
     clip_out = np.zeros((out_rows, w), bool)
+    u = np.empty((out_rows, w), np.float32) if spread else None
+    g_spread = tap_variance(full_g, warp, out_rows) if spread else None  # green's taps 1 px apart
     for dy, dx in sites:
         if green[dy, dx]:
             out[dy::2, dx::2] = g_out[dy::2, dx::2]
             if clipped:
                 clip_out[dy::2, dx::2] = g_lost[dy::2, dx::2]
+            if spread:
+                u[dy::2, dx::2] = g_spread[dy::2, dx::2]
             continue
         m, rows = _site_warp(warp, dx, dy), (out_rows - dy + 1) // 2
         plain = warped(signal[dy::2, dx::2], m, rows)
+        if spread:  # the sub-plane's taps: E z^2 - (E z)^2, E z the plain bilinear estimate
+            second = warped(np.square(signal[dy::2, dx::2]), m, rows)
+            second -= plain * plain
+            u[dy::2, dx::2] = np.maximum(second, 0.0, out=second)
         g_taps = warped(full_g[dy::2, dx::2], m, rows)
         ratio = (np.maximum(g_out[dy::2, dx::2], 0) + c) / (np.maximum(g_taps, 0) + c)
         if clipped:
@@ -624,7 +643,7 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     np.clip(out, 0, clip_code - 1, out=out)
     if clipped:
         out[clip_out] = clip_code
-    return out.astype(codes.dtype)
+    return out.astype(codes.dtype), u
 
 
 def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = None) -> np.ndarray:
@@ -646,8 +665,7 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = Non
     m = np.asarray(warp, np.float32)
     z = np.ascontiguousarray(codes, np.float32)
     mean = cv2.warpAffine(z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-    np.multiply(z, z, out=z)
-    second = cv2.warpAffine(z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    second = cv2.warpAffine(z * z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)  # z may be codes
     second -= mean * mean
     return np.maximum(second, 0.0, out=second).reshape((rows,) + codes.shape[1:])
 
@@ -660,7 +678,7 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
     (:func:`resample_mosaic`), the variance of a resampled reading in the weights of (7):
     a table weight ``w = c / v`` (``c`` the weighting function ``w(z)``, ``v`` the variance
     of the sample's value) becomes ``c / (e v + max(u - (1 - e) v, 0))``, ``u`` the taps'
-    spread ``spread`` (:func:`tap_variance_mosaic`, squared codes) times the squared slope
+    spread ``spread`` (:func:`resample_mosaic`'s, squared codes) times the squared slope
     of the value table at the sample's code, ``e`` the interpolation's ``sum w_i^2``: for
     bilinear taps on a colour's sub-plane ``(fx^2 + (1 - fx)^2) (fy^2 + (1 - fy)^2)``, ``(fx,
     fy)`` the sample's fractional position there (1 on a tap, 1/4 midway between four).
@@ -696,7 +714,7 @@ SPREAD_STEPS = 1638
 
 
 def spread_code(u: np.ndarray) -> np.ndarray:
-    """Resampling spreads ``u`` (:func:`tap_variance_mosaic`, squared codes, ``(H, W)``
+    """Resampling spreads ``u`` (:func:`resample_mosaic`'s, squared codes, ``(H, W)``
     float32) as uint16 codes ``round(SPREAD_STEPS log2(1 + u / SPREAD_FLOOR))``, up to ``u
     = 2^32`` (a 16-bit range squared); ``u + SPREAD_FLOOR`` within 2.2e-4 (half a step).
     :func:`spread_value` inverts it.  The spread of a moved frame is kept for every pass of
@@ -779,28 +797,6 @@ def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_co
             wr = weight[i] if table else w[r, col]
             den = e32 * c + max(wr * spread_u - (s32 - e32) * c, zero)
             out[r, col] = wr * c / den if den > 0 else zero
-
-
-def tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray, cfa: str | None = None, black=0.0) -> np.ndarray:
-    """:func:`tap_variance` of each same-colour sub-plane on its own: the spread of the
-    colour's own samples that :func:`resample_mosaic` interpolates between.  With ``cfa``
-    (and ``black``, as :func:`resample_mosaic`'s), green's is read on the lattice green is
-    resampled from: the full-resolution green image (red and blue sites filled by the mean
-    of their four green neighbours), bilinear taps 1 px apart, not 2 (the sub-plane's
-    spread overstates green's interpolation error)."""
-    out = np.empty(codes.shape, np.float32)
-    sites = [(dy, dx) for dy in (0, 1) for dx in (0, 1)]
-    green = {(dy, dx): cfa is not None and cfa[2 * dy + dx] == "G" for dy, dx in sites}
-    for dy, dx in sites:
-        if not green[dy, dx]:
-            out[dy::2, dx::2] = tap_variance(codes[dy::2, dx::2], _site_warp(warp, dx, dy))
-    if any(green.values()):  # in bands: a band's temporaries, not a frame's (24 MP: 0.5 GB)
-        for r0, r1, source, band in _bands(codes, warp):
-            g = tap_variance(_green_image(_above_black(source, black), cfa), band, r1 - r0)
-            for dy, dx in sites:
-                if green[dy, dx]:
-                    out[r0 + dy:r1:2, dx::2] = g[dy::2, dx::2]
-    return out
 
 
 def _above_black(codes: np.ndarray, black) -> np.ndarray:

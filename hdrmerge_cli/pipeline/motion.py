@@ -85,17 +85,12 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
             return identity, f"registration to its neighbour correlates only {rho:.2f}"
         return (align.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
 
+    def image(k: int) -> np.ndarray:  # made again for each pair (tens of ms at 6 MP): the codes are
+        # decoded once (DecodedOnce), and a held frame-sized float image per side cost 24 MB each at 6 MP
+        return _linear(frames[k], load(frames[k]), crf)
+
     def chain(indices: list[int]) -> dict:
-        """The steps of one side of the reference, outwards; the registration images of the
-        pair at hand are held, no more."""
-        held: dict[int, np.ndarray] = {}
-
-        def image(k: int) -> np.ndarray:
-            if k not in held:
-                held.pop(next((j for j in held if j not in (k - 1, k + 1)), None), None)
-                held[k] = _linear(frames[k], load(frames[k]), crf)
-            return held[k]
-
+        """The steps of one side of the reference, outwards."""
         return {j: step(j - 1 if j > ref else j + 1, j, image) for j in indices}
 
     # each frame is registered to its neighbour towards the reference (they share the most
@@ -203,7 +198,7 @@ class DecodedOnce:
 class AlignedLoader:
     """``frame -> codes`` brought onto the reference.  A RAW frame resampled per CFA
     colour also leaves the spread of the samples each value was interpolated from
-    (:func:`~hdrmerge_cli.core.align.tap_variance`) for :class:`SampleWeights`.  The
+    (:func:`~hdrmerge_cli.core.align.resample_mosaic`'s spread) for :class:`SampleWeights`.  The
     resampled codes (and spreads) of the latest decodes are kept for the next pass over the
     frames (deghosting reads every frame twice, the merge and its re-weighting once each):
     the :data:`KEEP` latest always (the merge holds two frames), older ones while all of
@@ -238,10 +233,11 @@ class AlignedLoader:
             from hdrmerge_cli.pipeline.bracket import sample_pattern
 
             cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
-            out = align.apply_warp_mosaic(codes, w, clip, self.periods, frame.cfa_pattern, np.asarray(frame.black)[cell])
-            if not self.periods:
-                spread = align.spread_code(align.tap_variance_mosaic(codes, w, frame.cfa_pattern,
-                                                                     np.asarray(frame.black)[cell]))
+            if self.periods:
+                out = align.apply_warp_mosaic(codes, w, clip, True)
+            else:  # resampled colour by colour, with the taps' spread
+                out, spread = align.resample_mosaic(codes, w, clip, frame.cfa_pattern, np.asarray(frame.black)[cell],
+                                                    spread=True)
         out.flags.writeable = False  # handed out again: read-only
         if isinstance(self.load, DecodedOnce):  # the resampled codes are kept instead
             self.load.release(frame.path)
