@@ -221,45 +221,31 @@ def _finest_level(shape: tuple[int, ...]) -> int:
 
 def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
     """ECC at full resolution on the central :data:`FINE_SIDE` window, from ``warp``; None
-    when it does not converge or moves a corner of the window farther than its reach from
-    ``warp``: :data:`MAX_REFINE_PX` for ``translation``; for ``similarity``
-    :data:`FINE_REACH` pixels of the pyramid's finest level (at least
-    :data:`MAX_REFINE_PX`).  A refinement does not jump, a false optimum does (a moving
-    object filling half the window of a 6 MP frame took it 82 px and 3.6 degrees off;
-    parallax in the hand-held iphone6_window_jpg moves it up to 8.4 px from the 4 x 4
-    level's estimate).  It runs :data:`FINE_CHUNK` iterations at a time and stops as soon
-    as it is beyond its reach (a drifting run went all :data:`FINE_ITERATIONS` before it
-    was refused), or when a chunk moves no corner by more than :data:`FINE_CONVERGED_PX`;
-    at most :data:`FINE_ITERATIONS` iterations, and None if the run has not settled by
-    then."""
+    when it does not converge or, for ``similarity``, moves a corner of the window by more
+    than :data:`FINE_REACH` pixels of the pyramid's finest level: a refinement does not
+    jump, a false optimum does (a moving object filling half the window of a 6 MP frame
+    took it 82 px and 3.6 degrees off; parallax in the hand-held iphone6_window_jpg moves it
+    up to 8.4 px from the 4 x 4 level's estimate).  At most :data:`FINE_ITERATIONS`
+    iterations, and None if the run has not settled by then."""
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
-    h, w = y1 - y0, x1 - x0
     ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
-    start = found = shift_warp(warp, (x0, y0))
-    reach = MAX_REFINE_PX if motion == "translation" else max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
-    for _ in range(0, FINE_ITERATIONS, FINE_CHUNK):
-        step = _ecc(ref, img, found, motion, count=FINE_CHUNK)
-        if step is None or corner_distance(step, start, h, w) > reach:
-            return None
-        found, moved = step, corner_distance(step, found, h, w)
-        if moved <= FINE_CONVERGED_PX:
-            break
+    start = shift_warp(warp, (x0, y0))
+    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS)
+    if found is None:
+        return None
     step = _ecc(ref, img, found, motion, count=1)  # settled: it moves no corner by FINE_SETTLED_PX
-    if step is None or corner_distance(step, found, h, w) > FINE_SETTLED_PX:
+    reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
+    if (step is None or corner_distance(step, found, y1 - y0, x1 - x0) > FINE_SETTLED_PX
+            or (motion == "similarity" and corner_distance(found, start, y1 - y0, x1 - x0) > reach)):
         return None
     return shift_warp(found, (-x0, -y0))
 
 
 #: iterations of :func:`_fine_ecc`: from the pyramid's estimate it converges in 8-15 (the
 #: warps of the motion benchmark's 32 cases and of the real brackets are the same with 15 as
-#: with 100); a run drifting to a false optimum stops at its reach, or here
+#: with 100); a run drifting to a false optimum stops here (it ran all 100 before the reach
+#: refused it: 2 of the 3.2 s of aligning the benchmark's 6 MP render)
 FINE_ITERATIONS = 30
-#: :func:`_fine_ecc` checks its reach every this many iterations: a drifting run is 9-16 px
-#: off after 5 (the 6 MP render of the motion benchmark; 0.29 and 0.58 s of its alignment's
-#: 1.9 s went to two such runs)
-FINE_CHUNK = 5
-#: a chunk of iterations moving no corner farther than this (pixels) has converged
-FINE_CONVERGED_PX = 0.01
 #: a fine run has settled when one more iteration moves no window corner farther (pixels):
 #: after 30 iterations the benchmark's runs move 0.00-0.14 px, the drifting ones 4-7 px
 FINE_SETTLED_PX = 0.5
