@@ -359,11 +359,15 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
     shares counts, however small a fraction of the frame it is.  ECC's result stands unless
     it wandered more than :data:`MAX_REFINE_PX` from the phase correlation's.
     ``similarity`` then adds a rotation (ECC's Euclidean model, from the translation, on the
-    pyramid; refined at full resolution only where it moves some corner of the frame by more
-    than :data:`ROTATION_PX`) and keeps it only if it correlates better and still moves a
+    pyramid; refined only where it moves some corner of the frame by more than
+    :data:`ROTATION_PX`: by the tile consensus over the whole frame, else at full resolution
+    on the central window) and keeps it only if it correlates better and still moves a
     corner that far (a negligible rotation is not worth resampling for).  Last, the tile
     consensus (:func:`_tile_consensus`) corrects what a moving object pulled, where enough
-    tiles are textured.  Returns ``((2, 3), rho)``."""
+    tiles are textured (once more after it refined a rotation: one pass from the pyramid's
+    estimate left the motion benchmark's case 12 0.20 px off, two 0.18; the full-resolution
+    run it replaces, 0.14, and over the 32 cases 0.032 -> 0.023 px median, corners within
+    0.2 px 28 -> 29, alignment 11 % faster).  Returns ``((2, 3), rho)``."""
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}")
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
@@ -380,9 +384,11 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
     if motion == "similarity":
         rotated = _pyramid_ecc(reference, image, best, "similarity")
         if corner_distance(rotated, best, *reference.shape) > ROTATION_PX:  # the coarse levels see a
-            # rotation that is not negligible: refine it at full resolution (the pyramid's estimate stands where
-            # that fails or jumps), keep it if it correlates better
-            fine = _fine_ecc(reference, image, rotated, "similarity")
+            # rotation that is not negligible: refine it over the whole frame by the tile consensus, or at full
+            # resolution on the central window where the tiles cannot (the pyramid's estimate stands where both
+            # fail), keep it if it correlates better
+            fine = _tile_consensus(reference, image, rotated, motion)
+            fine = _fine_ecc(reference, image, rotated, "similarity") if fine is None else fine
             rotated = rotated if fine is None else fine
             if ((r := score(rotated)) > rho
                     and corner_distance(rotated, best, *reference.shape) > ROTATION_PX):
