@@ -184,12 +184,12 @@ def test_mosaic_moves_by_whole_cfa_periods_and_clipping_survives_resampling():
     rng = np.random.default_rng(0)
     codes = rng.integers(0, 4000, (12, 16)).astype(np.uint16)
     w = np.array([[1.0, 0.0, 2.7], [0.0, 1.0, -1.2]])  # rounds to (+2, -2): whole periods
-    out = align.apply_warp_mosaic(codes, w, 4095, True)
+    out = align.shift_mosaic(codes, w)
     np.testing.assert_array_equal(out[2:, :14], codes[:10, 2:])
     # sites from outside the frame repeat the nearest edge site of the same colour
     np.testing.assert_array_equal(out[:2, :14], codes[:2, 2:])
     np.testing.assert_array_equal(out[2:, 14:], codes[:10, 14:16])
-    huge = align.apply_warp_mosaic(codes, np.array([[1.0, 0, 40.0], [0, 1.0, -30.0]]), 4095, True)
+    huge = align.shift_mosaic(codes, np.array([[1.0, 0, 40.0], [0, 1.0, -30.0]]))
     assert huge.shape == codes.shape  # a shift beyond the frame is no crash
     img = np.full((8, 8), 100, np.uint16)
     img[4, 4] = 4095

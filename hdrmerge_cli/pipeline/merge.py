@@ -25,8 +25,8 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import LogMerge, irls, noise_rows
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, load_codes
-from hdrmerge_cli.io.memory import return_free_memory
 from hdrmerge_cli.io.images import exr_compression
+from hdrmerge_cli.io.memory import return_free_memory
 from hdrmerge_cli.io.noisespec import per_channel
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import motion

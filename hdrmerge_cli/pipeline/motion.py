@@ -153,7 +153,7 @@ class DecodedOnce:
     """``frame -> codes`` (``load``), each frame decoded once while the motion passes read
     the frames again and again (alignment decodes the reference on both of its threads,
     deghosting reads every frame twice, the noise measurement once), as long as all the
-    kept codes take at most :data:`BUDGET_BYTES` (the latest kept first); :meth:`release`
+    kept codes take at most :data:`BUDGET_BYTES` (the oldest dropped first); :meth:`release`
     drops them and passes every later call through (the merge streams the frames).  The
     codes are handed out read-only.  A 6 MP 8-bit bracket of three TIFFs was decoded nine
     times with ``--align auto --deghost auto`` (0.12-0.14 s each)."""
@@ -234,7 +234,7 @@ class AlignedLoader:
 
             cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
             if self.periods:
-                out = align.apply_warp_mosaic(codes, w, clip, True)
+                out = align.shift_mosaic(codes, w)
             else:  # resampled colour by colour, with the taps' spread
                 out, spread = align.resample_mosaic(codes, w, clip, frame.cfa_pattern, np.asarray(frame.black)[cell],
                                                     spread=True)
