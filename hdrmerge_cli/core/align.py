@@ -615,10 +615,8 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
             continue
         m, rows = _site_warp(warp, dx, dy), (out_rows - dy + 1) // 2
         plain = warped(signal[dy::2, dx::2], m, rows)
-        if spread:  # the sub-plane's taps: E z^2 - (E z)^2, E z the plain bilinear estimate
-            second = warped(np.square(signal[dy::2, dx::2]), m, rows)
-            second -= plain * plain
-            u[dy::2, dx::2] = np.maximum(second, 0.0, out=second)
+        if spread:  # the sub-plane's taps, around the plain bilinear estimate
+            u[dy::2, dx::2] = tap_variance(signal[dy::2, dx::2], m, rows, mean=plain)
         g_taps = warped(full_g[dy::2, dx::2], m, rows)
         ratio = (np.maximum(g_out[dy::2, dx::2], 0) + c) / (np.maximum(g_taps, 0) + c)
         if clipped:
@@ -635,10 +633,12 @@ def _resample_band(codes: np.ndarray, warp: np.ndarray, clip_code: int, cfa: str
     return out.astype(codes.dtype), u
 
 
-def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = None) -> np.ndarray:
+def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = None,
+                 mean: np.ndarray | None = None) -> np.ndarray:
     """The spread of the source samples bilinear resampling (:func:`apply_warp`) mixes into
     each output sample, float32 in squared codes, shape of ``codes`` (``out_rows`` rows if
-    given: the warp's output rows read from these source rows): ``sum_i w_i z_i^2 -
+    given: the warp's output rows read from these source rows; ``mean``: the bilinear
+    resampling itself, float32, when the caller has it): ``sum_i w_i z_i^2 -
     (sum_i w_i z_i)^2`` over the (up to 4) taps ``z_i`` with their bilinear weights ``w_i``
     (two float warps).  It is the variance of the interpolated value if the true one were
     any of the taps, in proportion to their weights: 0 where the warp lands on a sample or
@@ -653,7 +653,8 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = Non
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     m = np.asarray(warp, np.float32)
     z = np.ascontiguousarray(codes, np.float32)
-    mean = cv2.warpAffine(z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    if mean is None:
+        mean = cv2.warpAffine(z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)
     second = cv2.warpAffine(z * z, m, (w, rows), flags=flags, borderMode=cv2.BORDER_REPLICATE)  # z may be codes
     second -= mean * mean
     return np.maximum(second, 0.0, out=second).reshape((rows,) + codes.shape[1:])
