@@ -47,6 +47,21 @@ def test_truncated_raw(run, tmp_path, dng_bracket):
     _fails(run, tmp_path, cut, folder / meta["frames"][1], expect=["cut.dng", "RAW"])
 
 
+def test_truncated_reference_with_motion_options(run, tmp_path):
+    """The middle frame's pixels cut off (its header still reads): with --align and
+    --deghost its decode fails on the alignment's two threads at once (frames are decoded
+    once for the motion passes); still one line naming it, exit 1, nothing written."""
+    rng = np.random.default_rng(0)
+    paths = []
+    for k, t in enumerate((0.01, 0.04, 0.16)):
+        p = tmp_path / f"f{k}.jpg"
+        write_ldr(str(p), rng.integers(0, 256, (300, 400, 3)).astype(np.uint8), {"ExposureTime": t})
+        paths.append(p)
+    data = paths[1].read_bytes()
+    paths[1].write_bytes(data[: len(data) // 2])
+    _fails(run, tmp_path, *paths, "--crf", "srgb", "--align", "auto", "--deghost", "auto", expect=["f1.jpg"])
+
+
 def test_frames_of_different_sizes(run, tmp_path):
     a = _jpeg(tmp_path / "a.jpg")
     b = _jpeg(tmp_path / "b.jpg", size=(9, 10), ExposureTime=0.1)
