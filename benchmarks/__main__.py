@@ -1,7 +1,7 @@
 """``python -m benchmarks [--quick] [NAME ...]``: every benchmark in one run.
 
 Writes Markdown tables and PNG plots under benchmarks/results/: leave-one-out on the real
-brackets against the peer programs (real_loo), the command line's defaults on simulated
+brackets against the peer programs (real_loo) and with the peers' alignment (align_loo), the command line's defaults on simulated
 brackets against the bound and the peers (cli_defaults), accuracy (every method
 against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), speed
 (merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
@@ -14,7 +14,7 @@ import argparse
 import importlib
 import time
 
-BENCHMARKS = ("real_loo", "cli_defaults", "accuracy", "speed", "crf_dorf", "noise_calibration", "motion")
+BENCHMARKS = ("real_loo", "align_loo", "cli_defaults", "accuracy", "speed", "crf_dorf", "noise_calibration", "motion")
 
 
 def main() -> None:

@@ -101,11 +101,12 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),
               help="Weights table from 'weights-lut' (columns in exposure order) instead of --weights.")
 @click.option("--bounds", metavar="BOUNDS", callback=bounds_option_callback, help=BOUNDS_HELP)
-@click.option("--align", type=click.Choice(ALIGN_MODES), default="off", show_default=True,
+@click.option("--align", type=click.Choice(ALIGN_MODES), default="auto", show_default=True,
               help="Bring hand-held frames onto the middle exposure (OpenCV phase correlation and ECC on "
                    "exposure-normalised images, checked tile by tile so that a moving object cannot pull it): "
-                   "translation, similarity (also rotation), auto (a rotation kept only where it beats translation; "
-                   "applied only when a frame is off by more than a quarter pixel).  RAW moves by whole CFA periods "
+                   "translation, similarity (also rotation), auto (a rotation kept only where the tiles agree on "
+                   "it and it beats translation; applied only when a frame is off by more than a quarter pixel), "
+                   "off (a tripod bracket known to be still: no registration).  RAW moves by whole CFA periods "
                    "where that suffices, else each colour's sites are resampled.")
 @click.option("--deghost", type=click.Choice(DEGHOST_MODES), default="off", show_default=True,
               help="Drop moving objects: per cell, a chi-square test of each frame against the reference (the "

@@ -220,8 +220,9 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     """How far (in pixels of the images) ``b`` sits from ``a``: the length of the
     translation registering them (:func:`hdrmerge_cli.core.align.estimate_warp`: phase
     correlation against no motion by the vote of the pixels, refined by ECC), or None when
-    the pair cannot be registered (fewer than :data:`~hdrmerge_cli.core.align.MIN_TEXTURED`
-    textured pixels in either, or a correlation under :data:`MOVED_MIN_CONFIDENCE`).
+    the pair cannot be registered (too little texture in either,
+    :func:`hdrmerge_cli.core.align.registrable`, or a correlation under
+    :data:`MOVED_MIN_CONFIDENCE`).
 
     a, b : (H, W) float32 exposure-invariant images of the same pixels (see
     :func:`hdrmerge_cli.core.align.log_irradiance`)
@@ -229,9 +230,9 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     from hdrmerge_cli.core import align
 
     a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
-    if min(a.shape) < 16 or min(align.textured_pixels(a), align.textured_pixels(b)) < align.MIN_TEXTURED:
+    if min(a.shape) < 16 or align.registrable(a, b) is not None:
         return None
-    warp, rho = align.estimate_warp(a, b, "translation")
+    warp, rho, _ = align.estimate_warp(a, b, "translation")
     if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
         return None
     return float(np.hypot(warp[0, 2], warp[1, 2]))

@@ -20,6 +20,12 @@ ALIGN_MODES = ("off", "auto", "translation", "similarity")
 DEGHOST_MODES = ("off", "auto", "on")
 #: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
 AUTO_ALIGN_PX = 0.25
+#: under ``--align auto``, a pair's displacement up to this (pixels) is kept only where the
+#: tile consensus confirms it (``core.align.Registration.confirmed``): on too little texture
+#: a registration can be precise and wrong (a static simulated RAW bracket 8 EV apart,
+#: 1100 textured pixels of 1 MP: 0.5 px, and 0.7-3.4 px as its images were blurred), and a
+#: sub-pixel shift is not worth the resampling's blur unless it is sure
+UNCONFIRMED_PX = 1.0
 #: a registration is kept when its correlation coefficient reaches this
 MIN_CONFIDENCE = 0.3
 
@@ -49,14 +55,28 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     return lin.mean(axis=-1, dtype=np.float32)
 
 
+def dark_floor(frame: Frame) -> float:
+    """The darkest linear signal (full scale 1) registration trusts in a frame: 2 % of full
+    scale, or 16 codes where the codes are linear (RAW, linear TIFF) and that is lower.  An
+    encoded image's 16 codes are far darker than that through its response (16-bit through
+    gamma 2.2: 2e-8), in the sensor's noise: a static simulated bracket of 16-bit TIFFs
+    5.4 EV apart registered 0.55 px off there, against 0.04 px for each frame on the truth."""
+    if frame.kind == "image":
+        return 0.02
+    return min(0.02, 16.0 / float(np.min(frame.white - frame.black)))
+
+
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
     """Warps bringing every frame onto the reference (``core.align``).  ``auto`` registers
-    with rotation too and keeps a frame's rotation only where it beats translation, and
-    applies the warps only when some frame is displaced by more than
-    :data:`AUTO_ALIGN_PX`.  A pair is registered when both frames have
-    :data:`~hdrmerge_cli.core.align.MIN_TEXTURED` textured pixels in the irradiance range
-    they share (however small a fraction of the frame), and the result is kept when its
-    correlation reaches :data:`MIN_CONFIDENCE`.  Returns ``{"mode", "reference",
+    with rotation too and keeps a frame's rotation only where it beats translation, keeps a
+    pair's displacement of at most :data:`UNCONFIRMED_PX` only where the tile consensus
+    confirms it, and applies the warps only when some frame is displaced by more than
+    :data:`AUTO_ALIGN_PX`.  A pair is registered when both frames have texture in the
+    irradiance range they share (:func:`~hdrmerge_cli.core.align.registrable`: a count of
+    pixels, however small a fraction of the frame), and the result is kept when its
+    correlation reaches :data:`MIN_CONFIDENCE`.  A frame left unaligned is a warning when
+    the mode was asked for or other frames moved; under ``auto`` with nothing applied, an
+    info line.  Returns ``{"mode", "reference",
     "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
     "unaligned": [...]}`` with warps in the frames' own sample coordinates and confidence
     the registration's correlation coefficient to its neighbour (1 for the reference)."""
@@ -69,21 +89,24 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
         """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
         identity and why they cannot be registered."""
-        y_full = float(np.min(frames[a].white - frames[a].black))
         try:
-            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=min(0.02, 16.0 / y_full))
+            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=dark_floor(frames[a]))
         except HdrMergeError:
             return identity, "no irradiance range is well exposed in both it and its neighbour"
         ia = align.log_irradiance(image(a), exposures[a], lo, hi)
         ib = align.log_irradiance(image(b), exposures[b], lo, hi)
-        texture = min(align.textured_pixels(ia), align.textured_pixels(ib))
-        if texture < align.MIN_TEXTURED:
-            return identity, f"only {texture} textured pixels in the range it shares with its neighbour"
-        w, rho = align.estimate_warp(ia, ib, motion)
+        why = align.registrable(ia, ib)
+        if why is not None:
+            return identity, f"{why} in the range it shares with its neighbour"
+        w, rho, confirmed = align.estimate_warp(ia, ib, motion)
         confidence[b] = round(rho, 4)
         if rho < MIN_CONFIDENCE:
             return identity, f"registration to its neighbour correlates only {rho:.2f}"
-        return (align.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+        w = align.rescale_warp(w, 2, 0.5) if raw else w  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+        size = align.warp_size(w, frames[b].height, frames[b].width)
+        if mode == "auto" and not confirmed and size <= UNCONFIRMED_PX:
+            return identity, f"a {size:.2f} px displacement that too few textured tiles confirm"
+        return w, None
 
     def image(k: int) -> np.ndarray:  # made again for each pair (tens of ms at 6 MP): the codes are
         # decoded once (DecodedOnce), and a held frame-sized float image per side cost 24 MB each at 6 MP
@@ -107,14 +130,18 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         if why is not None:
             unaligned.append(frames[j].path)
         warps[j] = align.compose(w, warps[j - 1 if j > ref else j + 1])
-    for j in sorted(steps):  # the warnings in frame order, whichever side finished first
-        if steps[j][1] is not None:
-            log.warning("%s: %s; left unaligned", frames[j].path, steps[j][1])
     rotated = any(abs(w[1, 0]) > 1e-9 for w in warps)
     if mode == "auto" and not rotated:
         motion = "translation"  # no frame's rotation beat its translation
     sizes = [align.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
     applied = mode != "auto" or max(sizes) > AUTO_ALIGN_PX
+    # a frame left unaligned is a warning when alignment was asked for or the others moved (a
+    # hand-held bracket); under auto on a bracket where nothing registered moved (a tripod, or
+    # frames too far apart in exposure to share tones) it is only logged (-v)
+    say = log.warning if applied else log.info
+    for j in sorted(steps):  # in frame order, whichever side finished first
+        if steps[j][1] is not None:
+            say("%s: %s; left unaligned", frames[j].path, steps[j][1])
     periods = raw and motion == "translation" and (mode == "translation" or whole_periods_suffice(warps))
     if periods:
         applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)

@@ -40,7 +40,7 @@ class MergeOptions:
     bounds: str | None = None
     preview: Path | None = None
     preview_size: int = 2048
-    align: str = "off"
+    align: str = "auto"
     deghost: str = "off"
     #: read/store bracket noise measurements in the per-camera cache (``--no-cache``: off)
     noise_cache: bool = True
