@@ -497,7 +497,7 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
              "| command | wall s | imports ms |", "|---|---|---|"]
     for k, (wall, imp) in startup.items():
         lines.append(f"| `hdrmerge-cli {k}` | {wall:.2f} | {imp:.0f} |")
-    steps = ("read_metadata", "noise_estimate", "tables", "decode_and_merge_wall", "irls", "color_and_write")
+    steps = ("read_metadata", "align", "noise_estimate", "tables", "decode_and_merge_wall", "irls", "color_and_write")
     lines += ["", f"Per-stage split of `merge --json` (seconds, {mp:.0f} MP x 3 DNG and the TIFF case):", "",
               "| run | " + " | ".join(steps) + " |", "|---|" + "---|" * len(steps)]
     for name, st in splits:

@@ -1621,3 +1621,9 @@ def test_decoded_once_decodes_each_frame_once_until_released():
     assert once(a)[0, 0] == 3 and once(b)[0, 0] == 2
     once.release()
     assert once(b)[0, 0] == 4 and once(b)[0, 0] == 5 and once.kept is None
+    # max_frames: the oldest dropped beyond that many (alignment alone keeps its working set)
+    calls.clear()
+    few = DecodedOnce(load, max_frames=2)
+    c = SimpleNamespace(path="c.tif")
+    few(a), few(b), few(c)
+    assert list(few.kept) == ["b.tif", "c.tif"] and few(b)[0, 0] == 2 and few(a)[0, 0] == 4

@@ -128,7 +128,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     noise = resolve_noise(opts, frames)
     alignment = None
     if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
-        load = motion.DecodedOnce(load)
+        load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
     unaligned = load
     if opts.align != "off":
         t1 = time.perf_counter()
