@@ -182,11 +182,11 @@ def run(quick: bool = False, brackets=None) -> tuple[list[dict], dict]:
     return rows, skipped
 
 
-def table(rows: list[dict], skipped: dict, seconds: float) -> list[str]:
+def table(rows: list[dict], skipped: dict, seconds: float, rev: str | None = None) -> list[str]:
     methods = [n for n in rows[0] if n not in ("bracket", "left_out", "pixels") and not n.endswith(" s")]
     none = methods[0]
     lines = ["# Alignment by leave-one-out on the real brackets", "",
-             f"`python -m benchmarks.align_loo` at revision {revision()}; {seconds:.0f} s.  Protocol in the module "
+             f"`python -m benchmarks.align_loo` at revision {rev or revision()}; {seconds:.0f} s.  Protocol in the module "
              "docstring: the other frames aligned by each method and merged by ours, the left-out frame predicted "
              "through the response estimated on all frames, the prediction registered onto it (affine ECC, the same "
              f"evaluator for all), RMSE in code values over its pixels with every channel in [{LOW}, {HIGH}] "
@@ -216,9 +216,10 @@ def table(rows: list[dict], skipped: dict, seconds: float) -> list[str]:
 def main(quick: bool = False) -> str:
     if not BRACKETS.is_dir():
         return f"align_loo: skipped ({BRACKETS} not found: the real brackets live in ../shared/data)"
-    t0 = time.perf_counter()
+    t0, rev = time.perf_counter(), revision()  # the code measured, before anything is committed meanwhile
     rows, skipped = run(quick)
-    return write_result(RESULTS / f"align_loo{'_quick' if quick else ''}.md", table(rows, skipped, time.perf_counter() - t0))
+    return write_result(RESULTS / f"align_loo{'_quick' if quick else ''}.md",
+                        table(rows, skipped, time.perf_counter() - t0, rev))
 
 
 if __name__ == "__main__":

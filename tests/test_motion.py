@@ -35,7 +35,7 @@ def _two_exposures(shift, size=(256, 384)):
 def test_ecc_recovers_a_subpixel_shift_between_exposures():
     (a, b), times = _two_exposures((2.3, -1.6))
     lo, hi = align.common_range(times)
-    w, rho, _ = align.estimate_warp(align.log_irradiance(a, times[0], lo, hi), align.log_irradiance(b, times[1], lo, hi))
+    w, rho = align.estimate_warp(align.log_irradiance(a, times[0], lo, hi), align.log_irradiance(b, times[1], lo, hi))
     # the second frame sees the scene at x + shift: it is brought back by sampling it at x - shift
     np.testing.assert_allclose(w[:, 2], [-2.3, 1.6], atol=0.15)  # 8-bit clip edges bias it ~0.1 px
     np.testing.assert_allclose(w[:, :2], np.eye(2))
@@ -77,7 +77,7 @@ def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
     inv[:, 2] += 32  # frame pixel y sees padded-scene pixel true^-1 y + 32
     ib = cv2.warpAffine(big, inv, size[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     ib[100:230, 150:300] = 1.5  # the moved object, brighter than the scene around it
-    warp, _, _ = align.estimate_warp(ia, ib, motion)
+    warp, _ = align.estimate_warp(ia, ib, motion)
     assert align.corner_distance(warp, true, *size) < 0.1, (warp, true)
     pulled = align._ecc(ia, ib, true, motion)
     assert align.corner_distance(pulled, true, *size) > 0.1
@@ -107,7 +107,7 @@ def test_a_non_rigid_scene_gets_no_rotation(seed):
     ib = cv2.remap(ia, xx + dx + 2.0, yy + dy - 1.0, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
     rotated = align._pyramid_ecc(ia, ib, np.hstack([np.eye(2), [[-2.0], [1.0]]]), "similarity")
     assert align._tile_consensus(ia, ib, rotated, "similarity") == (None, True)  # registered, disagreeing
-    warp, _, _ = align.estimate_warp(ia, ib, "similarity")
+    warp, _ = align.estimate_warp(ia, ib, "similarity")
     np.testing.assert_array_equal(warp[:, :2], np.eye(2))
     assert -2.0 - 1.5 < warp[0, 2] < -2.0 + 1.5 and 1.0 - 1.5 < warp[1, 2] < 1.0 + 1.5
 
@@ -369,24 +369,16 @@ def test_static_bracket_is_neither_aligned_nor_deghosted(run, tmp_path, dng_brac
 
 
 
-@pytest.mark.parametrize("bracket", ["tiff16", "raw_8ev"])
-def test_the_default_alignment_leaves_static_hard_brackets_alone(run, tmp_path, tiff_bracket, bracket):
-    """Static simulated brackets where registration is precise but wrong, merged with the
-    defaults: nothing applied, no warning.  16-bit TIFFs 5.4 EV apart through gamma 2.2
-    (registered 0.55-0.76 px off while the dark floor was 16 codes, 2e-8 of full scale
-    through the response, in the sensor's noise: now 2 % for encoded images,
-    ``motion.dark_floor``); 2400 x 1600 RAW frames 8 EV apart (1100 textured pixels of 1 MP
-    registered 0.5 px off: an unconfirmed sub-pixel displacement, ``motion.UNCONFIRMED_PX``)."""
-    if bracket == "tiff16":
-        folder, meta = tiff_bracket
-        paths, extra = frames_of(folder, meta), ["--crf", "gamma:2.2"]
-    else:
-        run("simulate", "-o", tmp_path / "raw", "-q", "--size", "2400x1600", "--frames", "3", "--seed", "1")
-        paths, extra = sorted((tmp_path / "raw").glob("frame_*.dng")), []
-    proc = run("merge", *paths, "-o", tmp_path / "m.exr", *extra, "--json")
+def test_the_default_alignment_leaves_a_static_16bit_bracket_alone(run, tmp_path, tiff_bracket):
+    """A static simulated bracket of 16-bit TIFFs 5.4 EV apart through gamma 2.2, merged with
+    the defaults: nothing applied, no warning.  It registered 0.55-0.76 px off (and that was
+    applied) while the dark floor was 16 codes, 2e-8 of full scale through the response, in
+    the sensor's noise; encoded images now start at 2 % (``motion.dark_floor``)."""
+    folder, meta = tiff_bracket
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "m.exr", "--crf", "gamma:2.2", "--json")
     s = json.loads(proc.stdout)
     assert s["alignment"]["mode"] == "auto" and s["alignment"]["applied"] is False, s["alignment"]
-    assert "warning" not in proc.stderr.replace("sRGB", ""), proc.stderr
+    assert "warning" not in proc.stderr, proc.stderr
 
 
 def test_edges_all_one_way_are_not_registered():

@@ -232,7 +232,7 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
     if min(a.shape) < 16 or align.registrable(a, b) is not None:
         return None
-    warp, rho, _ = align.estimate_warp(a, b, "translation")
+    warp, rho = align.estimate_warp(a, b, "translation")
     if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
         return None
     return float(np.hypot(warp[0, 2], warp[1, 2]))

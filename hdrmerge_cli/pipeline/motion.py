@@ -20,12 +20,6 @@ ALIGN_MODES = ("off", "auto", "translation", "similarity")
 DEGHOST_MODES = ("off", "auto", "on")
 #: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
 AUTO_ALIGN_PX = 0.25
-#: under ``--align auto``, a pair's displacement up to this (pixels) is kept only where the
-#: tile consensus confirms it (``core.align.Registration.confirmed``): on too little texture
-#: a registration can be precise and wrong (a static simulated RAW bracket 8 EV apart,
-#: 1100 textured pixels of 1 MP: 0.5 px, and 0.7-3.4 px as its images were blurred), and a
-#: sub-pixel shift is not worth the resampling's blur unless it is sure
-UNCONFIRMED_PX = 1.0
 #: a registration is kept when its correlation coefficient reaches this
 MIN_CONFIDENCE = 0.3
 
@@ -68,9 +62,8 @@ def dark_floor(frame: Frame) -> float:
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
     """Warps bringing every frame onto the reference (``core.align``).  ``auto`` registers
-    with rotation too and keeps a frame's rotation only where it beats translation, keeps a
-    pair's displacement of at most :data:`UNCONFIRMED_PX` only where the tile consensus
-    confirms it, and applies the warps only when some frame is displaced by more than
+    with rotation too and keeps a frame's rotation only where it beats translation, and
+    applies the warps only when some frame is displaced by more than
     :data:`AUTO_ALIGN_PX`.  A pair is registered when both frames have texture in the
     irradiance range they share (:func:`~hdrmerge_cli.core.align.registrable`: a count of
     pixels, however small a fraction of the frame), and the result is kept when its
@@ -98,15 +91,11 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         why = align.registrable(ia, ib)
         if why is not None:
             return identity, f"{why} in the range it shares with its neighbour"
-        w, rho, confirmed = align.estimate_warp(ia, ib, motion)
+        w, rho = align.estimate_warp(ia, ib, motion)
         confidence[b] = round(rho, 4)
         if rho < MIN_CONFIDENCE:
             return identity, f"registration to its neighbour correlates only {rho:.2f}"
-        w = align.rescale_warp(w, 2, 0.5) if raw else w  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
-        size = align.warp_size(w, frames[b].height, frames[b].width)
-        if mode == "auto" and not confirmed and size <= UNCONFIRMED_PX:
-            return identity, f"a {size:.2f} px displacement that too few textured tiles confirm"
-        return w, None
+        return (align.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
 
     def image(k: int) -> np.ndarray:  # made again for each pair (tens of ms at 6 MP): the codes are
         # decoded once (DecodedOnce), and a held frame-sized float image per side cost 24 MB each at 6 MP
