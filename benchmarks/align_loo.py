@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import revision, write_result
-from benchmarks.real_loo import BRACKETS, HIGH, IMAGE_SUFFIXES, LOW
+from benchmarks.real_loo import BRACKETS, HIGH, IMAGE_SUFFIXES, LOW, predict_ours
 
 RESULTS = Path(__file__).parent / "results"
 OURS = {"none (--align off)": "off", "hdrmerge-cli --align auto (default)": "auto",
@@ -163,8 +163,7 @@ def run(quick: bool = False, brackets=None) -> tuple[list[dict], dict]:
                 mask = np.all((codes[k] >= LOW) & (codes[k] <= HIGH), axis=-1)
                 preds = {}
                 for name, (e, covered, seconds) in found.items():
-                    pred = np.stack([crf.forward(np.clip(e[..., c] * times[k], 0, 1), c) for c in range(3)],
-                                    axis=-1).astype(np.float32) * 255
+                    pred = predict_ours(e, crf, times[k]).astype(np.float32)
                     warp = register(grey, np.log1p(pred.mean(axis=-1)))
                     flags = cv2.WARP_INVERSE_MAP
                     preds[name] = cv2.warpAffine(pred, warp.astype(np.float32), (w, h), flags=cv2.INTER_LINEAR | flags,

@@ -373,7 +373,7 @@ def test_the_default_alignment_leaves_a_static_16bit_bracket_alone(run, tmp_path
     """A static simulated bracket of 16-bit TIFFs 5.4 EV apart through gamma 2.2, merged with
     the defaults: nothing applied, no warning.  It registered 0.55-0.76 px off (and that was
     applied) while the dark floor was 16 codes, 2e-8 of full scale through the response, in
-    the sensor's noise; encoded images now start at 2 % (``motion.dark_floor``)."""
+    the sensor's noise; encoded images now start at 2 % (``align.dark_floor``)."""
     folder, meta = tiff_bracket
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "m.exr", "--crf", "gamma:2.2", "--json")
     s = json.loads(proc.stdout)

@@ -346,10 +346,8 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     px: dict[int, float | None] = {}
     for j in sorted(set(pairs)):
         try:
-            # 16 codes only where the codes are linear (RAW); an encoded image's are far darker
-            # through its response, in the noise (pipeline.motion.dark_floor)
             lo, hi = align.common_range([exposures[j], exposures[j + 1]],
-                                        lo_code=min(0.02, 16.0 * s.codes_step) if s.raw else 0.02)
+                                        lo_code=align.dark_floor(s.codes_step if s.raw else None))
         except HdrMergeError:
             px[j] = None
             continue

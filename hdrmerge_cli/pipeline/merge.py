@@ -34,7 +34,7 @@ from hdrmerge_cli.pipeline.bracket import (
     choose_crf, equal_exposure_groups, exposure_values, fmt_time, output_orientation, read_bracket,
     reference_exposure,
 )
-from hdrmerge_cli.pipeline.exposures import SampleTee, check_order, resolve_exposures
+from hdrmerge_cli.pipeline.exposures import SampleTee, check_order, resolve_exposures, sample_frames
 from hdrmerge_cli.pipeline.models import Models, choose_models, resolve_noise
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
@@ -133,7 +133,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     if opts.align != "off":
         t1 = time.perf_counter()
         if len(frames) > 1:  # registration trusts the labels' order: a disordered bracket fails first, in one line
-            check_order(frames, SampleTee(frames, load).samples(frames))
+            check_order(frames, sample_frames(frames, load))
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
         timings["align"] = time.perf_counter() - t1
     aligned = motion.loader(frames, alignment, load)

@@ -49,17 +49,6 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     return lin.mean(axis=-1, dtype=np.float32)
 
 
-def dark_floor(frame: Frame) -> float:
-    """The darkest linear signal (full scale 1) registration trusts in a frame: 2 % of full
-    scale, or 16 codes where the codes are linear (RAW, linear TIFF) and that is lower.  An
-    encoded image's 16 codes are far darker than that through its response (16-bit through
-    gamma 2.2: 2e-8), in the sensor's noise: a static simulated bracket of 16-bit TIFFs
-    5.4 EV apart registered 0.55 px off there, against 0.04 px for each frame on the truth."""
-    if frame.kind == "image":
-        return 0.02
-    return min(0.02, 16.0 / float(np.min(frame.white - frame.black)))
-
-
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
     """Warps bringing every frame onto the reference (``core.align``).  ``auto`` registers
     with rotation too and keeps a frame's rotation only where it beats translation, and
@@ -82,8 +71,10 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
         """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
         identity and why they cannot be registered."""
+        linear = frames[a].kind != "image"  # RAW or linear TIFF: 16 codes are a signal level
+        step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
         try:
-            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=dark_floor(frames[a]))
+            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=align.dark_floor(step))
         except HdrMergeError:
             return identity, "no irradiance range is well exposed in both it and its neighbour"
         ia = align.log_irradiance(image(a), exposures[a], lo, hi)
