@@ -90,7 +90,9 @@ alignment's error (no static twin, no peers).
   |log error| over F) + 1e-4 (round-off); *removed* = fraction of F whose |log error| is
   within the tolerance.  That needs the detection and a reconstruction as good as the
   oracle's, which is not resampled: detection alone is the fraction of F where the ``auto``
-  run dropped some frame (``--extra-channels ghost`` > 0).
+  run dropped some frame (``--extra-channels ghost`` > 0).  It reads 0 where the ghost's
+  frame carries no weight anyway (too dark or clipped there: nothing to drop), and counts a
+  pixel where a ghost in the reference made some, not all, of the other frames dropped.
 - *False rejections*: ``deghost.rejected_fraction`` of merge's summary, the largest over the
   frames (fraction of cells), on the static twins and on the real static brackets.
 - *Cost*: time and peak RSS of the moving bracket's ``--align auto --deghost auto`` over
@@ -219,7 +221,7 @@ def merge(paths, out: Path, align: str, deghost: str, extra=()) -> dict:
     names = list(attrs["channelnames"])
     s["_rgb"] = (pixels[..., names.index("Y")] if "Y" in names
                  else pixels[..., [names.index(c) for c in "RGB"]]).astype(np.float64)
-    if "ghost" in names:  # --extra-channels ghost: the fraction of frames each pixel lost
+    if "ghost" in names:  # --extra-channels ghost: how many frames each pixel lost
         s["_ghost"] = pixels[..., names.index("ghost")]
     s["_s"], s["_mib"] = wall, mib
     return s
