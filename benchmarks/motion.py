@@ -215,16 +215,23 @@ def merge(paths, out: Path, align: str, deghost: str, extra=()) -> dict:
         prof = json.loads(Path(s.get("profile", out.with_name(out.stem + ".profile.json"))).read_text())
         if "alignment" in prof:
             s["alignment"] = prof["alignment"]
+    s.update(read_output(out))
+    s["_s"], s["_mib"] = wall, mib
+    return s
+
+
+def read_output(out: Path) -> dict:
+    """A merge's EXR: ``_rgb`` (the mosaic Y of ``--cfa``, else R, G, B; float64) and, with
+    ``--extra-channels ghost``, ``_ghost`` (how many frames each pixel lost)."""
     from hdrmerge_cli.io.images import read_exr
 
     pixels, attrs = read_exr(str(out))
     names = list(attrs["channelnames"])
-    s["_rgb"] = (pixels[..., names.index("Y")] if "Y" in names
-                 else pixels[..., [names.index(c) for c in "RGB"]]).astype(np.float64)
-    if "ghost" in names:  # --extra-channels ghost: how many frames each pixel lost
-        s["_ghost"] = pixels[..., names.index("ghost")]
-    s["_s"], s["_mib"] = wall, mib
-    return s
+    got = {"_rgb": (pixels[..., names.index("Y")] if "Y" in names
+                    else pixels[..., [names.index(c) for c in "RGB"]]).astype(np.float64)}
+    if "ghost" in names:
+        got["_ghost"] = pixels[..., names.index("ghost")]
+    return got
 
 
 def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
@@ -255,12 +262,7 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
         hdrmerge_cli.merge([str(p) for p in paths], **opts).write(str(out))
     finally:
         pipeline_motion.estimate_alignment = estimate
-    from hdrmerge_cli.io.images import read_exr
-
-    pixels, attrs = read_exr(str(out))
-    names = list(attrs["channelnames"])
-    return (pixels[..., names.index("Y")] if "Y" in names
-            else pixels[..., [names.index(c) for c in "RGB"]]).astype(np.float64)
+    return read_output(out)["_rgb"]
 
 
 # --- scenes and brackets -----------------------------------------------------------------
