@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import revision, write_result
-from benchmarks.real_loo import BRACKETS, HIGH, IMAGE_SUFFIXES, LOW, predict_ours
+from benchmarks.real_loo import BRACKETS, HIGH, IMAGE_SUFFIXES, LOW, predict_ours, rmse
 
 RESULTS = Path(__file__).parent / "results"
 OURS = {"none (--align off)": "off", "hdrmerge-cli --align auto (default)": "auto",
@@ -172,8 +172,7 @@ def run(quick: bool = False, brackets=None) -> tuple[list[dict], dict]:
                                            flags=cv2.INTER_NEAREST | flags, borderValue=0) > 0
                     row[name + " s"] = seconds
                 for name, pred in preds.items():
-                    d = pred[mask] - actual[mask]
-                    row[name] = float(np.sqrt(np.mean(d * d)))
+                    row[name] = rmse(pred, actual, mask)
                 row["pixels"] = int(mask.sum())
                 rows.append(row)
                 print(f"{row['bracket']} {row['left_out']}: " + ", ".join(

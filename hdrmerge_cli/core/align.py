@@ -180,11 +180,6 @@ def texture(img: np.ndarray) -> tuple[int, int]:
     return textured * f * f, across * f * f
 
 
-def textured_pixels(img: np.ndarray) -> int:
-    """:func:`texture`'s count of textured pixels."""
-    return texture(img)[0]
-
-
 def registrable(a: np.ndarray, b: np.ndarray) -> str | None:
     """Why two exposure-invariant images cannot be registered, or None: each needs
     :data:`MIN_TEXTURED` textured pixels and :data:`MIN_ACROSS` textured across each axis
@@ -341,9 +336,10 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
     hundredths of a degree; here its tiles are outvoted.  Returns ``(warp, judged)``: the
     corrected warp, or None unless at least 4 tiles are textured
     (:data:`CONSENSUS_MIN_TEXTURED`), registered within :data:`MAX_REFINE_PX`, and at least
-    half of them (and 4) agree; ``judged``: None although :data:`CONSENSUS_JUDGE` tiles
-    registered (they disagree: no rigid motion describes the scene, e.g. foliage in wind;
-    fewer may disagree through one moving object)."""
+    half of them (and 4) agree; ``judged``: whether the tiles' verdict stands -- True with a
+    warp, and with None when :data:`CONSENSUS_JUDGE` tiles registered but disagree (no rigid
+    motion describes the scene, e.g. foliage in wind; fewer may disagree through one moving
+    object)."""
     cv2 = _cv2()
     h, w = reference.shape
     n = CONSENSUS_TILES
@@ -361,7 +357,7 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
         if not inside[rows, cols].all():
             return None
         tile = np.ascontiguousarray(reference[rows, cols])
-        if textured_pixels(tile) < CONSENSUS_MIN_TEXTURED:
+        if texture(tile)[0] < CONSENSUS_MIN_TEXTURED:  # isotropic: the directional count lost rotations
             return None
         found = _ecc(tile, np.ascontiguousarray(moved[rows, cols]), np.eye(2, 3), "translation", eps=CONSENSUS_EPS)
         if found is None or not np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):

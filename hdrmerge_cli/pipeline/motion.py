@@ -72,9 +72,9 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
         identity and why they cannot be registered."""
         linear = frames[a].kind != "image"  # RAW or linear TIFF: 16 codes are a signal level
-        step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
+        code_step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
         try:
-            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=align.dark_floor(step))
+            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=align.dark_floor(code_step))
         except HdrMergeError:
             return identity, "no irradiance range is well exposed in both it and its neighbour"
         ia = align.log_irradiance(image(a), exposures[a], lo, hi)
@@ -193,7 +193,7 @@ class DecodedOnce:
                 if self.kept is not None:
                     self.kept[frame.path] = codes
                     while len(self.kept) > 1 and (sum(a.nbytes for a in self.kept.values()) > self.BUDGET_BYTES
-                                                  or len(self.kept) > (self.max_frames or len(self.kept))):
+                                                  or (self.max_frames is not None and len(self.kept) > self.max_frames)):
                         self.kept.pop(next(iter(self.kept)))
             return codes
 
