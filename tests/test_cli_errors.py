@@ -97,6 +97,21 @@ def test_equal_exposure_times_are_merged_and_a_disagreement_is_named(run, tmp_pa
     assert "b.jpg" in proc.stderr and "warning" in proc.stderr
 
 
+def test_a_file_given_twice_is_refused_under_any_name(run, tmp_path):
+    """The same file twice (a repeated glob, a symbolic link, another relative path) would
+    be averaged with itself as if its noise were independent: refused, naming both names,
+    before anything is written; estimate-crf refuses it too."""
+    a, b = _jpeg(tmp_path / "a.jpg", size=(64, 64)), _jpeg(tmp_path / "b.jpg", value=60, size=(64, 64), ExposureTime=0.005)
+    link = tmp_path / "link.jpg"
+    link.symlink_to(a)
+    for again in (a, link, tmp_path / "." / "a.jpg"):
+        proc = _fails(run, tmp_path, a, b, again, expect=[str(again), "given twice"])
+        assert str(a) in proc.stderr
+    proc = run("estimate-crf", a, b, link, "-o", tmp_path / "crf.json", check=False)
+    assert proc.returncode == 1 and "given twice" in proc.stderr and not (tmp_path / "crf.json").exists()
+    assert run("merge", a, b, "-o", tmp_path / "out.exr", "--crf", "srgb", check=False).returncode == 0
+
+
 def test_wrong_number_of_times(run, tmp_path):
     a, b = _jpeg(tmp_path / "a.jpg"), _jpeg(tmp_path / "b.jpg", ExposureTime=0.1)
     _fails(run, tmp_path, a, b, "--times", "1/100", expect=["--times"])

@@ -208,6 +208,18 @@ def read_frame(path: str | os.PathLike) -> Frame:
     return _read_raw(path) if is_raw_path(path) else _read_image(path)
 
 
+def check_distinct_frames(paths) -> None:
+    """Refuse a file given twice, under any name (a repeated shell glob, a link, another
+    relative path): its noise would count twice as if independent, and the merge would
+    average the frame with itself.  After :func:`read_frame` (the files exist)."""
+    seen: dict[tuple[int, int], str] = {}
+    for p in map(str, paths):
+        st = os.stat(p)
+        key = (st.st_dev, st.st_ino)
+        if key in seen:
+            raise HdrMergeError(f"{p}: the same file as {seen[key]}, given twice; give each frame once")
+        seen[key] = p
+
 
 def _oiio_meta(path: str) -> dict:
     import OpenImageIO as oiio

@@ -13,7 +13,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import channel_index
 from hdrmerge_cli.io.crfspec import resolve_crf
-from hdrmerge_cli.io.frames import Frame, raw_channel_window, read_frame
+from hdrmerge_cli.io.frames import Frame, check_distinct_frames, raw_channel_window, read_frame
 from hdrmerge_cli.io.profile import crf_from_json, load_profile
 from hdrmerge_cli.io.times import apply_times
 
@@ -35,6 +35,7 @@ def read_bracket(paths: list[str], times: list[float] | None = None, times_file:
             frames = list(pool.map(read_frame, paths))  # the first bad file in order is reported
     else:
         frames = [read_frame(p) for p in paths]
+    check_distinct_frames(paths)
     apply_times(frames, times, times_file)  # "estimate": labels here, estimates after decoding
     first = frames[0]
     for f in frames[1:]:
