@@ -260,26 +260,26 @@ def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion
     took it 82 px and 3.6 degrees off; parallax in the hand-held iphone6_window_jpg moves it
     up to 8.4 px from the 4 x 4 level's estimate).  At most :data:`FINE_ITERATIONS`
     iterations, and None if the run has not settled by then; a similarity run is checked
-    for that jump after :data:`FINE_CHECK` iterations too (one drifting 5-10 px per iteration
-    on the benchmark's 6 MP render ran all 30 before)."""
+    after :data:`FINE_CHECK` iterations too (one wandering 5-19 px per iteration on the
+    benchmark's 6 MP render, yet within its reach, ran all 30 before being refused)."""
     (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
     ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
     start = shift_warp(warp, (x0, y0))
     reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
-
-    def drifted(found):
-        return motion == "similarity" and corner_distance(found, start, y1 - y0, x1 - x0) > reach
-
-    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS if motion == "translation" else FINE_CHECK)
-    if found is None or drifted(found):  # a similarity run checked after FINE_CHECK iterations too
-        return None
-    if motion != "translation":
-        found = _ecc(ref, img, found, motion, count=FINE_ITERATIONS - FINE_CHECK)
-        if found is None:
+    size = (y1 - y0, x1 - x0)
+    found = start
+    # a similarity run is also checked after FINE_CHECK iterations: one that jumped, or still
+    # moves a corner by FINE_WANDER_PX per iteration, is not refining
+    checks = ((FINE_ITERATIONS, FINE_SETTLED_PX),) if motion == "translation" else (
+        (FINE_CHECK - 1, FINE_WANDER_PX), (FINE_ITERATIONS - FINE_CHECK, FINE_SETTLED_PX))
+    for i, (count, settled) in enumerate(checks):
+        found = _ecc(ref, img, found, motion, count=count)
+        step = None if found is None else _ecc(ref, img, found, motion, count=1)  # one more iteration
+        if (step is None or corner_distance(step, found, *size) > settled
+                or (motion == "similarity" and corner_distance(found, start, *size) > reach)):
             return None
-    step = _ecc(ref, img, found, motion, count=1)  # settled: it moves no corner by FINE_SETTLED_PX
-    if step is None or corner_distance(step, found, y1 - y0, x1 - x0) > FINE_SETTLED_PX or drifted(found):
-        return None
+        if i + 1 < len(checks):  # a check's extra iteration is the run's next
+            found = step
     return shift_warp(found, (-x0, -y0))
 
 
@@ -291,8 +291,10 @@ FINE_ITERATIONS = 30
 #: a fine run has settled when one more iteration moves no window corner farther (pixels):
 #: after 30 iterations the benchmark's runs move 0.00-0.14 px, the drifting ones 4-7 px
 FINE_SETTLED_PX = 0.5
-#: a similarity run is first checked for drift (:data:`FINE_REACH`) after this many iterations
+#: a similarity run is checked after this many iterations too: refused if it moved a corner
+#: beyond :data:`FINE_REACH` or its last iteration moved one by more than :data:`FINE_WANDER_PX`
 FINE_CHECK = 10
+FINE_WANDER_PX = 2.0
 
 
 def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
