@@ -267,19 +267,28 @@ def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion
     start = shift_warp(warp, (x0, y0))
     reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
     size = (y1 - y0, x1 - x0)
-    found = start
-    # a similarity run is also checked after FINE_CHECK iterations: one that jumped, or still
-    # moves a corner by FINE_WANDER_PX per iteration, is not refining
-    checks = ((FINE_ITERATIONS, FINE_SETTLED_PX),) if motion == "translation" else (
-        (FINE_CHECK - 1, FINE_WANDER_PX), (FINE_ITERATIONS - FINE_CHECK, FINE_SETTLED_PX))
-    for i, (count, settled) in enumerate(checks):
-        found = _ecc(ref, img, found, motion, count=count)
-        step = None if found is None else _ecc(ref, img, found, motion, count=1)  # one more iteration
-        if (step is None or corner_distance(step, found, *size) > settled
-                or (motion == "similarity" and corner_distance(found, start, *size) > reach)):
+
+    def jumped(warp):
+        return motion == "similarity" and corner_distance(warp, start, *size) > reach
+
+    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS if motion == "translation" else FINE_CHECK - 1)
+    if found is None:
+        return None
+    if motion == "similarity":  # checked after FINE_CHECK iterations too: a run that jumped, or still
+        # moves a corner by FINE_WANDER_PX per iteration, is not refining; one that moves none by
+        # FINE_CONVERGED_PX has converged (a restarted run takes at least two iterations more)
+        step = _ecc(ref, img, found, motion, count=1)
+        moved = None if step is None else corner_distance(step, found, *size)
+        if step is None or moved > FINE_WANDER_PX or jumped(step):
             return None
-        if i + 1 < len(checks):  # a check's extra iteration is the run's next
-            found = step
+        if moved <= FINE_CONVERGED_PX:
+            return shift_warp(step, (-x0, -y0))
+        found = _ecc(ref, img, step, motion, count=FINE_ITERATIONS - FINE_CHECK)
+        if found is None:
+            return None
+    step = _ecc(ref, img, found, motion, count=1)  # settled: it moves no corner by FINE_SETTLED_PX
+    if step is None or corner_distance(step, found, *size) > FINE_SETTLED_PX or jumped(found):
+        return None
     return shift_warp(found, (-x0, -y0))
 
 
@@ -295,6 +304,8 @@ FINE_SETTLED_PX = 0.5
 #: beyond :data:`FINE_REACH` or its last iteration moved one by more than :data:`FINE_WANDER_PX`
 FINE_CHECK = 10
 FINE_WANDER_PX = 2.0
+#: ... and taken as converged if that iteration moved no corner by this much (pixels)
+FINE_CONVERGED_PX = 0.01
 
 
 def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
