@@ -13,7 +13,8 @@ detail); and the RMSE in code values is taken over the frame's pixels that are w
 exposed (every channel in [10, 245]) and covered by every method's frames.
 
 Methods: no alignment (``--align off``); ours, ``--align auto`` (the default) and
-``--align translation``; the peers' aligned frames merged by ours with ``--align off``:
+``--align translation``, and ``--align auto --deghost auto`` (what the ghost test, off by
+default, costs or gains on these mostly still brackets); the peers' aligned frames merged by ours with ``--align off``:
 OpenCV's AlignMTB (median threshold bitmaps, whole-pixel shifts; Ward 2003) and Hugin's
 ``align_image_stack`` (control points and its own remapping; Debian ``hugin-tools``,
 skipped with a note when missing).  HDRMerge aligns RAW files only (the motion
@@ -39,8 +40,9 @@ from benchmarks import revision, write_result
 from benchmarks.real_loo import BRACKETS, HIGH, IMAGE_SUFFIXES, LOW, predict_ours, rmse
 
 RESULTS = Path(__file__).parent / "results"
-OURS = {"none (--align off)": "off", "hdrmerge-cli --align auto (default)": "auto",
-        "hdrmerge-cli --align translation": "translation"}
+OURS = {"none (--align off)": {"align": "off"}, "hdrmerge-cli --align auto (default)": {"align": "auto"},
+        "hdrmerge-cli --align translation": {"align": "translation"},
+        "hdrmerge-cli --align auto --deghost auto": {"align": "auto", "deghost": "auto"}}
 MTB, HUGIN = "OpenCV AlignMTB", "Hugin align_image_stack"
 
 
@@ -103,13 +105,14 @@ def align_hugin(paths: list[str], tmp: Path) -> tuple[list[np.ndarray], np.ndarr
     return out, covered
 
 
-def merged(codes, times, crf, mode: str = "off") -> tuple[np.ndarray, np.ndarray]:
-    """Our merge of ``codes`` with ``--align mode``: ``(E (H, W, 3) per second of
-    exposure, where every frame has data (H, W) bool)``."""
+def merged(codes, times, crf, options=None) -> tuple[np.ndarray, np.ndarray]:
+    """Our merge of ``codes`` with ``options`` (:func:`hdrmerge_cli.merge_arrays`'s; default
+    ``--align off``): ``(E (H, W, 3) per second of exposure, where every frame has data
+    (H, W) bool)``."""
     import hdrmerge_cli
     from hdrmerge_cli.core.align import covered_mask
 
-    m = hdrmerge_cli.merge_arrays(codes, times, crf=crf, align=mode)
+    m = hdrmerge_cli.merge_arrays(codes, times, crf=crf, **(options or {"align": "off"}))
     h, w = codes[0].shape[:2]
     covered = np.ones((h, w), bool)
     if m.alignment is not None and m.alignment["applied"]:
@@ -149,9 +152,9 @@ def run(quick: bool = False, brackets=None) -> tuple[list[dict], dict]:
                 h, w = actual.shape[:2]
                 grey = np.log1p(actual.mean(axis=-1))
                 found = {}
-                for name, mode in OURS.items():
+                for name, options in OURS.items():
                     t0 = time.perf_counter()
-                    found[name] = (*merged(kc, kt, crf, mode), time.perf_counter() - t0)
+                    found[name] = (*merged(kc, kt, crf, options), time.perf_counter() - t0)
                 peers = [(MTB, lambda: align_mtb(kc))]
                 if skipped[HUGIN] is None:
                     peers.append((HUGIN, lambda: align_hugin([frames[j].path for j in keep], tmp)))

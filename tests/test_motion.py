@@ -111,6 +111,75 @@ def test_a_non_rigid_scene_gets_no_rotation(seed):
     np.testing.assert_array_equal(warp[:, :2], np.eye(2))
     assert -2.0 - 1.5 < warp[0, 2] < -2.0 + 1.5 and 1.0 - 1.5 < warp[1, 2] < 1.0 + 1.5
 
+
+@pytest.mark.parametrize("shape", [(480, 640), (3000, 4000)])
+def test_window_turn_is_the_chord_a_rotation_moves_the_window_corners(shape):
+    """_window_turn against the chord 2 sin(theta / 2) r a rotation by theta moves a point at
+    distance r from its centre, r the half-diagonal of the full-resolution window (the
+    frame below FINE_SIDE, else FINE_SIDE square); a translation adds nothing."""
+    theta = np.radians(0.4)
+    hy, hx = ((min(align.FINE_SIDE, n) - 1) / 2 for n in shape)
+    expected = 2 * np.sin(theta / 2) * np.hypot(hx, hy)
+    assert align._window_turn(_rigid(0.4, 5.0, -3.0), _rigid(0.0, 1.0, 2.0), shape) == pytest.approx(expected, rel=1e-9)
+    assert align._window_turn(_rigid(0.0, 5.0, -3.0), _rigid(0.0, 1.0, 2.0), shape) == pytest.approx(0.0, abs=1e-12)
+
+
+def _textured_pair(rotation, shift, size=(480, 640), seed=5):
+    """A smooth random log-irradiance texture and the same seen through ``_rigid(rotation,
+    *shift)`` (reference pixel x -> frame pixel), bicubic."""
+    from scipy import ndimage as ndi
+
+    rng = np.random.default_rng(seed)
+    big = ndi.gaussian_filter(rng.normal(0, 1, (size[0] + 64, size[1] + 64)), 2.0).astype(np.float32)
+    big *= np.float32(0.2 / big.std())
+    true = _rigid(rotation, *shift)
+    inv = cv2.invertAffineTransform(true.astype(np.float32))
+    inv[:, 2] += 32
+    ib = cv2.warpAffine(big, inv, size[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    return np.ascontiguousarray(big[32:-32, 32:-32]), ib, true
+
+
+@pytest.mark.parametrize("rotation", [0.0, 0.6])
+def test_a_turned_window_is_refined_as_a_rotation_first(monkeypatch, rotation):
+    """Where the pyramid's rotation turns the full-resolution window's corners by more than
+    FINE_SETTLED_PX (0.6 degrees: 4 px here), the rotation is refined first and no
+    full-resolution translation ECC runs (it cannot fit a turned window: it wandered 0.6-1.8
+    px per iteration on such a pair and was refused); without rotation it runs.  Either way
+    the warp is within 0.1 px at every corner."""
+    ia, ib, true = _textured_pair(rotation, (3.3, -2.7))
+    runs = []
+    fine = align._fine_ecc
+    monkeypatch.setattr(align, "_fine_ecc", lambda r, i, w, motion: runs.append(motion) or fine(r, i, w, motion))
+    warp, _ = align.estimate_warp(ia, ib, "similarity")
+    assert align.corner_distance(warp, true, *ia.shape) < 0.1, (warp, true)
+    assert ("translation" in runs) == (rotation == 0.0), runs
+
+
+@pytest.mark.parametrize("per_iteration, counts, kept", [
+    (3.0, [align.FINE_CHECK - 1, 1], False),  # wanders (within its reach): refused at the check
+    (0.0, [align.FINE_CHECK - 1, 1], True),  # converged by the check: not restarted
+    (0.05, [align.FINE_CHECK - 1, 1, align.FINE_ITERATIONS - align.FINE_CHECK, 1], True),  # still refining
+])
+def test_a_full_resolution_similarity_run_is_judged_at_its_check(monkeypatch, per_iteration, counts, kept):
+    """_fine_ecc's similarity run is looked at after FINE_CHECK iterations: an iteration there
+    moving a window corner by more than FINE_WANDER_PX refuses it without the remaining
+    iterations; by at most FINE_CONVERGED_PX, it is taken as converged; in between it runs on
+    (and must then settle).  ECC stands in for a stub whose every iteration shifts the warp by
+    ``per_iteration`` pixels, back and forth (so it never leaves the run's reach)."""
+    seen = []
+
+    def ecc(template, image, warp, motion, eps=1e-5, count=100):
+        seen.append(count)
+        out = warp.copy()
+        out[0, 2] += per_iteration * (count % 2)  # back and forth: an even count returns
+        return out
+
+    monkeypatch.setattr(align, "_ecc", ecc)
+    img = np.zeros((480, 640), np.float32)
+    found = align._fine_ecc(img, img, _rigid(0.3, 1.0, 2.0), "similarity")
+    assert seen == counts
+    assert (found is not None) == kept
+
 def _bracket_pngs(folder, times, warps, size=(300, 400), seed=2):
     """8-bit PNG frames (x^(1/2.2), noise) of the built-in scene, frame j seeing it through
     ``warps[j]`` (reference coordinates -> frame coordinates, as ``core.align``); rendered
