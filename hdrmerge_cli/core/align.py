@@ -161,11 +161,11 @@ def off_plateau(img: np.ndarray) -> np.ndarray:
     return ((img > lo + 1e-4) & (img < hi - 1e-4)).astype(np.uint8)
 
 
-def texture(img: np.ndarray) -> tuple[int, int]:
+def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD) -> tuple[int, int]:
     """``(textured, across)``: how many pixels off the plateaus carry texture, a
     log-irradiance gradient (3 x 3 box-smoothed, so single-pixel noise does not count) above
-    :data:`TEXTURE_LOG_GRAD`; and the fewer of those whose gradient's x component, and
-    those whose y component, is above :data:`TEXTURE_LOG_GRAD` / sqrt 2 -- edges in one
+    ``grad`` per pixel; and the fewer of those whose gradient's x component, and
+    those whose y component, is above ``grad`` / sqrt 2 -- edges in one
     direction only fix no shift along them (the aperture problem: a burst of vertical bands
     registered 1-3 px off vertically, and that was applied)."""
     cv2 = _cv2()
@@ -174,7 +174,7 @@ def texture(img: np.ndarray) -> tuple[int, int]:
     smooth = cv2.blur(small, (3, 3))
     inside = off_plateau(small) > 0
     gy, gx = np.gradient(smooth)
-    limit = TEXTURE_LOG_GRAD * f  # per full-resolution pixel
+    limit = grad * f  # per full-resolution pixel
     textured = int(np.count_nonzero((np.hypot(gx, gy) > limit) & inside))
     across = min(int(np.count_nonzero((np.abs(g) > limit / np.sqrt(2)) & inside)) for g in (gx, gy))
     return textured * f * f, across * f * f
@@ -323,7 +323,12 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
 CONSENSUS_TILES = 5
 #: a tile's correction farther than this (pixels) from the consensus is an outlier (motion)
 CONSENSUS_TOL_PX = 0.25
-#: textured pixels a tile needs to take part
+#: textured pixels a tile needs to take part: log-irradiance gradient above
+#: :data:`TEXTURE_LOG_GRAD` per 1/:data:`COARSE_SIDE` of the frame's longer side (per pixel
+#: up to that size).  The same scene has less contrast per pixel on a sensor with more
+#: pixels: counted per pixel, `iphone6_window_jpg`'s 8 MP frames had 1-2 textured tiles of 25
+#: and the motion benchmark's 6 MP render 0-3, so no tile checked ECC there (a ghost pulled
+#: it 1.5 px off; now 0.011 px; the phone bracket's leave-one-out 12.93 -> 12.66)
 CONSENSUS_MIN_TEXTURED = 200
 #: tiles that must register for their disagreement to mean a non-rigid scene (a third of
 #: them; with 4 of a 25, one moving object made a rotation of 0.8 degrees be refused)
@@ -374,6 +379,7 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
                            borderMode=cv2.BORDER_REPLICATE)
     inside = covered_mask(warp, *image.shape)
     sh, sw = min(th, CONSENSUS_TILE_SIDE), min(tw, CONSENSUS_TILE_SIDE)
+    grad = TEXTURE_LOG_GRAD / max(1.0, max(h, w) / COARSE_SIDE)  # per pixel, as at the coarse level
 
     def register(corner):  # one tile: its centre and shift, or None
         y0, x0 = corner
@@ -381,7 +387,7 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
         if not inside[rows, cols].all():
             return None
         tile = np.ascontiguousarray(reference[rows, cols])
-        if texture(tile)[0] < CONSENSUS_MIN_TEXTURED:  # isotropic: the directional count lost rotations
+        if texture(tile, grad)[0] < CONSENSUS_MIN_TEXTURED:  # isotropic: the directional count lost rotations
             return None
         found = _ecc(tile, np.ascontiguousarray(moved[rows, cols]), np.eye(2, 3), "translation", eps=CONSENSUS_EPS)
         if found is None or not np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):
