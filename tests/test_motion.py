@@ -1502,8 +1502,8 @@ def test_region_mean_against_brute_force():
 
 
 def test_channel_reductions_equal_numpy():
-    """``motion._reduce``/``_any`` (plane by plane) equal NumPy's reductions over the last axis."""
-    from hdrmerge_cli.pipeline.motion import _any, _reduce
+    """``deghost.reduce_channels``/``any_channel`` (plane by plane) equal NumPy's reductions over the last axis."""
+    from hdrmerge_cli.core.deghost import any_channel as _any, reduce_channels as _reduce
 
     rng = np.random.default_rng(4)
     a = rng.normal(size=(7, 9, 3)).astype(np.float32)

@@ -140,7 +140,21 @@ def near_white(x: np.ndarray, valid: np.ndarray, exposure: np.ndarray | float, l
     """Per cell, whether an image's readings ``x`` ``(h, w, C)`` (where ``valid``; from
     frames of ``exposure``, a scalar or per reading) reach ``lin_hi`` (linear, full scale
     1, per channel; the :data:`SHOULDER_CODE` of the response) in some channel."""
-    return (valid & (x * exposure >= lin_hi)).any(axis=-1)
+    return any_channel(valid & (x * exposure >= lin_hi))
+
+
+def reduce_channels(op, a: np.ndarray) -> np.ndarray:
+    """``op.reduce(a, axis=-1)`` of ``(h, w, C)``, as ``op`` over the channel planes
+    (NumPy's reduction over a short trailing axis is about ten times slower)."""
+    out = a[..., 0].copy()
+    for c in range(1, a.shape[-1]):
+        op(out, a[..., c], out=out)
+    return out
+
+
+def any_channel(a: np.ndarray) -> np.ndarray:
+    """``a.any(axis=-1)`` of ``(h, w, C)`` bool (:func:`reduce_channels`)."""
+    return reduce_channels(np.logical_or, a)
 
 
 def shoulder_excuse(anchor_near: np.ndarray, frame_near: np.ndarray) -> np.ndarray:
@@ -233,15 +247,16 @@ def _level_bins(values: np.ndarray, bins: int) -> np.ndarray:
 
 
 def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(centres, medians, counts)`` of ``val`` in equal-count bins of ``key``."""
-    edges = _level_bins(key, bins)
-    which = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, max(edges.size - 2, 0))
-    order = np.argsort(which, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=max(edges.size - 1, 1)))])
+    """``(centres, medians, counts)`` of ``val`` in equal-count bins of ``key`` (bins with at
+    least 10 samples; bin ``j`` holds ``edges[j] <= key < edges[j + 1]``, the last one its
+    upper edge too, the edges from :func:`_level_bins`).  One sort of ``key`` makes each bin
+    a run of the sorted samples (a stable sort of the bin indices as well took 40 % more)."""
+    order = np.argsort(key)
     ks, vs = key[order], val[order]
+    edges = _level_bins(ks, bins)  # the same edges, from the sorted samples (faster)
+    starts = np.concatenate([[0], np.searchsorted(ks, edges[1:-1], side="left"), [ks.size]])
     c, m, n = [], [], []
-    for b in range(starts.size - 1):
-        lo, hi = starts[b], starts[b + 1]
+    for lo, hi in zip(starts[:-1], starts[1:]):
         if hi - lo >= 10:
             c.append(np.median(ks[lo:hi]))
             m.append(np.median(vs[lo:hi]))
