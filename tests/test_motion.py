@@ -1771,3 +1771,22 @@ def test_moved_region_finds_a_moved_object_and_no_false_alarm_on_noise():
     for _ in range(20):
         a = static + rng.normal(0, 0.01, static.shape).astype(np.float32)
         assert align._moved_region(a, static + rng.normal(0, 0.01, static.shape).astype(np.float32)) is None
+
+
+def test_masked_ecc_that_runs_away_is_refused():
+    """A last masked ECC run that moves the window's corners by more than MAX_REFINE_PX is
+    refused.  OpenCV writes the warp it is given: judged against the start it was given
+    (not that array, which by then holds the result, so nothing was ever refused)."""
+    _, ghosted, image, true = _sparse_ghosted_pair(5)
+    real = cv2.findTransformECCWithMask
+
+    def runaway(template, img, tmask, imask, warp, *rest):
+        warp[:, 2] += 10.0  # as OpenCV does: the argument becomes the result
+        return 0.9, warp
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cv2, "findTransformECCWithMask", runaway)
+        assert align._masked_fine_ecc(ghosted, image, true, "translation") is None
+    assert cv2.findTransformECCWithMask is real
+    found = align._masked_fine_ecc(ghosted, image, true, "translation")
+    assert found is not None and align.corner_distance(found, true, *image.shape) < 0.1

@@ -365,7 +365,7 @@ def _masked_fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray,
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, FINE_ITERATIONS, 1e-5)
     try:
         _, found = cv2.findTransformECCWithMask(ref, img, cv2.bitwise_not(region), np.full(img.shape, 255, np.uint8),
-                                                start, mode, criteria, 1)
+                                                start.copy(), mode, criteria, 1)  # (it writes its warp argument)
     except cv2.error:
         return None
     found = found.astype(np.float64)

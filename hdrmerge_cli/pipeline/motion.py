@@ -477,13 +477,16 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
         soft[anchor] = 0.0
         return float(bad.mean()), np.rint(soft * 255).astype(np.uint8)
 
-    # two frames at a time: one frame's test (NumPy and OpenCV, which release the GIL) runs
-    # beside the other's estimates (decode, resampling, compiled block statistics: one at a
-    # time, ``one_at_a_time``, as Numba's workqueue threading layer cannot run two parallel
-    # kernels at once).  On a 6 MP 8-bit bracket deghosting took 0.9-1.05 s instead of
-    # 1.05-1.2 s, for 60-100 MB more peak memory (one frame's test temporaries; the real
-    # JPEG brackets stay within 1.42x a plain merge's peak)
-    with ThreadPoolExecutor(2) as pool:
+    # two frames at a time where blocks are larger than a cell: one frame's test (NumPy and
+    # OpenCV, which release the GIL) runs beside the other's estimates (decode, resampling,
+    # compiled block statistics: one at a time, ``one_at_a_time``, as Numba's workqueue
+    # threading layer cannot run two parallel kernels at once).  On a 6 MP 8-bit bracket
+    # deghosting took 0.9-1.05 s instead of 1.05-1.2 s, for 60-100 MB more peak memory (one
+    # frame's test temporaries, at most CELL_TARGET blocks).  With blocks of one cell (frames
+    # up to CELL_TARGET cells) those temporaries are as large as the frame's own samples: a
+    # second test raised the 0.7 MP brackets' peaks by 90-120 MB, from 1.5x to 1.8x a
+    # plain merge's, so one at a time there
+    with ThreadPoolExecutor(2 if b > 1 else 1) as pool:
         jobs = {}
         if held is not None:  # handed over, not kept here: its memory goes with its test
             jobs[held[0]] = pool.submit(test, *held)
