@@ -333,7 +333,7 @@ def _moved_region(reference: np.ndarray, moved: np.ndarray) -> np.ndarray | None
     scale = 1.4826 * float(np.median(np.abs(d[on] - med)))
     far = (on & (np.abs(d - med) > MOVED_SIGMAS * max(scale, 1e-6))).astype(np.uint8)
     far = cv2.morphologyEx(far, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(far, connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(far, connectivity=8)
     big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= MOVED_MIN_AREA * far.size)
     big = big[big > 0]
     if big.size == 0:

@@ -250,7 +250,7 @@ def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndar
     """``(centres, medians, counts)`` of ``val`` in equal-count bins of ``key`` (bins with at
     least 10 samples; bin ``j`` holds ``edges[j] <= key < edges[j + 1]``, the last one its
     upper edge too, the edges from :func:`_level_bins`).  One sort of ``key`` makes each bin
-    a run of the sorted samples (a stable sort of the bin indices as well took 40 % more)."""
+    a run of the sorted samples (a stable sort of the bin indices as well took a third more)."""
     order = np.argsort(key)
     ks, vs = key[order], val[order]
     edges = _level_bins(ks, bins)  # the same edges, from the sorted samples (faster)

@@ -484,8 +484,8 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     # deghosting took 0.9-1.05 s instead of 1.05-1.2 s, for 60-100 MB more peak memory (one
     # frame's test temporaries, at most CELL_TARGET blocks).  With blocks of one cell (frames
     # up to CELL_TARGET cells) those temporaries are as large as the frame's own samples: a
-    # second test raised the 0.7 MP brackets' peaks by 90-120 MB, from 1.5x to 1.8x a
-    # plain merge's, so one at a time there
+    # second test raised a 0.7 MP bracket's peak from 437 to 534 MB (a plain merge's: 250),
+    # so one at a time there
     with ThreadPoolExecutor(2 if b > 1 else 1) as pool:
         jobs = {}
         if held is not None:  # handed over, not kept here: its memory goes with its test
