@@ -154,6 +154,13 @@ def _window(n: int) -> tuple[int, int]:
     return start, min(n, start + FINE_SIDE)
 
 
+def _central(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Both images' central :data:`FINE_SIDE` window (:func:`_window`, contiguous) and its
+    origin ``(x0, y0)`` in the frame."""
+    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
+    return (np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1]), (x0, y0))
+
+
 def off_plateau(img: np.ndarray) -> np.ndarray:
     """Pixels strictly inside the clipped range of an exposure-invariant image (its
     plateaus are where one frame of the pair reads dark or clipped), uint8 0/1."""
@@ -215,17 +222,23 @@ def ecc_score(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> flo
 
 
 def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str, eps: float = 1e-5,
-         count: int = 100) -> np.ndarray | None:
+         count: int = 100, template_mask: np.ndarray | None = None) -> np.ndarray | None:
     """OpenCV's ECC maximisation from ``warp`` (translation, or rotation + translation for
     ``similarity``; no pre-smoothing: it biases the optimum where plateaus meet texture), None when it does not converge.  No
-    mask: the plateaus are where either frame of the pair clips, the same irradiance in
+    mask on the image: the plateaus are where either frame of the pair clips, the same irradiance in
     both, so their edges register like any other (a nearest-neighbour-warped mask biases
-    the sub-pixel optimum by tenths of a pixel)."""
+    the sub-pixel optimum by tenths of a pixel).  ``template_mask`` (uint8, 0 = left out;
+    ``findTransformECCWithMask``) is not warped, so it adds no such pull.  OpenCV writes the
+    warp it is given: it gets a copy."""
     cv2 = _cv2()
     mode = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_EUCLIDEAN
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, count, eps)
     try:
-        _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), mode, criteria, None, 1)
+        if template_mask is None:
+            _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), mode, criteria, None, 1)
+        else:
+            _, found = cv2.findTransformECCWithMask(template, image, template_mask, np.full(image.shape, 255, np.uint8),
+                                                    warp.astype(np.float32), mode, criteria, 1)
     except cv2.error:
         return None
     return found.astype(np.float64)
@@ -262,11 +275,10 @@ def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion
     iterations, and None if the run has not settled by then; a similarity run is checked
     after :data:`FINE_CHECK` iterations too (one wandering 5-19 px per iteration on the
     benchmark's 6 MP render, yet within its reach, ran all 30 before being refused)."""
-    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
-    ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
+    ref, img, (x0, y0) = _central(reference, image)
     start = shift_warp(warp, (x0, y0))
     reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
-    size = (y1 - y0, x1 - x0)
+    size = ref.shape
 
     def jumped(warp):
         return motion == "similarity" and corner_distance(warp, start, *size) > reach
@@ -353,23 +365,15 @@ def _masked_fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray,
     dark short frame's few textured tiles do not (the motion benchmark's case 13: a ghost
     in the reference pulled ECC 0.22 px off, with 2 of 3 tiles registering)."""
     cv2 = _cv2()
-    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
-    ref, img = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
+    ref, img, (x0, y0) = _central(reference, image)
     start = shift_warp(warp, (x0, y0)).astype(np.float32)
     moved = cv2.warpAffine(img, start, ref.shape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                            borderMode=cv2.BORDER_REPLICATE)
     region = _moved_region(ref, moved)
     if region is None:
         return None
-    mode = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_EUCLIDEAN
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, FINE_ITERATIONS, 1e-5)
-    try:
-        _, found = cv2.findTransformECCWithMask(ref, img, cv2.bitwise_not(region), np.full(img.shape, 255, np.uint8),
-                                                start.copy(), mode, criteria, 1)  # (it writes its warp argument)
-    except cv2.error:
-        return None
-    found = found.astype(np.float64)
-    if corner_distance(found, start, *ref.shape) > MAX_REFINE_PX:
+    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS, template_mask=cv2.bitwise_not(region))
+    if found is None or corner_distance(found, start, *ref.shape) > MAX_REFINE_PX:
         return None
     return shift_warp(found, (-x0, -y0))
 
@@ -524,11 +528,10 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
     Returns ``((2, 3), rho)``."""
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}")
-    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
-    ref_w, img_w = np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1])
+    ref_w, img_w, origin = _central(reference, image)
 
     def score(warp):
-        return ecc_score(ref_w, img_w, shift_warp(warp, (x0, y0)))
+        return ecc_score(ref_w, img_w, shift_warp(warp, origin))
 
     phase = _translation(reference, image)
 
