@@ -45,6 +45,9 @@ PYRAMID_MIN = 64
 MOTIONS = ("translation", "similarity")
 #: registration needs this many textured pixels off the plateaus in both frames
 MIN_TEXTURED = 400
+#: registration images narrower than this (pixels) are not registered: the texture test's
+#: 3 x 3 smoothing and gradient need an interior, and ECC's pyramid a few levels
+MIN_SIDE = 8
 #: ... and this many of them textured across each axis (:func:`texture`; a quarter: the
 #: motion benchmark's darkest short frame has 314 of 400+)
 MIN_ACROSS = 100
@@ -190,7 +193,10 @@ def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD) -> tuple[int, int]:
 def registrable(a: np.ndarray, b: np.ndarray) -> str | None:
     """Why two exposure-invariant images cannot be registered, or None: each needs
     :data:`MIN_TEXTURED` textured pixels and :data:`MIN_ACROSS` textured across each axis
-    (:func:`texture`)."""
+    (:func:`texture`), so an image of fewer than :data:`MIN_TEXTURED` pixels, or narrower
+    than :data:`MIN_SIDE`, never is."""
+    if min(a.shape) < MIN_SIDE or a.size < MIN_TEXTURED:
+        return f"a {a.shape[0]} x {a.shape[1]} registration image is too small to register"
     (ta, xa), (tb, xb) = texture(a), texture(b)
     if min(ta, tb) < MIN_TEXTURED:
         return f"only {min(ta, tb)} textured pixels"

@@ -66,6 +66,9 @@ class Frame:
     #: (frames made from arrays, :func:`hdrmerge_cli.merge_arrays`); None where the colour
     #: index does not repeat with a 2 x 2 cell (:func:`cfa_corner` then reads the file)
     cfa_cell: np.ndarray | None = None
+    #: images: the index of the file's alpha channel (gray+alpha, RGBA), else None; a pixel
+    #: whose alpha is 0 is no measurement (:func:`load_validity`)
+    alpha_channel: int | None = None
 
     @property
     def name(self) -> str:
@@ -345,9 +348,10 @@ def _read_image(path: str) -> Frame:
         raise HdrMergeError(f"{path}: {spec.format} pixels are not supported; give 8- or 16-bit integer images")
     container = 8 if base == oiio.UINT8 else 16
     bits = spec.get_int_attribute("oiio:BitsPerSample", container) or container
-    channels = min(spec.nchannels, 3)  # drop alpha
-    if spec.nchannels == 2:
-        channels = 1
+    channels = 1 if spec.nchannels <= 2 else 3  # colour; a second or fourth channel is alpha
+    alpha = None
+    if spec.nchannels in (2, 4):
+        alpha = spec.alpha_channel if spec.alpha_channel >= channels else spec.nchannels - 1
     white = 2.0**container - 1
     iso = _image_iso({k: spec.getattribute(k) for k in ("Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings")})
     stamp = spec.getattribute("Exif:DateTimeOriginal") or spec.getattribute("DateTime")
@@ -359,7 +363,7 @@ def _read_image(path: str) -> Frame:
         model=str(spec.getattribute("Model") or ""), timestamp=str(stamp) if stamp else None,
         bits=bits, n_codes=2**container, black=np.zeros(channels), white=np.full(channels, white),
         channels=channels, channel_colors="RGB"[:channels] if channels == 3 else "Y",
-        orientation=orientation if 1 <= orientation <= 8 else 1,
+        orientation=orientation if 1 <= orientation <= 8 else 1, alpha_channel=alpha,
     )
 
 
@@ -381,7 +385,8 @@ def _oiio_reason(message: str) -> str:
 
 def load_codes(frame: Frame) -> np.ndarray:
     """Decode the stored code values: ``(H, W)`` uint16 for RAW (visible area, before
-    black-level subtraction), ``(H, W, C)`` uint8/uint16 for images and for linear RAW
+    black-level subtraction), ``(H, W, C)`` uint8/uint16 for images (colour only; 0 where
+    the alpha channel is 0, see :func:`load_validity`) and for linear RAW
     data, whose codes are returned with the file's black level subtracted and scaled to
     0..65535 at its white level (so the linear frame reads like a linear 16-bit TIFF:
     black 0, clipping at 65535)."""
@@ -406,8 +411,10 @@ def load_codes(frame: Frame) -> np.ndarray:
     inp = oiio.ImageInput.open(frame.path)
     if inp is None:
         raise HdrMergeError(f"{frame.path}: not a readable image ({_oiio_reason(oiio.geterror())})")
+    alpha = frame.alpha_channel
     try:
-        pixels = inp.read_image(0, 0, 0, frame.channels, format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
+        pixels = inp.read_image(0, 0, 0, frame.channels if alpha is None else max(alpha + 1, frame.channels),
+                                format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
         err = inp.geterror()
     finally:
         inp.close()
@@ -415,7 +422,33 @@ def load_codes(frame: Frame) -> np.ndarray:
         raise HdrMergeError(f"{frame.path}: could not decode the pixels ({_oiio_reason(err)})")
     if pixels.ndim == 2:
         pixels = pixels[..., None]
+    if alpha is not None:  # transparent pixels read black, below every statistic's dark floor
+        colour = np.ascontiguousarray(pixels[..., : frame.channels])
+        colour[pixels[..., alpha] == 0] = 0
+        return colour
     return pixels
+
+
+def load_validity(frame: Frame) -> np.ndarray | None:
+    """Where a frame with an alpha channel measured the scene: ``(H, W)`` bool, False where
+    its alpha is 0 (outside a remapped or masked frame, as Hugin's ``nona`` and image editors
+    write them); None where every pixel is valid or the frame has no alpha."""
+    if frame.alpha_channel is None:
+        return None
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(frame.path)
+    if inp is None:
+        raise HdrMergeError(f"{frame.path}: not a readable image ({_oiio_reason(oiio.geterror())})")
+    try:
+        a = frame.alpha_channel
+        alpha = inp.read_image(0, 0, a, a + 1, format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
+    finally:
+        inp.close()
+    if alpha is None:
+        raise HdrMergeError(f"{frame.path}: could not decode the alpha channel")
+    valid = np.asarray(alpha).reshape(frame.height, frame.width) > 0
+    return None if valid.all() else valid
 
 
 def linear_codes(stored: np.ndarray, frame: Frame) -> np.ndarray:

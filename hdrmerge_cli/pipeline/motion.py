@@ -12,7 +12,7 @@ from hdrmerge_cli.core import align, deghost
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.frames import Frame, load_codes, load_validity
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -38,11 +38,13 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     # the inverse response as a table over the stored codes
     v = np.arange(frame.n_codes) / (frame.n_codes - 1.0)
     lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
+    if codes.shape[-1] == 1:  # monochrome: the table lookup is the image
+        return lut[codes[..., 0], 0]
     if codes.dtype == np.uint8:  # OpenCV's table lookup, all channels in one pass
         import cv2
 
         lin = cv2.LUT(codes, lut[None])
-        if lin.ndim == 3 and lin.shape[-1] <= 4:  # the channels' mean in one OpenCV pass
+        if lin.shape[-1] <= 4:  # the channels' mean in one OpenCV pass
             return cv2.transform(lin, np.full((1, lin.shape[-1]), 1.0 / lin.shape[-1], np.float32))
     else:
         lin = np.stack([lut[codes[..., c], c] for c in range(codes.shape[-1])], axis=-1)
@@ -544,14 +546,35 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
 
 def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None,
                    load=None):
-    """The per-sample weights of the merge (a :class:`SampleWeights`), or None when
-    neither the deghosting nor the alignment is applied.  ``load``: the merge's
-    :class:`AlignedLoader` (for the resampling spreads)."""
+    """The per-sample weights of the merge (a :class:`SampleWeights`), or None when no
+    frame has transparent pixels and neither the deghosting nor the alignment is applied.
+    ``load``: the merge's :class:`AlignedLoader` (for the resampling spreads)."""
     ghosts = ghosts if ghosts and ghosts["applied"] else None
     alignment = alignment if alignment and alignment["applied"] else None
-    if ghosts is None and alignment is None:
+    validity = [valid_pixels(f, alignment["warps"][k] if alignment else None) for k, f in enumerate(frames)]
+    if ghosts is None and alignment is None and all(v is None for v in validity):
         return None
-    return SampleWeights(tables, pattern, frames, ghosts, alignment, load if isinstance(load, AlignedLoader) else None)
+    return SampleWeights(tables, pattern, frames, ghosts, alignment, load if isinstance(load, AlignedLoader) else None,
+                         validity)
+
+
+def valid_pixels(frame: Frame, warp: np.ndarray | None) -> np.ndarray | None:
+    """Where frame's alpha says it measured the scene (:func:`load_validity`), in the
+    reference frame's coordinates (brought there by ``warp``, nearest neighbour), ``(H, W)``
+    bool; None: everywhere."""
+    valid = load_validity(frame)
+    if valid is None:
+        return None
+    log.info("%s: %.1f %% of its pixels are transparent (alpha 0) and carry no weight", frame.path,
+             100 * (1 - np.count_nonzero(valid) / valid.size))
+    if warp is None:
+        return valid
+    import cv2
+
+    moved = cv2.warpAffine(valid.view(np.uint8), warp.astype(np.float32), (frame.width, frame.height),
+                           flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=0)
+    return moved > 0
 
 
 class SampleWeights:
@@ -559,22 +582,26 @@ class SampleWeights:
     its table weight ``w(z) sigma^-2`` through :meth:`adjust`, which also re-weights the
     IRLS passes (:func:`~hdrmerge_cli.core.reconstruct.irls`)."""
 
-    def __init__(self, tables, pattern, frames, ghosts, alignment, load):
+    def __init__(self, tables, pattern, frames, ghosts, alignment, load, validity=None):
         self.tables, self.pattern, self.frames = tables, pattern, frames
         self.ghosts, self.alignment, self.load = ghosts, alignment, load
+        self.validity = validity or [None] * len(frames)
 
     def factor(self, k: int) -> np.ndarray | None:
         """``(H, W)`` float32 in [0, 1] per pixel (an image's channels share it), or None
-        (all 1): zero where the aligned frame does not cover the reference, ``1 - m`` in its
-        rejected ghost cells (feathered ``m``, so no seam)."""
+        (all 1): zero where the aligned frame does not cover the reference or is
+        transparent, ``1 - m`` in its rejected ghost cells (feathered ``m``, so no seam)."""
         frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
         out = None
         if ghosts is not None and ghosts["masks"][k].any():
             out = ghost_weight(ghosts, k, frame.height, frame.width)
             np.subtract(np.float32(1.0), out, out=out)
+        masks = [self.validity[k]]
         if alignment is not None:
-            inside = covered(frame, alignment["warps"][k], alignment["resampling"] == "cfa-periods")
-            out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
+            masks.append(covered(frame, alignment["warps"][k], alignment["resampling"] == "cfa-periods"))
+        for inside in masks:
+            if inside is not None:
+                out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
         return out
 
     def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray | None, own: bool) -> tuple[np.ndarray, np.ndarray | None]:
