@@ -164,9 +164,12 @@ def check_overlap(frames: list[Frame], s: Samples) -> None:
         a, b = s.v[k - 1], s.v[k]
         both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
         if both < MIN_OVERLAP:
+            pixels = frames[k].width * frames[k].height
+            why = (f"the frames have only {pixels} pixels" if pixels < MIN_OVERLAP
+                   else "the exposures are too far apart")
             raise HdrMergeError(
                 f"{frames[k].path}: only {both} pixels are unclipped both here and in {frames[k - 1].path} "
-                f"(need {MIN_OVERLAP}); the exposures are too far apart to estimate a CRF"
+                f"(need {MIN_OVERLAP}); {why} to estimate a CRF"
             )
 
 

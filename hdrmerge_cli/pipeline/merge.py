@@ -22,7 +22,7 @@ import numpy as np
 from hdrmerge_cli.core.colorspace import COLORSPACES
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.reconstruct import LogMerge, irls, noise_rows
+from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, LogMerge, irls, noise_rows
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.images import exr_compression
@@ -164,6 +164,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned), timings,
         "variance" in opts.extra_channels)
     check_range(result, opts.half, opts.reference, h_ref)
+    warn_unmeasured(frames, result, flags)
     exposure_check, repeats = checks(frames, exposures, timings)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,
                   output_orientation(frames), alignment, ghosts, exposure_check, repeats, timings)
@@ -342,6 +343,26 @@ def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float) ->
         raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): most values are below what {kind} EXR holds "
                             f"({tiny:g}); use a longer --reference (e.g. the default, geomean)"
                             + (" or drop --half" if half else ""))
+
+
+def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) -> None:
+    """One warning when no sample was measured in any frame (``flags`` all dark or
+    saturated): the output then holds bounds, not measurements, and says which."""
+    dark = np.count_nonzero(flags == FLAG_DARK)
+    saturated = np.count_nonzero(flags == FLAG_SATURATED)
+    if dark + saturated < flags.size:
+        return
+    where = f"{frames[0].path} ... {frames[-1].name}" if len(frames) > 1 else frames[0].path
+    if saturated == 0:
+        log.warning("%s: every pixel reads black in every frame; the output holds only an upper bound (%.3g, half a "
+                    "code in the longest exposure), not a measurement", where, float(np.max(result)))
+    elif dark == 0:
+        log.warning("%s: every pixel is clipped in every frame; the output holds only a lower bound (%.3g, the "
+                    "shortest exposure's clipping level), not a measurement", where, float(np.min(result)))
+    else:
+        log.warning("%s: no pixel is measured in any frame (%.1f %% read black in every frame, %.1f %% are clipped in "
+                    "every frame); the output holds only bounds, not measurements", where,
+                    100 * dark / flags.size, 100 * saturated / flags.size)
 
 
 # ---------------------------------------------------------------- streaming
