@@ -130,11 +130,15 @@ def _paths(kind: str, files: list[Path], out: Path) -> dict[str, tuple[list, lis
         "merge --preview": (["merge", *files, "-o", exr, "--preview", out / "p.jpg"],
                             [exr, out / "m.profile.json", out / "p.jpg"]),
         "merge --batch": (["merge", "--batch", folder, "-o", out / "batch"], []),
+        "merge --deghost auto": (["merge", *files, "-o", exr, "--deghost", "auto"], [exr, out / "m.profile.json"]),
         "estimate-crf": (["estimate-crf", *files, "-o", out / "crf.json"], [out / "crf.json"]),
         "calibrate-noise": (["calibrate-noise", *files, "-o", out / "noise.json"], [out / "noise.json"]),
         "info": (["info", *files], []),
         "weights-lut": (["weights-lut", *files, "-o", out / "lut.csv"], [out / "lut.csv"]),
     }
+    if kind == "image":  # the noise of images is measured through a response
+        paths["calibrate-noise --crf srgb"] = (["calibrate-noise", *files, "--crf", "srgb", "-o", out / "noise.json"],
+                                               [out / "noise.json"])
     if kind == "raw":
         paths["merge -o x.dng"] = (["merge", *files, "-o", out / "m.dng"], [out / "m.dng", out / "m.profile.json"])
         paths["merge --cfa"] = (["merge", *files, "-o", exr, "--cfa"], [exr, out / "m.profile.json"])
@@ -162,7 +166,7 @@ def _check(argv, outputs: list[Path], out: Path, names: list[str]) -> None:
 
 def _every_command(files: list[Path], kind: str, tmp_path: Path) -> None:
     for name in _paths(kind, files, tmp_path):
-        out = tmp_path / name.replace(" ", "_").replace("-", "").replace(".", "")
+        out = tmp_path / "".join(c for c in name if c.isalnum())
         out.mkdir()
         argv, outputs = _paths(kind, files, out)[name]
         _check(argv, outputs, out, [f.name for f in files])
@@ -211,6 +215,31 @@ def test_monochrome_default_merge_equals_unaligned_merge(sources, tmp_path, bits
         results.append(read_exr(str(exr))[0])
     assert results[0].shape == (48, 64, 1)
     np.testing.assert_allclose(results[0], results[1], rtol=1e-6)
+
+
+def test_a_moved_grey_frame_is_registered(tmp_path, run):
+    """Alignment on monochrome frames: a grey frame moved by (-5, +3) px is found."""
+    import OpenImageIO as oiio
+
+    meta = _simulate(run, tmp_path / "rgb", "--format", "tif", "--size", "320x240", "--times", "0.0025,0.01,0.04",
+                     "--seed", "13")
+    files = []
+    for k, name in enumerate(meta["frames"]):
+        buf = oiio.ImageBuf(str(tmp_path / "rgb" / name))
+        grey = buf.get_pixels(oiio.UINT8)[..., 1:2]
+        if k == 2:
+            grey = np.roll(grey, (3, -5), axis=(0, 1))
+        spec = oiio.ImageSpec(320, 240, 1, oiio.UINT8)
+        spec.attribute("ExposureTime", buf.spec().getattribute("ExposureTime"))
+        files.append(tmp_path / f"g{k}.tif")
+        out = oiio.ImageOutput.create(str(files[-1]))
+        assert out.open(str(files[-1]), spec) and out.write_image(np.ascontiguousarray(grey))
+        out.close()
+    proc = run("merge", *files, "-o", tmp_path / "m.exr", "--crf", "srgb", "--json", "--deghost", "auto")
+    alignment = json.loads(proc.stdout)["alignment"]
+    assert alignment["applied"]
+    np.testing.assert_allclose(alignment["shift_px"][2], [-5, 3], atol=0.1)
+    np.testing.assert_allclose(alignment["shift_px"][0], [0, 0], atol=0.1)
 
 
 def test_alpha_zero_pixels_carry_no_weight(sources, tmp_path):
