@@ -7,6 +7,7 @@ message starts with the file's path.
 from __future__ import annotations
 
 import contextlib
+import logging
 import datetime as _dt
 import os
 import sys
@@ -17,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
+
+log = logging.getLogger("hdrmerge_cli")
 
 #: extensions read through OpenImageIO; anything else is tried as RAW with LibRaw
 IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".tif", ".tiff", ".png"}
@@ -349,9 +352,9 @@ def _read_image(path: str) -> Frame:
     container = 8 if base == oiio.UINT8 else 16
     bits = spec.get_int_attribute("oiio:BitsPerSample", container) or container
     channels = 1 if spec.nchannels <= 2 else 3  # colour; a second or fourth channel is alpha
-    alpha = None
-    if spec.nchannels in (2, 4):
-        alpha = spec.alpha_channel if spec.alpha_channel >= channels else spec.nchannels - 1
+    alpha = spec.alpha_channel if spec.alpha_channel >= channels else None
+    if alpha is None and spec.nchannels > channels:
+        log.warning("%s: its channel %d is not marked as alpha; ignored", path, channels + 1)
     white = 2.0**container - 1
     iso = _image_iso({k: spec.getattribute(k) for k in ("Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings")})
     stamp = spec.getattribute("Exif:DateTimeOriginal") or spec.getattribute("DateTime")
