@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import frames_of
-from hdrmerge_cli.io.images import write_ldr
+from hdrmerge_cli.io.images import write_exr, write_ldr
 
 
 def _fails(run, tmp_path, *args, code=1, expect=()):
@@ -195,10 +195,11 @@ def test_a_file_name_that_is_not_utf8_is_one_line(run, tmp_path, jpeg_bracket):
         assert len(proc.stderr.strip().splitlines()) == 1
 
 
-def test_simulate_from_a_scene_too_dark_leaves_no_folder(run, tmp_path, jpeg_bracket):
-    folder, meta = jpeg_bracket
+def test_simulate_from_a_scene_too_dark_leaves_no_folder(run, tmp_path):
+    scene = tmp_path / "dim.exr"
+    write_exr(str(scene), np.full((64, 64, 3), 1e-6, np.float32), ["R", "G", "B"], {})
     out = tmp_path / "sim"
-    proc = run("simulate", "--scene", frames_of(folder, meta)[0], "-o", out, check=False)
+    proc = run("simulate", "--scene", scene, "-o", out, check=False)
     assert proc.returncode == 1 and "too dark" in proc.stderr and "Traceback" not in proc.stderr
     assert not out.exists()
 

@@ -39,6 +39,17 @@ SUMMARIES = {
 }
 
 
+#: what to do when a command runs out of memory
+OUT_OF_MEMORY = {
+    "merge": "merge fewer or smaller frames",
+    "simulate": "use a smaller --size or scene",
+    "estimate-crf": "give fewer or smaller frames, or fewer --samples",
+    "calibrate-noise": "give fewer or smaller frames",
+    "weights-lut": "use fewer exposures or --bits",
+    "info": "describe fewer or smaller frames",
+}
+
+
 class DataError(click.ClickException):
     """A data error: ``hdrmerge-cli: error: ...`` on one line, exit 1 (usage errors stay
     click's, exit 2)."""
@@ -73,15 +84,21 @@ class _Group(click.Group):
             from hdrmerge_cli.io.frames import separate_python_stderr
 
             separate_python_stderr()
+        from hdrmerge_cli.cli.options import name_config_in_error, name_config_in_usage_error
+
         try:
             return super().invoke(ctx)
+        except click.BadParameter as exc:
+            name_config_in_usage_error(exc)
+            raise
         except HdrMergeError as exc:
-            raise DataError(str(exc)) from None
+            raise DataError(name_config_in_error(ctx.meta, str(exc))) from None
         except Terminated as exc:
             click.echo(f"hdrmerge-cli: stopped by {signal.Signals(exc.signum).name}; no partial output was left", err=True)
             ctx.exit(128 + exc.signum)
         except MemoryError:
-            raise DataError("out of memory: merge fewer or smaller frames") from None
+            advice = OUT_OF_MEMORY.get(ctx.invoked_subcommand, OUT_OF_MEMORY["merge"])
+            raise DataError(f"out of memory: {advice}") from None
         except OSError as exc:
             if exc.errno == errno.EPIPE:  # e.g. `hdrmerge-cli ... --json | head`
                 ctx.exit(0)

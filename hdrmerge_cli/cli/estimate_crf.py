@@ -6,14 +6,14 @@ from pathlib import Path
 import click
 
 from hdrmerge_cli.cli.options import (
-    BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, output_options, TIMES_HELP,
+    BOUNDS_HELP, SEED, FiniteFloatRange, bounds_option_callback, common_options, emit, output_options, TIMES_HELP,
     times_or_estimate_callback,
 )
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
+from hdrmerge_cli.pipeline.crf import MAX_SMOOTHING, CRFOptions, estimate_crf
 
 
 @click.command("estimate-crf")
@@ -23,15 +23,16 @@ from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
 @click.option("--method", type=click.Choice(list(CRF_ESTIMATORS)), default="goossens", show_default=True,
               help="goossens: the paper's monotone QP (37) on comparagrams; debevec: Debevec-Malik 1997 least "
                    "squares; robertson: Robertson et al. 2003 iterations.")
-@click.option("--lambda", "smoothing", type=FiniteFloatRange(min=0),
+@click.option("--lambda", "smoothing", type=FiniteFloatRange(0, MAX_SMOOTHING),
               help=f"Smoothness weight of g''. Default per method: goossens {DEFAULT_LAMBDA:g} (normalised: "
                    f"independent of pixel count and bit depth), debevec "
                    f"{CRF_ESTIMATORS['debevec'].smoothing:g} (Debevec-Malik's per-sample scale); robertson has none.")
-@click.option("--coupling", type=FiniteFloatRange(min=0), default=DEFAULT_COUPLING, show_default=True,
+@click.option("--coupling", type=FiniteFloatRange(0, MAX_SMOOTHING), default=DEFAULT_COUPLING, show_default=True,
               help="goossens: weight pulling the channels' curves to one shape where their own data are weak "
                    "(0: independent channels), so neutral shadows stay neutral.")
 @click.option("--samples", type=click.IntRange(min=0),
-              help="Pixels used per channel, 0 for all. Default: all for goossens and robertson "
+              help="Pixels used per channel, 0 for all; at least (codes - 1) / (frames - 1) (Debevec-Malik's "
+                   "N (P - 1) >= Zmax - Zmin). Default: all for goossens and robertson "
                    f"(their cost hardly grows with it), {CRF_ESTIMATORS['debevec'].samples} for debevec.")
 @click.option("--weighting", type=click.Choice(sorted(WEIGHTING_FUNCTIONS)),
               help=f"goossens: the weights w_j(z) of (36) [default: {DEFAULT_WEIGHTING}]; noise-model weights are "
@@ -47,7 +48,7 @@ from hdrmerge_cli.pipeline.crf import CRFOptions, estimate_crf
 @click.option("--times", callback=times_or_estimate_callback, metavar="T1,T2,...|estimate",
               help=TIMES_HELP + "  The response is then fitted with the estimates (alternating, at most 3 rounds).")
 @click.option("--times-file", type=click.Path(exists=True, dir_okay=False), help="Lines 'name seconds'.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Random seed of the pixel sampling.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed of the pixel sampling.")
 @click.option("--force", is_flag=True, help="Fit a CRF even for RAW (linear) input.")
 @output_options
 @common_options

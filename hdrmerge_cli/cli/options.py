@@ -30,6 +30,9 @@ def _set_verbosity(ctx, param, value):
 
 #: largest --config file read (bytes)
 MAX_CONFIG_BYTES = 2**20
+#: ``ctx.meta`` key (shared with the group's context): the command's context and the
+#: --config file it read, so that errors about values from that file can name it
+CONFIG_META = "hdrmerge_cli.config"
 
 
 def _load_config(ctx, param, value):
@@ -68,7 +71,38 @@ def _load_config(ctx, param, value):
             val = ",".join(str(v) for v in val)  # times = [0.01, 0.1] as --times 0.01,0.1
         defaults[opt.name] = val
     ctx.default_map = (ctx.default_map or {}) | defaults
+    ctx.meta[CONFIG_META] = (ctx, value)
     return value
+
+
+def _from_config(meta: dict, param) -> str | None:
+    """The --config file that gave ``param`` its value, or None."""
+    ctx, path = meta.get(CONFIG_META, (None, None))
+    if ctx is None or param is None or param.name is None:
+        return None
+    return path if ctx.get_parameter_source(param.name) == click.core.ParameterSource.DEFAULT_MAP else None
+
+
+def name_config_in_usage_error(exc: click.BadParameter) -> None:
+    """A bad value read from the --config file: its message names that file too."""
+    path = _from_config(exc.ctx.meta, exc.param) if exc.ctx is not None else None
+    if path is not None and exc.param_hint is None:
+        exc.param_hint = f"{exc.param.get_error_hint(exc.ctx)} in {path}"
+
+
+def name_config_in_error(meta: dict, message: str) -> str:
+    """``message`` of a data error, plus the --config file when the message is about an
+    option that file set (it names the option's flag or the value as written there)."""
+    ctx, _ = meta.get(CONFIG_META, (None, None))
+    for param in ctx.command.params if ctx is not None else ():
+        path = _from_config(meta, param)
+        if path is None or not isinstance(param, click.Option):
+            continue
+        flag = max(param.opts, key=len)
+        raw = str((ctx.default_map or {}).get(param.name, ""))
+        if flag in message or (len(raw) >= 3 and raw in message):
+            return f"{message} ({flag} is set in {path})"
+    return message
 
 
 def common_options(f):
@@ -109,6 +143,10 @@ def parse_csv_list(ctx, param, value):
 BOUNDS_HELP = ("Upper bounds for the bounded weights on the normalised signal: inv_alpha=0.005,sigma_o2=0.02,beta=0 "
                "(the paper's JPEG values, the default), or delta=W with one of them to solve the other so that the "
                "clipping-safe range is W of full scale.")
+
+
+#: random seeds (NumPy's generators take non-negative integers)
+SEED = click.IntRange(min=0)
 
 
 class FiniteFloatRange(click.FloatRange):

@@ -16,7 +16,7 @@ from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.io.plots import check_figure_path
-from hdrmerge_cli.pipeline.lut import plot_luts, weight_luts, write_luts
+from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, plot_luts, weight_luts, write_luts
 from hdrmerge_cli.pipeline.bracket import choose_crf, exposure_values, read_bracket
 from hdrmerge_cli.pipeline.models import prior_rate as prior_rate_of, resolve_noise
 from hdrmerge_cli.pipeline.options import MergeOptions
@@ -36,7 +36,7 @@ from hdrmerge_cli.pipeline.options import MergeOptions
               help="Code values 0..2^bits-1 (with --times; a bracket gives its own).")
 @click.option("--noise", metavar="PARAMS", callback=noise_option_callback,
               help="Noise parameters of (17), as in merge (for the paper's weights).")
-@click.option("--prior-rate", type=FiniteFloatRange(min=0, min_open=True),
+@click.option("--prior-rate", type=FiniteFloatRange(*PRIOR_RATE_RANGE),
               help="Mean of the exponential irradiance prior, code values per second [default: from the bracket, "
                    "or mid-grey at the middle exposure].")
 @click.option("--k", "k", default=3.0, show_default=True, type=FiniteFloatRange(0.5, 10),
@@ -77,6 +77,7 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
     noise_list = per_channel(params, names) if params else None
     table, labels = weight_luts(curve, n_codes, exposures, weights, noise_list, prior, k,
                                 parse_bounds(bounds) if bounds else None)
+    check_luts(table, labels, weights, prior_rate if weights in NOISE_MODEL_WEIGHTS else None)
     meta = {"weights": weights, "crf": curve.describe(), "exposures": exposures, "n_codes": n_codes, "k": k}
     write_luts(output, table, labels, meta, overwrite)
     if plot:

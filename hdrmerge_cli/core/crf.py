@@ -26,6 +26,10 @@ def _srgb_encode(x):
     return np.asarray(srgb_eotf_inverse(x), dtype=np.float64)
 
 
+#: accepted gamma of ``gamma:G``: beyond it the codes of an 8-bit image span more than
+#: 80 stops (or less than one), which no camera records
+GAMMA_RANGE = (0.1, 10.0)
+
 #: name -> (forward gamma: x -> v, inverse gamma^-1: v -> x, takes a parameter)
 CRF_MODELS = {
     "linear": (lambda x, p: np.asarray(x, np.float64), lambda v, p: np.asarray(v, np.float64), False),
@@ -94,8 +98,18 @@ def parse_crf(text: str) -> CRF:
         p = float(arg)
     except ValueError:
         raise HdrMergeError(f"CRF {text!r}: {arg!r} is not a number") from None
-    if not np.isfinite(p) or p <= 0:
-        raise HdrMergeError(f"CRF {text!r}: the gamma must be a positive number")
+    return gamma_crf(p, f"--crf {text}")
+
+
+def gamma_crf(p: float, where: str) -> CRF:
+    """``gamma:G`` with G in :data:`GAMMA_RANGE`; ``where`` starts the error message."""
+    lo, hi = GAMMA_RANGE
+    if not (np.isfinite(p) and p > 0):
+        raise HdrMergeError(f"{where}: the gamma must be a positive number")
+    if not lo <= p <= hi:
+        raise HdrMergeError(f"{where}: not a valid response: gamma {p:g} spreads the codes of an 8-bit image over "
+                            f"{p * np.log2(255):.3g} stops (cameras' 1.8 to 2.6 over 14 to 21; accepted: gamma "
+                            f"{lo:g} to {hi:g})")
     return CRF("gamma", p)
 
 
@@ -113,6 +127,9 @@ def table_crf(table: np.ndarray, name: str = "table") -> CRF:
         raise HdrMergeError("the CRF table needs at least two finite entries per channel")
     if np.any(np.diff(tab, axis=1) < 0):
         raise HdrMergeError("the CRF table is not monotone (gamma^-1 must not decrease with z)")
+    if np.any(tab < 0):
+        raise HdrMergeError(f"not a valid response: the CRF table has negative values (from {tab.min():g}); "
+                            "gamma^-1 is a linear signal, 0 at black")
     top = tab[:, -1:]
     if np.any(top <= 0):
         raise HdrMergeError("the CRF table must end at a positive value")

@@ -24,6 +24,11 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import noise_variance  # noqa: F401  (s(x) of (17), re-exported)
 
 
+#: photo-electrons counted at most per pixel and frame: far beyond the saturation of any
+#: sensor (full scale / sqrt(alpha) <= 65535 / 1e-6), within NumPy's Poisson sampler
+MAX_ELECTRONS = 1e15
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """Parameters of (17) plus the A/D converter: ``bits`` and the ``black`` level."""
@@ -77,7 +82,7 @@ def expose(
 ) -> np.ndarray:
     """Linear signal ``y`` (code values above black, unclipped, float64) of one exposure:
     Poisson photon counts (16), gain with fixed pattern and Gaussian read noise (17)."""
-    electrons = rng.poisson(np.asarray(irradiance, dtype=np.float64) * time)
+    electrons = rng.poisson(np.minimum(np.asarray(irradiance, dtype=np.float64) * time, MAX_ELECTRONS))
     y = np.sqrt(sensor.alpha) * electrons * (1.0 + pattern)
     if sensor.sigma_o2 > 0:
         y += rng.normal(0.0, np.sqrt(sensor.sigma_o2), y.shape)

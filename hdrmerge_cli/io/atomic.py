@@ -51,7 +51,9 @@ def _user_error(exc: BaseException, tmps: list[str], paths: list[Path]) -> HdrMe
     """An error raised while writing a temporary, told with the user's path instead."""
     if isinstance(exc, OSError) and not isinstance(exc, FileExistsError):
         where = next((str(p) for t, p in zip(tmps, paths) if exc.filename in (t, str(p))), None)
-        text = f"{where or exc.filename}: cannot write ({exc.strerror or exc})"
+        if where is None:  # a failed write() names no file
+            where = exc.filename or ", ".join(str(p) for p in paths)
+        text = f"{where}: cannot write ({exc.strerror or exc})"
     else:
         text = str(exc)
     for t, p in zip(tmps, paths):
@@ -76,8 +78,11 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
         check_writable(p, overwrite)
     tmps: list[str] = []
     try:
-        for p in paths:
-            create_temporary(p, tmps)
+        try:
+            for p in paths:
+                create_temporary(p, tmps)
+        except OSError as exc:
+            raise _user_error(exc, tmps, paths) from None
         try:
             yield tmps
         except (OSError, HdrMergeError) as exc:
@@ -169,6 +174,16 @@ def atomic_path(path: str | os.PathLike, overwrite: bool):
         yield tmp
 
 
+def write_text(tmp: str, text: str) -> None:
+    """Write ``text`` (UTF-8) to a temporary of :func:`atomic_paths`; an OSError names it
+    (one raised by write(), such as a full disk, names no file by itself)."""
+    try:
+        Path(tmp).write_text(text, encoding="utf-8")
+    except OSError as exc:
+        exc.filename = exc.filename or tmp
+        raise
+
+
 def atomic_text(path: str | os.PathLike, text: str, overwrite: bool) -> None:
     with atomic_path(path, overwrite) as tmp:
-        Path(tmp).write_text(text, encoding="utf-8")
+        write_text(tmp, text)

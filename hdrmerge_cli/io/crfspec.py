@@ -64,4 +64,13 @@ def resolve_crf(spec: str) -> CRF:
         if not os.path.isfile(spec):
             raise HdrMergeError(f"{spec}: no such file")
         return read_crf_csv(spec)
-    return parse_crf(spec)
+    try:
+        return parse_crf(spec)
+    except HdrMergeError:
+        if os.path.isdir(spec):
+            raise HdrMergeError(f"{spec}: is a folder, not a camera response (linear, srgb, gamma:G, a CSV table or "
+                                "a profile JSON)") from None
+        if os.path.isfile(spec):
+            raise HdrMergeError(f"{spec}: not a camera response: a response file is a CSV table (.csv, .txt) or a "
+                                "profile JSON (.json)") from None
+        raise

@@ -27,6 +27,20 @@ def read_exr(path: str) -> tuple[np.ndarray, dict]:
     return np.asarray(pixels, np.float32).reshape(spec.height, spec.width, spec.nchannels), attrs
 
 
+def read_header(path: str) -> tuple[int, int, int, str]:
+    """(width, height, channels, sample type: ``uint8``, ``uint16``, ``half``, ``float``...)
+    of an image file, from its header alone."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        reason = (oiio.geterror().strip() or "unknown error").splitlines()[-1]
+        raise HdrMergeError(f"{path}: not a readable image ({reason})")
+    spec = inp.spec()
+    inp.close()
+    return spec.width, spec.height, spec.nchannels, str(spec.format)
+
+
 def _set_attribute(spec, name: str, value) -> None:
     import OpenImageIO as oiio
 

@@ -26,7 +26,7 @@ import os
 import numpy as np
 
 from hdrmerge_cli._version import __version__
-from hdrmerge_cli.core.crf import CRF, table_crf
+from hdrmerge_cli.core.crf import CRF, gamma_crf, table_crf
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import atomic_text
 
@@ -114,7 +114,7 @@ def crf_from_json(entry: dict, path: str = "profile") -> CRF:
         except HdrMergeError as exc:
             raise HdrMergeError(f"{path}: crf/inverse: {exc}") from None
     if model == "gamma":
-        return CRF("gamma", float(entry["gamma"]))
+        return gamma_crf(float(entry["gamma"]), f"{path}: crf/gamma")
     return CRF(model)
 
 

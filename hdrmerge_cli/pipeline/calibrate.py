@@ -307,6 +307,30 @@ def _choose_crf(first: Frame, opts: CalibrateOptions, base: dict | None):
                         "camera response with --crf (linear for linear TIFFs, or a profile from estimate-crf)")
 
 
+#: a dark frame's mean lies within this many of its own noise sigmas of black (or within
+#: DARK_FRACTION of full scale), and below half the mean of the dimmest flats
+DARK_SIGMAS, DARK_FRACTION = 5.0, 0.01
+
+
+def _check_darks(dark_planes: dict[str, list], levels: list[dict[str, list]]) -> None:
+    """Refuse --darks that are not dark (flat fields or photographs given as darks would
+    make their photon noise the read noise): per channel, a dark frame's mean must lie
+    near the black level and well below the dimmest flats."""
+    for name, items in dark_planes.items():
+        flat_means = [np.mean([np.mean(p) for p, *_ in level[name]]) for level in levels if name in level]
+        dimmest = min(flat_means, default=np.inf)
+        for plane, _, hi, f in items:
+            mean, sigma = float(np.mean(plane)), float(np.std(plane))
+            if mean > max(DARK_SIGMAS * sigma, DARK_FRACTION * hi):
+                raise HdrMergeError(f"{f.path}: not a dark frame: its mean lies {mean:.4g} above the black level "
+                                    f"(channel {name}), {mean / max(sigma, 1e-12):.3g} times its noise (a dark "
+                                    f"frame's lies within {DARK_SIGMAS:g}); give frames taken without light as --darks")
+            if mean >= 0.5 * dimmest:
+                raise HdrMergeError(f"{f.path}: not a dark frame: its mean ({mean:.4g} above black, channel {name}) "
+                                    f"is not well below the dimmest flats' ({dimmest:.4g}); give frames taken "
+                                    "without light as --darks")
+
+
 def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> dict[str, dict]:
     if not flats:
         if darks:
@@ -322,6 +346,7 @@ def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> d
         if len(fs) < 2:
             log.warning("%s: the only flat at %g s; photon transfer needs pairs, skipped", fs[0].path, t)
     levels = [_by_channel(_read_group(fs, crf, "flats")) for _, fs in sorted(by_time.items()) if len(fs) >= 2]
+    _check_darks(dark_planes, levels)
     out = {}
     for name in (levels[0] if levels else {}):
         lv = [[p for p, *_ in level[name]] for level in levels]

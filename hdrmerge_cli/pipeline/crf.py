@@ -11,7 +11,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sample_pixels
-from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_WEIGHTING, CRFFit
+from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_WEIGHTING, CRFFit, knot_levels
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import check_writable
@@ -27,6 +27,9 @@ log = logging.getLogger("hdrmerge_cli")
 
 #: fewest pixels that two consecutive frames must both expose (neither code clipped)
 MIN_OVERLAP = exposures_mod.MIN_OVERLAP
+#: largest --lambda and --coupling: far beyond any useful smoothing (goossens solves up to
+#: about 1, debevec's response is flat from about 1e7), below where the solvers overflow
+MAX_SMOOTHING = 1e6
 
 
 @dataclass
@@ -59,6 +62,25 @@ def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, metho
     idx = (sample_pixels(codes[len(codes) // 2][..., c], samples, rng) if method == "debevec"
            else rng.choice(n, samples, replace=False))
     return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
+
+
+def check_samples(samples: int | None, n_frames: int, n_codes: int, n_pixels: int) -> None:
+    """Refuse a --samples too few to determine the response: every code level needs data,
+    N (P - 1) >= Zmax - Zmin (Debevec & Malik 1997); 0 or None (all pixels) passes."""
+    need = -(-(knot_levels(n_codes) - 1) // (n_frames - 1))
+    if samples and samples < min(need, n_pixels):
+        raise HdrMergeError(f"--samples {samples}: too few pixels to determine a response of {n_codes} codes from "
+                            f"{n_frames} frames; give at least {min(need, n_pixels)} (N (P - 1) >= Zmax - Zmin), "
+                            "or 0 for all")
+
+
+def check_not_flat(crf: CRF, method: str, smoothing: float | None) -> None:
+    """Refuse a fitted response that spans less than one stop from code 1 to white (any
+    camera's spans many: sRGB 12 stops at 8 bits), which would merge every code to about white."""
+    if np.all(crf.table[:, 1] > 0.5):
+        cause = (f"--lambda {smoothing:g} smooths the data away; give a smaller --lambda" if smoothing
+                 else "the frames do not determine it; try --method goossens")
+        raise HdrMergeError(f"the {method} fit is flat (less than one stop from code 1 to white): {cause}")
 
 
 def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: str = "goossens",
@@ -118,6 +140,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     else:
         if len(frames) < 2:
             raise HdrMergeError(f"{first.path}: estimating a CRF needs at least two exposures")
+        check_samples(opts.samples, len(frames), first.n_codes, first.width * first.height)
         with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
             codes = list(pool.map(load_codes, frames))
         by_frame = {id(f): c for f, c in zip(frames, codes)}
@@ -135,6 +158,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
                            coupling=opts.coupling, **({"weighting": opts.weighting} if opts.weighting else {}))
         crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, n_samples, options,
                                      np.random.default_rng(opts.seed))
+        check_not_flat(crf, opts.method, smoothing)
         # the labels checked through the fitted response (the comparagrams the fit used);
         # --times estimate: refit with the estimates, until they settle (at most 3 rounds)
         est = exposures_mod.estimate(frames, labels, samples, crf)
@@ -142,6 +166,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
             new_log_h = est.log_h
             crf, fits, changed = fit_crf(codes, new_log_h, first.n_codes, opts.method, smoothing, n_samples, options,
                                          np.random.default_rng(opts.seed))
+            check_not_flat(crf, opts.method, smoothing)
             est = exposures_mod.estimate(frames, labels, samples, crf)
             moved = float(np.max(np.abs(est.log_h - new_log_h))) / np.log(2)
             log_h = new_log_h

@@ -3,6 +3,7 @@ and reading them back for ``merge --lut``."""
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,13 +12,16 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K
 from hdrmerge_cli.core.reconstruct import certainty_table
-from hdrmerge_cli.io.atomic import atomic_path
+from hdrmerge_cli.io.atomic import atomic_path, write_text
 from hdrmerge_cli.io.plots import pyplot, save_figure
 
 LUT_FORMATS = (".csv", ".npy", ".json")
 
 #: without a bracket, the prior mean puts mid-grey (18 % of full scale) at the middle exposure
 MID_GREY = 0.18
+#: range of --prior-rate (code values per second): from a few codes in 11 days to 65535
+#: codes in 1 ns, and beyond; wider values overflow the prior's integrals
+PRIOR_RATE_RANGE = (1e-12, 1e20)
 
 
 def default_prior_rate(n_codes: int, exposures) -> float:
@@ -40,6 +44,20 @@ def weight_luts(crf: CRF, n_codes: int, exposures: list[float], weights: str, no
     return np.stack(cols, axis=1), labels
 
 
+def check_luts(table: np.ndarray, labels: list[str], weights: str, prior_rate: float | None = None) -> None:
+    """Refuse a table with a column of no positive weight: that exposure would be ignored
+    (and 'merge --lut' refuses it).  ``prior_rate``: the user's --prior-rate, the likely
+    cause (the prior puts that exposure's signal where it records nothing)."""
+    empty = [label for label, col in zip(labels, table.T) if not np.any(col > 0)]
+    if not empty:
+        return
+    what = f"the {weights} weights of {', '.join(empty[:3])}{' ...' if len(empty) > 3 else ''} are zero at every code"
+    if prior_rate is not None:
+        raise HdrMergeError(f"--prior-rate {prior_rate:g}: {what} (the prior puts the signal where that exposure "
+                            "records nothing); give a rate nearer the scene's mean code value per second")
+    raise HdrMergeError(f"{what}: that exposure would be ignored (check --noise, --bounds and --k)")
+
+
 def write_luts(path: Path, table: np.ndarray, labels: list[str], meta: dict, overwrite: bool) -> None:
     suffix = Path(path).suffix.lower()
     if suffix not in LUT_FORMATS:
@@ -48,7 +66,7 @@ def write_luts(path: Path, table: np.ndarray, labels: list[str], meta: dict, ove
         if suffix == ".npy":
             np.save(tmp, table)
         elif suffix == ".json":
-            Path(tmp).write_text(json.dumps(meta | {"columns": labels, "weights": table.T.tolist()}) + "\n")
+            write_text(tmp, json.dumps(meta | {"columns": labels, "weights": table.T.tolist()}) + "\n")
         else:
             z = np.arange(table.shape[0])[:, None]
             np.savetxt(tmp, np.hstack([z, table]), delimiter=",", header="z," + ",".join(labels),
@@ -64,12 +82,16 @@ def read_luts(path: str) -> np.ndarray:
         elif suffix == ".json":
             table = np.asarray(json.loads(Path(path).read_text())["weights"], dtype=np.float64).T
         elif suffix == ".csv":
-            table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)[:, 1:]
+            with warnings.catch_warnings():  # an empty file: refused below
+                warnings.simplefilter("ignore", UserWarning)
+                table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)[:, 1:]
         else:
             raise HdrMergeError(f"{path}: unknown table format (use {', '.join(LUT_FORMATS)})")
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise HdrMergeError(f"{path}: not a weights table ({exc})") from None
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise HdrMergeError(f"{path}: not a weights table ({str(exc)[:120] or type(exc).__name__})") from None
     table = np.asarray(table, dtype=np.float64)
+    if table.size == 0:
+        raise HdrMergeError(f"{path}: the weights table is empty")
     if table.ndim != 2 or not np.all(np.isfinite(table)) or table.min() < 0 or table.max() > 1:
         raise HdrMergeError(f"{path}: a weights table holds values in [0, 1], one row per code value")
     return table

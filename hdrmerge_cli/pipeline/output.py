@@ -273,7 +273,7 @@ class Merged:
         """Write the EXR, its profile and (optionally) a preview, all or none (each to a
         temporary name first); the options' paths unless given.  Returns the paths written."""
         from hdrmerge_cli.core.preview import BlockMean, block_factor, tonemap_srgb
-        from hdrmerge_cli.io.atomic import atomic_paths
+        from hdrmerge_cli.io.atomic import atomic_paths, write_text
         from hdrmerge_cli.io.images import write_exr, write_ldr
         from hdrmerge_cli.io.profile import dumps
         from hdrmerge_cli.pipeline import motion
@@ -287,7 +287,7 @@ class Merged:
         if output.suffix.lower() == ".dng":
             with atomic_paths([output, profile_out], overwrite, list(inputs)) as tmps:
                 baseline = self.write_dng(tmps[0])
-                Path(tmps[1]).write_text(profile_text, encoding="utf-8")
+                write_text(tmps[1], profile_text)
             return {"output": str(output), "profile": str(profile_out), "dng_baseline_exposure_ev": round(baseline, 2)}
         attrs = self.header(profile_out.name, profile_text)
         extra = opts.extra_channels
@@ -303,7 +303,7 @@ class Merged:
         with atomic_paths(outputs, overwrite, list(inputs)) as tmps:
             write_exr(tmps[0], strips, self.channel_names, attrs, half=opts.half, size=self.shape,
                       compression=opts.compression)
-            Path(tmps[1]).write_text(profile_text, encoding="utf-8")
+            write_text(tmps[1], profile_text)
             if thumb:
                 rgb = upright(thumb.result(), self.orientation)
                 write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})

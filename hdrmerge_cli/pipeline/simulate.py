@@ -16,17 +16,26 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, gain_pattern, quantise_crf, quantise_raw
-from hdrmerge_cli.io.atomic import atomic_paths
+from hdrmerge_cli.io.atomic import atomic_paths, write_text
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import read_frame
-from hdrmerge_cli.io.images import read_exr, write_exr, write_ldr
+from hdrmerge_cli.io.images import read_exr, read_header, write_exr, write_ldr
+from hdrmerge_cli.io.memory import available_memory
 from hdrmerge_cli.io.raw import write_dng
+from hdrmerge_cli.io.times import MIN_SECONDS
 
 log = logging.getLogger("hdrmerge_cli")
 
 FORMATS = ("dng", "jpg", "tif", "png")
 CFA_PATTERN = "RGGB"
 MIN_DNG_SIZE = 32  # LibRaw refuses very small DNGs (16 x 16 fails, 24 x 24 reads)
+#: shortest exposure time a DNG stores (a 32-bit rational), and any other format
+SHORTEST = {"dng": 1e-6}
+#: peak memory of a simulation per pixel of the scene (bytes; the built-in scene's
+#: temporaries dominate: 2048 x 2048 peaks at 760-810 MB, 1024 x 1024 at 250-300 MB)
+BYTES_PER_PIXEL = 170
+#: sample types of display-referred images (codes through a tone curve, clipped at white)
+LDR_TYPES = ("uint8", "int8", "uint16", "int16")
 
 
 @dataclass
@@ -55,36 +64,62 @@ def photographic_time(t: float) -> float:
     return 1.0 / round(1.0 / t) if t < 0.1 else float(f"{t:.4g}")
 
 
-def stored_time(folder: Path, fmt: str, t: float) -> float:
+def check_memory(width: int, height: int, what: str) -> None:
+    """Refuse, before any work, a scene whose simulation needs more memory than there is."""
+    need, have = BYTES_PER_PIXEL * width * height, available_memory()
+    if have is not None and need > have:
+        raise HdrMergeError(f"{what}: a {width} x {height} scene needs about {need / 1e9:.3g} GB of memory to "
+                            f"simulate, more than the {have / 1e9:.3g} GB available; use a smaller one")
+
+
+def stored_time(folder: Path, fmt: str, t: float, hint: str = "give a longer exposure time") -> float:
     """The exposure time a ``fmt`` file actually stores for ``t`` (EXIF writers round
     some rationals): for JPEG/TIFF/PNG written to a 2 x 2 probe file and read back, so that the frames
-    are rendered with exactly the time their metadata states."""
+    are rendered with exactly the time their metadata states.  A time the file cannot hold
+    (it reads back as none) is refused, ``hint`` saying what to change."""
     import tempfile
 
     if fmt == "dng":  # written as a 32-bit rational by us: exact
         from hdrmerge_cli.io.raw import rational
 
         num, den = rational(t)
-        return num / den
-    fd, probe = tempfile.mkstemp(prefix=".probe.", suffix=f".{fmt}", dir=folder)
-    os.close(fd)
-    try:
-        write_ldr(probe, np.zeros((2, 2, 3), np.uint8), {"ExposureTime": float(t)})
-        return read_frame(probe).exposure_time or t
-    finally:
-        os.unlink(probe)
+        stored = num / den
+    else:
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".probe.", suffix=f".{fmt}", dir=folder)
+        except OSError as exc:
+            raise HdrMergeError(f"{folder}: cannot write ({exc.strerror or exc})") from None
+        os.close(fd)
+        try:
+            write_ldr(probe, np.zeros((2, 2, 3), np.uint8), {"ExposureTime": float(t)})
+            stored = read_frame(probe).exposure_time
+        finally:
+            os.unlink(probe)
+    if not stored:
+        raise HdrMergeError(f"exposure time {t:.3g} s: too short for the EXIF of a {fmt.upper()} file (it reads "
+                            f"back as none); {hint}")
+    return stored
 
 
 def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
     """Scene irradiance in photo-electrons per second, ``(H, W, 3)`` float64: the built-in
     procedural scene, a uniform ``flat`` field (1 per second times --scale: flat-field
     calibration frames), ``dark`` (no light: dark frames) or an EXR."""
+    if opts.scene in (None, "builtin", "flat", "dark"):
+        check_memory(opts.width, opts.height, f"--size {opts.width}x{opts.height}")
     if opts.scene in (None, "builtin"):
         scene, name = procedural_scene(opts.height, opts.width, opts.seed), "builtin"
     elif opts.scene in ("flat", "dark"):
         value = 1.0 if opts.scene == "flat" else 0.0
         return np.full((opts.height - opts.height % 2, opts.width - opts.width % 2, 3), value * opts.scale), opts.scene
     else:
+        width, height, _, kind = read_header(opts.scene)
+        if kind in LDR_TYPES:
+            raise HdrMergeError(f"{opts.scene}: a {kind} image is display-referred (codes through a tone curve, "
+                                "clipped at white), not a scene: its highlights are lost and its values are not "
+                                "light; give a scene-linear HDR image (OpenEXR, Radiance .hdr, float TIFF) in "
+                                "photo-electrons per second (see --scale)")
+        check_memory(width, height, str(opts.scene))
         pixels, _ = read_exr(opts.scene)
         if pixels.shape[-1] >= 3:
             scene = pixels[..., :3].astype(np.float64)
@@ -96,13 +131,18 @@ def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
         scene = np.clip(scene, 0.0, None)
     if opts.downscale > 1:
         k = opts.downscale
+        if min(scene.shape[:2]) // k < 2:
+            raise HdrMergeError(f"--downscale {k}: leaves a {scene.shape[1] // k} x {scene.shape[0] // k} scene of "
+                                f"{name} ({scene.shape[1]} x {scene.shape[0]}); use a smaller --downscale")
         h, w = scene.shape[0] // k * k, scene.shape[1] // k * k
         scene = scene[:h, :w].reshape(h // k, k, w // k, k, 3).mean(axis=(1, 3))
     h, w = scene.shape[:2]
     h, w = h - h % 2, w - w % 2  # whole CFA periods
     scene = scene[:h, :w]
-    if h < 2 or w < 2 or scene.max() <= 0:
-        raise HdrMergeError(f"{name}: the scene is empty or black")
+    if h < 2 or w < 2:
+        raise HdrMergeError(f"{name}: a {scene.shape[1]} x {scene.shape[0]} scene is too small (at least 2 x 2)")
+    if scene.max() <= 0:
+        raise HdrMergeError(f"{name}: the scene is black (no light anywhere; 'dark' simulates dark frames)")
     return scene * opts.scale, name
 
 
@@ -111,7 +151,10 @@ def _new_folder(out: Path):
     """Create ``out`` (and parents) for the block; remove it again if the block fails and
     it was created here and is still empty."""
     created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise HdrMergeError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
     try:
         yield out
     except BaseException:
@@ -124,6 +167,32 @@ def _new_folder(out: Path):
 MAX_TIME = 1e6
 
 
+def check_times(times: np.ndarray, signal: np.ndarray, scene_name: str, opts: SimulateOptions) -> None:
+    """Refuse exposure times the format cannot store, saying why they came out so: too
+    many --frames for the scene (one stop apart or more, the longer ones all clipped), a
+    scene too dark or too bright for the sensor at this --scale, or the --times given."""
+    shortest, fmt = SHORTEST.get(opts.fmt, MIN_SECONDS), opts.fmt.upper()
+    if shortest <= times[0] and times[-1] <= MAX_TIME:
+        return
+    span = f"a {fmt} stores exposure times from {shortest:g} to {MAX_TIME:g} s"
+    if opts.times:
+        raise HdrMergeError(f"--times: {times[0]:g} s is too short ({span})")
+    if scene_name not in ("flat", "dark"):
+        t_min, t_max = auto_exposure_times(signal, opts.sensor, 2)
+        stops = float(np.log2(t_max / t_min))
+        scene_fits = shortest <= t_min and t_max <= MAX_TIME
+        if opts.frames - 1 > stops and (scene_fits or opts.frames - 1 > np.log2(MAX_TIME / shortest)):
+            raise HdrMergeError(f"--frames {opts.frames}: one stop apart or more, they span {opts.frames - 1} stops "
+                                f"({times[0]:.3g} to {times[-1]:.3g} s; {span}), but {scene_name} covers "
+                                f"{stops:.1f}: the frames beyond it would be all clipped; give --frames "
+                                f"{max(int(stops) + 1, 2)} or fewer, or --times")
+    if times[-1] > MAX_TIME:
+        raise HdrMergeError(f"{scene_name}: exposing it takes {times[-1]:.3g} s ({span}): the scene is too dark "
+                            "for the sensor; raise --scale or give --times")
+    raise HdrMergeError(f"{scene_name}: its brightest parts saturate the sensor in {times[0]:.3g} s ({span}): the "
+                        "scene is too bright for the sensor; lower --scale or give --times")
+
+
 def simulate(opts: SimulateOptions) -> dict:
     if opts.fmt not in FORMATS:
         raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
@@ -133,7 +202,8 @@ def simulate(opts: SimulateOptions) -> dict:
     irradiance, scene_name = load_scene(opts)
     if opts.fmt == "dng" and min(irradiance.shape[:2]) < MIN_DNG_SIZE:
         raise HdrMergeError(f"{scene_name}: LibRaw reads DNGs of at least {MIN_DNG_SIZE} x {MIN_DNG_SIZE} pixels; "
-                            "use a larger --size or less --downscale")
+                            + ("use a larger --size or less --downscale" if scene_name in ("builtin", "flat", "dark")
+                               else "use less --downscale or a larger scene"))
     rng = np.random.default_rng(opts.seed)
     signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
     if opts.times:
@@ -145,12 +215,7 @@ def simulate(opts: SimulateOptions) -> dict:
     else:
         times = auto_exposure_times(signal, sensor, opts.frames)
     times = np.sort(np.repeat([photographic_time(t) for t in times], opts.repeat))
-    if opts.fmt == "dng" and times[0] < 1e-6:
-        raise HdrMergeError(f"exposure time {times[0]:.3g} s is shorter than a DNG can store (1e-6 s): "
-                            "lower --scale or give longer --times")
-    if times[-1] > MAX_TIME:
-        raise HdrMergeError(f"{scene_name}: exposing it takes {times[-1]:.3g} s (more than {MAX_TIME:g} s): "
-                            "the scene is too dark for the sensor; raise --scale or give --times")
+    check_times(times, signal, scene_name, opts)
     pattern = gain_pattern(signal.shape, sensor, rng)
 
     out = Path(opts.output_dir)
@@ -160,10 +225,14 @@ def simulate(opts: SimulateOptions) -> dict:
     paths = [out / n for n in names] + [out / "truth.exr", out / "simulation.json"]
     with _new_folder(out):  # removed again if the run fails before anything is in it
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
-        times = np.array([stored_time(out, opts.fmt, t) for t in times])
+        hint = "give longer --times" if opts.times else "lower --scale or give --times"
+        times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
         t_ref = float(np.exp(np.mean(np.log(times))))
 
         truth = (np.sqrt(sensor.alpha) * t_ref / sensor.full_scale) * irradiance
+        if float(truth.max()) > np.finfo(np.float32).max:
+            raise HdrMergeError(f"{scene_name}: its brightest values times --scale {opts.scale:g} exceed what a float "
+                                "EXR holds (truth.exr); lower --scale")
         meta = {
             "tool": f"hdrmerge-cli {__version__}",
             "scene": scene_name,
@@ -208,5 +277,5 @@ def simulate(opts: SimulateOptions) -> dict:
                 "ExposureTime": t_ref,
             })
             meta["saturated_fraction"] = saturated
-            Path(tmps[-1]).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
+            write_text(tmps[-1], json.dumps(meta, indent=1) + "\n")
         return {"output_dir": str(out), "files": [str(p) for p in paths]} | meta

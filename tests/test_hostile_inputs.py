@@ -1,0 +1,357 @@
+"""Hostile values and files given to the six commands: extreme numbers, frames that are
+not what their option says, unwritable or full outputs, config files.  Each is refused in
+one line that names the user's file or option and the true reason (exit 1 for data, 2 for
+usage), with no traceback and nothing written."""
+import errno
+import json
+import os
+import pathlib
+import traceback
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import frames_of
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.io.atomic import atomic_paths
+from hdrmerge_cli.io.profile import KIND, save_profile
+from hdrmerge_cli.pipeline.lut import check_luts
+
+
+def _cli(*argv):
+    """(exit code, stderr) of ``hdrmerge-cli argv`` run in this process; an uncaught
+    exception is exit 99 with its traceback."""
+    from hdrmerge_cli.cli import cli
+
+    result = CliRunner().invoke(cli, [str(a) for a in argv], prog_name="hdrmerge-cli")
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        return 99, "Traceback: " + "".join(traceback.format_exception(*result.exc_info))
+    return result.exit_code, result.stderr
+
+
+def _refused(code, stderr, expected_code, words=(), absent=()):
+    """One error line (warnings aside) holding ``words`` and none of ``absent``."""
+    assert code == expected_code, stderr
+    assert "Traceback" not in stderr
+    errors = [ln for ln in stderr.splitlines() if ln.startswith(("Error:", "hdrmerge-cli: error:"))]
+    assert len(errors) == 1, stderr
+    if expected_code == 1:
+        assert [ln for ln in stderr.strip().splitlines() if "warning" not in ln] == errors, stderr
+    for word in words:
+        assert word in errors[0], stderr
+    for word in absent:
+        assert word not in stderr, stderr
+    return errors[0]
+
+
+def _nothing_written(folder):
+    assert not [p for p in pathlib.Path(folder).iterdir() if p.name.startswith(("out", ".out")) or ".part" in p.name]
+
+
+# ---------------------------------------------------------------- extreme numeric options
+EDGE_CASES = {
+    "lambda overflow": (["estimate-crf", "{IMG}", "--lambda", "1e300"], ["--lambda"]),
+    "coupling overflow": (["estimate-crf", "{IMG}", "--coupling", "1e300"], ["--coupling"]),
+    "negative seed": (["estimate-crf", "{IMG}", "--seed", "-1"], ["--seed"]),
+    "prior rate underflow": (["weights-lut", "--times", "0.01,0.1,1", "--weights", "probabilistic", "--noise",
+                              "sigma_o2=4,alpha=1", "--prior-rate", "1e-308"], ["--prior-rate"]),
+    "prior rate overflow": (["weights-lut", "--times", "0.01,0.1,1", "--weights", "probabilistic", "--noise",
+                             "sigma_o2=4,alpha=1", "--prior-rate", "1e308"], ["--prior-rate"]),
+    "scale overflow": (["simulate", "--size", "64x64", "--scale", "1e300"], ["--scale"]),
+    "alpha overflow": (["simulate", "--size", "64x64", "--alpha", "1e300"], ["--alpha"]),
+    "sigma_o2 overflow": (["simulate", "--size", "64x64", "--sigma-o2", "1e300"], ["--sigma-o2"]),
+    "iso overflow": (["simulate", "--size", "64x64", "--iso", str(10**20)], ["--iso"]),
+    "simulate negative seed": (["simulate", "--size", "64x64", "--seed", "-1"], ["--seed"]),
+    "size overflow": (["simulate", "--size", "10000000000x10000000000"], ["--size"]),
+}
+
+
+@pytest.mark.parametrize("name", list(EDGE_CASES))
+def test_extreme_numbers_are_refused_where_they_are_read(tmp_path, jpeg_bracket, name):
+    args, words = EDGE_CASES[name]
+    frames = [str(p) for p in frames_of(*jpeg_bracket)]
+    argv = [a for arg in args for a in (frames if arg == "{IMG}" else [arg])]
+    out = tmp_path / {"estimate-crf": "out.json", "weights-lut": "out.csv"}.get(args[0], "out")
+    _refused(*_cli(*argv, "-o", out), 2, words)
+    _nothing_written(tmp_path)
+
+
+# ---------------------------------------------------------------- calibrate-noise: darks that are not dark
+@pytest.fixture(scope="module")
+def flats_and_darks(tmp_path_factory, run):
+    root = tmp_path_factory.mktemp("ptc")
+    run("simulate", "-q", "-o", root / "flats", "--scene", "flat", "--scale", "1000", "--size", "96x96", "--frames",
+        "3", "--repeat", "2")
+    run("simulate", "-q", "-o", root / "darks", "--scene", "dark", "--size", "96x96", "--frames", "2")
+    return root
+
+
+def test_flats_given_as_darks_are_refused(run, tmp_path, flats_and_darks):
+    """Flat fields as --darks made their photon noise the read noise (sigma_o2 ~ 2170 for
+    a sensor of 9, exit 0); real darks still give the sensor's."""
+    root = flats_and_darks
+    out = tmp_path / "out.json"
+    proc = run("calibrate-noise", "--darks", root / "flats", "--flats", root / "flats", "-o", out, check=False)
+    line = _refused(proc.returncode, proc.stderr, 1, ["not a dark frame", "above the black level", "--darks"])
+    assert str(root / "flats" / "frame_00.dng") in line
+    _nothing_written(tmp_path)
+    summary = json.loads(run("calibrate-noise", "--darks", root / "darks", "--flats", root / "flats", "-o", out,
+                             "--json").stdout)
+    for fit in summary["noise"]["ISO100"].values():
+        assert fit["sigma_o2"] == pytest.approx(9.0, rel=0.3)
+
+
+# ---------------------------------------------------------------- weights-lut: tables with no weight
+def test_weights_lut_refuses_a_column_of_zero_weights(tmp_path):
+    out = tmp_path / "out.csv"
+    _refused(*_cli("weights-lut", "--times", "0.01,0.1,1", "--weights", "probabilistic", "--noise",
+                   "sigma_o2=4,alpha=1", "--prior-rate", "1e-3", "-o", out), 1,
+             ["--prior-rate 0.001", "zero at every code", "t=0.01"])
+    _nothing_written(tmp_path)
+    code, _ = _cli("weights-lut", "--times", "0.01,0.1,1", "--weights", "probabilistic", "--noise",
+                   "sigma_o2=4,alpha=1", "--prior-rate", "1e4", "-o", out)
+    assert code == 0 and np.loadtxt(out, delimiter=",", skiprows=1)[:, 1:].max(axis=0).min() > 0
+
+
+def test_a_table_without_weight_is_refused_without_a_prior_too():
+    table = np.zeros((4, 2))
+    table[1:3, 0] = 0.5
+    with pytest.raises(HdrMergeError, match="t=2 are zero at every code"):
+        check_luts(table, ["t=1", "t=2"], "bounded")
+    check_luts(np.full((4, 2), 0.5), ["t=1", "t=2"], "bounded")
+
+
+# ---------------------------------------------------------------- outputs that cannot be written
+def test_a_read_only_folder_names_the_users_path(tmp_path, monkeypatch):
+    real_open = os.open
+
+    def refuse(path, *args, **kwargs):
+        if ".part" in str(path):
+            raise PermissionError(errno.EACCES, "Permission denied", path)
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refuse)
+    out = tmp_path / "out.exr"
+    with pytest.raises(HdrMergeError) as info:
+        with atomic_paths([out, tmp_path / "out.profile.json"], False):
+            pass
+    assert str(info.value) == f"{out}: cannot write (Permission denied)"
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_read_only_folder_through_the_command(tmp_path, jpeg_bracket):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        line = _refused(*_cli("merge", *frames_of(*jpeg_bracket), "--crf", "srgb", "-o", folder / "out.exr"), 1,
+                        [str(folder / "out.exr"), "cannot write"], absent=[".part"])
+        assert "Permission denied" in line
+    finally:
+        folder.chmod(0o755)
+
+
+def _disk_full(monkeypatch):
+    """Path.write_text fails as a full disk does: an OSError naming no file."""
+    real = pathlib.Path.write_text
+
+    def write_text(self, *args, **kwargs):
+        if ".part" in self.name:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(pathlib.Path, "write_text", write_text)
+
+
+def test_a_full_disk_names_the_profile(tmp_path, monkeypatch):
+    _disk_full(monkeypatch)
+    out = tmp_path / "out.json"
+    with pytest.raises(HdrMergeError) as info:
+        save_profile(out, {"schema": 1, "kind": KIND, "crf": {"model": "srgb"}}, False)
+    assert str(info.value) == f"{out}: cannot write (No space left on device)"
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_full_disk_while_merging_names_the_profile(tmp_path, monkeypatch, jpeg_bracket):
+    _disk_full(monkeypatch)
+    _refused(*_cli("merge", *frames_of(*jpeg_bracket), "--crf", "srgb", "-o", tmp_path / "out.exr"), 1,
+             [f"{tmp_path / 'out.profile.json'}: cannot write (No space left on device)"], absent=["None", ".part"])
+    assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------- invalid camera responses
+def _table_profile(path, values):
+    path.write_text(json.dumps({"schema": 1, "kind": KIND, "crf": {"model": "table", "inverse": [values]}}))
+    return path
+
+
+@pytest.mark.parametrize("how", ["csv", "profile", "crf profile", "gamma", "profile gamma"])
+def test_an_invalid_response_is_named_not_blamed_on_the_reference(tmp_path, jpeg_bracket, how):
+    neg = list(np.linspace(-0.2, 1.0, 256))
+    if how == "csv":
+        (tmp_path / "neg.csv").write_text("z,linear\n0,-1\n128,-0.5\n255,1\n")
+        args, words = ["--crf", tmp_path / "neg.csv"], ["neg.csv", "negative"]
+    elif how in ("profile", "crf profile"):
+        prof = _table_profile(tmp_path / "neg.json", neg)
+        args, words = ["--profile" if how == "profile" else "--crf", prof], ["neg.json", "negative"]
+    elif how == "gamma":
+        args, words = ["--crf", "gamma:1e300"], ["--crf gamma:1e300", "stops"]
+    else:
+        (tmp_path / "g.json").write_text(json.dumps({"schema": 1, "kind": KIND,
+                                                     "crf": {"model": "gamma", "gamma": 1e300}}))
+        args, words = ["--profile", tmp_path / "g.json"], ["g.json", "crf/gamma"]
+    _refused(*_cli("merge", *frames_of(*jpeg_bracket), *args, "-o", tmp_path / "out.exr"), 1,
+             ["not a valid response", *words], absent=["--reference"])
+    _nothing_written(tmp_path)
+
+
+# ---------------------------------------------------------------- simulate
+def test_a_size_too_large_for_memory_says_so_up_front(tmp_path, monkeypatch):
+    import hdrmerge_cli.pipeline.simulate as sim
+
+    monkeypatch.setattr(sim, "available_memory", lambda: 10**8)
+    line = _refused(*_cli("simulate", "--size", "1000x1000", "-o", tmp_path / "out"), 1,
+                    ["--size 1000x1000", "GB of memory", "0.1 GB available"], absent=["merge fewer"])
+    assert "0.17 GB" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_size_has_an_upper_bound(tmp_path):
+    _refused(*_cli("simulate", "--size", "100000x100000", "-o", tmp_path / "out"), 2, ["--size", "65500"])
+
+
+@pytest.mark.parametrize("extra", [[], ["--scale", "1e9", "--format", "jpg"]])
+def test_too_many_frames_are_blamed_on_the_frames(tmp_path, extra):
+    """--frames 64 one stop apart span 63 stops: 'too dark, raise --scale' was wrong (and
+    at --scale 1e9 an internal error)."""
+    line = _refused(*_cli("simulate", "--size", "64x64", "--frames", "64", *extra, "-o", tmp_path / "out"), 1,
+                    ["--frames 64", "63 stops", "all clipped", "--frames 17 or fewer"],
+                    absent=["raise --scale", "internal error"])
+    assert "builtin covers" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_scenes_too_bright_or_dark_say_which(tmp_path):
+    _refused(*_cli("simulate", "--size", "64x64", "--scale", "1e9", "-o", tmp_path / "out"), 1,
+             ["too bright", "lower --scale"])
+    _refused(*_cli("simulate", "--size", "64x64", "--scale", "1e-9", "-o", tmp_path / "out"), 1,
+             ["too dark", "raise --scale"])
+    _refused(*_cli("simulate", "--size", "64x64", "--times", "1e-9", "-o", tmp_path / "out"), 1,
+             ["--times", "DNG"], absent=["--scale"])
+    _refused(*_cli("simulate", "--size", "64x64", "--times", "1e-9", "--format", "jpg", "-o", tmp_path / "out"), 1,
+             ["1e-09 s", "JPG", "longer --times"], absent=["internal error"])
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_ldr_image_is_not_a_scene(tmp_path, jpeg_bracket):
+    """A JPEG as --scene: refused as display-referred (tone-curved, clipped: its highlights
+    are lost), not reported as 'too dark' after the fact; a float EXR is a scene."""
+    folder, meta = jpeg_bracket
+    line = _refused(*_cli("simulate", "--scene", frames_of(folder, meta)[0], "-o", tmp_path / "out"), 1,
+                    ["frame_00.jpg", "display-referred", "scene-linear"], absent=["too dark"])
+    assert "uint8" in line
+    assert not (tmp_path / "out").exists()
+    code, stderr = _cli("simulate", "--scene", folder / "truth.exr", "--scale", "1e5", "--frames", "3", "-q",
+                        "-o", tmp_path / "exr")
+    assert code == 0 and (tmp_path / "exr" / "frame_02.dng").exists(), stderr
+
+
+def test_huge_photon_counts_are_clipped_not_a_traceback(tmp_path):
+    code, stderr = _cli("simulate", "--size", "64x64", "--times", "1,2", "--scale", "1e12", "-q",
+                        "-o", tmp_path / "out")
+    assert code == 0, stderr
+    assert json.loads((tmp_path / "out" / "simulation.json").read_text())["saturated_fraction"] == [1.0, 1.0]
+
+
+def test_downscale_beyond_the_scene_names_downscale(tmp_path):
+    _refused(*_cli("simulate", "--size", "64x64", "--downscale", "64", "-o", tmp_path / "out"), 1,
+             ["--downscale 64", "1 x 1"], absent=["black"])
+
+
+def test_an_output_folder_that_cannot_be_made(tmp_path):
+    (tmp_path / "file").write_text("")
+    _refused(*_cli("simulate", "--size", "64x64", "-o", tmp_path / "file" / "sub"), 1,
+             [str(tmp_path / "file" / "sub"), "cannot create the folder"])
+
+
+# ---------------------------------------------------------------- estimate-crf
+def test_too_few_samples_are_refused_not_judged(tmp_path, jpeg_bracket):
+    """--samples 1 fitted a response from one pixel and then warned that correct labels
+    were off by several EV."""
+    for method in ("debevec", "goossens"):
+        _refused(*_cli("estimate-crf", *frames_of(*jpeg_bracket), "--method", method, "--samples", "1",
+                       "-o", tmp_path / "out.json"), 1, ["--samples 1", "at least 128"], absent=["labelled"])
+    _nothing_written(tmp_path)
+
+
+def test_a_flat_fit_is_refused(tmp_path, jpeg_bracket):
+    """debevec with --lambda 1e6 on 128 samples fits a response flat within a stop: every
+    code would merge to about white."""
+    _refused(*_cli("estimate-crf", *frames_of(*jpeg_bracket), "--method", "debevec", "--samples", "128",
+                   "--lambda", "1e6", "-o", tmp_path / "out.json"), 1, ["flat", "--lambda"])
+    _nothing_written(tmp_path)
+
+
+# ---------------------------------------------------------------- --config
+@pytest.mark.parametrize("command, toml, code, words", [
+    ("estimate-crf", "lambda = -1\n", 2, ["--lambda", "c.toml"]),
+    ("estimate-crf", "lambda = 1e300\n", 2, ["--lambda", "c.toml"]),
+    ("merge", "[merge]\nnoise = \"sigma_o2=nan,alpha=1\"\n", 1, ["--noise", "c.toml"]),
+    ("merge", "crf = \"gamma:1e300\"\n", 1, ["gamma:1e300", "c.toml"]),
+    ("merge", "weights = \"best\"\n", 2, ["--weights", "c.toml"]),
+])
+def test_config_values_name_the_config_file(tmp_path, jpeg_bracket, command, toml, code, words):
+    (tmp_path / "c.toml").write_text(toml)
+    out = tmp_path / ("out.json" if command == "estimate-crf" else "out.exr")
+    _refused(*_cli(command, *frames_of(*jpeg_bracket), "--config", tmp_path / "c.toml", "-o", out), code, words)
+    _nothing_written(tmp_path)
+
+
+def test_a_value_on_the_command_line_does_not_blame_the_config(tmp_path, jpeg_bracket):
+    (tmp_path / "c.toml").write_text("crf = \"srgb\"\n")
+    line = _refused(*_cli("merge", *frames_of(*jpeg_bracket), "--config", tmp_path / "c.toml", "--noise",
+                          "sigma_o2=nan,alpha=1", "-o", tmp_path / "out.exr"), 1, ["--noise"])
+    assert "c.toml" not in line
+
+
+# ---------------------------------------------------------------- other hostile files
+@pytest.mark.parametrize("name, content", [
+    ("empty.csv", ""), ("list.json", "[1]"), ("nulls.json", '{"weights": [[null, 1]]}'),
+    ("deep.json", '{"weights": ' + "[" * 100000 + "]" * 100000 + "}"),
+])
+def test_bad_weight_tables(tmp_path, jpeg_bracket, name, content):
+    (tmp_path / name).write_text(content)
+    _refused(*_cli("merge", *frames_of(*jpeg_bracket), "--crf", "srgb", "--lut", tmp_path / name,
+                   "-o", tmp_path / "out.exr"), 1, [name], absent=["UserWarning"])
+    _nothing_written(tmp_path)
+
+
+@pytest.mark.parametrize("what", ["folder", "image"])
+def test_a_crf_that_is_a_folder_or_an_image(tmp_path, jpeg_bracket, what):
+    folder, meta = jpeg_bracket
+    spec = tmp_path if what == "folder" else folder / "truth.exr"
+    _refused(*_cli("weights-lut", "--times", "1,2", "--crf", spec, "-o", tmp_path / "out.csv"), 1,
+             [str(spec), "not a camera response" if what == "image" else "is a folder"], absent=["unknown CRF"])
+    _nothing_written(tmp_path)
+
+
+
+@pytest.mark.parametrize("fmt", ["jpg", "dng"])
+def test_a_read_only_simulate_folder_names_it(tmp_path, monkeypatch, fmt):
+    """The JPEG exposure-time probe and the outputs' temporaries are hidden names in the
+    folder: the error names the folder or the user's file, never them."""
+    out = tmp_path / "out"
+    out.mkdir()
+    real_open = os.open
+
+    def refuse(path, *args, **kwargs):
+        if os.path.dirname(os.fspath(path)) == str(out):
+            raise PermissionError(errno.EACCES, "Permission denied", path)
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refuse)
+    _refused(*_cli("simulate", "--size", "64x64", "--format", fmt, "-o", out), 1,
+             [str(out), "cannot write (Permission denied)"], absent=[".probe", ".part"])
+    assert not list(out.iterdir())
