@@ -355,3 +355,24 @@ def test_a_read_only_simulate_folder_names_it(tmp_path, monkeypatch, fmt):
     _refused(*_cli("simulate", "--size", "64x64", "--format", fmt, "-o", out), 1,
              [str(out), "cannot write (Permission denied)"], absent=[".probe", ".part"])
     assert not list(out.iterdir())
+
+
+@pytest.mark.parametrize("value, words, absent", [(0, "100.0 % of its pixels read black", "clipped at"),
+                                                  (255, "100.0 % of its pixels are clipped at white", "read black")])
+def test_black_frames_are_not_called_clipped(tmp_path, value, words, absent):
+    """calibrate-noise on frames with nothing to measure says whether they are black or white."""
+    import OpenImageIO as oiio
+
+    files = []
+    for k, t in enumerate((0.01, 0.04)):
+        spec = oiio.ImageSpec(16, 8, 3, oiio.UINT8)
+        spec.attribute("ExposureTime", t)
+        files.append(tmp_path / f"f{k}.tif")
+        out = oiio.ImageOutput.create(str(files[-1]))
+        assert out.open(str(files[-1]), spec) and out.write_image(np.full((8, 16, 3), value, np.uint8))
+        out.close()
+    code, stderr = _cli("calibrate-noise", *files, "--crf", "srgb", "-o", tmp_path / "n.json")
+    assert code == 1 and "Traceback" not in stderr
+    skipped = [ln for ln in stderr.splitlines() if "skipped" in ln]
+    assert len(skipped) == 2 and all(words in ln and absent not in ln for ln in skipped), stderr
+    assert not (tmp_path / "n.json").exists()

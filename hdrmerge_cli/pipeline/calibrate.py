@@ -68,7 +68,11 @@ def _usable(frame: Frame, planes) -> str | None:
     :func:`channel_planes` yields them."""
     inside = np.mean([np.mean((p > lo) & (p < hi)) for _, p, lo, hi in planes])
     if inside < MIN_UNCLIPPED:
-        return f"{100 * (1 - inside):.1f} % of its pixels are clipped"
+        dark = np.mean([np.mean(p <= lo) for _, p, lo, hi in planes])
+        bright = 1 - inside - dark
+        parts = [f"{100 * v:.1f} % of its pixels {what}" for v, what in ((dark, "read black"),
+                                                                         (bright, "are clipped at white")) if v > 0]
+        return " and ".join(parts)
     if not any(_has_signal(p, lo, hi) for _, p, lo, hi in planes):
         return "it is black (no signal above its noise floor)"
     return None
