@@ -1,13 +1,14 @@
 """merge --batch: grouping, local processes, a Dask LocalCluster, failures and skips."""
 import dataclasses
 import json
+import os
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import frames_of
+from conftest import SHARED, frames_of, needs_shared
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.pipeline.batch import capture_seconds, group_brackets
 
@@ -40,6 +41,140 @@ def test_groups_split_at_time_gaps_repeated_exposures_and_layout_changes():
 def test_without_timestamps_the_exposure_sequence_decides():
     frames = [_frame(n, t) for n, t in [("f1", 0.01), ("f2", 0.04), ("f3", 0.01), ("f4", 0.04), ("f5", 0.16)]]
     assert [len(g) for g in group_brackets(frames)] == [2, 3]
+
+
+def test_the_gap_counts_from_the_end_of_the_previous_exposure():
+    """A 30 s frame starting 9 s after an 8 s frame began follows 1 s after it ended."""
+    s = "2024-05-01T10:00:{:02d}"
+    frames = [_frame("f1", 1.0, s.format(0)), _frame("f2", 8.0, s.format(1)), _frame("f3", 30.0, s.format(10))]
+    assert [len(g) for g in group_brackets(frames, gap=3.0)] == [3]
+
+
+def test_a_descending_sequence_that_turns_back_has_restarted():
+    times = [0.16, 0.04, 0.01, 0.0025]  # then again half a stop longer: no time repeats
+    frames = [_frame(f"f{k}", t) for k, t in enumerate(times + [t * 1.5 for t in times])]
+    assert [len(g) for g in group_brackets(frames)] == [4, 4]
+
+
+def _scene(seed, height=160, width=240):
+    """A smooth random irradiance field about 14 stops deep, one per seed."""
+    from scipy.ndimage import gaussian_filter
+
+    field = gaussian_filter(np.random.default_rng(seed).standard_normal((height, width)), 4)
+    return 2.0 ** (2.5 * (field - field.mean()) / field.std())
+
+
+def _write_jpeg(path, irradiance, t, stamp, size=None):
+    """An sRGB JPEG of ``irradiance * t`` with EXIF ExposureTime, DateTimeOriginal and a
+    camera (grey, or the given RGB codes resized to ``size``)."""
+    import OpenImageIO as oiio
+
+    if irradiance.ndim == 2:
+        v = np.clip(irradiance * t, 0, 1)
+        v = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+        pixels = np.repeat((v * 255 + 0.5).astype(np.uint8)[..., None], 3, axis=2)
+    else:
+        import cv2
+
+        pixels = cv2.resize(irradiance, size, interpolation=cv2.INTER_AREA)
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], 3, oiio.UINT8)
+    for key, value in (("ExposureTime", float(t)), ("Exif:DateTimeOriginal", stamp), ("Make", "Cam"),
+                       ("Model", "One"), ("Compression", "jpeg:90")):
+        spec.attribute(key, value)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(pixels)
+    out.close()
+
+
+def test_structure_correlation_ignores_response_exposure_and_a_one_pixel_shift():
+    from hdrmerge_cli.core.similarity import same_scene, structure_correlation
+
+    scene = _scene(1, 96, 144)[::3, ::3]  # a 32 x 48 thumbnail
+    dark = np.clip(scene / 16, 0, 1) ** (1 / 2.2)
+    bright = np.clip(np.roll(scene, 1, axis=1), 0, 1) ** 0.3  # 4 stops up, another response, shifted
+    r, n = structure_correlation(dark, bright, 8 / 255, 247 / 255)
+    assert same_scene(r, n) and r > 0.9
+    other = np.clip(_scene(2, 96, 144)[::3, ::3] / 16, 0, 1) ** (1 / 2.2)
+    r, n = structure_correlation(dark, other, 8 / 255, 247 / 255)
+    assert not same_scene(r, n) and abs(r) < 0.3 and n > 500
+    assert structure_correlation(np.zeros((8, 8)), np.zeros((8, 8)), 0.1, 0.9)[1] == 0  # nothing well exposed
+
+
+def test_frames_far_apart_join_on_the_same_scene_and_split_on_another(run, tmp_path):
+    """Three frames of one scene shot 10 s apart stay one bracket; three of another scene 6 s
+    later (their times going on up: only the content tells) are a second; a last frame of a
+    third scene is a bracket of one, warned about with why it was cut off."""
+    shoot = tmp_path / "shoot"
+    shoot.mkdir()
+    stamp = "2024:05:01 10:{:02d}:{:02d}"
+    shots = [("a", 1, [1 / 100, 1 / 25, 1 / 6], 0), ("b", 2, [0.4, 1.0, 2.5], 26), ("c", 3, [6.0], 54)]
+    for prefix, seed, times, start in shots:
+        for k, t in enumerate(times):
+            at = start + 10 * k
+            _write_jpeg(shoot / f"{prefix}{k}.jpg", _scene(seed), t, stamp.format(at // 60, at % 60))
+    proc = run("merge", "--batch", shoot, "-o", tmp_path / "out", "--dry-run", "--json")
+    brackets = json.loads(proc.stdout)["brackets"]
+    assert [[Path(p).name for p in e["frames"]] for e in brackets] == [
+        ["a0.jpg", "a1.jpg", "a2.jpg"], ["b0.jpg", "b1.jpg", "b2.jpg"], ["c0.jpg"]]
+    assert [j["frame"] for j in brackets[0]["joined"]] == ["a1.jpg", "a2.jpg"]
+    assert "a different scene" in brackets[1]["reason"] and "after a2.jpg's exposure ended" in brackets[1]["reason"]
+    warning = [line for line in proc.stderr.splitlines() if "c0.jpg" in line]
+    assert len(warning) == 1 and "one frame" in warning[0] and "a different scene" in warning[0]
+    listing = run("merge", "--batch", shoot, "-o", tmp_path / "out", "--dry-run").stdout
+    assert "new bracket: 6 s after a2.jpg's exposure ended (more than --gap 3 s), and a different scene" in listing
+    assert "kept together across long gaps, the same scene: 10 s before a1.jpg" in listing
+
+
+def _shared_brackets():
+    return sorted(p for p in (SHARED / "brackets").iterdir() if p.is_dir())
+
+
+def _frames_of_folder(folder):
+    return [p for p in sorted(folder.iterdir()) if p.suffix.lower() in (".jpg", ".jpeg")]
+
+
+@needs_shared
+def test_the_shared_brackets_in_one_folder_come_back_whole(run, tmp_path):
+    """Every real bracket (tripod and hand-held; some shot 4-45 s apart) of the shared data,
+    linked into one folder, is exactly one bracket."""
+    shoot = tmp_path / "all"
+    shoot.mkdir()
+    for folder in _shared_brackets():
+        for p in _frames_of_folder(folder):
+            (shoot / f"{folder.name}__{p.name}").symlink_to(p)
+    brackets = json.loads(run("merge", "--batch", shoot, "-o", tmp_path / "out", "--dry-run", "--json").stdout)
+    got = sorted(sorted(Path(p).resolve() for p in e["frames"]) for e in brackets["brackets"])
+    want = sorted(sorted(p.resolve() for p in _frames_of_folder(folder)) for folder in _shared_brackets())
+    assert len(want) >= 10 and got == want
+
+
+@needs_shared
+def test_two_real_scenes_of_one_camera_seconds_apart_are_two_brackets(run, tmp_path):
+    """Two real kitchens written at one size as one camera's frames, the second bracket
+    starting 5 s after the first ended with the exposure sequence going on down: split on
+    the content."""
+    import cv2
+
+    brackets = SHARED / "brackets"
+    first = [(p, t) for p, t in (("4.jpg", 1 / 6), ("5.jpg", 1 / 13), ("1.jpg", 1 / 15), ("2.jpg", 1 / 25),
+                                 ("3.jpg", 1 / 40))]
+    second = [("6.jpg", 1 / 60), ("7.jpg", 1 / 8), ("8.jpg", 1.0)]
+    shoot = tmp_path / "shoot"
+    shoot.mkdir()
+    at = 0
+    for k, (name, t) in enumerate(first):
+        rgb = cv2.imread(str(brackets / "em1ii_kitchen_jpg" / name))[..., ::-1]
+        _write_jpeg(shoot / f"img_{k:02d}.jpg", rgb, t, f"2024:05:01 10:00:{at:02d}", size=(480, 320))
+        at += 2
+    at += 5
+    for k, (name, t) in enumerate(second, start=len(first)):
+        rgb = cv2.imread(str(brackets / "eos70d_kitchen_jpg" / name))[..., ::-1]
+        _write_jpeg(shoot / f"img_{k:02d}.jpg", rgb, t, f"2024:05:01 10:00:{at:02d}", size=(480, 320))
+        at += 2
+    s = json.loads(run("merge", "--batch", shoot, "-o", tmp_path / "out", "--dry-run", "--json").stdout)
+    assert [len(e["frames"]) for e in s["brackets"]] == [5, 3]
+    assert "a different scene" in s["brackets"][1]["reason"]
 
 
 @pytest.fixture()
@@ -149,26 +284,28 @@ def test_an_empty_folder_is_a_one_line_error_and_writes_nothing(run, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_path, tmp_path_factory):
-    """SIGTERM to `merge --batch -j 2`: exit 143, the worker processes are gone, no
-    temporary is left, no bracket that had not started is merged (the pool queues one
-    ahead: a worker that went on to it wrote it after the signal) and no output appears
-    after the command has ended."""
-    import os
-    import signal
+@pytest.fixture(scope="module")
+def big_shoot(tmp_path_factory, run):
+    """Four brackets of 1600 x 1200 frames (no timestamps: split by the sequence), slow
+    enough to merge that a signal arrives while they are being written."""
+    big = tmp_path_factory.mktemp("bigshoot")
+    run("simulate", "-o", big / "sim", "-q", "--size", "1600x1200", "--frames", "3", "--seed", "2")
+    shoot = big / "shoot"
+    shoot.mkdir()
+    for prefix in "abcd":
+        for k, p in enumerate(sorted((big / "sim").glob("frame_*.dng"))):
+            shutil.copy(p, shoot / f"{prefix}_{k}.dng")
+    return shoot
+
+
+def _stop_while_writing(shoot, out, signum):
+    """Start ``merge --batch shoot -o out -j 2``, send ``signum`` once a temporary is being
+    written; returns (process, its stderr, the worker pids, the outputs begun by then)."""
     import subprocess
     import time
 
     from conftest import _command
 
-    big = tmp_path_factory.mktemp("bigshoot")
-    run("simulate", "-o", big / "sim", "-q", "--size", "1600x1200", "--frames", "3", "--seed", "2")
-    shoot = big / "shoot"
-    shoot.mkdir()
-    for prefix in "abcd":  # four brackets of the same frames (no timestamps: split by the sequence)
-        for k, p in enumerate(sorted((big / "sim").glob("frame_*.dng"))):
-            shutil.copy(p, shoot / f"{prefix}_{k}.dng")
-    out = tmp_path / "merged"
     proc = subprocess.Popen(_command() + ["merge", "--batch", str(shoot), "-o", str(out), "-j", "2", "-q"],
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
@@ -177,17 +314,62 @@ def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(run, tmp_p
         time.sleep(0.005)
     children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
     started = {n.split(".")[1] for n in os.listdir(out) if ".part" in n} | {n.split(".")[0] for n in os.listdir(out)}
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=90)
+    return proc, err, children, started
+
+
+def test_sigterm_stops_the_batch_workers_and_nothing_is_written_after(tmp_path, big_shoot):
+    """SIGTERM to `merge --batch -j 2`: exit 143, the worker processes are gone, no
+    temporary is left, no bracket that had not started is merged (the pool queues one
+    ahead: a worker that went on to it wrote it after the signal) and no output appears
+    after the command has ended; the output folder is left only if an output is in it."""
+    import signal
+    import time
+
+    out = tmp_path / "merged"
+    proc, err, children, started = _stop_while_writing(big_shoot, out, signal.SIGTERM)
     if proc.returncode == 0:
         pytest.skip("the batch finished before the signal arrived")
     assert proc.returncode == 128 + signal.SIGTERM and "Traceback" not in err, err
-    listing = sorted(os.listdir(out))
+    listing = sorted(os.listdir(out)) if out.exists() else []
     time.sleep(3)
-    assert sorted(os.listdir(out)) == listing and not any(".part" in n for n in listing)
+    assert (sorted(os.listdir(out)) if out.exists() else []) == listing and not any(".part" in n for n in listing)
     assert {n.split(".")[0] for n in listing} <= started, (listing, started)
+    assert not out.exists() or listing
     assert not [c for c in children if Path(f"/proc/{c}").exists()
                 and "zombie" not in Path(f"/proc/{c}/status").read_text()]
+
+
+def test_ctrl_c_before_any_output_leaves_no_output_folder(tmp_path, big_shoot):
+    """Ctrl-C while the first brackets are being written: nothing was committed, so the
+    output folder (and the parent made for it) is gone; one committed already keeps it."""
+    import signal
+
+    out = tmp_path / "new" / "merged"
+    proc, err, _, _ = _stop_while_writing(big_shoot, out, signal.SIGINT)
+    if proc.returncode == 0:
+        pytest.skip("the batch finished before the signal arrived")
+    assert proc.returncode != 0
+    if out.exists():
+        assert [n for n in os.listdir(out) if n.endswith(".exr")], os.listdir(out)
+    else:
+        assert not (tmp_path / "new").exists()
+
+
+def test_a_batch_whose_every_bracket_fails_leaves_no_output_folder(run, tmp_path):
+    import OpenImageIO as oiio
+
+    shoot = tmp_path / "shoot"
+    shoot.mkdir()
+    for k, level in enumerate((100, 30)):  # no exposure times: the merge fails
+        buf = oiio.ImageBuf(oiio.ImageSpec(32, 24, 3, oiio.UINT8))
+        buf.set_pixels(oiio.ROI(), np.full((24, 32, 3), level, np.uint8))
+        buf.write(str(shoot / f"x{k}.png"))
+    out = tmp_path / "a" / "b"
+    proc = run("merge", "--batch", shoot, "-o", out, check=False)
+    assert proc.returncode == 1 and "1 of 1 brackets failed" in proc.stderr
+    assert not (tmp_path / "a").exists()
 
 
 def test_a_retried_cluster_task_counts_its_own_earlier_outputs_as_done(tmp_path, dng_bracket):

@@ -36,19 +36,24 @@ log = logging.getLogger("hdrmerge_cli")
                    "the default rendering show the --reference exposure: darktable ignores it, so raise darktable's "
                    "exposure by that many EV) (with --batch: the folder to write one EXR per bracket to).")
 @click.option("--batch", "batch_dir", type=click.Path(exists=True, file_okay=False),
-              help="Merge every bracket in this folder instead of IMAGES: frames are grouped by capture-time gaps "
-                   "(--gap) and by the exposure sequence starting again; each bracket's EXR is named after its "
-                   "first frame.  A bad bracket is reported and skipped; the exit status is 1 if any failed.")
+              help="Merge every bracket in this folder instead of IMAGES: frames are grouped by camera and image "
+                   "layout, by the exposure sequence starting again, and by capture-time gaps (--gap) unless the "
+                   "frames across the gap show the same scene (compared on thumbnails); each bracket's EXR is named "
+                   "after its first frame.  A bad bracket is reported and skipped; the exit status is 1 if any "
+                   "failed.  The output folder is left only if an output was written into it.")
 @click.option("-j", "--jobs", default=1, show_default=True, type=click.IntRange(1, 256),
               help="--batch: brackets merged at once, each in its own process.")
 @click.option("--gap", default=DEFAULT_GAP, show_default=True, type=FiniteFloatRange(0),
-              help="--batch: largest time (s) between two frames of one bracket.")
+              help="--batch: largest time (s) from the end of one exposure to the start of the next in one "
+                   "bracket; frames farther apart stay together only when they show the same scene.")
 @click.option("--scheduler", metavar="ADDRESS",
               help="--batch: run on the Dask distributed scheduler at ADDRESS (e.g. tcp://host:8786), one task per "
                    "bracket; inputs and outputs must be on storage the workers share.")
 @click.option("--skip-existing", is_flag=True,
               help="--batch: skip brackets whose EXR exists and is newer than all their frames.")
-@click.option("--dry-run", is_flag=True, help="--batch: list the brackets and their outputs; merge nothing.")
+@click.option("--dry-run", is_flag=True,
+              help="--batch: list the brackets, their outputs and why each was cut from the frames before it; "
+                   "merge nothing.")
 @click.option("--profile-out", type=click.Path(dir_okay=False, path_type=Path),
               help="Where to write the camera profile JSON used [default: OUTPUT with .profile.json].")
 @click.option("--weights", type=click.Choice(["auto", *sorted(WEIGHTING_FUNCTIONS)]), default="auto", show_default=True,

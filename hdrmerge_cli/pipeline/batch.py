@@ -19,24 +19,32 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
+from hdrmerge_cli.core.similarity import SAME_SCENE_CORRELATION, same_scene, structure_correlation
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
 from hdrmerge_cli.io.memory import one_malloc_arena
+from hdrmerge_cli.io.thumbnails import read_thumbnail, thumbnail_shape
+from hdrmerge_cli.pipeline.bracket import fmt_time
 from hdrmerge_cli.pipeline.merge import merge
 from hdrmerge_cli.pipeline.options import MergeOptions
 from hdrmerge_cli.pipeline.output import default_profile_path
 
 log = logging.getLogger("hdrmerge_cli")
 
-#: default largest capture-time gap (s) inside one bracket (HDRMerge's -g default)
+#: default largest time (s) from the end of one exposure to the start of the next inside
+#: one bracket (HDRMerge's -g default)
 DEFAULT_GAP = 3.0
 #: exposure times within this many stops count as the same setting (cameras round the
 #: times they record; bracket steps are 1/3 stop or more)
 SAME_SETTING_STOPS = 1 / 6
-#: an ascending exposure sequence of at least :data:`RESTART_MIN_FRAMES` frames that falls
+#: a monotone exposure sequence of at least :data:`RESTART_MIN_FRAMES` frames that turns
 #: back by this many stops or more has restarted (the next AEB sequence)
 RESTART_FALL_STOPS = 2.0
 RESTART_MIN_FRAMES = 3
+#: longer side (pixels) of the thumbnails compared across a gap
+THUMBNAIL_SIDE = 48
+#: thumbnail values (fraction of full scale, camera-encoded) a frame exposes well
+WELL_EXPOSED = (8 / 255, 247 / 255)
 
 
 def capture_seconds(stamp: str | None) -> float | None:
@@ -53,64 +61,165 @@ def capture_seconds(stamp: str | None) -> float | None:
     return None
 
 
-def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP) -> list[list[Frame]]:
+@dataclass
+class Bracket:
+    """Frames of one bracket in capture order.  ``reason``: why it was cut from the frames
+    before it (None for the folder's first frames); ``joined``: the frames it kept across a
+    gap longer than ``--gap`` because they show its scene (frame, gap_seconds,
+    same_scene_as, correlation, gradients)."""
+    frames: list[Frame]
+    reason: str | None
+    joined: list[dict] = dataclasses.field(default_factory=list)
+
+
+def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[list[Frame]]:
+    """The frames of each bracket of :func:`split_brackets`."""
+    return [b.frames for b in split_brackets(frames, gap, thumbnail)]
+
+
+def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[Bracket]:
     """Split frames into brackets, in capture order (timestamp, then file name).
 
     Frames of different cameras or image layouts (a RAW + JPEG folder) go to separate
-    brackets.  Within one layout a new bracket starts at a frame taken more than ``gap``
-    seconds after the bracket's last frame (when both have timestamps), or where the
-    camera's exposure sequence started again (:func:`restarts`): its exposure time repeats
-    an earlier one of the bracket, or an ascending sequence falls back by a couple of
-    stops.  Frames repeating the previous frame's time (a burst) stay together."""
+    brackets.  Within one layout a new bracket starts where the camera's exposure sequence
+    started again (:func:`restart_reason`), or at a frame taken more than ``gap`` seconds
+    after the previous frame's exposure ended (both timestamped) unless it adds a new
+    exposure time and shows the scene of one of the bracket's frames
+    (:func:`~hdrmerge_cli.core.similarity.same_scene` of their thumbnails; hand-held
+    brackets are often shot seconds apart).  Frames repeating the previous frame's time
+    within ``gap`` (a burst) stay together.
+
+    ``thumbnail(frame)``: a 2-D array in [0, 1] (default: :data:`THUMBNAIL_SIDE` pixels from
+    :func:`~hdrmerge_cli.io.thumbnails.read_thumbnail`), the same shape for frames of one
+    layout; read only for frames on either side of such a gap, once per frame."""
     def key(f):
         t = capture_seconds(f.timestamp)
         return (t if t is not None else float("-inf"), Path(f.path).name)
 
-    groups: list[list[Frame]] = []
-    open_group: dict = {}  # layout -> index of its current bracket in groups
+    scenes = _SceneTest(thumbnail or _read_thumbnail)
+    brackets: list[Bracket] = []
+    open_bracket: dict = {}  # layout -> its current bracket
+    previous = None
     for f in sorted(frames, key=key):
-        t = capture_seconds(f.timestamp)
-        k = open_group.get(f.layout)
-        current = None if k is None else groups[k]
-        last_t = None if current is None else capture_seconds(current[-1].timestamp)
-        new = (
-            current is None
-            or (t is not None and last_t is not None and t - last_t > gap)
-            or restarts(current, f)
-        )
-        if new:
-            open_group[f.layout] = len(groups)
-            groups.append([f])
+        current = open_bracket.get(f.layout)
+        if current is None:
+            reason = None if previous is None else f"another camera or image layout than {previous.name}"
         else:
-            current.append(f)
-    return groups
+            last = current.frames[-1]
+            reason = restart_reason(current.frames, f)
+            after = _seconds_after(last, f)
+            if reason is None and after is not None and after > gap:
+                what = f"{after:.0f} s after {last.name}'s exposure ended (more than --gap {gap:g} s)"
+                if _same_time(f.exposure_time, last.exposure_time):  # a burst is quick
+                    match, verdict = None, "the same exposure time"
+                else:
+                    match, verdict = scenes.match(current.frames, f)
+                if match is None:
+                    reason = f"{what}, and {verdict}"
+                else:
+                    current.joined.append({"frame": f.name, "gap_seconds": round(after, 3), **match})
+        if current is None or reason is not None:
+            current = open_bracket[f.layout] = Bracket([f], reason)
+            brackets.append(current)
+        else:
+            current.frames.append(f)
+        previous = f
+    return brackets
+
+
+def _seconds_after(last: Frame, f: Frame) -> float | None:
+    """Seconds from the end of ``last``'s exposure to the start of ``f``'s (None unless
+    both are timestamped)."""
+    t, t0 = capture_seconds(f.timestamp), capture_seconds(last.timestamp)
+    if t is None or t0 is None:
+        return None
+    return t - t0 - (last.exposure_time or 0.0)
+
+
+def _read_thumbnail(frame: Frame) -> np.ndarray:
+    return read_thumbnail(frame, thumbnail_shape(frame, THUMBNAIL_SIDE))
+
+
+class _SceneTest:
+    """Whether a frame shows the scene of a bracket, on thumbnails read once per frame."""
+
+    def __init__(self, read):
+        self.read = read
+        self.cache: dict[str, np.ndarray | HdrMergeError] = {}
+
+    def thumbnail(self, frame: Frame) -> np.ndarray:
+        if frame.path not in self.cache:
+            try:
+                self.cache[frame.path] = self.read(frame)
+            except HdrMergeError as exc:
+                self.cache[frame.path] = exc
+        got = self.cache[frame.path]
+        if isinstance(got, HdrMergeError):
+            raise got
+        return got
+
+    def match(self, bracket: list[Frame], f: Frame) -> tuple[dict | None, str]:
+        """The first frame of ``bracket`` (nearest exposure first) that ``f`` shows the
+        scene of, as ``{"same_scene_as", "correlation", "gradients"}``, or None and why not
+        (a phrase naming the closest candidate)."""
+        def stops(g):
+            if f.exposure_time is None or g.exposure_time is None:
+                return np.inf
+            return abs(np.log2(g.exposure_time / f.exposure_time))
+
+        best = None  # (z, r, n, frame) of the strongest evidence
+        try:
+            b = self.thumbnail(f)
+            for g in sorted(bracket, key=stops):
+                r, n = structure_correlation(self.thumbnail(g), b, *WELL_EXPOSED)
+                if same_scene(r, n):
+                    return {"same_scene_as": g.name, "correlation": round(r, 3), "gradients": n}, ""
+                if n and (best is None or r * np.sqrt(n) > best[0]):
+                    best = (r * np.sqrt(n), r, n, g)
+        except HdrMergeError as exc:
+            return None, f"its content could not be compared ({exc})"
+        if best is None:
+            return None, "no part of the scene is well exposed in both it and the bracket's frames"
+        _, r, n, g = best
+        if r >= SAME_SCENE_CORRELATION:
+            return None, (f"too little of the scene is well exposed in both it and {g.name} to tell whether it is the "
+                          f"same ({n} gradients)")
+        return None, f"a different scene than {g.name} (structure correlation {r:.2f} on {n} gradients)"
 
 
 def _same_time(a, b) -> bool:
     return a is not None and b is not None and abs(np.log2(a / b)) <= SAME_SETTING_STOPS
 
 
-def restarts(current: list[Frame], f: Frame) -> bool:
-    """Whether frame ``f`` starts a new exposure sequence after the bracket ``current``:
+def restart_reason(current: list[Frame], f: Frame) -> str | None:
+    """Why frame ``f`` starts a new exposure sequence after the bracket ``current``, or
+    None if it does not:
 
     - its exposure time repeats one of the bracket (within :data:`SAME_SETTING_STOPS`,
       the rounding of recorded times) other than the previous frame's (repeating the
       previous frame's time is a burst, which merges); or
-    - the bracket so far is an ascending sequence of at least :data:`RESTART_MIN_FRAMES`
-      frames and ``f`` falls back from its last frame by :data:`RESTART_FALL_STOPS` or
-      more (AEB restarting, even when the new sequence's times differ slightly from the
-      last one's).  Centre-out orders (0, -, +, --, ++) never ascend from their start, so
-      their falls do not split them."""
+    - the bracket so far is a monotone (ascending or descending) sequence of at least
+      :data:`RESTART_MIN_FRAMES` frames and ``f`` turns back from its last frame by
+      :data:`RESTART_FALL_STOPS` or more (AEB restarting, even when the new sequence's
+      times differ slightly from the last one's).  Centre-out orders (0, -, +, --, ++) are
+      not monotone from their start, so their turns do not split them."""
     t, prev = f.exposure_time, current[-1].exposure_time
     if t is None:
-        return False
-    if not _same_time(t, prev) and any(_same_time(t, g.exposure_time) for g in current[:-1]):
-        return True
+        return None
+    if not _same_time(t, prev):
+        for g in current[:-1]:
+            if _same_time(t, g.exposure_time):
+                return f"the exposure sequence started again ({fmt_time(t)} repeats {g.name})"
     times = [g.exposure_time for g in current]
     if len(times) < RESTART_MIN_FRAMES or any(x is None for x in times):
-        return False
-    ascending = all(np.log2(b / a) > SAME_SETTING_STOPS for a, b in zip(times, times[1:]))
-    return ascending and np.log2(prev / t) >= RESTART_FALL_STOPS - SAME_SETTING_STOPS
+        return None
+    steps = [np.log2(b / a) for a, b in zip(times, times[1:])]
+    back = np.log2(t / prev)
+    for sign, way in ((1, "ascending"), (-1, "descending")):
+        if all(sign * s > SAME_SETTING_STOPS for s in steps) and -sign * back >= RESTART_FALL_STOPS - SAME_SETTING_STOPS:
+            return (f"the exposure sequence started again (the {way} sequence turns back "
+                    f"{abs(back):.1f} stops at {fmt_time(t)})")
+    return None
 
 
 @dataclass
@@ -125,8 +234,10 @@ class BatchOptions:
 
 
 def plan(opts: BatchOptions) -> list[dict]:
-    """The brackets of the folder, each ``{"frames": [...], "output": ...}``; unreadable
-    files are reported as their own failed entries (``"error"``)."""
+    """The brackets of the folder, each ``{"frames": [...], "output": ..., "reason": ...}``
+    (``reason``: why it was cut from the frames before it, see :func:`split_brackets`;
+    ``joined``: the long gaps it was kept together across); unreadable files are reported
+    as their own failed entries (``"error"``).  A bracket of one frame is warned about."""
     frames, bad = [], []
     paths = list_frames(opts.folder)
     if not paths:
@@ -140,20 +251,34 @@ def plan(opts: BatchOptions) -> list[dict]:
             bad.append({"frames": [p], "output": None, "status": "failed", "error": str(exc)})
     out, taken = [], set()
     outdir = Path(opts.outdir).resolve()
-    for group in group_brackets(frames, opts.gap):
+    brackets = split_brackets(frames, opts.gap)
+    for k, bracket in enumerate(brackets):
+        group = bracket.frames
         first = Path(group[0].path)
         name = first.stem if first.stem not in taken else f"{first.stem}_{first.suffix.lstrip('.').lower()}"
-        k = 2
+        n = 2
         while name in taken:  # unique output names: never two brackets on one file
-            name, k = f"{first.stem}_{k}", k + 1
+            name, n = f"{first.stem}_{n}", n + 1
         taken.add(name)
         output = outdir / (name + ".exr")
-        entry = {"frames": [f.path for f in group], "output": str(output), "status": "planned"}
+        entry = {"frames": [f.path for f in group], "output": str(output), "status": "planned",
+                 "reason": bracket.reason, "joined": bracket.joined}
+        if len(group) == 1:
+            log.warning("%s", _single_frame_warning(bracket, brackets[k + 1:]))
         if opts.skip_existing and output.exists() and all(
                 output.stat().st_mtime >= os.stat(f.path).st_mtime for f in group):
             entry["status"] = "skipped"
         out.append(entry)
     return out + bad
+
+
+def _single_frame_warning(bracket: Bracket, later: list[Bracket]) -> str:
+    """One line: the frame, and why it was cut from the frames before and after it."""
+    f = bracket.frames[0]
+    nxt = next((b for b in later if b.frames[0].layout == f.layout), None)
+    why = [f"before it: {bracket.reason}" if bracket.reason else "it is the first frame"]
+    why.append(f"after it: {nxt.frames[0].name}: {nxt.reason}" if nxt else "no frame follows it")
+    return f"{f.path}: a bracket of one frame, merged alone ({'; '.join(why)})"
 
 
 def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = None,
@@ -194,19 +319,23 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
     jobs = [(e, dataclasses.replace(opts.merge, output=Path(e["output"]), profile_out=None)) for e in todo]
     client = _connect(opts.scheduler) if opts.scheduler and jobs else None  # before anything is created
-    if todo:  # nothing to write: no output folder either
-        opts.outdir.mkdir(parents=True, exist_ok=True)
-    if client is not None:
-        with client:
-            results = _on_dask(client, jobs, profile_text, progress)
-    elif opts.jobs > 1 and len(jobs) > 1:
-        results = _on_processes(opts.jobs, jobs, progress)
-    else:
-        results = []
-        for e, mo in jobs:
-            results.append((e, merge_one(e["frames"], mo)))
-            if progress:
-                progress(1)
+    created = _missing_folders(Path(opts.outdir)) if todo else []  # nothing to write: no output folder either
+    try:
+        for folder in reversed(created):
+            folder.mkdir(exist_ok=True)
+        if client is not None:
+            with client:
+                results = _on_dask(client, jobs, profile_text, progress)
+        elif opts.jobs > 1 and len(jobs) > 1:
+            results = _on_processes(opts.jobs, jobs, progress)
+        else:
+            results = []
+            for e, mo in jobs:
+                results.append((e, merge_one(e["frames"], mo)))
+                if progress:
+                    progress(1)
+    finally:  # interrupted, or every bracket failed: the folders made for the outputs go again
+        _remove_empty(created)
     for e, res in results:
         e["status"] = res["status"]
         if res["status"] == "failed":
@@ -215,6 +344,27 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
         else:
             e["profile"] = res["summary"]["profile"]
     return summarize(entries)
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist yet, deepest first."""
+    missing = []
+    while not folder.exists() and folder.parent != folder:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the folders (deepest first) as long as they are empty: an output committed
+    into one keeps it and its parents."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except FileNotFoundError:
+            continue
+        except OSError:
+            return
 
 
 #: a worker process is merging a bracket (its stop signal then unwinds the merge)
@@ -331,10 +481,17 @@ def summarize(entries: list[dict]) -> dict:
 
 
 def describe(summary: dict) -> str:
-    """One line per bracket for the terminal (the --dry-run listing)."""
+    """One line per bracket for the terminal (the --dry-run listing): status, output,
+    frames, then why the bracket was cut from the frames before it and any long gap it
+    was kept together across."""
     lines = []
     for e in summary["brackets"]:
         names = ", ".join(Path(p).name for p in e["frames"])
         target = e["output"] or "-"
-        lines.append(f"{e['status']:8} {target}  <- {names}" + (f"  ({e['error']})" if e.get("error") else ""))
+        notes = [e["error"]] if e.get("error") else []
+        notes += [f"new bracket: {e['reason']}"] if e.get("reason") else []
+        if e.get("joined"):
+            gaps = ", ".join(f"{j['gap_seconds']:.0f} s before {j['frame']}" for j in e["joined"])
+            notes.append(f"kept together across long gaps, the same scene: {gaps}")
+        lines.append(f"{e['status']:8} {target}  <- {names}" + "".join(f"  ({n})" for n in notes))
     return "\n".join(lines)
