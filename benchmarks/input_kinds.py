@@ -77,14 +77,16 @@ def _image_bracket(src: list[Path], folder: Path, channels: int, bits: int, size
     return out
 
 
-def _linear_dngs(folder: Path, mono: bool) -> list[Path]:
+def linear_dng_bracket(folder: Path, mono: bool, shape=(64, 96)) -> list[Path]:
+    """Three LinearRaw DNGs (RGB, or monochrome with ``mono``) of a ramp over 10 stops,
+    frames of ``shape`` (rows, columns) 2 EV apart (:data:`TIMES`)."""
     from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
     from hdrmerge_cli.io.raw import write_linear_dng
 
     sensor = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)
     rng = np.random.default_rng(5)
-    ramp = sensor.saturation_electrons * np.geomspace(2.0**-10, 2.0, 96) / 0.01
-    scene = np.broadcast_to(ramp, (64, 96)) if mono else np.broadcast_to(ramp[:, None], (64, 96, 3))
+    ramp = sensor.saturation_electrons * np.geomspace(2.0**-10, 2.0, shape[1]) / 0.01
+    scene = np.broadcast_to(ramp, shape) if mono else np.broadcast_to(ramp[:, None], shape + (3,))
     folder.mkdir(parents=True)
     out = []
     for k, t in enumerate(TIMES):
@@ -105,8 +107,8 @@ def brackets(root: Path) -> dict[str, list[Path]]:
            for i, (name, (c, b, s)) in enumerate(IMAGE_KINDS.items())}
     subprocess.run([_cli(), "simulate", "-o", root / "dng", "--size", "96x64", "--times", times, "-q"], check=True)
     out["Bayer DNG"] = sorted((root / "dng").glob("frame_*.dng"))
-    out["LinearRaw RGB DNG"] = _linear_dngs(root / "lin_rgb", mono=False)
-    out["LinearRaw grey DNG"] = _linear_dngs(root / "lin_grey", mono=True)
+    out["LinearRaw RGB DNG"] = linear_dng_bracket(root / "lin_rgb", mono=False)
+    out["LinearRaw grey DNG"] = linear_dng_bracket(root / "lin_grey", mono=True)
     return out
 
 

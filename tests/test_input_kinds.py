@@ -14,8 +14,8 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.io.raw import write_linear_dng
 
+from benchmarks.input_kinds import linear_dng_bracket
 from conftest import _simulate
 
 CHANNELS = (1, 2, 3, 4)  # grey, grey + alpha, RGB, RGBA
@@ -67,23 +67,6 @@ def sources(tmp_path_factory, run):
     meta = _simulate(run, root / "dng", "--size", "64x48", "--seed", "12", *times)
     out["raw"] = [root / "dng" / n for n in meta["frames"]]
     return out
-
-
-def _linear_dngs(folder: Path, mono: bool) -> list[Path]:
-    """Three LinearRaw DNGs (RGB or monochrome), a ramp over 10 stops, 1 EV apart."""
-    from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
-
-    sensor = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)
-    rng = np.random.default_rng(5)
-    ramp = sensor.saturation_electrons * np.geomspace(2.0**-10, 2.0, 64) / 0.01
-    scene = np.broadcast_to(ramp, (48, 64)) if mono else np.broadcast_to(ramp[:, None], (48, 64, 3))
-    folder.mkdir()
-    paths = []
-    for k, t in enumerate((0.005, 0.01, 0.02)):
-        codes = quantise_raw(expose(np.array(scene), t, sensor, rng, np.zeros(scene.shape)), sensor)
-        paths.append(folder / f"lin_{k}.dng")
-        write_linear_dng(str(paths[-1]), codes, black=sensor.black, white=sensor.white, exposure_time=t, iso=100)
-    return paths
 
 
 def _image_kind(sources, folder: Path, channels: int, bits: int, size, ext: str | None = None) -> list[Path]:
@@ -190,7 +173,7 @@ def test_raw_kinds_through_every_command(sources, tmp_path, kind):
         for src, dst in zip(sources["raw"], files):
             dst.symlink_to(src)
     else:
-        files = _linear_dngs(tmp_path / "in", mono=kind == "linear-mono")
+        files = linear_dng_bracket(tmp_path / "in", kind == "linear-mono", (48, 64))
     _every_command(files, "raw" if kind == "raw" else "linear", tmp_path)
 
 
