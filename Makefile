@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## Compile and cache the numba kernels (merge of a tiny RAW, JPEG and 16-bit TIFF bracket, the first two
+## Compile and cache the numba kernels (merge of a tiny RAW, JPEG (its response measured) and 16-bit TIFF bracket, the first two
 ## with deghosting; the weights of a resampled RAW frame, which a static bracket does not reach), so
 ## that a user's first merge does not pay for compilation; run again after editing a kernel.
 warm:
@@ -25,7 +25,7 @@ warm:
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/raw" --size 96x64 --frames 3 -q && \
 	$(BIN)/hdrmerge-cli merge "$$tmp"/raw/frame_*.dng -o "$$tmp/raw.exr" --deghost on -q && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/jpg" --format jpg --size 96x64 --frames 3 -q && \
-	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --crf srgb --deghost on -q && \
+	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --deghost on -q && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/tif" --format tif --out-bits 16 --size 96x64 --frames 3 -q && \
 	$(BIN)/hdrmerge-cli merge "$$tmp"/tif/frame_*.tif -o "$$tmp/tif.exr" --crf srgb -q && \
 	$(BIN)/python -c "import numpy as np; from hdrmerge_cli.core.align import resampled_weight_mosaic as f; \

@@ -38,7 +38,8 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
 def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
-    """Frames (sorted by exposure), their decimated codes (H, W, 3) uint8 and exposures."""
+    """Frames (sorted by exposure), their decimated codes (H, W, 3) uint8, exposures and
+    the decimation step."""
     from hdrmerge_cli.io.frames import load_codes
     from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
 
@@ -46,7 +47,7 @@ def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
     frames = read_bracket(paths)
     step = max(1, int(np.ceil(np.sqrt(frames[0].width * frames[0].height / max_pixels))))
     codes = [np.ascontiguousarray(load_codes(f)[::step, ::step]) for f in frames]
-    return frames, codes, exposure_values(frames)
+    return frames, codes, exposure_values(frames), step
 
 
 # ---------------------------------------------------------------- our configurations
@@ -76,6 +77,28 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
                            default_variance(params, crf) if variance == "auto" else variance, estimator, prior_rate=prior,
                            pattern=np.arange(3)[None, :], irls_iterations=irls)
     return e.astype(np.float64), crf
+
+
+def plain_merge(paths: list[str], step: int, h: float, workdir: Path) -> np.ndarray:
+    """The command a user types, ``hdrmerge-cli merge FILES -o out.exr`` with no response
+    option (the response measured on the bracket), on the full-resolution files, with
+    ``--align off`` as every row here (alignment is align_loo's subject); the left-out frame
+    of exposure ``h`` predicted through the response its profile records, on the
+    benchmark's decimated grid."""
+    import json
+    import subprocess
+    import sys
+
+    from hdrmerge_cli.io.images import read_exr
+    from hdrmerge_cli.io.profile import crf_from_json
+
+    exe = Path(sys.executable).parent / "hdrmerge-cli"
+    out = workdir / "plain.exr"
+    subprocess.run([str(exe), "merge", *paths, "-o", str(out), "-q", "--overwrite", "--align", "off"], check=True)
+    pixels, header = read_exr(str(out))
+    crf = crf_from_json(json.loads(out.with_suffix(".profile.json").read_text())["crf"])
+    e = pixels[::step, ::step, :3].astype(np.float64) / float(header["hdrmerge:referenceExposure"])
+    return predict_ours(e, crf, h)
 
 
 def predict_ours(e: np.ndarray, crf, h: float) -> np.ndarray:
@@ -114,7 +137,11 @@ def rmse(pred: np.ndarray, actual: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(d * d)))
 
 
-def run(quick: bool = False, configs=None, peers=True, brackets=None) -> list[dict]:
+#: the row of the plain command (:func:`plain_merge`)
+PLAIN = "merge (no option)"
+
+
+def run(quick: bool = False, configs=None, peers=True, brackets=None, plain=True) -> list[dict]:
     configs = configs or CONFIGS
     rows = []
     folders = sorted(p for p in BRACKETS.iterdir() if p.is_dir())
@@ -126,7 +153,7 @@ def run(quick: bool = False, configs=None, peers=True, brackets=None) -> list[di
 
         available = peer_mod.available()
     for folder in folders:
-        frames, codes, exposures = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
+        frames, codes, exposures, step = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
         interior = range(1, len(frames) - 1)
         if quick:
             interior = [len(frames) // 2]
@@ -135,6 +162,16 @@ def run(quick: bool = False, configs=None, peers=True, brackets=None) -> list[di
             actual = codes[k].astype(np.float64)
             mask = np.all((codes[k] >= LOW) & (codes[k] <= HIGH), axis=-1)
             row = {"bracket": folder.name, "left_out": frames[k].name, "frames": len(frames), "pixels": int(mask.sum())}
+            if plain:
+                t = time.perf_counter()
+                with tempfile.TemporaryDirectory() as tmp:
+                    try:
+                        pred = plain_merge([frames[j].path for j in keep], step, exposures[k], Path(tmp))
+                        row[PLAIN] = rmse(pred, actual, mask)
+                    except Exception as exc:  # noqa: BLE001
+                        logging.warning("%s %s: %s failed: %s", folder.name, frames[k].name, PLAIN, exc)
+                        row[PLAIN] = float("nan")
+                row[PLAIN + " s"] = time.perf_counter() - t
             for name, kw in configs.items():
                 t = time.perf_counter()
                 try:
@@ -163,13 +200,16 @@ def run(quick: bool = False, configs=None, peers=True, brackets=None) -> list[di
 
 def table(rows, available) -> list[str]:
     methods = [n for n in rows[0] if n not in ("bracket", "left_out", "frames", "pixels") and not n.endswith(" s")]
-    peer_names = [m for m in methods if m not in CONFIGS]
+    peer_names = [m for m in methods if m not in CONFIGS and m != PLAIN]
     lines = ["# Leave-one-out on the real brackets", "",
              "RMSE (code values) of the left-out frame's codes predicted from the merge of the other frames, "
              f"over its pixels with every channel in [{LOW}, {HIGH}]; frames decimated to at most "
              f"{MAX_PIXELS} pixels. Lower is better; **bold** = best of the row.", ""]
     lines += ["Ours (one estimate-crf + merge per left-out frame, the response fitted without it):", ""]
     lines += [f"- **{n}**: {LEGEND[n]}" for n in methods if n in LEGEND]
+    if PLAIN in methods:
+        lines += [f"- **{PLAIN}**: `hdrmerge-cli merge FILES -o out.exr --align off`, no response given (it is "
+                  "measured on the bracket), on the full-resolution files; seconds: the whole command"]
     lines += ["", "Peers (see benchmarks/peers.py): each recovers its own response from the same frames and "
               "merges with it; the left-out frame is predicted through that response.", ""]
     skipped = {n: why for n, why in available.items() if why}
@@ -210,7 +250,7 @@ def drift_table(quick: bool = False) -> list[str]:
              "shift between shadows and highlights).", "",
              "| bracket | channels independent | coupled (default) |", "|---|---|---|"]
     for folder in sorted(p for p in BRACKETS.iterdir() if p.is_dir()):
-        _, codes, exposures = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
+        _, codes, exposures, _ = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
         free, _, _ = fit_crf(codes, np.log(exposures), 256, options={"coupling": 0.0})
         tied, _, _ = fit_crf(codes, np.log(exposures), 256)
         lines.append(f"| {folder.name} | {neutral_drift(free):.3f} | {neutral_drift(tied):.3f} |")

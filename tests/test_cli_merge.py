@@ -79,11 +79,14 @@ def test_jpeg_bracket_with_known_crf_and_half_output(run, tmp_path, jpeg_bracket
     assert np.median(np.abs(np.log(pixels) - np.log(truth))) < 0.08
 
 
-def test_jpeg_without_crf_warns_and_assumes_srgb(run, tmp_path, jpeg_bracket):
+def test_jpeg_without_crf_measures_it_or_says_why_srgb_is_assumed(run, tmp_path, jpeg_bracket):
+    """No --crf: the response is measured on the bracket (no warning); a single frame cannot
+    pin it, and sRGB is assumed with the reason and the advice."""
     folder, meta = jpeg_bracket
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "x.exr")
-    assert "estimate-crf" in proc.stderr and "sRGB" in proc.stderr
-    assert proc.stdout == ""
+    assert "warning" not in proc.stderr and proc.stdout == "", proc.stderr
+    proc = run("merge", *frames_of(folder, meta, [1]), "-o", tmp_path / "y.exr")
+    assert "none can be measured" in proc.stderr and "estimate-crf" in proc.stderr and "sRGB" in proc.stderr
 
 
 def test_times_override_and_times_file(run, tmp_path, jpeg_bracket):

@@ -209,3 +209,51 @@ def test_coupling_keeps_a_neutral_ramp_neutral_where_a_channel_has_little_data()
     assert centred_rmse(tied.g[0], 2.2, dark) < centred_rmse(free.g[0], 2.2, dark)
     mid = np.arange(100, 230)
     assert centred_rmse(tied.g[1], 2.2, mid) < 0.02 and centred_rmse(free.g[1], 2.2, mid) < 0.02
+
+
+def test_clarabel_solution_equals_cvxpy_osqp():
+    """The QP solved by Clarabel directly equals the same QP through cvxpy (OSQP), to the
+    solvers' tolerance."""
+    from hdrmerge_cli.core.crf_goossens2012 import _data_rows, _solve_clarabel, _solve_cvxpy
+
+    rng = np.random.default_rng(2)
+    z = gamma_bracket(20000, 0.004, rng)
+    cg = comparagram(to_knots(z, 256, 256), 256)
+    rows, target = _data_rows(cg, cg.count.astype(np.float64), np.log(TIMES))
+    smooth = second_difference(np.ones(256))
+    quad = sp.csc_matrix(rows.T @ rows + 1e-5 * (smooth.T @ smooth))
+    steps = sp.diags([-np.ones(255), np.ones(255)], [0, 1], shape=(255, 256), format="csr")
+    anchor = sp.csr_matrix(([1.0], ([0], [128])), shape=(1, 256))
+    a = _solve_clarabel(quad, rows.T @ target, anchor, steps, 1e-5)
+    b = _solve_cvxpy(quad, rows.T @ target, anchor, steps, 1e-5)
+    used = np.unique(z)
+    np.testing.assert_allclose(a[used], b[used], atol=1e-4)
+    assert a[128] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_prior_pulls_an_undetermined_fit_towards_the_standard_curve():
+    """Two frames 6 EV apart leave g open to the comparametric ambiguity; a slope prior
+    towards the standard curve (here the true gamma 2.2) pulls the fit towards it in
+    proportion to its weight: the error falls as the weight grows, and the default weight
+    does not make the fit worse than none."""
+    from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR
+
+    rng = np.random.default_rng(3)
+    times = np.array([1 / 64, 1.0])
+    z = gamma_bracket(200000, 0.002, rng, times=times)
+    codes = np.arange(10, 250)
+    prior = 2.2 * np.log(np.maximum(np.arange(256), 0.5) / 255.0)
+    errors = [centred_rmse(crf_goossens2012(z, np.log(times), 256, anchor=a, prior=prior).g, 2.2, codes)
+              for a in (0.0, DEFAULT_ANCHOR, 1e-2, 1.0)]
+    assert all(b < a for a, b in zip(errors, errors[1:])), errors
+    assert errors[-1] < 0.02, errors
+
+
+def test_a_large_anchor_gives_the_prior_curve():
+    """As the prior's weight grows, g tends to the prior (up to the g(mid) = 0 anchor)."""
+    rng = np.random.default_rng(4)
+    z = gamma_bracket(20000, 0.004, rng, gamma=1.8)
+    prior = 2.2 * np.log(np.maximum(np.arange(256), 0.5) / 255.0)
+    g = crf_goossens2012(z, np.log(TIMES), 256, anchor=1e4, prior=prior).g
+    codes = np.arange(5, 256)
+    assert centred_rmse(g, 2.2, codes) < 0.01

@@ -330,3 +330,20 @@ def test_estimate_crf_calls_no_label_of_a_moved_bracket_wrong(run, moving_bracke
     _, moved, _ = moving_bracket
     out = run("estimate-crf", *moved, "-o", tmp_path / "crf.json")
     assert "labelled" not in out.stderr, out.stderr
+
+
+def test_ratio_trend_is_zero_for_a_label_and_the_bend_for_a_response():
+    """A wrong label moves every log ratio alike: no trend.  Ratios read through a response
+    of the wrong power (gamma 2.2 data read as 1.8) change linearly with log brightness:
+    the trend is that slope times the 5th-95th percentile span of log y."""
+    from hdrmerge_cli.core.exposure import ratio_trend, robust_log_ratio
+
+    rng = np.random.default_rng(0)
+    y = np.exp(rng.uniform(np.log(1e-3), 0.0, 100000))
+    w = np.ones_like(y)
+    assert ratio_trend(y, np.full(y.size, np.log(2.0)) + rng.normal(0, 0.01, y.size), w) == pytest.approx(0, abs=0.01)
+    d = 0.3 * np.log(y) + np.log(2.0)
+    span = np.diff(np.percentile(np.log(y), [5, 95]))[0]
+    assert ratio_trend(y, d, w) == pytest.approx(0.3 * span, rel=1e-6)
+    r = robust_log_ratio(y, 2.0 * y)
+    assert abs(r.trend) < 1e-9 and r.log_ratio == pytest.approx(np.log(2.0))

@@ -10,7 +10,9 @@ from hdrmerge_cli.cli.options import (
     times_or_estimate_callback,
 )
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
-from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS
+from hdrmerge_cli.core.crf_goossens2012 import (
+    DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_LAMBDA, DEFAULT_WEIGHTING, PAIR_WEIGHTS,
+)
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline.crf import MAX_SMOOTHING, CRFOptions, estimate_crf
@@ -30,6 +32,10 @@ from hdrmerge_cli.pipeline.crf import MAX_SMOOTHING, CRFOptions, estimate_crf
 @click.option("--coupling", type=FiniteFloatRange(0, MAX_SMOOTHING), default=DEFAULT_COUPLING, show_default=True,
               help="goossens: weight pulling the channels' curves to one shape where their own data are weak "
                    "(0: independent channels), so neutral shadows stay neutral.")
+@click.option("--anchor", type=FiniteFloatRange(0, MAX_SMOOTHING), default=DEFAULT_ANCHOR, show_default=True,
+              help="goossens: weight of a prior pulling the curve's slope towards sRGB's, which decides only where "
+                   "the frames leave the response undetermined (codes no frame pair reaches, frames far apart); "
+                   "0: none.")
 @click.option("--samples", type=click.IntRange(min=0),
               help="Pixels used per channel, 0 for all; at least (codes - 1) / (frames - 1) (Debevec-Malik's "
                    "N (P - 1) >= Zmax - Zmin). Default: all for goossens and robertson "
@@ -52,7 +58,7 @@ from hdrmerge_cli.pipeline.crf import MAX_SMOOTHING, CRFOptions, estimate_crf
 @click.option("--force", is_flag=True, help="Fit a CRF even for RAW (linear) input.")
 @output_options
 @common_options
-def command(images, output, method, smoothing, coupling, samples, weighting, pair_weight, bounds, profile, plot, times,
+def command(images, output, method, smoothing, coupling, anchor, samples, weighting, pair_weight, bounds, profile, plot, times,
             times_file, seed, force, overwrite, as_json):
     """Estimate the inverse camera response g(z) = log gamma^-1(z) of a bracket of
     JPEG/TIFF/PNG frames and write it to a profile JSON for 'merge --crf' or
@@ -65,9 +71,11 @@ def command(images, output, method, smoothing, coupling, samples, weighting, pai
                                "from --times-file)")
     if output is None and profile is None:
         raise click.UsageError("give -o/--output, or --profile to update a profile in place")
-    if method != "goossens" and (weighting or bounds or pair_weight != "photon" or coupling != DEFAULT_COUPLING):
-        raise click.UsageError("--weighting, --pair-weight, --bounds and --coupling apply to --method goossens only")
+    if method != "goossens" and (weighting or bounds or pair_weight != "photon" or coupling != DEFAULT_COUPLING
+                                 or anchor != DEFAULT_ANCHOR):
+        raise click.UsageError("--weighting, --pair-weight, --bounds, --coupling and --anchor apply to --method "
+                               "goossens only")
     opts = CRFOptions(method, smoothing, samples, weighting, pair_weight, bounds, times, times_file, seed, force,
-                      profile, plot, overwrite, coupling)
+                      profile, plot, overwrite, coupling, anchor)
     summary = estimate_crf(images, output, opts)
     emit(summary, as_json, f"wrote {summary['output']}")

@@ -45,8 +45,11 @@ DEFAULT_LAMBDA = 1e-5
 #: default weight of the channel coupling of :func:`solve_qp_channels` (normalised like
 #: lambda); chosen on the real brackets' leave-one-out (benchmarks/results/real_loo.md)
 DEFAULT_COUPLING = 1e-2
-#: cvxpy solvers tried in turn
-SOLVERS = ("CLARABEL", "OSQP")
+#: default weight of the prior on the slopes of ``g`` (:func:`solve_qp_channels`, normalised
+#: like lambda): it decides only where the frames leave the response undetermined.  Chosen
+#: by leave-one-out on five of the shared real brackets and checked on the five others
+#: (benchmarks/results/real_loo.md)
+DEFAULT_ANCHOR = 3e-4
 #: the weighting function ``w_j(z)`` of (36) unless told otherwise.  Not the paper's
 #: ``bounded``: with its JPEG bounds the weights are too narrow for CRF estimation (the ends
 #: of g are left to the smoothness term and the comparametric ambiguity of +-2 EV brackets
@@ -86,6 +89,16 @@ class CRFFit:
     iterations: int
     converged: bool
     rows: int = 0
+
+
+def standard_prior(n_codes: int) -> np.ndarray:
+    """``(n_codes,)`` ``log gamma0^-1(z)`` of the standard response the prior leans on: the
+    sRGB curve (IEC 61966-2-1), which cameras' JPEG tone curves start from; floored at
+    half a code's linear step so that ``log`` is finite at code 0."""
+    from hdrmerge_cli.core.crf import CRF
+
+    x = CRF("srgb").inverse(np.arange(n_codes) / (n_codes - 1.0))
+    return np.log(np.maximum(x, 0.5 * x[1]))
 
 
 def knot_levels(n_codes: int) -> int:
@@ -182,18 +195,23 @@ def _data_rows(cg: Comparagram, w: np.ndarray, log_h: np.ndarray):
 
 
 def solve_qp_channels(cgs: list[Comparagram], ws: list[np.ndarray], w_smooths: list[np.ndarray], log_h: np.ndarray,
-                      smoothing: float, coupling: float = 0.0, epsilon: float = EPSILON) -> np.ndarray:
+                      smoothing: float, coupling: float = 0.0, epsilon: float = EPSILON, anchor: float = 0.0,
+                      prior: np.ndarray | None = None) -> np.ndarray:
     """(37) for ``C`` channels at once, optionally coupled: each channel's data and
     smoothness terms as in :func:`solve_qp`, plus
     ``coupling * sum_c integral (g_c'(v) - mean_c g_c'(v))^2 dv``, which pulls the slopes of
     the channels' curves together where their own data are weak (a camera applies one tone
     curve to every channel, so a neutral ramp should stay neutral), and leaves them apart
     where the data say they differ.  ``coupling = 0`` gives ``C`` independent solves.
+    With a ``prior`` curve ``g0`` (``(C, L)``, knots) and ``anchor > 0``, also
+    ``anchor * sum_c integral (g_c'(v) - g0_c'(v))^2 dv``: a Gaussian prior on the slopes,
+    which decides only where the comparagrams leave ``g`` undetermined (code levels no
+    pair reaches, the comparametric ambiguity of frames far apart), since the data term is a
+    weighted mean of order 1 and the prior spreads ``anchor`` over every knot.
 
     cgs, ws, w_smooths : per channel, as in :func:`solve_qp` (same ``L``)
     Returns G : (C, L) with ``G[:, L // 2] = 0``.
     """
-    import cvxpy as cp
     import scipy.sparse as sp
 
     C, L = len(cgs), cgs[0].levels
@@ -212,26 +230,56 @@ def solve_qp_channels(cgs: list[Comparagram], ws: list[np.ndarray], w_smooths: l
         # slopes minus the channels' mean slope; integral on the knot spacing dv = 1 / (L - 1)
         centre = sp.csr_matrix(sp.kron(sp.identity(C) - np.full((C, C), 1.0 / C), sp.identity(L - 1)) @ steps)
         quad = quad + coupling * (L - 1) * (centre.T @ centre)
-    g = cp.Variable(C * L)
+    linear = data.T @ np.concatenate(targets)
+    if anchor > 0 and prior is not None:
+        quad = quad + anchor * (L - 1) * (steps.T @ steps)
+        linear = linear + anchor * (L - 1) * (steps.T @ (steps @ np.asarray(prior, np.float64).reshape(-1)))
     quad = sp.csc_matrix((quad + quad.T) / 2)
-    objective = cp.quad_form(g, cp.psd_wrap(quad)) - 2 * (data.T @ np.concatenate(targets)) @ g
-    constraints = [steps @ g >= epsilon, g[np.arange(C) * L + L // 2] == 0]
-    problem = cp.Problem(cp.Minimize(objective), constraints)
+    anchors = sp.csr_matrix((np.ones(C), (np.arange(C), np.arange(C) * L + L // 2)), shape=(C, C * L))
+    g = _solve_clarabel(quad, linear, anchors, steps, epsilon)
+    if g is None:
+        g = _solve_cvxpy(quad, linear, anchors, steps, epsilon)
+    return g.reshape(C, L)
+
+
+def _solve_clarabel(quad, linear, anchors, steps, epsilon: float) -> np.ndarray | None:
+    """``min g' Q g - 2 l' g`` s.t. ``anchors g = 0``, ``steps g >= epsilon`` with Clarabel
+    directly (its form: ``min x' P x / 2 + q' x``, ``A x + s = b``, ``s`` in the zero cone
+    then the nonnegative cone); None when it does not solve."""
+    import clarabel
+    import scipy.sparse as sp
+
+    a = sp.vstack([anchors, -steps], format="csc")
+    b = np.concatenate([np.zeros(anchors.shape[0]), np.full(steps.shape[0], -epsilon)])
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    cones = [clarabel.ZeroConeT(anchors.shape[0]), clarabel.NonnegativeConeT(steps.shape[0])]
+    solution = clarabel.DefaultSolver(sp.triu(2 * quad, format="csc"), -2 * np.asarray(linear, np.float64), a, b,
+                                      cones, settings).solve()
+    if str(solution.status) not in ("Solved", "AlmostSolved"):
+        return None
+    x = np.asarray(solution.x, dtype=np.float64)
+    return x if np.all(np.isfinite(x)) else None
+
+
+def _solve_cvxpy(quad, linear, anchors, steps, epsilon: float) -> np.ndarray:
+    """The same QP through cvxpy with OSQP, where Clarabel stalls."""
+    import cvxpy as cp
+
+    g = cp.Variable(quad.shape[0])
+    objective = cp.quad_form(g, cp.psd_wrap(quad)) - 2 * linear @ g
+    problem = cp.Problem(cp.Minimize(objective), [steps @ g >= epsilon, anchors @ g == 0])
     status = "not run"
-    for solver in SOLVERS:  # an interior-point method first; OSQP if it stalls
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                problem.solve(solver=solver)
-            status = problem.status
-        except cp.error.SolverError:
-            status = f"{solver} failed"
-            continue
-        if status == cp.OPTIMAL and g.value is not None:
-            break
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            problem.solve(solver="OSQP")
+        status = problem.status
+    except cp.error.SolverError:
+        status = "OSQP failed"
     if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or g.value is None:
         raise HdrMergeError(f"the CRF quadratic program did not solve ({status}); try another --lambda or --method")
-    return np.asarray(g.value, dtype=np.float64).reshape(C, L)
+    return np.asarray(g.value, dtype=np.float64)
 
 
 def second_difference(w_smooth: np.ndarray):
@@ -258,6 +306,8 @@ def crf_goossens2012(
     bounds=None,
     pair_weight: str = "photon",
     coupling: float = DEFAULT_COUPLING,
+    anchor: float = 0.0,
+    prior: np.ndarray | None = None,
     max_iterations: int = 10,
     tol: float = 1e-3,
 ) -> CRFFit:
@@ -277,6 +327,9 @@ def crf_goossens2012(
         linear signal; one, or one per channel) for the noise-model weights, or the
         ``(1/alpha, sigma_o^2, beta)`` upper bounds of ``bounded`` (default: the paper's JPEG values)
     pair_weight : ``photon`` or ``offset``, which noise dominates (the factor ``f_jj'``)
+    anchor, prior : the weight of a prior on the slopes of ``g`` and the prior curve,
+        ``(n_codes,)`` or ``(C, n_codes)`` ``log gamma0^-1(z)`` of a standard response
+        (see :func:`solve_qp_channels`); 0 or None: no prior
     tol : stop when ``g`` moves less than this (natural log units) at every used knot
     """
     from hdrmerge_cli.core.crf import table_crf
@@ -296,6 +349,10 @@ def crf_goossens2012(
         used[cg.a] = used[cg.b] = True
     lin = np.tile(np.arange(n_codes) / (n_codes - 1), (len(channels), 1))  # identity CRF to start
     g_prev, converged, it = None, False, 0
+    prior_knots = None
+    if prior is not None:
+        prior_knots = np.broadcast_to(np.asarray(prior, np.float64).reshape(-1, n_codes), (len(channels), n_codes))
+        prior_knots = prior_knots[:, knot_codes] - prior_knots[:, knot_codes[L // 2]][:, None]
     for it in range(1, max_iterations + 1):
         ws, smooths = [], []
         for c, cg in enumerate(cgs):
@@ -305,7 +362,7 @@ def crf_goossens2012(
                            for hj in h])[:, knot_codes]
             ws.append(cg.count * wk[cg.j, cg.a] * wk[cg.jp, cg.b] * pair[cg.j, cg.jp])
             smooths.append(np.maximum(wk.mean(axis=0), 1e-3 * max(wk.max(), 1e-300)))
-        g_knots = solve_qp_channels(cgs, ws, smooths, log_h, smoothing, coupling)
+        g_knots = solve_qp_channels(cgs, ws, smooths, log_h, smoothing, coupling, anchor=anchor, prior=prior_knots)
         g = np.stack([from_knots(gk, n_codes) for gk in g_knots])
         lin = np.exp(g - g[:, -1:])
         if weighting not in NOISE_MODEL_WEIGHTS:  # the weights do not depend on the CRF

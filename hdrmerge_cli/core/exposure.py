@@ -140,6 +140,7 @@ class PairRatio:
     kept: int
     coverage: float = 1.0  # fraction of the frame's samples both frames expose well
     moved: bool = False  # the frames moved between the two exposures: the ratio is not used
+    trend: float = 0.0  # how much the per-pixel log ratio changes over the pair's brightness range
 
     @property
     def counted(self) -> bool:
@@ -196,7 +197,24 @@ def robust_log_ratio(y_short: np.ndarray, y_long: np.ndarray, k: float = 3.0, it
     wk = w[keep]
     n_eff = float(np.sum(wk) ** 2 / np.sum(wk**2))
     spread = float(np.sqrt(np.sum(wk * (d[keep] - m) ** 2) / np.sum(wk)))
-    return PairRatio(m, spread / np.sqrt(max(n_eff, 1.0)), spread, n, kept)
+    return PairRatio(m, spread / np.sqrt(max(n_eff, 1.0)), spread, n, kept, trend=ratio_trend(a[keep], d[keep], wk))
+
+
+def ratio_trend(y: np.ndarray, d: np.ndarray, w: np.ndarray) -> float:
+    """How much the per-pixel log ratios ``d`` change with brightness: the weighted least-
+    squares slope of ``d`` on ``log y`` times the span of ``log y`` (5th to 95th
+    percentile), natural log units.  A wrong exposure label moves every ratio alike (no
+    trend); a response that does not fit the frames bends them with brightness."""
+    if y.size < 3:
+        return 0.0
+    u = np.log(y)
+    um = np.sum(w * u) / np.sum(w)
+    var = np.sum(w * (u - um) ** 2)
+    if var <= 0:
+        return 0.0
+    slope = np.sum(w * (u - um) * d) / var
+    lo, hi = np.percentile(u, [5, 95])
+    return float(slope * (hi - lo))
 
 
 def moved_threshold_px(pitch: float) -> float:

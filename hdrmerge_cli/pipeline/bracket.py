@@ -124,9 +124,10 @@ def reference_exposure(spec: str | float, exposures: np.ndarray) -> float:
         raise HdrMergeError(f"--reference: {exc} (or geomean, shortest, longest)") from None
 
 
-def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False) -> CRF:
+def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False, warn: bool = True) -> CRF:
     """RAW is linear; images use ``spec`` (``--crf``, or the profile's CRF when
-    ``from_profile``) or sRGB with a warning."""
+    ``from_profile``) or sRGB, marked as assumed (with a warning unless not ``warn``: merge
+    measures the response on the bracket first)."""
     if frames[0].kind in ("raw", "linear"):
         if spec and spec != "linear" and not from_profile:
             log.warning("RAW data is linear: --crf %s is ignored", spec)
@@ -138,11 +139,9 @@ def choose_crf(frames: list[Frame], spec: str | None, from_profile: bool = False
             raise HdrMergeError(f"{spec}: the response table covers codes 0..{crf.table.shape[1] - 1}, but "
                                 f"{frames[0].path} has codes 0..{n - 1} ({frames[0].bits}-bit)")
         return crf
-    log.warning(
-        "%s: no camera response given; assuming sRGB. For better accuracy run "
-        "'hdrmerge-cli estimate-crf' on this bracket and pass --crf PROFILE.json",
-        frames[0].path,
-    )
+    if warn:
+        log.warning("%s: no camera response given; assuming sRGB. For better accuracy run "
+                    "'hdrmerge-cli estimate-crf' on this bracket and pass --crf PROFILE.json", frames[0].path)
     return CRF("srgb", assumed=True)
 
 

@@ -11,11 +11,13 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sample_pixels
-from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_WEIGHTING, CRFFit, knot_levels
+from hdrmerge_cli.core.crf_goossens2012 import (
+    DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_WEIGHTING, CRFFit, knot_levels, standard_prior,
+)
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import check_writable
-from hdrmerge_cli.io.frames import load_codes
+from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
@@ -48,6 +50,7 @@ class CRFOptions:
     plot: Path | None = None
     overwrite: bool = False
     coupling: float = DEFAULT_COUPLING  # goossens: channel coupling of the joint solve
+    anchor: float = DEFAULT_ANCHOR  # goossens: weight of the prior towards the standard curve
 
 
 def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, method: str, rng) -> np.ndarray:
@@ -99,6 +102,9 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     rng = rng if rng is not None else np.random.default_rng(0)
     samples = m.samples if samples is None else samples
     options = dict(options or {})
+    if method == "goossens":  # the prior towards the standard curve where the frames leave g open
+        options.setdefault("anchor", DEFAULT_ANCHOR)
+        options.setdefault("prior", standard_prior(n_codes))
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
     samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
@@ -115,6 +121,63 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     if changed:
         log.warning("the %s fit was not monotone; it was made non-decreasing", method)
     return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
+
+
+def measure_response(frames: list[Frame], samples: exposures_mod.Samples) -> CRF | None:
+    """The response of an image bracket given none, fitted on the samples the merge draws
+    (:func:`~hdrmerge_cli.pipeline.exposures.sample_frames`, constant borders off) by
+    estimate-crf's default method, its prior towards sRGB deciding where the frames leave
+    the curve open; None, with a warning saying why and that sRGB is assumed, where the
+    frames cannot support a fit: fewer than two distinct exposures, or neighbours sharing
+    fewer than :data:`MIN_OVERLAP` unclipped pixels."""
+    why = None
+    exposures = exposure_values(frames)
+    if len(np.unique(exposures)) < 2:
+        why = "one exposure only"
+    else:
+        try:
+            exposures_mod.check_overlap(frames, samples)
+        except HdrMergeError as exc:
+            why = str(exc).split(": ", 1)[-1].split(";")[0]
+    if why is None:
+        crf = fit_with_labels(frames, exposures, samples)
+        if not np.all(crf.table[:, 1] > 0.5):  # not flat (check_not_flat)
+            return CRF(MEASURED, table=crf.table)
+        why = "the fit is flat"
+    log.warning("%s: no camera response given and none can be measured on this bracket (%s); assuming sRGB. Run "
+                "'hdrmerge-cli estimate-crf' on a bracket of this camera and pass --crf PROFILE.json",
+                frames[0].path, why)
+    return None
+
+
+def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposures_mod.Samples) -> CRF:
+    """The response and the labels judged together: fit with the labels, check them through
+    the fit (:func:`~hdrmerge_cli.pipeline.exposures.estimate`), and while a frame's label
+    is off by more than the tolerance in a way a label explains (its ratios do not change
+    with brightness, :func:`~hdrmerge_cli.pipeline.exposures.label_at_fault`), refit with
+    that frame's estimate in place of its label, the frame furthest off first, at most half
+    the frames.  A wrong label then does not bend the curve; the labels are judged (and
+    warned about) afterwards against the response returned."""
+    codes = [c[samples.inside] for c in exposures_mod.samples_codes(frames, samples)]
+    log_h = np.log(np.asarray(exposures, np.float64))
+    crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
+    replaced: list[int] = []
+    for _ in range(len(frames) // 2):
+        est = exposures_mod.estimate(frames, np.exp(log_h), samples, crf)
+        off = [k for k in est.mislabelled() if k not in replaced and exposures_mod.label_at_fault(est, k)]
+        if not off:
+            break
+        k = max(off, key=lambda j: abs(est.difference_ev[j]))
+        log_h[k], replaced = est.log_h[k], replaced + [k]
+        crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
+    log.info("camera response measured on the bracket (goossens, %d samples per frame%s)", codes[0].shape[0],
+             f"; fitted with the measured exposures of {', '.join(frames[k].name for k in replaced)}" if replaced
+             else "")
+    return crf
+
+
+#: the name of a response :func:`measure_response` fitted on the bracket being merged
+MEASURED = "measured on the bracket (estimate-crf defaults)"
 
 
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
@@ -155,7 +218,8 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         options = {}
         if method.noise_weighted:
             options.update(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
-                           coupling=opts.coupling, **({"weighting": opts.weighting} if opts.weighting else {}))
+                           coupling=opts.coupling, anchor=opts.anchor,
+                           **({"weighting": opts.weighting} if opts.weighting else {}))
         crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, n_samples, options,
                                      np.random.default_rng(opts.seed))
         check_not_flat(crf, opts.method, smoothing)
@@ -184,7 +248,8 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
                     "iterations": [f.iterations for f in fits], "converged": all(f.converged for f in fits)}
         if method.noise_weighted:
             details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
-                        "pair_weight": opts.pair_weight, "coupling": opts.coupling}
+                        "pair_weight": opts.pair_weight, "coupling": opts.coupling,
+                        "anchor": opts.anchor, "prior": "srgb"}
     command = f"estimate-crf --method {opts.method}"
     if base is not None:
         profile = base

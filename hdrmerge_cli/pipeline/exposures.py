@@ -412,12 +412,67 @@ def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, us
     return out
 
 
+def label_at_fault(est: ExposureEstimate, k: int) -> bool:
+    """Whether frame ``k``'s difference from its label is what a wrong label makes rather
+    than a response that does not fit the frame.  A wrong label moves every pixel's ratio
+    alike; a wrong response (or a frame processed or lit differently) bends the ratios with
+    brightness.  The label is blamed when the ratios' change over the brightness range,
+    summed over the pairs frame ``k``'s estimate chains through (:func:`ratio_bend_ev`), is
+    smaller than the difference itself."""
+    return bool(ratio_bend_ev(est, k) < abs(est.difference_ev[k]))
+
+
+def power_explains(est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV) -> bool:
+    """Whether the differences from the labels grow in proportion to each frame's distance
+    from the reference in exposure, as a response of the wrong power makes (every ratio
+    read through it is scaled alike): one slope fitted through the reference leaves every
+    frame within ``tol_ev``.  Needs three frames; a single wrong label leaves at least half
+    its error off such a line."""
+    d = np.asarray(est.difference_ev, np.float64)
+    x = (est.log_h - est.log_h[est.reference]) / np.log(2)
+    if d.size < 3 or not np.any(x):
+        return False
+    slope = float(np.dot(x, d) / np.dot(x, x))
+    return bool(np.max(np.abs(d - slope * x)) <= tol_ev)
+
+
+def response_fits(est: ExposureEstimate) -> bool:
+    """Whether the response in use fits the bracket: the median measured pair's ratios
+    change by less than the label tolerance over their brightness range.  The response is
+    common to every frame, so where it bends most pairs no label can be judged through it."""
+    trends = [abs(p.trend) for p in est.pairs if p.measured]
+    return not trends or float(np.median(trends)) / np.log(2) < LABEL_TOLERANCE_EV
+
+
+def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:
+    """The change of the pixels' ratios over brightness (EV), summed over the pairs frame
+    ``k``'s estimate chains through (:attr:`~hdrmerge_cli.core.exposure.PairRatio.trend`)."""
+    return sum(abs(est.pairs[j].trend) for j in chain_pairs(k, est.reference)) / np.log(2)
+
+
+def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLERANCE_EV) -> str | None:
+    """Why frame ``k``'s difference from its label points at the response rather than the
+    label (:func:`power_explains`, :func:`response_fits`, :func:`label_at_fault`), or None."""
+    if power_explains(est, tol_ev):
+        return ("the frames' differences grow with their distance in exposure from the reference frame, as a "
+                "response of the wrong power makes")
+    if not response_fits(est):
+        return "the ratios of most frame pairs change with brightness"
+    if not label_at_fault(est, k):
+        return (f"its ratios change with brightness (by {ratio_bend_ev(est, k):.2f} EV from shadows to "
+                "highlights)")
+    return None
+
+
 def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, hint: str,
-                     tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> list[int]:
+                     tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None,
+                     crf: CRF | None = None) -> list[int]:
     """One warning per frame whose label is more than ``tol_ev`` from its estimate; with
     ``motion`` (:func:`moved_pairs` of the pairs the frame's estimate chains through), a
     frame whose estimate went through a pair that moved gets a line saying its label cannot
-    be checked instead.  Returns the frames called mislabelled."""
+    be checked instead, and a frame whose difference the response explains better than its
+    label (:func:`label_at_fault`) a line naming the response (``crf``: the one in use).
+    Returns the frames called mislabelled."""
     ref = frames[est.reference]
     called = []
     for k in est.mislabelled(tol_ev):
@@ -426,10 +481,20 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
         if j is not None:
             warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
             continue
+        why = response_at_fault(est, k, tol_ev)
+        if why is not None:  # a response measured on the bracket leaves the user nothing to change: -v only
+            measured = crf is not None and crf.name.startswith("measured")
+            (log.info if measured else log.warning)(
+                "%s: %+.2f EV from its label, but %s: the %s does not fit the frames, and the label is not at fault%s",
+                f.path, -est.difference_ev[k], why,
+                "response measured on the bracket" if measured else "camera response in use",
+                " (the camera processed this frame differently, or the light changed)" if measured else
+                "; measure the response on the bracket (no --crf) or with 'hdrmerge-cli estimate-crf'")
+            continue
         t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
-        log.warning("%s: labelled %s, but the frames say %s (%+.2f EV; measured against %s, labelled %s)%s",
-                    f.path, _fmt(f.exposure_time), _fmt(t_est), -est.difference_ev[k], ref.name,
-                    _fmt(ref.exposure_time), hint)
+        log.warning("%s: labelled %s, but the frames say %s (%+.2f EV, alike in shadows and highlights, as a wrong "
+                    "label makes; measured against %s, labelled %s)%s", f.path, _fmt(f.exposure_time), _fmt(t_est),
+                    -est.difference_ev[k], ref.name, _fmt(ref.exposure_time), hint)
         called.append(k)
     return called
 
@@ -470,7 +535,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         log.info("%s / %s: on the samples, %s", frames[j].name, frames[j + 1].name, what)
     hint = "" if use_estimates else "; merge with --times estimate to use the estimates"
     # --times estimate: the pairs that moved are out of the estimates already (warned above)
-    warn_mislabelled(frames, exposures, est, hint, motion=None if use_estimates else motion)
+    warn_mislabelled(frames, exposures, est, hint, motion=None if use_estimates else motion, crf=used)
     rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used, motion=motion)
     if not use_estimates:
         return frames, exposures, rep

@@ -34,6 +34,7 @@ from hdrmerge_cli.pipeline.bracket import (
     choose_crf, equal_exposure_groups, exposure_values, fmt_time, output_orientation, read_bracket,
     reference_exposure,
 )
+from hdrmerge_cli.pipeline.crf import measure_response
 from hdrmerge_cli.pipeline.exposures import SampleTee, check_order, resolve_exposures, sample_frames
 from hdrmerge_cli.pipeline.models import Models, choose_models, resolve_noise
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
@@ -113,7 +114,7 @@ def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
 def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF]:
     """Stage 1: the frames' metadata, checked and sorted by exposure, and the response."""
     frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True)
-    return frames, choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf)
+    return frames, choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf, warn=False)
 
 
 def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_codes,
@@ -130,10 +131,18 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
         load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
     unaligned = load
+    measure = crf.assumed and frames[0].kind == "image"
+    if opts.align != "off" or measure:
+        t1 = time.perf_counter()
+        samples = sample_frames(frames, load)
+        if len(frames) > 1:  # registration and the response trust the labels' order: a disordered bracket fails first
+            check_order(frames, samples)
+        if measure:  # no response given: the bracket's own, or sRGB with a warning
+            crf = measure_response(frames, samples) or crf
+            timings["response"] = time.perf_counter() - t1
+        del samples
     if opts.align != "off":
         t1 = time.perf_counter()
-        if len(frames) > 1:  # registration trusts the labels' order: a disordered bracket fails first, in one line
-            check_order(frames, sample_frames(frames, load))
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
         timings["align"] = time.perf_counter() - t1
     aligned = motion.loader(frames, alignment, load)
@@ -148,7 +157,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     models = choose_models(frames, exposures, crf, opts, unaligned, noise)
     timings.update(models.timings)
     timings["read_metadata"] = (time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
-                                - timings.get("align", 0.0) - timings["tables"])
+                                - timings.get("align", 0.0) - timings.get("response", 0.0) - timings["tables"])
     ghosts = None
     if opts.deghost != "off":
         t0 = time.perf_counter()

@@ -1,0 +1,87 @@
+"""merge without --crf: the response measured on the bracket (estimate-crf's defaults, its
+prior towards sRGB), labels and response judged together, and the label check naming
+the likelier cause of a disagreement."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import _simulate, frames_of, log_rmse
+from hdrmerge_cli.io.images import read_exr
+from hdrmerge_cli.pipeline.crf import MEASURED
+
+
+@pytest.fixture(scope="module")
+def s_curve_bracket(tmp_path_factory, run):
+    """5 JPEG frames 1.5 EV apart through a camera-like S-shaped tone curve (not sRGB):
+    a lifted toe and a rolled-off shoulder, as a CSV table ``z, linear``."""
+    folder = tmp_path_factory.mktemp("scurve")
+    v = np.linspace(0.0, 1.0, 256)
+    x = np.clip(0.5 * (v**2.4 + v**3.2) + 0.02 * np.sin(np.pi * v) ** 2 * v, 0.0, None)
+    x = np.maximum.accumulate(x / x[-1])
+    table = folder / "curve.csv"
+    table.write_text("z,linear\n" + "".join(f"{z},{x[z]:.9g}\n" for z in range(256)))
+    meta = _simulate(run, folder / "jpg", "--format", "jpg", "--size", "320x240", "--crf", table, "--seed", "9",
+                     "--times", "0.0005,0.0014,0.004,0.011,0.032")
+    return folder / "jpg", meta
+
+
+def _times_arg(meta, k, factor):
+    return ",".join(str(t * (factor if j == k else 1)) for j, t in enumerate(meta["exposure_times"]))
+
+
+def test_merge_measures_the_response_when_none_is_given(run, tmp_path, s_curve_bracket):
+    """No --crf: the profile and --json say the response was measured on the bracket, no
+    warning is given, and the result is closer to the truth than through sRGB."""
+    folder, meta = s_curve_bracket
+    files = frames_of(folder, meta)
+    plain = run("merge", *files, "-o", tmp_path / "plain.exr", "--json")
+    assert "warning" not in plain.stderr, plain.stderr
+    assert json.loads(plain.stdout)["crf"] == MEASURED
+    profile = json.loads((tmp_path / "plain.profile.json").read_text())
+    assert profile["crf"]["model"] == "table"
+    run("merge", *files, "-o", tmp_path / "srgb.exr", "--crf", "srgb")
+    truth = read_exr(str(folder / "truth.exr"))[0]
+    err_plain = log_rmse(read_exr(str(tmp_path / "plain.exr"))[0], truth, margin=4)
+    err_srgb = log_rmse(read_exr(str(tmp_path / "srgb.exr"))[0], truth, margin=4)
+    assert err_plain < 0.7 * err_srgb, (err_plain, err_srgb)
+
+
+def test_a_wrong_response_is_named_not_the_labels(run, tmp_path, s_curve_bracket):
+    """--crf srgb on a camera whose curve is not sRGB: no frame is called mislabelled; the
+    frames that disagree are said not to fit the response, with no --times estimate advice."""
+    folder, meta = s_curve_bracket
+    proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "srgb.exr", "--crf", "srgb")
+    assert "labelled" not in proc.stderr and "--times estimate" not in proc.stderr, proc.stderr
+    warnings = [ln for ln in proc.stderr.splitlines() if "warning" in ln]
+    assert warnings and all("does not fit the frames" in ln for ln in warnings), proc.stderr
+
+
+def test_a_mislabelled_frame_is_named_through_the_measured_response(run, tmp_path, s_curve_bracket):
+    """One label 1 EV off, no --crf: that frame, and only it, is named, with the size of the
+    error, as a label error; the response fitted with its measured exposure."""
+    folder, meta = s_curve_bracket
+    files = frames_of(folder, meta)
+    proc = run("merge", *files, "-o", tmp_path / "bad.exr", "--times", _times_arg(meta, 3, 2.0), "--json")
+    lines = [ln for ln in proc.stderr.splitlines() if "warning" in ln]
+    assert len(lines) == 1 and files[3].name in lines[0] and "as a wrong label makes" in lines[0], proc.stderr
+    row = next(f for f in json.loads(proc.stdout)["exposure_check"]["frames"] if f["name"] == files[3].name)
+    assert row["difference_ev"] == pytest.approx(1.0, abs=0.15)
+
+
+def test_a_single_frame_falls_back_to_srgb_with_the_reason(run, tmp_path, s_curve_bracket):
+    folder, meta = s_curve_bracket
+    proc = run("merge", frames_of(folder, meta)[2], "-o", tmp_path / "one.exr", "--json")
+    assert "one exposure only" in proc.stderr and "assuming sRGB" in proc.stderr, proc.stderr
+    assert json.loads(proc.stdout)["crf"] == "srgb"
+
+
+def test_estimate_crf_records_its_prior(run, tmp_path, s_curve_bracket):
+    folder, meta = s_curve_bracket
+    out = json.loads(run("estimate-crf", *frames_of(folder, meta), "-o", tmp_path / "c.json", "--json").stdout)
+    assert out["anchor"] > 0 and out["prior"] == "srgb"
+    off = json.loads(run("estimate-crf", *frames_of(folder, meta), "-o", tmp_path / "d.json", "--anchor", "0",
+                         "--json").stdout)
+    assert off["anchor"] == 0
