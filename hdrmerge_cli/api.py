@@ -126,7 +126,7 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
     else:
         from hdrmerge_cli.pipeline.bracket import choose_crf
 
-        response = choose_crf(frames, crf)
+        response = choose_crf(frames, crf, warn=False)  # none given: merge_frames measures it
     return merge_frames(frames, response, opts, load=lambda f: by_path[f.path])
 
 

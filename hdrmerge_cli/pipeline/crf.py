@@ -77,10 +77,15 @@ def check_samples(samples: int | None, n_frames: int, n_codes: int, n_pixels: in
                             "or 0 for all")
 
 
+def is_flat(crf: CRF) -> bool:
+    """A fitted response that spans less than one stop from code 1 to white (any camera's
+    spans many: sRGB 12 stops at 8 bits), which would merge every code to about white."""
+    return bool(np.all(crf.table[:, 1] > 0.5))
+
+
 def check_not_flat(crf: CRF, method: str, smoothing: float | None) -> None:
-    """Refuse a fitted response that spans less than one stop from code 1 to white (any
-    camera's spans many: sRGB 12 stops at 8 bits), which would merge every code to about white."""
-    if np.all(crf.table[:, 1] > 0.5):
+    """Refuse an :func:`is_flat` fit, naming what flattened it."""
+    if is_flat(crf):
         cause = (f"--lambda {smoothing:g} smooths the data away; give a smaller --lambda" if smoothing
                  else "the frames do not determine it; try --method goossens")
         raise HdrMergeError(f"the {method} fit is flat (less than one stop from code 1 to white): {cause}")
@@ -130,18 +135,16 @@ def measure_response(frames: list[Frame], samples: exposures_mod.Samples) -> CRF
     the curve open; None, with a warning saying why and that sRGB is assumed, where the
     frames cannot support a fit: fewer than two distinct exposures, or neighbours sharing
     fewer than :data:`MIN_OVERLAP` unclipped pixels."""
-    why = None
     exposures = exposure_values(frames)
+    thin = exposures_mod.thin_overlap(samples)
     if len(np.unique(exposures)) < 2:
         why = "one exposure only"
+    elif thin is not None:
+        k, both = thin
+        why = f"{frames[k - 1].name} and {frames[k].name} share {both} unclipped pixels"
     else:
-        try:
-            exposures_mod.check_overlap(frames, samples)
-        except HdrMergeError as exc:
-            why = str(exc).split(": ", 1)[-1].split(";")[0]
-    if why is None:
         crf = fit_with_labels(frames, exposures, samples)
-        if not np.all(crf.table[:, 1] > 0.5):  # not flat (check_not_flat)
+        if not is_flat(crf):
             return CRF(MEASURED, table=crf.table)
         why = "the fit is flat"
     log.warning("%s: no camera response given and none can be measured on this bracket (%s); assuming sRGB. Run "

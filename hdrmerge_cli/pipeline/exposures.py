@@ -156,21 +156,28 @@ def check_order(frames: list[Frame], s: Samples) -> None:
             )
 
 
-def check_overlap(frames: list[Frame], s: Samples) -> None:
-    """Consecutive frames must share pixels that neither clips (0 < z < max; constant
-    borders excluded), or a response cannot be chained from one to the next."""
+def thin_overlap(s: Samples) -> tuple[int, int] | None:
+    """The first neighbour pair sharing fewer than :data:`MIN_OVERLAP` pixels that neither
+    frame clips (0 < z < max; constant borders excluded), as ``(k, pixels)`` with ``k`` the
+    pair's longer frame, or None: a response cannot be chained across such a pair."""
     lo, hi = 0.5 * s.codes_step, 1 - 0.5 * s.codes_step
-    for k in range(1, len(frames)):
+    for k in range(1, len(s.v)):
         a, b = s.v[k - 1], s.v[k]
         both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
         if both < MIN_OVERLAP:
-            pixels = frames[k].width * frames[k].height
-            why = (f"the frames have only {pixels} pixels" if pixels < MIN_OVERLAP
-                   else "the exposures are too far apart")
-            raise HdrMergeError(
-                f"{frames[k].path}: only {both} pixels are unclipped both here and in {frames[k - 1].path} "
-                f"(need {MIN_OVERLAP}); {why} to estimate a CRF"
-            )
+            return k, both
+    return None
+
+
+def check_overlap(frames: list[Frame], s: Samples) -> None:
+    """Refuse a bracket with a :func:`thin_overlap` pair, in one line naming both frames."""
+    thin = thin_overlap(s)
+    if thin is not None:
+        k, both = thin
+        pixels = frames[k].width * frames[k].height
+        why = f"the frames have only {pixels} pixels" if pixels < MIN_OVERLAP else "the exposures are too far apart"
+        raise HdrMergeError(f"{frames[k].path}: only {both} pixels are unclipped both here and in "
+                            f"{frames[k - 1].path} (need {MIN_OVERLAP}); {why} to estimate a CRF")
 
 
 # ---------------------------------------------------------------- estimates
