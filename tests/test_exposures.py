@@ -347,3 +347,15 @@ def test_ratio_trend_is_zero_for_a_label_and_the_bend_for_a_response():
     assert ratio_trend(y, d, w) == pytest.approx(0.3 * span, rel=1e-6)
     r = robust_log_ratio(y, 2.0 * y)
     assert abs(r.trend) < 1e-9 and r.log_ratio == pytest.approx(np.log(2.0))
+
+
+def test_a_wrong_power_is_told_from_a_wrong_label():
+    """Differences proportional to the distance in exposure from the reference are one
+    slope (a response of the wrong power); one wrong label leaves half its error off it."""
+    from hdrmerge_cli.core.exposure import ExposureEstimate
+    from hdrmerge_cli.pipeline.exposures import power_explains
+
+    log_h = np.log(2.0) * np.arange(5.0) * 1.5
+    power = ExposureEstimate(log_h, 0.2 * (np.arange(5.0) - 2) * 1.5, [], 2, 1.0)
+    label = ExposureEstimate(log_h, np.array([0.0, 0.0, 0.0, 0.0, 1.0]), [], 2, 1.0)
+    assert power_explains(power) and not power_explains(label)

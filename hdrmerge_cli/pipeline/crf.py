@@ -241,7 +241,8 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
                 break
         motion = exposures_mod.label_motion(samples, labels, crf, est)
         exposures_mod.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
-                                       else "; estimate-crf --times estimate fits with the estimates", motion=motion)
+                                       else "; estimate-crf --times estimate fits with the estimates", motion=motion,
+                                       crf=crf)
         exposure_check = exposures_mod.report(frames, labels, est,
                                               "estimates" if opts.times == ESTIMATE else "labels", crf, motion=motion)
         points = (codes, log_h)

@@ -490,7 +490,7 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
             continue
         why = response_at_fault(est, k, tol_ev)
         if why is not None:  # a response measured on the bracket leaves the user nothing to change: -v only
-            measured = crf is not None and crf.name.startswith("measured")
+            measured = crf is not None and crf.name.startswith(("measured", "estimate-crf"))
             (log.info if measured else log.warning)(
                 "%s: %+.2f EV from its label, but %s: the %s does not fit the frames, and the label is not at fault%s",
                 f.path, -est.difference_ev[k], why,
