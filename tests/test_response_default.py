@@ -85,3 +85,36 @@ def test_estimate_crf_records_its_prior(run, tmp_path, s_curve_bracket):
     off = json.loads(run("estimate-crf", *frames_of(folder, meta), "-o", tmp_path / "d.json", "--anchor", "0",
                          "--json").stdout)
     assert off["anchor"] == 0
+
+
+def _as_camera(src, dst, make="TestCam", model="T1", contrast=None):
+    """``src`` rewritten (lossless TIFF) as if a real camera took it: make and model set,
+    optionally a stated contrast setting (part of the picture style)."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(src))
+    buf.specmod().attribute("Make", make)
+    buf.specmod().attribute("Model", model)
+    if contrast is not None:
+        buf.specmod().attribute("Exif:Contrast", contrast)
+    assert buf.write(str(dst))
+    return dst
+
+
+def test_the_response_is_cached_per_camera_and_style(run, tmp_path, monkeypatch, tiff_bracket):
+    """A measured response is stored under the camera and its style; a single frame of the
+    same camera and style reads it back instead of assuming sRGB; another style, or
+    --no-cache, does not."""
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
+    folder, meta = tiff_bracket
+    files = [_as_camera(f, tmp_path / f.name) for f in frames_of(folder, meta)]
+    run("merge", *files, "-o", tmp_path / "all.exr")
+    stored = json.loads((tmp_path / "cache" / "response.json").read_text())["entries"]
+    assert list(stored) == ["TestCam | T1 | bits=16 | style="]
+    one = run("merge", files[1], "-o", tmp_path / "one.exr", "--json")
+    assert "assuming sRGB" not in one.stderr and json.loads(one.stdout)["crf"].startswith("measured earlier"), one.stderr
+    nocache = run("merge", files[1], "-o", tmp_path / "nc.exr", "--json", "--no-cache")
+    assert "assuming sRGB" in nocache.stderr and json.loads(nocache.stdout)["crf"] == "srgb"
+    other = _as_camera(files[1], tmp_path / "styled.tif", contrast=1)
+    styled = run("merge", other, "-o", tmp_path / "styled.exr", "--json")
+    assert "assuming sRGB" in styled.stderr and json.loads(styled.stdout)["crf"] == "srgb"

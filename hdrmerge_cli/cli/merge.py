@@ -82,7 +82,8 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--no-cache", "no_cache", is_flag=True,
               help="Measure the noise on this bracket even if an earlier merge of the same camera and ISO stored it "
                    "in the per-camera cache ($HDRMERGE_CLI_CACHE_DIR, else $XDG_CACHE_HOME/hdrmerge-cli, else "
-                   "~/.cache/hdrmerge-cli: noise.json), and store nothing there.")
+                   "~/.cache/hdrmerge-cli: noise.json; response.json holds images' responses, read back where a "
+                   "bracket cannot pin its own), and store nothing there.")
 @click.option("--extra-channels", callback=parse_csv_list, metavar="NAMES",
               help=f"Extra EXR channels, comma-separated: {', '.join(EXTRA_CHANNELS)}.")
 @click.option("--noise", metavar="PARAMS", callback=noise_option_callback,

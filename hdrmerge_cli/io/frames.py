@@ -72,6 +72,9 @@ class Frame:
     #: images: the index of the file's alpha channel (gray+alpha, RGBA), else None; a pixel
     #: whose alpha is 0 is no measurement (:func:`load_validity`)
     alpha_channel: int | None = None
+    #: images: the processing the file states (EXIF contrast, saturation, sharpness, custom
+    #: rendering, software), which a camera's response depends on; "" when it states none
+    style: str = ""
 
     @property
     def name(self) -> str:
@@ -366,8 +369,18 @@ def _read_image(path: str) -> Frame:
         model=str(spec.getattribute("Model") or ""), timestamp=str(stamp) if stamp else None,
         bits=bits, n_codes=2**container, black=np.zeros(channels), white=np.full(channels, white),
         channels=channels, channel_colors="RGB"[:channels] if channels == 3 else "Y",
-        orientation=orientation if 1 <= orientation <= 8 else 1, alpha_channel=alpha,
+        orientation=orientation if 1 <= orientation <= 8 else 1, alpha_channel=alpha, style=_style(spec),
     )
+
+
+#: EXIF tags that describe how a camera processed an image (its picture style)
+STYLE_TAGS = ("Exif:Contrast", "Exif:Saturation", "Exif:Sharpness", "Exif:CustomRendered", "Software")
+
+
+def _style(spec) -> str:
+    """The :attr:`Frame.style` of an image's header."""
+    values = ((tag.split(":")[-1].lower(), spec.getattribute(tag)) for tag in STYLE_TAGS)
+    return ",".join(f"{name}={str(v).strip()}" for name, v in values if v is not None and str(v).strip())
 
 
 def _image_iso(meta: dict) -> float | None:

@@ -1,4 +1,5 @@
-"""Per-camera cache of the noise parameters that ``merge`` measures on a bracket.
+"""Per-camera cache of the noise parameters and the image response that ``merge`` measures
+on a bracket.
 
 A bracket merged without ``--noise``/``--profile`` has the noise model (17) measured on
 itself (the calibrate-noise fast path, about a second at 24 MP).  The parameters belong to
@@ -15,6 +16,12 @@ Key: make, model, ISO, the kind of data and its code scale (RAW: black and white
 a camera's 12- and 14-bit modes stay apart; images: bit depth and the response curve the
 signal was linearised with).  Frames without make, model or ISO are not cached, nor are
 simulated ones (``hdrmerge-cli simulate``: its sensor is whatever the options made it).
+
+The response of JPEG/TIFF/PNG frames (``response.json`` beside it) is the camera's and its
+picture style's, not the scene's: keyed by make, model, bit depth and the processing the
+file states (:attr:`~hdrmerge_cli.io.frames.Frame.style`), so another style or bit depth is
+never mistaken for it.  ``merge`` stores every response it measures and reads one back only
+where a bracket cannot pin its own (a single frame, frames too far apart).
 """
 from __future__ import annotations
 
@@ -41,6 +48,10 @@ def cache_dir() -> Path:
 
 def cache_file() -> Path:
     return cache_dir() / "noise.json"
+
+
+def response_file() -> Path:
+    return cache_dir() / "response.json"
 
 
 def _num(x) -> str:
@@ -83,18 +94,47 @@ def lookup(key: str | None) -> dict | None:
     return entry | {"used": used}
 
 
-def store(key: str | None, used: dict, estimated: dict | None, inputs: list[str]) -> Path | None:
-    """Add (or replace) one entry; written to a temporary file and renamed, so concurrent
-    merges (``--batch -j``) never leave a torn file (the last writer wins).  Returns the
-    file, or ``None`` if it could not be written (a read-only home: no cache, no error)."""
+def response_key(frame) -> str | None:
+    """The response cache key of an image bracket's first frame, or ``None``."""
+    make, model = (frame.make or "").strip(), (frame.model or "").strip()
+    if frame.kind != "image" or not make or not model or make == SIMULATED_MAKE:
+        return None
+    return " | ".join([make, model, f"bits={frame.bits}", f"style={frame.style}"])
+
+
+def lookup_response(key: str | None) -> dict | None:
+    """The stored response entry (``{"inverse": (C, N) list, "inputs": [...], "date": ...}``)
+    or ``None``."""
     if key is None:
         return None
-    path = cache_file()
+    entry = _load(response_file()).get(key)
+    if not isinstance(entry, dict) or not isinstance(entry.get("inverse"), list):
+        return None
+    return entry
+
+
+def store_response(key: str | None, table, inputs: list[str]) -> Path | None:
+    """Add (or replace) a response entry, as :func:`store` does a noise entry."""
+    return _store(response_file(), key, {"inverse": [[float(x) for x in row] for row in table]}, inputs)
+
+
+def store(key: str | None, used: dict, estimated: dict | None, inputs: list[str]) -> Path | None:
+    """Add (or replace) one noise entry (see :func:`_store`)."""
+    return _store(cache_file(), key, {"used": used, "estimated_from_bracket": estimated}, inputs)
+
+
+def _store(path: Path, key: str | None, entry: dict, inputs: list[str]) -> Path | None:
+    """Add (or replace) one entry of ``path``; written to a temporary file and renamed, so
+    concurrent merges (``--batch -j``) never leave a torn file (the last writer wins).
+    Returns the file, or ``None`` if it could not be written (a read-only home: no cache,
+    no error)."""
+    if key is None:
+        return None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         entries = _load(path)
-        entries[key] = {"used": used, "estimated_from_bracket": estimated, "inputs": [str(p) for p in inputs],
-                        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+        entries[key] = entry | {"inputs": [str(p) for p in inputs],
+                                "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
         tmps: list[str] = []
         try:
             create_temporary(path, tmps)  # listed before it exists: a signal leaves no stray file

@@ -128,13 +128,19 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
 
 
-def measure_response(frames: list[Frame], samples: exposures_mod.Samples) -> CRF | None:
+def measure_response(frames: list[Frame], samples: exposures_mod.Samples, cache: bool = True) -> CRF | None:
     """The response of an image bracket given none, fitted on the samples the merge draws
     (:func:`~hdrmerge_cli.pipeline.exposures.sample_frames`, constant borders off) by
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
-    the curve open; None, with a warning saying why and that sRGB is assumed, where the
-    frames cannot support a fit: fewer than two distinct exposures, or neighbours sharing
-    fewer than :data:`MIN_OVERLAP` unclipped pixels."""
+    the curve open, and stored in the per-camera cache (``cache``,
+    :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
+    two distinct exposures, or neighbours sharing fewer than :data:`MIN_OVERLAP` unclipped
+    pixels) the cached response of the same camera and style, unless the frames contradict
+    it (:func:`~hdrmerge_cli.pipeline.exposures.response_fits`); else None, with a warning
+    saying why and that sRGB is assumed."""
+    from hdrmerge_cli.io import noisecache
+
+    key = noisecache.response_key(frames[0]) if cache else None
     exposures = exposure_values(frames)
     thin = exposures_mod.thin_overlap(samples)
     if len(np.unique(exposures)) < 2:
@@ -145,12 +151,41 @@ def measure_response(frames: list[Frame], samples: exposures_mod.Samples) -> CRF
     else:
         crf = fit_with_labels(frames, exposures, samples)
         if not is_flat(crf):
+            if noisecache.store_response(key, crf.table, [f.path for f in frames]):
+                log.debug("response of %s stored in %s", key, noisecache.response_file())
             return CRF(MEASURED, table=crf.table)
         why = "the fit is flat"
+    cached = _cached_response(frames, exposures, samples, key)
+    if cached is not None:
+        return cached
     log.warning("%s: no camera response given and none can be measured on this bracket (%s); assuming sRGB. Run "
                 "'hdrmerge-cli estimate-crf' on a bracket of this camera and pass --crf PROFILE.json",
                 frames[0].path, why)
     return None
+
+
+def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposures_mod.Samples,
+                     key: str | None) -> CRF | None:
+    """The cached response of ``key`` (:func:`measure_response`), or None: none stored, a
+    damaged entry, or frames whose ratios bend through it (most pairs, beyond the label
+    tolerance)."""
+    from hdrmerge_cli.io import noisecache
+
+    hit = noisecache.lookup_response(key)
+    if hit is None:
+        return None
+    try:
+        crf = CRF(CACHED, table=table_crf(np.asarray(hit["inverse"], np.float64)).table)
+        if crf.table.shape != (frames[0].channels, frames[0].n_codes):
+            return None
+    except (HdrMergeError, ValueError):
+        return None
+    if len(frames) > 1 and not exposures_mod.response_fits(exposures_mod.estimate(frames, exposures, samples, crf)):
+        log.info("the cached response of %s does not fit these frames; not used", key)
+        return None
+    log.info("camera response of %s from the cache %s (measured on %s, %s)", key, noisecache.response_file(),
+             ", ".join(Path(p).name for p in hit.get("inputs", [])), hit.get("date"))
+    return crf
 
 
 def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposures_mod.Samples) -> CRF:
@@ -181,6 +216,8 @@ def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposur
 
 #: the name of a response :func:`measure_response` fitted on the bracket being merged
 MEASURED = "measured on the bracket (estimate-crf defaults)"
+#: the name of a response :func:`measure_response` read from the per-camera cache
+CACHED = "measured earlier on this camera (cache)"
 
 
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:

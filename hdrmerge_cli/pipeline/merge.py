@@ -138,7 +138,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         if len(frames) > 1:  # registration and the response trust the labels' order: a disordered bracket fails first
             check_order(frames, samples)
         if measure:  # no response given: the bracket's own, or sRGB with a warning
-            crf = measure_response(frames, samples) or crf
+            crf = measure_response(frames, samples, cache=opts.noise_cache) or crf
             timings["response"] = time.perf_counter() - t1
         del samples
     if opts.align != "off":
