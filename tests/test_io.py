@@ -116,14 +116,14 @@ def test_silencing_c_stderr_from_many_threads_restores_it():
     import threading
     import time
 
-    from hdrmerge_cli.io.frames import _quiet_c_stderr
+    from hdrmerge_cli.io.frames import quiet_c_stderr
 
     before = os.fstat(2)
     null = os.stat(os.devnull)
     seen = []
 
     def work(k):
-        with _quiet_c_stderr():
+        with quiet_c_stderr():
             seen.append(os.fstat(2).st_ino == null.st_ino)
             time.sleep(0.001 * (k % 3))
 

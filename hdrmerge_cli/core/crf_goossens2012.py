@@ -235,25 +235,26 @@ def solve_qp_channels(cgs: list[Comparagram], ws: list[np.ndarray], w_smooths: l
         quad = quad + anchor * (L - 1) * (steps.T @ steps)
         linear = linear + anchor * (L - 1) * (steps.T @ (steps @ np.asarray(prior, np.float64).reshape(-1)))
     quad = sp.csc_matrix((quad + quad.T) / 2)
-    anchors = sp.csr_matrix((np.ones(C), (np.arange(C), np.arange(C) * L + L // 2)), shape=(C, C * L))
-    g = _solve_clarabel(quad, linear, anchors, steps, epsilon)
+    mid = sp.csr_matrix((np.ones(C), (np.arange(C), np.arange(C) * L + L // 2)), shape=(C, C * L))
+    g = _solve_clarabel(quad, linear, mid, steps, epsilon)
     if g is None:
-        g = _solve_cvxpy(quad, linear, anchors, steps, epsilon)
+        g = _solve_cvxpy(quad, linear, mid, steps, epsilon)
     return g.reshape(C, L)
 
 
-def _solve_clarabel(quad, linear, anchors, steps, epsilon: float) -> np.ndarray | None:
-    """``min g' Q g - 2 l' g`` s.t. ``anchors g = 0``, ``steps g >= epsilon`` with Clarabel
-    directly (its form: ``min x' P x / 2 + q' x``, ``A x + s = b``, ``s`` in the zero cone
-    then the nonnegative cone); None when it does not solve."""
+def _solve_clarabel(quad, linear, mid, steps, epsilon: float) -> np.ndarray | None:
+    """The QP of (37), ``min g' Q g - 2 l' g`` s.t. ``mid g = 0`` (``g(mid-scale) = 0`` per
+    channel) and ``steps g >= epsilon``, with Clarabel directly (its form: ``min x' P x / 2
+    + q' x``, ``A x + s = b``, ``s`` in the zero cone then the nonnegative cone); None when
+    it does not solve."""
     import clarabel
     import scipy.sparse as sp
 
-    a = sp.vstack([anchors, -steps], format="csc")
-    b = np.concatenate([np.zeros(anchors.shape[0]), np.full(steps.shape[0], -epsilon)])
+    a = sp.vstack([mid, -steps], format="csc")
+    b = np.concatenate([np.zeros(mid.shape[0]), np.full(steps.shape[0], -epsilon)])
     settings = clarabel.DefaultSettings()
     settings.verbose = False
-    cones = [clarabel.ZeroConeT(anchors.shape[0]), clarabel.NonnegativeConeT(steps.shape[0])]
+    cones = [clarabel.ZeroConeT(mid.shape[0]), clarabel.NonnegativeConeT(steps.shape[0])]
     solution = clarabel.DefaultSolver(sp.triu(2 * quad, format="csc"), -2 * np.asarray(linear, np.float64), a, b,
                                       cones, settings).solve()
     if str(solution.status) not in ("Solved", "AlmostSolved"):
@@ -262,13 +263,13 @@ def _solve_clarabel(quad, linear, anchors, steps, epsilon: float) -> np.ndarray 
     return x if np.all(np.isfinite(x)) else None
 
 
-def _solve_cvxpy(quad, linear, anchors, steps, epsilon: float) -> np.ndarray:
+def _solve_cvxpy(quad, linear, mid, steps, epsilon: float) -> np.ndarray:
     """The same QP through cvxpy with OSQP, where Clarabel stalls."""
     import cvxpy as cp
 
     g = cp.Variable(quad.shape[0])
     objective = cp.quad_form(g, cp.psd_wrap(quad)) - 2 * linear @ g
-    problem = cp.Problem(cp.Minimize(objective), [steps @ g >= epsilon, anchors @ g == 0])
+    problem = cp.Problem(cp.Minimize(objective), [steps @ g >= epsilon, mid @ g == 0])
     status = "not run"
     try:
         with warnings.catch_warnings():

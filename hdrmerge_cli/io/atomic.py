@@ -187,3 +187,36 @@ def write_text(tmp: str, text: str) -> None:
 def atomic_text(path: str | os.PathLike, text: str, overwrite: bool) -> None:
     with atomic_path(path, overwrite) as tmp:
         write_text(tmp, text)
+
+
+@contextlib.contextmanager
+def output_folder(folder: str | os.PathLike):
+    """Create ``folder`` and its missing parents for the block; when the block ends (done,
+    failed or interrupted), remove again, deepest first, those it created that are still
+    empty: an output committed into one keeps it and its parents.  A folder that cannot
+    be created is an error naming it."""
+    missing, f = [], Path(folder)
+    while not f.exists() and f.parent != f:
+        missing.append(f)
+        f = f.parent
+    try:
+        for f in reversed(missing):
+            f.mkdir(exist_ok=True)
+    except OSError as exc:
+        _remove_empty(missing)
+        raise HdrMergeError(f"{folder}: cannot create the folder ({exc.strerror or exc})") from None
+    try:
+        yield Path(folder)
+    finally:
+        _remove_empty(missing)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the folders (deepest first) as long as they are empty."""
+    for f in folders:
+        try:
+            f.rmdir()
+        except FileNotFoundError:
+            continue
+        except OSError:
+            return

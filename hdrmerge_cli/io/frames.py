@@ -126,12 +126,12 @@ class Frame:
 
 
 _STDERR_LOCK = threading.Lock()
-_silenced = 0  # threads inside _quiet_c_stderr
+_silenced = 0  # threads inside quiet_c_stderr
 _saved_fd = None
 
 
 @contextlib.contextmanager
-def _quiet_c_stderr():
+def quiet_c_stderr():
     """Silence what LibRaw prints on C-level stderr (we report its errors ourselves).
 
     Frames are decoded on several threads: file descriptor 2 is pointed at /dev/null by the
@@ -160,7 +160,7 @@ def _quiet_c_stderr():
 
 def separate_python_stderr() -> None:
     """Point ``sys.stderr`` at a duplicate of file descriptor 2, so that silencing C
-    libraries (:func:`_quiet_c_stderr`, while another thread decodes) never swallows a log
+    libraries (:func:`quiet_c_stderr`, while another thread decodes) never swallows a log
     line or an error message of ours."""
     try:
         fd = os.dup(2)
@@ -255,7 +255,7 @@ def _read_raw(path: str) -> Frame:
 
     raw = rawpy.RawPy()
     try:
-        with _quiet_c_stderr():
+        with quiet_c_stderr():
             raw.open_file(path)
             num_colors = raw.num_colors  # known before unpacking: refuse at once
             if num_colors not in (1, 3):
@@ -410,7 +410,7 @@ def load_codes(frame: Frame) -> np.ndarray:
         import rawpy
 
         try:
-            with _quiet_c_stderr():
+            with quiet_c_stderr():
                 raw = rawpy.imread(frame.path)
                 # LibRaw's buffer itself when it has no margins: the view keeps its RawPy (and
                 # so the buffer) alive, and it is freed with the view (never closed under it);
@@ -422,22 +422,8 @@ def load_codes(frame: Frame) -> np.ndarray:
         if frame.kind == "linear":
             return linear_codes(codes, frame)
         return codes
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(frame.path)
-    if inp is None:
-        raise HdrMergeError(f"{frame.path}: not a readable image ({_oiio_reason(oiio.geterror())})")
     alpha = frame.alpha_channel
-    try:
-        pixels = inp.read_image(0, 0, 0, frame.channels if alpha is None else max(alpha + 1, frame.channels),
-                                format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
-        err = inp.geterror()
-    finally:
-        inp.close()
-    if pixels is None or (err and "error" in err.lower()):
-        raise HdrMergeError(f"{frame.path}: could not decode the pixels ({_oiio_reason(err)})")
-    if pixels.ndim == 2:
-        pixels = pixels[..., None]
+    pixels = _read_channels(frame, 0, frame.channels if alpha is None else max(alpha + 1, frame.channels))
     if alpha is not None:  # transparent pixels read black, below every statistic's dark floor
         colour = np.ascontiguousarray(pixels[..., : frame.channels])
         colour[pixels[..., alpha] == 0] = 0
@@ -451,20 +437,27 @@ def load_validity(frame: Frame) -> np.ndarray | None:
     write them); None where every pixel is valid or the frame has no alpha."""
     if frame.alpha_channel is None:
         return None
+    a = frame.alpha_channel
+    valid = _read_channels(frame, a, a + 1)[..., 0] > 0
+    return None if valid.all() else valid
+
+
+def _read_channels(frame: Frame, begin: int, end: int) -> np.ndarray:
+    """Channels ``begin`` to ``end`` (exclusive) of an image frame, ``(H, W, end - begin)``
+    uint8/uint16 as stored."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(frame.path)
     if inp is None:
         raise HdrMergeError(f"{frame.path}: not a readable image ({_oiio_reason(oiio.geterror())})")
     try:
-        a = frame.alpha_channel
-        alpha = inp.read_image(0, 0, a, a + 1, format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
+        pixels = inp.read_image(0, 0, begin, end, format=oiio.UINT8 if frame.n_codes == 256 else oiio.UINT16)
+        err = inp.geterror()
     finally:
         inp.close()
-    if alpha is None:
-        raise HdrMergeError(f"{frame.path}: could not decode the alpha channel")
-    valid = np.asarray(alpha).reshape(frame.height, frame.width) > 0
-    return None if valid.all() else valid
+    if pixels is None or (err and "error" in err.lower()):
+        raise HdrMergeError(f"{frame.path}: could not decode the pixels ({_oiio_reason(err)})")
+    return pixels[..., None] if pixels.ndim == 2 else pixels
 
 
 def linear_codes(stored: np.ndarray, frame: Frame) -> np.ndarray:
@@ -510,7 +503,7 @@ def raw_channel_window(path: str, size: int = CFA_WINDOW) -> np.ndarray:
     import rawpy
 
     try:
-        with _quiet_c_stderr(), rawpy.imread(path) as raw:
+        with quiet_c_stderr(), rawpy.imread(path) as raw:
             return _channel_window(raw, size)
     except rawpy.LibRawError as exc:
         raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc, path)})") from None

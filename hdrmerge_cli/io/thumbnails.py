@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.io.frames import Frame, _quiet_c_stderr, load_codes
+from hdrmerge_cli.io.frames import Frame, quiet_c_stderr, load_codes
 
 #: the exponent that encodes linear data like a camera's JPEG (so that one pair of
 #: well-exposed bounds fits every kind of frame)
@@ -47,7 +47,7 @@ def _reduced_jpeg(data: bytes) -> np.ndarray | None:
 
     flags = cv2.IMREAD_REDUCED_GRAYSCALE_8 | cv2.IMREAD_IGNORE_ORIENTATION
     try:
-        with _quiet_c_stderr():
+        with quiet_c_stderr():
             img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error:
         return None
@@ -61,7 +61,7 @@ def _raw_preview(path: str) -> np.ndarray | None:
     import rawpy
 
     try:
-        with _quiet_c_stderr(), rawpy.imread(path) as raw:
+        with quiet_c_stderr(), rawpy.imread(path) as raw:
             thumb = raw.extract_thumb()
     except (rawpy.LibRawError, OSError):
         return None

@@ -2,6 +2,7 @@
 Dask cluster, continuing past bad brackets."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import logging
@@ -20,6 +21,7 @@ import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
 from hdrmerge_cli.core.similarity import SAME_SCENE_CORRELATION, same_scene, structure_correlation
+from hdrmerge_cli.io.atomic import output_folder
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
 from hdrmerge_cli.io.memory import one_malloc_arena
@@ -319,10 +321,9 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
     jobs = [(e, dataclasses.replace(opts.merge, output=Path(e["output"]), profile_out=None)) for e in todo]
     client = _connect(opts.scheduler) if opts.scheduler and jobs else None  # before anything is created
-    created = _missing_folders(Path(opts.outdir)) if todo else []  # nothing to write: no output folder either
-    try:
-        for folder in reversed(created):
-            folder.mkdir(exist_ok=True)
+    # nothing to write: no output folder either; interrupted, or every bracket failed: the
+    # folders made for the outputs go again
+    with output_folder(opts.outdir) if todo else contextlib.nullcontext():
         if client is not None:
             with client:
                 results = _on_dask(client, jobs, profile_text, progress)
@@ -334,8 +335,6 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
                 results.append((e, merge_one(e["frames"], mo)))
                 if progress:
                     progress(1)
-    finally:  # interrupted, or every bracket failed: the folders made for the outputs go again
-        _remove_empty(created)
     for e, res in results:
         e["status"] = res["status"]
         if res["status"] == "failed":
@@ -344,27 +343,6 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
         else:
             e["profile"] = res["summary"]["profile"]
     return summarize(entries)
-
-
-def _missing_folders(folder: Path) -> list[Path]:
-    """``folder`` and those of its parents that do not exist yet, deepest first."""
-    missing = []
-    while not folder.exists() and folder.parent != folder:
-        missing.append(folder)
-        folder = folder.parent
-    return missing
-
-
-def _remove_empty(folders: list[Path]) -> None:
-    """Remove the folders (deepest first) as long as they are empty: an output committed
-    into one keeps it and its parents."""
-    for folder in folders:
-        try:
-            folder.rmdir()
-        except FileNotFoundError:
-            continue
-        except OSError:
-            return
 
 
 #: a worker process is merging a bracket (its stop signal then unwinds the merge)

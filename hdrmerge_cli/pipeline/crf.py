@@ -196,7 +196,7 @@ def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposur
     that frame's estimate in place of its label, the frame furthest off first, at most half
     the frames.  A wrong label then does not bend the curve; the labels are judged (and
     warned about) afterwards against the response returned."""
-    codes = [c[samples.inside] for c in exposures_mod.samples_codes(frames, samples)]
+    codes = exposures_mod.samples_codes(frames, samples)
     log_h = np.log(np.asarray(exposures, np.float64))
     crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
     replaced: list[int] = []

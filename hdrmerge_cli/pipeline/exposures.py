@@ -240,12 +240,13 @@ def estimate(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF,
 
 
 def samples_codes(frames: list[Frame], s: Samples) -> list[np.ndarray]:
-    """The samples back as integer code values (images: exact)."""
+    """The samples off the constant borders back as integer code values (images: exact),
+    ``(N, C)`` per frame."""
     f = frames[0]
     c = s.v[0].shape[-1]
     span = np.asarray(f.white - f.black, dtype=np.float32)[:c]
     black = np.asarray(f.black, np.float32)[:c]
-    return [np.rint(v * span + black).clip(0, f.n_codes - 1).astype(np.int64) for v in s.v]
+    return [np.rint(v[s.inside] * span + black).clip(0, f.n_codes - 1).astype(np.int64) for v in s.v]
 
 
 def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples,
@@ -262,7 +263,7 @@ def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples,
 
     n = frames[0].n_codes
     levels = knot_levels(n)
-    codes = [to_knots(c[s.inside], n, levels) for c in samples_codes(frames, s)]  # (N, C)
+    codes = [to_knots(c, n, levels) for c in samples_codes(frames, s)]  # (N, C)
     log_r = np.diff(np.log(exposures))
     used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
     tables = []

@@ -131,7 +131,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
         load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
     unaligned = load
-    measure = crf.assumed and frames[0].kind == "image"
+    measure = crf.assumed  # an image bracket given no response
     if opts.align != "off" or measure:
         t1 = time.perf_counter()
         samples = sample_frames(frames, load)

@@ -1,7 +1,6 @@
 """simulate: render a bracket from a scene through the sensor model (16)-(18)."""
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -16,7 +15,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, gain_pattern, quantise_crf, quantise_raw
-from hdrmerge_cli.io.atomic import atomic_paths, write_text
+from hdrmerge_cli.io.atomic import atomic_paths, output_folder, write_text
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import read_frame
 from hdrmerge_cli.io.images import read_exr, read_header, write_exr, write_ldr
@@ -146,23 +145,6 @@ def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
     return scene * opts.scale, name
 
 
-@contextlib.contextmanager
-def _new_folder(out: Path):
-    """Create ``out`` (and parents) for the block; remove it again if the block fails and
-    it was created here and is still empty."""
-    created = not out.exists()
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise HdrMergeError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
-    try:
-        yield out
-    except BaseException:
-        if created and not any(out.iterdir()):
-            out.rmdir()
-        raise
-
-
 #: longest exposure time a simulated frame may need (seconds)
 MAX_TIME = 1e6
 
@@ -223,7 +205,7 @@ def simulate(opts: SimulateOptions) -> dict:
         raise HdrMergeError(f"{out}: exists and is not a folder")
     names = [f"frame_{k:02d}.{opts.fmt}" for k in range(len(times))]
     paths = [out / n for n in names] + [out / "truth.exr", out / "simulation.json"]
-    with _new_folder(out):  # removed again if the run fails before anything is in it
+    with output_folder(out):  # removed again if the run fails before anything is in it
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
         hint = "give longer --times" if opts.times else "lower --scale or give --times"
         times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
