@@ -257,3 +257,14 @@ def test_a_large_anchor_gives_the_prior_curve():
     g = crf_goossens2012(z, np.log(TIMES), 256, anchor=1e4, prior=prior).g
     codes = np.arange(5, 256)
     assert centred_rmse(g, 2.2, codes) < 0.01
+
+
+def test_standard_prior_is_the_srgb_decoding():
+    """The prior curve against IEC 61966-2-1's decoding written out: v / 12.92 up to
+    0.04045, ((v + 0.055) / 1.055)^2.4 above; code 0 at half of code 1's value."""
+    from hdrmerge_cli.core.crf_goossens2012 import standard_prior
+
+    v = np.arange(256) / 255.0
+    x = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    x[0] = x[1] / 2
+    np.testing.assert_allclose(standard_prior(256), np.log(x), rtol=0, atol=1e-6)

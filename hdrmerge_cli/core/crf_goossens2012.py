@@ -92,9 +92,10 @@ class CRFFit:
 
 
 def standard_prior(n_codes: int) -> np.ndarray:
-    """``(n_codes,)`` ``log gamma0^-1(z)`` of the standard response the prior leans on: the
-    sRGB curve (IEC 61966-2-1), which cameras' JPEG tone curves start from; floored at
-    half a code's linear step so that ``log`` is finite at code 0."""
+    """``(n_codes,)`` ``log gamma0^-1(z)`` of the standard response the slope prior added to
+    (37) leans on (:func:`solve_qp_channels`): the sRGB curve (IEC 61966-2-1), which
+    cameras' JPEG tone curves start from; floored at half a code's linear step so that
+    ``log`` is finite at code 0."""
     from hdrmerge_cli.core.crf import CRF
 
     x = CRF("srgb").inverse(np.arange(n_codes) / (n_codes - 1.0))

@@ -203,8 +203,10 @@ def robust_log_ratio(y_short: np.ndarray, y_long: np.ndarray, k: float = 3.0, it
 def ratio_trend(y: np.ndarray, d: np.ndarray, w: np.ndarray) -> float:
     """How much the per-pixel log ratios ``d`` change with brightness: the weighted least-
     squares slope of ``d`` on ``log y`` times the span of ``log y`` (5th to 95th
-    percentile), natural log units.  A wrong exposure label moves every ratio alike (no
-    trend); a response that does not fit the frames bends them with brightness."""
+    percentile), natural log units.  Through the right response every pixel's log ratio is
+    the one constant ``log(h_b / h_a)`` of (3)/(35), so a wrong exposure label moves every
+    ratio alike (no trend); a response that does not fit the frames bends them with
+    brightness."""
     if y.size < 3:
         return 0.0
     u = np.log(y)
