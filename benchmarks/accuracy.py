@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import write_result
-from hdrmerge_cli.core.color import quiet_import
+from hdrmerge_cli.core.cfa import quiet_import
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.reconstruct import merge_frames

@@ -253,7 +253,7 @@ class Bracket:
     and those samples dominate a mean squared log error."""
 
     def __init__(self, meta: dict, folder: Path):
-        from hdrmerge_cli.core.color import mosaic
+        from hdrmerge_cli.core.cfa import mosaic
         from hdrmerge_cli.core.crf import CRF
 
         self.meta, self.folder = meta, folder

@@ -81,7 +81,7 @@ def linear_dng_bracket(folder: Path, mono: bool, shape=(64, 96)) -> list[Path]:
     """Three LinearRaw DNGs (RGB, or monochrome with ``mono``) of a ramp over 10 stops,
     frames of ``shape`` (rows, columns) 2 EV apart (:data:`TIMES`)."""
     from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
-    from hdrmerge_cli.io.raw import write_linear_dng
+    from hdrmerge_cli.io.dng_integer import write_linear_dng
 
     sensor = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)
     rng = np.random.default_rng(5)

@@ -387,11 +387,11 @@ class Rendered:
 
 
 def render(case: Case, folder: Path) -> Rendered:
-    from hdrmerge_cli.core.color import mosaic
+    from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_crf, quantise_raw
     from hdrmerge_cli.core.crf import parse_crf
     from hdrmerge_cli.io.images import write_ldr
-    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.io.dng_integer import write_dng
 
     w, h = case.width, case.height
     big = crop_scene(case)
@@ -467,7 +467,7 @@ def log_error(out: np.ndarray, truth: np.ndarray, region: np.ndarray) -> np.ndar
     """(H, W) log error after one global scale (median over ``region``): of the RGB mean, or
     per CFA site when ``out`` is a mosaic (RAW merged with ``--cfa``; the truth mosaicked)."""
     if out.ndim == 2:
-        from hdrmerge_cli.core.color import mosaic
+        from hdrmerge_cli.core.cfa import mosaic
 
         t, o = mosaic(truth, "RGGB"), out
     else:
@@ -522,7 +522,7 @@ def hdrmerge_psnr(cfa: np.ndarray, truths: list, peak: float, measurable) -> flo
     """HDRMerge's output (CFA) against the frames' truths (2x2-cell means), located by phase
     correlation (integer cells), the best frame kept; over the cells ``measurable(truth)``
     marks in every pixel (as ours) and where its output is positive (its crop)."""
-    from hdrmerge_cli.core.color import mosaic
+    from hdrmerge_cli.core.cfa import mosaic
 
     h, w = (cfa.shape[0] // 2) * 2, (cfa.shape[1] // 2) * 2
 

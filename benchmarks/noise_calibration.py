@@ -38,7 +38,7 @@ import numpy as np
 
 from benchmarks import write_result
 from hdrmerge_cli.core.calibrate import achievable_errors, exposure_ratio
-from hdrmerge_cli.core.color import mosaic
+from hdrmerge_cli.core.cfa import mosaic
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times
 from hdrmerge_cli.io.images import read_exr

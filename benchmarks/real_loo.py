@@ -69,7 +69,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
         lookup = {id(f): c for f, c in zip(frames, codes)}
         used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])
         params = [NoiseParams(**used[ch]) for ch in frames[0].channel_names]
-    from hdrmerge_cli.pipeline.models import default_variance, prior_rate_of
+    from hdrmerge_cli.pipeline.model_choice import default_variance, prior_rate_of
 
     k = len(codes) // 2
     prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None

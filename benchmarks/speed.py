@@ -160,7 +160,7 @@ def core_speed(mp: float, n_frames: int, with_colour: bool) -> dict:
 
 def colour_merge(frames, times):
     """colour-hdri's Debevec-weighted merge with the known CRF, as its docs show."""
-    from hdrmerge_cli.core.color import quiet_import
+    from hdrmerge_cli.core.cfa import quiet_import
 
     ch = quiet_import("colour_hdri")
     stack = ch.ImageStack()
@@ -180,7 +180,7 @@ from hdrmerge_cli.core.reconstruct import LogMerge, exposure_tables
 from hdrmerge_cli.core.crf import CRF
 import numpy as np
 acc = LogMerge((4, 4)); acc.add(np.zeros((4, 4), np.uint16), exposure_tables(65536, np.zeros(1), np.full(1, 9.0), CRF("linear"), "triangle", 1.0)); acc.finish(scale=1.0)
-import hdrmerge_cli.core.color_fused  # the colour kernel (compiled, cached)
+import hdrmerge_cli.core.cfa_to_rgb  # the colour kernel (compiled, cached)
 if sys.argv[1] in main.list_commands(None): main.get_command(None, sys.argv[1])  # its imports, before the base RSS
 def rss():
     with open("/proc/self/statm") as f:
@@ -337,7 +337,7 @@ def as_camera(paths: list[Path], folder: Path, make: str = "BenchCam", model: st
     import rawpy
 
     from hdrmerge_cli.io.frames import read_frame
-    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.io.dng_integer import write_dng
 
     folder.mkdir(parents=True, exist_ok=True)
     out = []

@@ -12,7 +12,7 @@ from hdrmerge_cli.core.repeats import compare_repeat
 from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.io.raw import write_dng
+from hdrmerge_cli.io.dng_integer import write_dng
 from hdrmerge_cli.pipeline.batch import group_brackets
 
 SENSOR = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)

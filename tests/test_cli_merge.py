@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import SHARED, frames_of, log_rmse, needs_shared
-from hdrmerge_cli.core.color import mosaic
+from hdrmerge_cli.core.cfa import mosaic
 from hdrmerge_cli.io.images import read_exr
 
 
@@ -298,7 +298,7 @@ def test_tonemap_is_monotone_srgb_and_black_stays_black():
 def test_reinhard_devlin_equals_colour_hdri():
     """The preview's operator against colour-hdri's tonemapping_operator_Reinhard2004 and
     colour's sRGB encoding (defaults; an HDR image over 8 decades, coloured)."""
-    from hdrmerge_cli.core.color import quiet_import
+    from hdrmerge_cli.core.cfa import quiet_import
     from hdrmerge_cli.core.preview import reinhard_devlin, tonemap_srgb
 
     rng = np.random.default_rng(2)

@@ -192,7 +192,7 @@ def test_simulate_from_a_shared_hdr_scene(run, tmp_path):
     meta = json.loads((out / "simulation.json").read_text())
     run("merge", *frames_of(out, meta), "--cfa", "--reference", str(meta["reference_exposure"]), "-o", tmp_path / "m.exr")
     est, _ = read_exr(tmp_path / "m.exr")
-    from hdrmerge_cli.core.color import mosaic
+    from hdrmerge_cli.core.cfa import mosaic
 
     truth, _ = read_exr(out / "truth.exr")
     assert log_rmse(est[..., 0], mosaic(truth, "RGGB")) < 0.1

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import frames_of
-from hdrmerge_cli.core.colorspace import COLORSPACES, rec709_to
+from hdrmerge_cli.core.output_colorspace import COLORSPACES, rec709_to
 from hdrmerge_cli.io.images import read_exr
 
 NOISE = ["--noise", "sigma_o2=9,alpha=0.25,beta=0"]

@@ -1237,9 +1237,9 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     variance in its weights the merged edge is several times closer to the static
     bracket's than without it (the warps given: the true half-pixel shift)."""
     from hdrmerge_cli.core import sensor as sm
-    from hdrmerge_cli.core.color import mosaic
+    from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.io.images import read_exr
-    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.pipeline import merge as pm
     from hdrmerge_cli.pipeline import motion
 
@@ -1553,8 +1553,8 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
     full scale) whose columns from 400 on are ``bright``, with a dark object (at black)
     over ``obj`` in frame ``frame`` only ("moving"), and for its static twin ("static")."""
     from hdrmerge_cli.core import sensor as sm
-    from hdrmerge_cli.core.color import mosaic
-    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.core.cfa import mosaic
+    from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.pipeline import merge as pm
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
@@ -1635,8 +1635,8 @@ def test_static_raw_bracket_deghosting_rejects_nothing_wherever_the_camera_puts_
     any frame's cells.  (A guard: this scene passes with black censored too; the motion
     benchmark's case-10 static twin clipped at black did not: 0.68 % of a frame's cells.)"""
     from hdrmerge_cli.core import sensor as sm
-    from hdrmerge_cli.core.color import mosaic
-    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.core.cfa import mosaic
+    from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.pipeline import merge as pm
 
     rng = np.random.default_rng(17)

@@ -18,8 +18,8 @@ from click.testing import CliRunner
 
 from conftest import frames_of  # noqa: E402
 from hdrmerge_cli.cli import COMMANDS, SUMMARIES, cli  # noqa: E402
-from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic  # noqa: E402
-from hdrmerge_cli.core.color_fused import raw_to_rgb_rows  # noqa: E402
+from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, demosaic  # noqa: E402
+from hdrmerge_cli.core.cfa_to_rgb import raw_to_rgb_rows  # noqa: E402
 from hdrmerge_cli.io import noisecache  # noqa: E402
 from hdrmerge_cli.io.images import EXR_COMPRESSIONS, exr_compression, read_exr  # noqa: E402
 
@@ -231,7 +231,7 @@ def cam_bracket(tmp_path, dng_frames):
     import rawpy
 
     from hdrmerge_cli.io.frames import read_frame
-    from hdrmerge_cli.io.raw import write_dng
+    from hdrmerge_cli.io.dng_integer import write_dng
 
     out = []
     for p in dng_frames:
@@ -294,7 +294,8 @@ def test_cache_location(monkeypatch, tmp_path):
 
 # ------------------------------------------------------------------ sRGB without colour-science
 def test_srgb_transfer_functions_equal_colour_science():
-    from hdrmerge_cli.core.color import quiet_import, srgb_eotf, srgb_eotf_inverse
+    from hdrmerge_cli.core.cfa import quiet_import
+    from hdrmerge_cli.core.crf import srgb_eotf, srgb_eotf_inverse
 
     models = quiet_import("colour.models")
     # colour's own default precision (the reference demosaic sets float32 process-wide)
@@ -341,7 +342,7 @@ def test_one_malloc_arena_is_set_on_glibc_unless_the_user_chose(monkeypatch):
     in its own arena and add to the peak); a user's MALLOC_ARENA_MAX is left alone."""
     import platform
 
-    from hdrmerge_cli.io.memory import one_malloc_arena
+    from hdrmerge_cli.io.malloc import one_malloc_arena
 
     monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
     if sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc":

@@ -283,7 +283,7 @@ def test_demosaic_variance_is_the_squared_weights(pattern):
     """Away from the edges (2 pixels, where the kernels reflect), the variance of each
     demosaiced value equals sum_k (d out / d sample_k)^2 var_k, the derivatives taken by
     demosaicing impulses."""
-    from hdrmerge_cli.core.color import demosaic, demosaic_variance
+    from hdrmerge_cli.core.cfa import demosaic, demosaic_variance
 
     rng = np.random.default_rng(5)
     var = rng.uniform(0.5, 2.0, (12, 14))

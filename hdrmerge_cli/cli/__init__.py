@@ -131,7 +131,7 @@ def main():
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     for sig in (signal.SIGTERM, signal.SIGHUP):  # handled like Ctrl-C: temporaries removed
         signal.signal(sig, raise_terminated)
-    from hdrmerge_cli.io.memory import one_malloc_arena
+    from hdrmerge_cli.io.malloc import one_malloc_arena
 
     one_malloc_arena()
     cli(prog_name="hdrmerge-cli")

@@ -13,7 +13,7 @@ from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
     TIMES_HELP, parse_csv_list, times_or_estimate_callback,
 )
-from hdrmerge_cli.core.colorspace import COLORSPACES
+from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS

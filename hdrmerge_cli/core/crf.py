@@ -14,8 +14,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hdrmerge_cli.core.color import srgb_eotf, srgb_eotf_inverse
 from hdrmerge_cli.core.errors import HdrMergeError
+
+#: the sRGB (IEC 61966-2-1) break point of the linear segment, in the linear domain
+_SRGB_BREAK = 0.0031308
+
+
+def _spow(a, p):
+    """Sign-preserving power (as colour-science's ``spow``: negative values stay finite)."""
+    return np.sign(a) * np.abs(a) ** p
+
+
+def srgb_eotf(v) -> np.ndarray:
+    """sRGB code value (normalised) -> linear (IEC 61966-2-1), float64; the same arithmetic
+    as colour-science's ``eotf_sRGB`` without importing colour (~1-2 s with its plotting)."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(_SRGB_BREAK * 12.92 >= v, v / 12.92, _spow((v + 0.055) / 1.055, 2.4))
+
+
+def srgb_eotf_inverse(x) -> np.ndarray:
+    """Linear -> sRGB code value (normalised), float64; as colour's ``eotf_inverse_sRGB``."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= _SRGB_BREAK, x * 12.92, 1.055 * _spow(x, 1 / 2.4) - 0.055)
 
 
 def _srgb_decode(v):

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdrmerge_cli.core.color import srgb_eotf_inverse
-from hdrmerge_cli.core.colorspace import COLORSPACES, D65, rgb_to_xyz_matrix
+from hdrmerge_cli.core.crf import srgb_eotf_inverse
+from hdrmerge_cli.core.output_colorspace import COLORSPACES, D65, rgb_to_xyz_matrix
 
 
 def block_factor(height: int, width: int, max_side: int) -> int:

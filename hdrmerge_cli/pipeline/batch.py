@@ -24,7 +24,7 @@ from hdrmerge_cli.core.similarity import SAME_SCENE_CORRELATION, same_scene, str
 from hdrmerge_cli.io.atomic import output_folder
 from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_python_stderr
 from hdrmerge_cli.io.logs import StderrFormatter
-from hdrmerge_cli.io.memory import one_malloc_arena
+from hdrmerge_cli.io.malloc import one_malloc_arena
 from hdrmerge_cli.io.thumbnails import read_thumbnail, thumbnail_shape
 from hdrmerge_cli.pipeline.bracket import fmt_time
 from hdrmerge_cli.pipeline.merge import merge

@@ -22,13 +22,13 @@ from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.pipeline import exposures as exposures_mod
+from hdrmerge_cli.pipeline import exposure_check
 from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
 
 #: fewest pixels that two consecutive frames must both expose (neither code clipped)
-MIN_OVERLAP = exposures_mod.MIN_OVERLAP
+MIN_OVERLAP = exposure_check.MIN_OVERLAP
 #: largest --lambda and --coupling: far beyond any useful smoothing (goossens solves up to
 #: about 1, debevec's response is flat from about 1e7), below where the solvers overflow
 MAX_SMOOTHING = 1e6
@@ -128,21 +128,21 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
 
 
-def measure_response(frames: list[Frame], samples: exposures_mod.Samples, cache: bool = True) -> CRF | None:
+def measure_response(frames: list[Frame], samples: exposure_check.Samples, cache: bool = True) -> CRF | None:
     """The response of an image bracket given none, fitted on the samples the merge draws
-    (:func:`~hdrmerge_cli.pipeline.exposures.sample_frames`, constant borders off) by
+    (:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`, constant borders off) by
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
     the curve open, and stored in the per-camera cache (``cache``,
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
     two distinct exposures, or neighbours sharing fewer than :data:`MIN_OVERLAP` unclipped
     pixels) the cached response of the same camera and style, unless the frames contradict
-    it (:func:`~hdrmerge_cli.pipeline.exposures.response_fits`); else None, with a warning
+    it (:func:`~hdrmerge_cli.pipeline.exposure_check.response_fits`); else None, with a warning
     saying why and that sRGB is assumed."""
     from hdrmerge_cli.io import noisecache
 
     key = noisecache.response_key(frames[0]) if cache else None
     exposures = exposure_values(frames)
-    thin = exposures_mod.thin_overlap(samples)
+    thin = exposure_check.thin_overlap(samples)
     if len(np.unique(exposures)) < 2:
         why = "one exposure only"
     elif thin is not None:
@@ -164,7 +164,7 @@ def measure_response(frames: list[Frame], samples: exposures_mod.Samples, cache:
     return None
 
 
-def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposures_mod.Samples,
+def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposure_check.Samples,
                      key: str | None) -> CRF | None:
     """The cached response of ``key`` (:func:`measure_response`), or None: none stored, a
     damaged entry, or frames whose ratios bend through it (most pairs, beyond the label
@@ -180,7 +180,7 @@ def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposu
             return None
     except (HdrMergeError, ValueError):
         return None
-    if len(frames) > 1 and not exposures_mod.response_fits(exposures_mod.estimate(frames, exposures, samples, crf)):
+    if len(frames) > 1 and not exposure_check.response_fits(exposure_check.estimate(frames, exposures, samples, crf)):
         log.info("the cached response of %s does not fit these frames; not used", key)
         return None
     log.info("camera response of %s from the cache %s (measured on %s, %s)", key, noisecache.response_file(),
@@ -188,21 +188,21 @@ def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposu
     return crf
 
 
-def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposures_mod.Samples) -> CRF:
+def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposure_check.Samples) -> CRF:
     """The response and the labels judged together: fit with the labels, check them through
-    the fit (:func:`~hdrmerge_cli.pipeline.exposures.estimate`), and while a frame's label
+    the fit (:func:`~hdrmerge_cli.pipeline.exposure_check.estimate`), and while a frame's label
     is off by more than the tolerance in a way a label explains (its ratios do not change
-    with brightness, :func:`~hdrmerge_cli.pipeline.exposures.label_at_fault`), refit with
+    with brightness, :func:`~hdrmerge_cli.pipeline.exposure_check.label_at_fault`), refit with
     that frame's estimate in place of its label, the frame furthest off first, at most half
     the frames.  A wrong label then does not bend the curve; the labels are judged (and
     warned about) afterwards against the response returned."""
-    codes = exposures_mod.samples_codes(frames, samples)
+    codes = exposure_check.samples_codes(frames, samples)
     log_h = np.log(np.asarray(exposures, np.float64))
     crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
     replaced: list[int] = []
     for _ in range(len(frames) // 2):
-        est = exposures_mod.estimate(frames, np.exp(log_h), samples, crf)
-        off = [k for k in est.mislabelled() if k not in replaced and exposures_mod.label_at_fault(est, k)]
+        est = exposure_check.estimate(frames, np.exp(log_h), samples, crf)
+        off = [k for k in est.mislabelled() if k not in replaced and exposure_check.label_at_fault(est, k)]
         if not off:
             break
         k = max(off, key=lambda j: abs(est.difference_ev[j]))
@@ -247,12 +247,12 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
             codes = list(pool.map(load_codes, frames))
         by_frame = {id(f): c for f, c in zip(frames, codes)}
-        samples = exposures_mod.sample_frames(frames, lambda f: by_frame[id(f)])
+        samples = exposure_check.sample_frames(frames, lambda f: by_frame[id(f)])
         del by_frame
         if first.kind == "raw":
             codes = [c[..., None] for c in codes]
-        exposures_mod.check_order(frames, samples)  # robust statistics, constant borders off
-        exposures_mod.check_overlap(frames, samples)
+        exposure_check.check_order(frames, samples)  # robust statistics, constant borders off
+        exposure_check.check_overlap(frames, samples)
         labels = exposure_values(frames)
         log_h = np.log(labels)
         options = {}
@@ -265,22 +265,22 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         check_not_flat(crf, opts.method, smoothing)
         # the labels checked through the fitted response (the comparagrams the fit used);
         # --times estimate: refit with the estimates, until they settle (at most 3 rounds)
-        est = exposures_mod.estimate(frames, labels, samples, crf)
+        est = exposure_check.estimate(frames, labels, samples, crf)
         for _ in range(3 if opts.times == ESTIMATE else 0):
             new_log_h = est.log_h
             crf, fits, changed = fit_crf(codes, new_log_h, first.n_codes, opts.method, smoothing, n_samples, options,
                                          np.random.default_rng(opts.seed))
             check_not_flat(crf, opts.method, smoothing)
-            est = exposures_mod.estimate(frames, labels, samples, crf)
+            est = exposure_check.estimate(frames, labels, samples, crf)
             moved = float(np.max(np.abs(est.log_h - new_log_h))) / np.log(2)
             log_h = new_log_h
             if moved < 0.01:
                 break
-        motion = exposures_mod.label_motion(samples, labels, crf, est)
-        exposures_mod.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
+        motion = exposure_check.label_motion(samples, labels, crf, est)
+        exposure_check.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
                                        else "; estimate-crf --times estimate fits with the estimates", motion=motion,
                                        crf=crf)
-        exposure_check = exposures_mod.report(frames, labels, est,
+        exposure_check = exposure_check.report(frames, labels, est,
                                               "estimates" if opts.times == ESTIMATE else "labels", crf, motion=motion)
         points = (codes, log_h)
     details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}

@@ -8,7 +8,7 @@ import numpy as np
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.io.times import apply_times
-from hdrmerge_cli.pipeline import exposures as exposures_mod
+from hdrmerge_cli.pipeline import exposure_check
 from hdrmerge_cli.pipeline.bracket import exposure_values, fmt_time, sample_pattern
 
 
@@ -62,13 +62,13 @@ def _estimates(frames: list[Frame], crf_spec: str | None) -> dict:
     else:
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
     exposures = exposure_values(frames)
-    s = exposures_mod.sample_frames(frames)
-    exposures_mod.check_order(frames, s)
-    est, used = exposures_mod.estimate_with_response(frames, exposures, s, crf)
-    motion = exposures_mod.label_motion(s, exposures, crf, est)
-    exposures_mod.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates",
+    s = exposure_check.sample_frames(frames)
+    exposure_check.check_order(frames, s)
+    est, used = exposure_check.estimate_with_response(frames, exposures, s, crf)
+    motion = exposure_check.label_motion(s, exposures, crf, est)
+    exposure_check.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates",
                                    motion=motion)
-    return exposures_mod.report(frames, exposures, est, "labels", used, motion=motion)
+    return exposure_check.report(frames, exposures, est, "labels", used, motion=motion)
 
 
 def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:

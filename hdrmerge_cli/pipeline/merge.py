@@ -6,7 +6,7 @@ The merge runs as stages that the CLI and the Python API (:mod:`hdrmerge_cli.api
    :func:`~hdrmerge_cli.pipeline.bracket.choose_crf`);
 2. optional motion: the warps that register the frames (:func:`prepare_loader`);
 3. choose the models: estimator, weights, noise, tables
-   (:func:`~hdrmerge_cli.pipeline.models.choose_models`), then deghosting;
+   (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`), then deghosting;
 4. reconstruct: stream the frames through (7), IRLS (:func:`reconstruct`);
 5. finish and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
 """
@@ -19,14 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.colorspace import COLORSPACES
+from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, LogMerge, irls, noise_rows
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.images import exr_compression
-from hdrmerge_cli.io.memory import return_free_memory
+from hdrmerge_cli.io.malloc import return_free_memory
 from hdrmerge_cli.io.noisespec import per_channel
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import motion
@@ -35,8 +35,8 @@ from hdrmerge_cli.pipeline.bracket import (
     reference_exposure,
 )
 from hdrmerge_cli.pipeline.crf import measure_response
-from hdrmerge_cli.pipeline.exposures import SampleTee, check_order, resolve_exposures, sample_frames
-from hdrmerge_cli.pipeline.models import Models, choose_models, resolve_noise
+from hdrmerge_cli.pipeline.exposure_check import SampleTee, check_order, resolve_exposures, sample_frames
+from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 

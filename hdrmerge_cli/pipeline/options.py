@@ -44,7 +44,7 @@ class MergeOptions:
     deghost: str = "off"
     #: read/store bracket noise measurements in the per-camera cache (``--no-cache``: off)
     noise_cache: bool = True
-    #: output colour space (a key of :data:`hdrmerge_cli.core.colorspace.COLORSPACES`)
+    #: output colour space (a key of :data:`hdrmerge_cli.core.output_colorspace.COLORSPACES`)
     colorspace: str = "rec709"
     #: OpenEXR compression (a key of :data:`hdrmerge_cli.io.images.EXR_COMPRESSIONS`)
     compression: str = "auto"

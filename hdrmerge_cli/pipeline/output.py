@@ -13,14 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli._version import __version__
-from hdrmerge_cli.core.color import bayer_channels, camera_to_rec709, demosaic, demosaic_variance
-from hdrmerge_cli.core.colorspace import COLORSPACES, camera_chromaticities, rec709_to
-from hdrmerge_cli.core.color_fused import raw_to_rgb_rows
+from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, demosaic, demosaic_variance
+from hdrmerge_cli.core.output_colorspace import COLORSPACES, camera_chromaticities, rec709_to
+from hdrmerge_cli.core.cfa_to_rgb import raw_to_rgb_rows
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.pipeline.bracket import upright
-from hdrmerge_cli.pipeline.models import Models
+from hdrmerge_cli.pipeline.model_choice import Models
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 
 #: file types ``--preview`` writes (by suffix)
@@ -184,7 +184,7 @@ class Merged:
         scaled as the colour is (gain^2 for the white balance, the matrix's squared
         entries), correlations between channels ignored.  RAW RGB: the white-balanced
         samples' variances through the demosaic's squared weights
-        (:func:`~hdrmerge_cli.core.color.demosaic_variance`; the samples are independent,
+        (:func:`~hdrmerge_cli.core.cfa.demosaic_variance`; the samples are independent,
         so exact before the matrix).  Exact for a mosaic (``--cfa``), for images in their
         own colour space, and for RAW RGB through an identity matrix."""
         first, matrix = self.first, self.colour_matrix
@@ -310,7 +310,7 @@ class Merged:
         return {"output": str(output), "profile": str(profile_out)} | ({"preview": str(preview)} if thumb else {})
 
     def write_dng(self, path) -> float:
-        """The merged CFA mosaic as a floating-point DNG (:func:`hdrmerge_cli.io.dng.write_float_dng`)
+        """The merged CFA mosaic as a floating-point DNG (:func:`hdrmerge_cli.io.dng_float.write_float_dng`)
         that raw editors open like the camera's own raw files: black 0, WhiteLevel the
         smallest whole number above the brightest value (no highlight clipped), BaselineExposure
         log2 of it (so the default rendering shows the reference exposure: 1.0 = white), the
@@ -320,7 +320,7 @@ class Merged:
         they show the image that much darker."""
         from hdrmerge_cli.core.errors import HdrMergeError
         from hdrmerge_cli.core.preview import tonemap_srgb
-        from hdrmerge_cli.io.dng import write_float_dng
+        from hdrmerge_cli.io.dng_float import write_float_dng
 
         first = self.first
         if first.kind != "raw":
@@ -382,7 +382,7 @@ def camera_xyz_matrix(frame: Frame) -> np.ndarray:
     ``color_matrix @ (white_balance * c)``, so XYZ = ``N @ color_matrix @ diag(wb) @ c``
     with ``N`` the Rec.709 -> XYZ matrix, and the ColorMatrix is that product's inverse.
     (LibRaw's own camera table, where it has one, is what ``color_matrix`` was made from.)"""
-    from hdrmerge_cli.core.colorspace import COLORSPACES, D65, rgb_to_xyz_matrix
+    from hdrmerge_cli.core.output_colorspace import COLORSPACES, D65, rgb_to_xyz_matrix
 
     to_xyz = rgb_to_xyz_matrix(COLORSPACES["rec709"].primaries, D65)
     return np.linalg.inv(to_xyz @ np.asarray(frame.color_matrix, np.float64) @ np.diag(frame.white_balance))

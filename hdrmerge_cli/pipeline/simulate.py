@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli._version import __version__
-from hdrmerge_cli.core.color import REC709_CHROMATICITIES, mosaic
+from hdrmerge_cli.core.cfa import REC709_CHROMATICITIES, mosaic
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.scene import procedural_scene
@@ -19,8 +19,8 @@ from hdrmerge_cli.io.atomic import atomic_paths, output_folder, write_text
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import read_frame
 from hdrmerge_cli.io.images import read_exr, read_header, write_exr, write_ldr
-from hdrmerge_cli.io.memory import available_memory
-from hdrmerge_cli.io.raw import write_dng
+from hdrmerge_cli.io.malloc import available_memory
+from hdrmerge_cli.io.dng_integer import write_dng
 from hdrmerge_cli.io.times import MIN_SECONDS
 
 log = logging.getLogger("hdrmerge_cli")
@@ -79,7 +79,7 @@ def stored_time(folder: Path, fmt: str, t: float, hint: str = "give a longer exp
     import tempfile
 
     if fmt == "dng":  # written as a 32-bit rational by us: exact
-        from hdrmerge_cli.io.raw import rational
+        from hdrmerge_cli.io.dng_integer import rational
 
         num, den = rational(t)
         stored = num / den

@@ -14,7 +14,7 @@ imagecodecs = pytest.importorskip("imagecodecs")
 rawpy = pytest.importorskip("rawpy")
 
 from hdrmerge_cli.core.errors import HdrMergeError  # noqa: E402
-from hdrmerge_cli.io.dng import _XYZ_TO_SRGB, _fp_predict, write_float_dng  # noqa: E402
+from hdrmerge_cli.io.dng_float import _XYZ_TO_SRGB, _fp_predict, write_float_dng  # noqa: E402
 
 #: a Canon-like XYZ (D65) -> camera matrix
 CM = np.array([[0.6722, -0.0635, -0.0963], [-0.4287, 1.2460, 0.2028], [-0.0908, 0.2162, 0.5668]])
@@ -283,7 +283,7 @@ def test_darktable_renders(tmp_path, bits):
                     reason="rawtherapee-cli not installed (Debian: rawtherapee)")
 def test_rawtherapee_renders(tmp_path):
     # RawTherapee 5.9 (Debian 12) reads float DNGs only when they are 32-bit and Deflate
-    # compressed; it rendered this size black when the raw was a single tile (io/dng.py)
+    # compressed; it rendered this size black when the raw was a single tile (io/dng_float.py)
     path = write(tmp_path / "rt.dng", patch_mosaic(192, 256))
     out = tmp_path / "rt.jpg"
     run = subprocess.run(["rawtherapee-cli", "-o", str(out), "-Y", "-c", str(path)], capture_output=True, text=True,

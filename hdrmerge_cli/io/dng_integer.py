@@ -38,7 +38,7 @@ def write_dng(
     from pidng.defs import CalibrationIlluminant, CFAPattern, Orientation, PhotometricInterpretation
 
     if xyz_to_camera is None:
-        from hdrmerge_cli.core.colorspace import xyz_to
+        from hdrmerge_cli.core.output_colorspace import xyz_to
 
         xyz_to_camera = xyz_to("rec709")
     h, w = mosaic.shape
@@ -89,7 +89,7 @@ def write_linear_dng(
     from pidng.defs import CalibrationIlluminant
 
     if xyz_to_camera is None:
-        from hdrmerge_cli.core.colorspace import xyz_to
+        from hdrmerge_cli.core.output_colorspace import xyz_to
 
         xyz_to_camera = xyz_to("rec709")
     pixels = np.ascontiguousarray(pixels, dtype=np.uint16)

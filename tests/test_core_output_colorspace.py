@@ -1,4 +1,4 @@
-"""Output colour spaces (core/colorspace.py) against colour-science, OpenColorIO's published
+"""Output colour spaces (core/output_colorspace.py) against colour-science, OpenColorIO's published
 matrices and OpenEXR's conventions; the attributes round-trip through an EXR."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrmerge_cli.core import colorspace as cs
+from hdrmerge_cli.core import output_colorspace as cs
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -206,7 +206,7 @@ def test_camera_chromaticities_degenerate():
 
 
 def test_module_does_not_import_colour():
-    code = "import sys, hdrmerge_cli.core.colorspace; print('colour' in sys.modules)"
+    code = "import sys, hdrmerge_cli.core.output_colorspace; print('colour' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

@@ -1,4 +1,5 @@
-"""Colour filter arrays, white balance and camera -> Rec.709 conversion (array code)."""
+"""Colour filter arrays: Bayer layouts, mosaic and demosaic (with the variance of a demosaiced
+sample), and camera RGB -> Rec.709 (array code)."""
 from __future__ import annotations
 
 import importlib
@@ -15,27 +16,6 @@ def quiet_import(name: str):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return importlib.import_module(name)
-
-#: the sRGB (IEC 61966-2-1) break point of the linear segment, in the linear domain
-_SRGB_BREAK = 0.0031308
-
-
-def _spow(a, p):
-    """Sign-preserving power (as colour-science's ``spow``: negative values stay finite)."""
-    return np.sign(a) * np.abs(a) ** p
-
-
-def srgb_eotf(v) -> np.ndarray:
-    """sRGB code value (normalised) -> linear (IEC 61966-2-1), float64; the same arithmetic
-    as colour-science's ``eotf_sRGB`` without importing colour (~1-2 s with its plotting)."""
-    v = np.asarray(v, dtype=np.float64)
-    return np.where(_SRGB_BREAK * 12.92 >= v, v / 12.92, _spow((v + 0.055) / 1.055, 2.4))
-
-
-def srgb_eotf_inverse(x) -> np.ndarray:
-    """Linear -> sRGB code value (normalised), float64; as colour's ``eotf_inverse_sRGB``."""
-    x = np.asarray(x, dtype=np.float64)
-    return np.where(x <= _SRGB_BREAK, x * 12.92, 1.055 * _spow(x, 1 / 2.4) - 0.055)
 
 
 #: CIE xy of the Rec.709 / sRGB primaries (R, G, B) and the D65 white point, in the

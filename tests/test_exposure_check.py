@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.exposure import (
+from hdrmerge_cli.core.comparametric import (
     PairRatio, border_mask, comparagram, constant_border, estimate_exposures, order_test, response_from_comparagrams,
     robust_log_ratio,
 )
@@ -177,7 +177,7 @@ def test_info_takes_times_and_reports_estimates(run, dng_bracket):
 @pytest.mark.parametrize("name", ["office_jpg", "eos5d3_foyer_jpg", "em1ii_kitchen_jpg", "eos70d_kitchen_jpg",
                                   "ex2f_trees_jpg", "stack_jpg", "stack_ghost_jpg", "eos350d_lamps_night_jpg"])
 def test_no_false_alarm_on_real_brackets(name):
-    from hdrmerge_cli.pipeline import exposures as ex
+    from hdrmerge_cli.pipeline import exposure_check as ex
     from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
 
     folder = SHARED / "brackets" / name
@@ -226,7 +226,7 @@ def moving_bracket(tmp_path_factory, run):
 
 def test_moved_threshold_and_displacement_on_samples():
     from hdrmerge_cli.core.align import log_irradiance
-    from hdrmerge_cli.core.exposure import MOVED_PITCHES, moved_threshold_px, pair_displacement
+    from hdrmerge_cli.core.comparametric import MOVED_PITCHES, moved_threshold_px, pair_displacement
 
     assert moved_threshold_px(1) == 1.5 and moved_threshold_px(0.5) == 1.0
     assert moved_threshold_px(6) == pytest.approx(6 * MOVED_PITCHES)
@@ -275,7 +275,7 @@ def test_a_wrong_label_on_still_frames_is_still_called_wrong(run, moving_bracket
 def _exposure_log(name, crf, caplog, times_file=None):
     import logging
 
-    from hdrmerge_cli.pipeline import exposures as ex
+    from hdrmerge_cli.pipeline import exposure_check as ex
     from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
 
     folder = SHARED / "brackets" / name
@@ -336,7 +336,7 @@ def test_ratio_trend_is_zero_for_a_label_and_the_bend_for_a_response():
     """A wrong label moves every log ratio alike: no trend.  Ratios read through a response
     of the wrong power (gamma 2.2 data read as 1.8) change linearly with log brightness:
     the trend is that slope times the 5th-95th percentile span of log y."""
-    from hdrmerge_cli.core.exposure import ratio_trend, robust_log_ratio
+    from hdrmerge_cli.core.comparametric import ratio_trend, robust_log_ratio
 
     rng = np.random.default_rng(0)
     y = np.exp(rng.uniform(np.log(1e-3), 0.0, 100000))
@@ -352,8 +352,8 @@ def test_ratio_trend_is_zero_for_a_label_and_the_bend_for_a_response():
 def test_a_wrong_power_is_told_from_a_wrong_label():
     """Differences proportional to the distance in exposure from the reference are one
     slope (a response of the wrong power); one wrong label leaves half its error off it."""
-    from hdrmerge_cli.core.exposure import ExposureEstimate
-    from hdrmerge_cli.pipeline.exposures import power_explains
+    from hdrmerge_cli.core.comparametric import ExposureEstimate
+    from hdrmerge_cli.pipeline.exposure_check import power_explains
 
     log_h = np.log(2.0) * np.arange(5.0) * 1.5
     power = ExposureEstimate(log_h, 0.2 * (np.arange(5.0) - 2) * 1.5, [], 2, 1.0)

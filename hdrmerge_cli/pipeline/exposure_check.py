@@ -1,7 +1,7 @@
 """Exposure labels checked against the frames (and, on request, replaced by estimates),
 and the order and overlap checks that read real frames.
 
-The numerics are :mod:`hdrmerge_cli.core.exposure`; here the frames are decoded,
+The numerics are :mod:`hdrmerge_cli.core.comparametric`; here the frames are decoded,
 subsampled (CFA cells kept whole), normalised to ``v = (z - black) / (white - black)``,
 cut to the pixels worth comparing (constant borders off, clipped and noise-floor codes
 off) and linearised through the response in use.  Before a label is called wrong, the pairs that
@@ -19,7 +19,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.exposure import (
+from hdrmerge_cli.core.comparametric import (
     LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, border_mask, chain_pairs, comparagram, constant_border,
     estimate_exposures, moved_threshold_px, order_test, pair_displacement, response_from_comparagrams,
     robust_log_ratio,
@@ -140,7 +140,7 @@ class SampleTee:
 # ---------------------------------------------------------------- checks
 def check_order(frames: list[Frame], s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
-    of :func:`~hdrmerge_cli.core.exposure.order_test` on the pixels neither clips, off the
+    of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels neither clips, off the
     constant borders (frames at the noise floor and equal exposures pass; only a pair
     darker on most changed pixels fails), with a one-line error naming both frames."""
     margin = max(1.5 * s.codes_step, 0.004)
@@ -207,7 +207,7 @@ def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
 
 
 def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
-    """:func:`~hdrmerge_cli.core.exposure.robust_log_ratio` of every neighbour pair, on the
+    """:func:`~hdrmerge_cli.core.comparametric.robust_log_ratio` of every neighbour pair, on the
     pixels both frames expose well: ``v`` within ``value_range`` (default by the response,
     :func:`usable_range`) and above each frame's own floor, off the borders; linearised by
     ``crf`` per channel (RAW: ``v`` itself)."""
@@ -232,7 +232,7 @@ def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None 
 def estimate(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF,
              value_range: tuple[float, float] | None = None, free_slope: bool = False,
              moved: frozenset[int] = frozenset()) -> ExposureEstimate:
-    """Every frame's exposure measured on the samples (see :mod:`hdrmerge_cli.core.exposure`),
+    """Every frame's exposure measured on the samples (see :mod:`hdrmerge_cli.core.comparametric`),
     on the labels' scale (the reference frame keeps its label).  The pairs in ``moved``
     (frames that moved between the exposures) are marked so: their labels' ratio is kept."""
     pairs = [replace(p, moved=True) if k in moved else p for k, p in enumerate(measure_pairs(s, crf, value_range))]
@@ -253,7 +253,7 @@ def quick_response(frames: list[Frame], exposures: np.ndarray, s: Samples,
                    skip: frozenset[int] = frozenset()) -> CRF:
     """An image bracket's inverse response fitted on its samples (constant borders off)
     with the given exposures, per channel, from the neighbour pairs' comparagrams
-    (:func:`~hdrmerge_cli.core.exposure.response_from_comparagrams`): the check's own
+    (:func:`~hdrmerge_cli.core.comparametric.response_from_comparagrams`): the check's own
     response when the one in use is an unverified model (sRGB assumed), whose ratios are
     off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
     moved) are left out while others remain."""
@@ -304,7 +304,7 @@ class Motion:
     index (frames ``j``, ``j + 1``) the displacement in full-resolution pixels, None where
     the pair could not be registered (too little texture in the range both expose, a weak
     correlation); pairs not asked about are absent.  ``threshold_px``: beyond it a pair
-    moved (:func:`~hdrmerge_cli.core.exposure.moved_threshold_px` of the samples' pitch)."""
+    moved (:func:`~hdrmerge_cli.core.comparametric.moved_threshold_px` of the samples' pitch)."""
 
     px: dict[int, float | None]
     threshold_px: float
@@ -314,7 +314,7 @@ class Motion:
 
     def decided_by_motion(self, k: int, reference: int) -> int | None:
         """The pair that moved most among those frame ``k``'s estimate chains through from
-        the reference (:func:`~hdrmerge_cli.core.exposure.chain_pairs`), or None when none
+        the reference (:func:`~hdrmerge_cli.core.comparametric.chain_pairs`), or None when none
         of them moved."""
         moved = [j for j in chain_pairs(k, reference) if j in self.moved()]
         return max(moved, key=lambda j: self.px[j]) if moved else None
@@ -346,7 +346,7 @@ def _registration_linear(s: Samples, k: int, crf: CRF) -> np.ndarray:
 
 def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
-    the samples (:func:`~hdrmerge_cli.core.exposure.pair_displacement` of their
+    the samples (:func:`~hdrmerge_cli.core.comparametric.pair_displacement` of their
     :func:`registration_image` over the irradiance range both expose, exposure-normalised by
     ``exposures``, the labels: registration is invariant to the gain a wrong label makes),
     in full-resolution pixels (the samples' pitch).  A few tens of milliseconds a pair on
@@ -454,7 +454,7 @@ def response_fits(est: ExposureEstimate) -> bool:
 
 def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:
     """The change of the pixels' ratios over brightness (EV), summed over the pairs frame
-    ``k``'s estimate chains through (:attr:`~hdrmerge_cli.core.exposure.PairRatio.trend`)."""
+    ``k``'s estimate chains through (:attr:`~hdrmerge_cli.core.comparametric.PairRatio.trend`)."""
     return sum(abs(est.pairs[j].trend) for j in chain_pairs(k, est.reference)) / np.log(2)
 
 
