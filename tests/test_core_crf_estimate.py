@@ -128,8 +128,8 @@ def test_pair_factor_is_the_inverse_summed_variance_of_22():
 def test_robertson_recovers_a_gamma_curve_from_clean_data():
     rng = np.random.default_rng(6)
     fit = crf_robertson2003(gamma_bracket(50000, 0.0005, rng), np.log(TIMES), 256)
-    # measured 0.069 (0.063 after 300 iterations); OpenCV's implementation errs as much
-    # in benchmarks/results/crf_dorf.md
+    # Robertson's fixed point leaves an error of this order on clean data (OpenCV's
+    # implementation too: benchmarks/results/crf_dorf.md)
     assert fit.converged and centred_rmse(fit.g, 2.2, np.arange(30, 250)) < 0.08
 
 

@@ -490,8 +490,8 @@ def test_a_dark_sample_takes_the_fallback_of_the_longest_frame_that_is_its_own(p
     """Where no frame has weight (dark in every frame), the result is the longest frame's
     fallback, ``log(max(lin(z), lin(1/2)) / h)``, of the frames whose factor is at least
     1/2 there: a frame rejected as a ghost or not covering the pixel (factor < 1/2) does
-    not set it (before: the longest frame always did, so a dark object in the reference
-    took the brighter background of a rejected long frame).  Same with per-sample weights
+    not set it, so a dark object in the reference does not take the brighter background
+    of a rejected long frame.  Same with per-sample weights
     (resampled RAW, IRLS) and with the variance accumulator."""
     shape = (4, 6, 3)
     exposures = [0.01, 0.04, 0.16]

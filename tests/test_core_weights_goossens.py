@@ -126,7 +126,7 @@ def test_variance_factor_model_and_photon():
 def test_unclipped_codes_never_get_zero_weight_in_the_merge_tables():
     """A bracket with gaps: codes far outside the clipping-safe range (weights that
     underflow) must still count where no frame has better, instead of the no-information
-    fallback (this once left 15 % of a simulated bracket's pixels unmeasured)."""
+    fallback."""
     for weights in ("direct", "probabilistic", "bounded"):
         tab = exposure_tables(256, [0.0], [255.0], CRF("gamma", 2.5), weights, 0.1, [NoiseParams(64.0, 1.0)], "model",
                               500.0, (0.1,))

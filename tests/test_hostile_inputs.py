@@ -224,8 +224,8 @@ def test_the_size_has_an_upper_bound(tmp_path):
 
 @pytest.mark.parametrize("extra", [[], ["--scale", "1e9", "--format", "jpg"]])
 def test_too_many_frames_are_blamed_on_the_frames(tmp_path, extra):
-    """--frames 64 one stop apart span 63 stops: 'too dark, raise --scale' was wrong (and
-    at --scale 1e9 an internal error)."""
+    """--frames 64 one stop apart span 63 stops: refused as too many frames (naming the
+    limit), not as 'too dark, raise --scale' nor as an internal error at --scale 1e9."""
     line = _refused(*_cli("simulate", "--size", "64x64", "--frames", "64", *extra, "-o", tmp_path / "out"), 1,
                     ["--frames 64", "63 stops", "all clipped", "--frames 17 or fewer"],
                     absent=["raise --scale", "internal error"])
@@ -278,8 +278,8 @@ def test_an_output_folder_that_cannot_be_made(tmp_path):
 
 # ---------------------------------------------------------------- estimate-crf
 def test_too_few_samples_are_refused_not_judged(tmp_path, jpeg_bracket):
-    """--samples 1 fitted a response from one pixel and then warned that correct labels
-    were off by several EV."""
+    """--samples 1 is refused: a response cannot be fitted from one pixel (nor are the
+    labels then judged through such a fit)."""
     for method in ("debevec", "goossens"):
         _refused(*_cli("estimate-crf", *frames_of(*jpeg_bracket), "--method", method, "--samples", "1",
                        "-o", tmp_path / "out.json"), 1, ["--samples 1", "at least 128"], absent=["labelled"])

@@ -111,7 +111,7 @@ def test_atomic_outputs_get_the_umask_mode_or_keep_the_replaced_files(tmp_path):
 
 def test_silencing_c_stderr_from_many_threads_restores_it():
     """Frames decode on several threads: however their silenced spans overlap, file
-    descriptor 2 must end up where it was (a race once left it on /dev/null)."""
+    descriptor 2 must end up where it was, never on /dev/null."""
     import os
     import threading
     import time

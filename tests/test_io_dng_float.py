@@ -283,7 +283,7 @@ def test_darktable_renders(tmp_path, bits):
                     reason="rawtherapee-cli not installed (Debian: rawtherapee)")
 def test_rawtherapee_renders(tmp_path):
     # RawTherapee 5.9 (Debian 12) reads float DNGs only when they are 32-bit and Deflate
-    # compressed; it rendered this size black when the raw was a single tile (io/dng_float.py)
+    # compressed, and renders this size only from a tiled raw (io/dng_float.py)
     path = write(tmp_path / "rt.dng", patch_mosaic(192, 256))
     out = tmp_path / "rt.jpg"
     run = subprocess.run(["rawtherapee-cli", "-o", str(out), "-Y", "-c", str(path)], capture_output=True, text=True,

@@ -134,7 +134,7 @@ def test_a_signal_right_after_a_temporary_is_created_leaves_nothing(tmp_path, mo
 def test_a_stop_signal_during_the_clean_up_still_removes_every_temporary(tmp_path, monkeypatch):
     """A stop signal (here Ctrl-C) raised while the transaction removes its temporaries
     (right after the first) does not leave the others behind: all are removed, then it
-    unwinds (a batch worker stopped just after committing kept its profile's temporary)."""
+    unwinds."""
     import hdrmerge_cli.io.atomic as atomic
 
     real_unlink, calls = os.unlink, []

@@ -45,7 +45,7 @@ def demosaic(cfa: np.ndarray, pattern: str) -> np.ndarray:
     (colour-demosaicing): linear, edge-aware, and fast enough for large frames."""
     malvar = quiet_import("colour_demosaicing").demosaicing_CFA_Bayer_Malvar2004
     # colour computes in its default float dtype (float64); the result is stored as float32
-    # anyway, and float32 arithmetic makes the demosaic 1.5x faster (differences ~1 ulp).
+    # anyway, and float32 arithmetic is faster (differences ~1 ulp).
     # The default is process-wide, so it is put back (2 ms): colour's other functions in the
     # same process (a Python API user's, tests against colour-hdri) keep float64.
     utilities = quiet_import("colour").utilities

@@ -830,7 +830,7 @@ class LogMerge:
         (:func:`estimate_variance_table`), and :meth:`finish` turns it into the variance of
         the result, ``sum_j w_j^2 Var(x_j) / (sum_j w_j)^2`` (:func:`combined_variance`;
         ``1 / sum_j w_j`` for the ML estimator's inverse-variance weights), read from
-        :attr:`variance`.  Off (the default): the same kernels and memory as before.
+        :attr:`variance`.  Off (the default): no ``var`` array and no variance kernels.
 
     Memory: two float32 arrays of ``shape`` (``num``, ``den``; three with ``variance``).
     A sample that no frame has measured yet keeps its fallback value in ``num`` and its

@@ -94,9 +94,8 @@ def atomic_paths(paths: list, overwrite: bool, inputs: list = ()):
 
 def _remove(tmps: list[str]) -> None:
     """Remove the temporaries, every one of them even when a stop signal (SIGTERM, Ctrl-C)
-    unwinds in between: it is raised again once all are gone.  (A signal between two
-    removals left the second behind: a batch worker stopped just after committing its
-    outputs kept its profile's temporary.)"""
+    unwinds in between: it is raised again once all are gone, so a signal between two
+    removals leaves none behind."""
     pending = None
     for tmp in tmps:
         for _ in range(3):  # a signal may land before or after the removal itself
@@ -115,8 +114,7 @@ def create_temporary(path: Path, tmps: list[str]) -> None:
     (the same extension, so writers pick the same format), appended to ``tmps``.  The name
     is listed before the file is created (``O_EXCL``; a name taken is drawn again), so a
     signal that unwinds at any point leaves no file that the caller's clean-up does not
-    know of (with ``mkstemp`` the file existed before its name was listed: a SIGTERM in
-    between, while another thread held the interpreter, left it behind)."""
+    know of (``mkstemp`` creates the file before its name can be listed)."""
     while True:
         tmp = str(path.parent / f".{path.stem}.{secrets.token_hex(4)}.part{path.suffix}")
         tmps.append(tmp)

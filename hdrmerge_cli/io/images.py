@@ -54,12 +54,9 @@ def _set_attribute(spec, name: str, value) -> None:
 
 
 #: OpenEXR compressions (``merge --compression``): name -> what it does to float / half data.
-#: Measured on a merged 14-bit RAW bracket (6 MP crop of 24 MP, float RGB; write time
-#: relative to ``none``, size relative to uncompressed; benchmarks/results/speed.md):
-#: float: rle 2x/1.00, zips 19x/0.98, zip 21x/0.94, piz 31x/0.79 (htj2k256 11x/0.66);
-#: half:  rle 1.6x/0.70, zips 2.6x/0.56, zip 11x/0.55, piz 8x/0.51.  The noise in a merged
-#: image's low mantissa bits defeats every lossless codec on float data, so ``auto`` writes
-#: float uncompressed and half with zips.
+#: The noise in a merged image's low mantissa bits leaves lossless codecs little to gain on
+#: float data at many times the write time, so ``auto`` writes float uncompressed and half
+#: with zips (write times and sizes: benchmarks/results/speed.md).
 EXR_COMPRESSIONS = {
     "auto": "none for float, zips for --half (lossless; the best write time against size measured)",
     "none": "uncompressed",

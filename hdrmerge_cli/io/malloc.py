@@ -30,9 +30,8 @@ def one_malloc_arena() -> bool:
 def return_free_memory() -> bool:
     """Hand the heap's free pages back to the system (glibc's ``malloc_trim``), at the end
     of a phase whose temporaries are freed: the heap does not shrink by itself below its
-    top, so what alignment and deghosting freed stayed in the process under the merge's
-    own peak (24 MP x 3 RAW, ``--align auto --deghost auto``: 823 -> 564 MB resident when
-    the merge starts, 1594 -> 1397 MB peak; 5 ms).  Returns whether it ran (False off glibc)."""
+    top, so what alignment and deghosting freed would otherwise stay in the process under
+    the merge's own peak.  Returns whether it ran (False off glibc)."""
     if not sys.platform.startswith("linux"):
         return False
     try:

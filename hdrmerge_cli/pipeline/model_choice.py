@@ -93,45 +93,41 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
 
 
 def default_estimator(frame: Frame, crf: CRF) -> str:
-    """``--estimator auto``: the linear ML estimate for RAW and linear images (sensor data:
-    on simulated 12-bit DNGs it is 2.0 dB closer to the Cramer-Rao bound than the log
-    estimator), the paper's log-domain (7) for camera-processed images (a non-linear
-    response), whose errors are the response's and the camera's processing more than
-    noise: on the real brackets' leave-one-out the ML estimate's error is 1.33x the log
-    estimator's (benchmarks/results/real_loo.md, cli_defaults.md)."""
+    """``--estimator auto``: ``"ml"`` (the linear maximum-likelihood estimate, eq. (7) with
+    inverse-variance weights) for RAW frames and linear images, whose codes are sensor data
+    and whose noise model holds; ``"log"`` (the paper's log-domain (7)) for camera-processed
+    images, whose errors come from the response and the camera's processing more than from
+    noise.  Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
     return "ml" if frame.kind == "raw" or crf.is_linear else "log"
 
 
 def default_weights(estimator: str) -> str:
-    """``--weights auto``: ``uniform`` for the ML estimator, whose inverse-variance weights
-    are already the noise-optimal ones (simulated RAW brackets, dB below the exact bound
-    over samples whose bound is < 0.1, mean / worst: uniform 0.40 / 0.81, triangle
-    0.53 / 0.76, probabilistic 0.87 / 1.32, benchmarks/results/cli_defaults.md); the
-    classical ``triangle`` for the log estimator, the best weighting on the real brackets'
-    leave-one-out (real_loo.md)."""
+    """``--weights auto``: ``"uniform"`` for the ML estimator, whose inverse-variance weights
+    are already the noise-optimal ones; the classical ``"triangle"`` for the log estimator.
+    Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
     return "uniform" if estimator == "ml" else "triangle"
 
 
 def default_variance(noise, crf: CRF) -> str:
-    """``--variance auto``: ``model`` with noise parameters (given, or measured on a RAW
-    bracket); without them ``codes`` for a non-linear response (the quantisation of the
-    codes through it plus a 1 % model tolerance: 0.94x the leave-one-out error of
-    ``photon`` on the real brackets, benchmarks/results/real_loo.md), else ``photon``."""
+    """``--variance auto``: ``"model"`` when noise parameters are known (given, or measured
+    on a RAW bracket); otherwise ``"codes"`` for a non-linear response (the quantisation of
+    the codes through it plus :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`) and
+    ``"photon"`` for a linear one.  Evidence: benchmarks/results/real_loo.md."""
     if noise:
         return "model"
     return "photon" if crf.is_linear else "codes"
 
 
 def default_irls(estimator: str, noise, lut: bool = False) -> int:
-    """``--irls`` unset: one re-weighting pass for the ML estimator of a bracket with a noise
-    model.  Its one-pass weights take each frame's variance at that frame's own noisy
-    reading, which favours readings that came out low (photon noise); one pass at the
-    merged estimate removes that bias: 2.50 dB below the Cramer-Rao bound on average
-    instead of 3.33 (worst 5.11 instead of 5.98) on the simulated 12-bit DNG brackets of
-    benchmarks/results/cli_defaults.md; a second pass adds 0.02 dB.  With deghosting too
-    (the pass keeps the ghost and coverage weights, :class:`~hdrmerge_cli.pipeline.motion.SampleWeights`):
-    on RAW cases of benchmarks/motion.py the ghost footprint's PSNR rose from 19.7 to 27.0
-    and 28.2 to 32.6 dB (cases 4, 10) for 0.15-0.35 dB elsewhere (cases 0, 16)."""
+    """``--irls`` unset: the number of re-weighting passes, 1 for the ML estimator of a
+    bracket with a noise model (and no ``--lut``), else 0.
+
+    Notes: one-pass weights take each frame's variance at that frame's own noisy reading,
+    which favours readings that came out low under photon noise; one pass at the merged
+    estimate removes that bias, and further passes change the result by far less than the
+    noise.  The pass keeps the ghost and coverage weights
+    (:class:`~hdrmerge_cli.pipeline.motion.SampleWeights`).  Evidence:
+    benchmarks/results/cli_defaults.md, motion.md."""
     return int(estimator == "ml" and bool(noise) and not lut)
 
 
