@@ -3,6 +3,11 @@
 Run as ``python -m hdrmerge_cli.manpages DIR``; uses click-man, so the pages cannot
 drift from ``--help`` (tests/test_manpages.py regenerates them and compares).
 
+``python -m hdrmerge_cli.manpages --usage [docs/usage.md]`` writes the option reference
+of each command into docs/usage.md, between ``<!-- options:COMMAND:start -->`` and
+``<!-- options:COMMAND:end -->`` (:func:`update_usage`; tests/test_docs.py checks it is
+current), from the same click definitions.
+
 click-man copies help text into the page verbatim, so a help line starting with ``'``
 or ``.`` would be read by roff as a request and silently dropped, and a backslash would
 start an escape.  :class:`_EscapedManPage` escapes every text field before click-man
@@ -60,5 +65,72 @@ def write(target_dir: str) -> None:
         write_man_pages("hdrmerge-cli", cli, version=__version__, target_dir=target_dir, date=MAN_DATE)
 
 
+#: options whose method has a section in docs/method.md: the reference links to it
+METHOD_LINKS = {
+    "--weights": "method.md#weightings", "--estimator": "method.md#estimators",
+    "--variance": "method.md#the-variance-factor", "--irls": "method.md#estimators",
+    "--noise": "method.md#the-noise-model", "--profile": "method.md#the-noise-model",
+    "--bounds": "method.md#weightings", "--k": "method.md#weightings",
+    "--crf": "method.md#the-camera-response", "--times": "method.md#exposures-and-their-labels",
+    "--align": "method.md#registration", "--deghost": "method.md#deghosting",
+    "--colorspace": "method.md#colour", "--cfa": "method.md#colour",
+    "--reference": "method.md#output-units-and-unmeasured-pixels",
+    "--extra-channels": "method.md#output-units-and-unmeasured-pixels",
+    "--method": "method.md#the-camera-response", "--coupling": "method.md#the-camera-response",
+    "--anchor": "method.md#the-camera-response", "--lambda": "method.md#the-camera-response",
+    "--darks": "method.md#calibrating-the-noise", "--flats": "method.md#calibrating-the-noise",
+}
+
+
+def _markdown_text(text: str) -> str:
+    """Help text as Markdown that renders as written: emphasis characters escaped."""
+    return " ".join(text.split()).replace("\\", "\\\\").replace("*", "\\*").replace("_", "\\_")
+
+
+def usage_reference(name: str) -> str:
+    """The option reference of subcommand ``name`` as a Markdown list: every option's
+    flags and ``--help`` text (with click's defaults and ranges), and where
+    docs/method.md explains the method behind it."""
+    import click
+
+    from hdrmerge_cli.cli import cli
+
+    root = click.Context(cli, info_name="hdrmerge-cli")
+    cmd = cli.get_command(root, name)
+    ctx = click.Context(cmd, info_name=name, parent=root)
+    usage = " ".join(cmd.collect_usage_pieces(ctx))
+    lines = [f"`hdrmerge-cli {name} {usage}`", ""]
+    for param in cmd.params:
+        if not isinstance(param, click.Option) or param.hidden:
+            continue
+        record = param.get_help_record(ctx)
+        if not record:
+            continue
+        flags, help_text = record
+        line = f"- `{flags}`: {_markdown_text(help_text)}"
+        link = next((METHOD_LINKS[o] for o in param.opts if o in METHOD_LINKS), None)
+        if link:
+            line += f" ([method]({link}))"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def update_usage(text: str) -> str:
+    """``text`` (docs/usage.md) with each marked option reference regenerated."""
+    import re
+
+    def replace(m):
+        return f"{m.group(1)}\n{usage_reference(m.group(2))}\n{m.group(3)}"
+
+    return re.sub(r"(<!-- options:([a-z-]+):start -->)\n.*?\n?(<!-- options:\2:end -->)", replace, text,
+                  flags=re.S)
+
+
 if __name__ == "__main__":
-    write(sys.argv[1] if len(sys.argv) > 1 else "man")
+    if len(sys.argv) > 1 and sys.argv[1] == "--usage":
+        from pathlib import Path
+
+        path = Path(sys.argv[2] if len(sys.argv) > 2 else "docs/usage.md")
+        path.write_text(update_usage(path.read_text()))
+    else:
+        write(sys.argv[1] if len(sys.argv) > 1 else "man")
