@@ -28,7 +28,7 @@ warm:
 	$(BIN)/hdrmerge-cli merge "$$tmp"/jpg/frame_*.jpg -o "$$tmp/jpg.exr" --deghost on -q && \
 	$(BIN)/hdrmerge-cli simulate -o "$$tmp/tif" --format tif --out-bits 16 --size 96x64 --frames 3 -q && \
 	$(BIN)/hdrmerge-cli merge "$$tmp"/tif/frame_*.tif -o "$$tmp/tif.exr" --crf srgb -q && \
-	$(BIN)/python -c "import numpy as np; from hdrmerge_cli.core.align import resampled_weight_mosaic as f; \
+	$(BIN)/python -c "import numpy as np; from hdrmerge_cli.core.resample import resampled_weight_mosaic as f; \
 	z = np.zeros((4, 4), np.uint16); z.flags.writeable = False; w = np.ones((4, 4), np.float32); \
 	f(w, z, np.zeros((2, 2), np.intp), w.ravel(), w.ravel(), 16, w, np.eye(2, 3), out=w)" && \
 	echo "numba kernels compiled and cached"

@@ -225,7 +225,7 @@ def moving_bracket(tmp_path_factory, run):
 
 
 def test_moved_threshold_and_displacement_on_samples():
-    from hdrmerge_cli.core.align import log_irradiance
+    from hdrmerge_cli.core.registration import log_irradiance
     from hdrmerge_cli.core.comparametric import MOVED_PITCHES, moved_threshold_px, pair_displacement
 
     assert moved_threshold_px(1) == 1.5 and moved_threshold_px(0.5) == 1.0

@@ -247,7 +247,7 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     a, b : (H, W) float32 exposure-invariant images of the same pixels (see
     :func:`hdrmerge_cli.core.align.log_irradiance`)
     """
-    from hdrmerge_cli.core import align
+    from hdrmerge_cli.core import registration as align
 
     a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
     if min(a.shape) < 16 or align.registrable(a, b) is not None:

@@ -326,14 +326,14 @@ def registration_image(s: Samples, k: int, crf: CRF, exposure: float, lo: float,
     (:func:`~hdrmerge_cli.core.align.log_irradiance` of the linearised channels' mean over
     ``exposure``, within ``[lo, hi]``), the constant borders cut off; RAW: the mean of each
     2 x 2 CFA cell.  ``lin``: :func:`_registration_linear` of the frame when already made."""
-    from hdrmerge_cli.core import align
+    from hdrmerge_cli.core import registration as align
 
     lin = _registration_linear(s, k, crf) if lin is None else lin
     return align.log_irradiance(lin, exposure, lo, hi)
 
 
 def _registration_linear(s: Samples, k: int, crf: CRF) -> np.ndarray:
-    from hdrmerge_cli.core import align
+    from hdrmerge_cli.core import registration as align
 
     top, bottom, left, right = s.border
     v = s.v[k]
@@ -351,7 +351,7 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     ``exposures``, the labels: registration is invariant to the gain a wrong label makes),
     in full-resolution pixels (the samples' pitch).  A few tens of milliseconds a pair on
     the default :data:`MAX_SAMPLES`; only the pairs asked about are registered."""
-    from hdrmerge_cli.core import align
+    from hdrmerge_cli.core import registration as align
 
     lin: dict[int, np.ndarray] = {}
     px: dict[int, float | None] = {}

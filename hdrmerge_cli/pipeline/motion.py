@@ -1,5 +1,5 @@
 """merge --align / --deghost: bring hand-held frames onto a reference frame, and drop
-moving objects from the frames that disagree with it (see core/align.py, core/deghost.py)."""
+moving objects from the frames that disagree with it (see core/registration.py, core/resample.py, core/deghost.py)."""
 from __future__ import annotations
 
 import logging
@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from hdrmerge_cli.core import align, deghost
+from hdrmerge_cli.core import deghost, registration, resample
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
@@ -34,7 +34,7 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     (black subtracted; half resolution), images the mean of the linearised channels."""
     if frame.kind == "raw":
         black = float(np.mean(frame.black))
-        return align.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
+        return registration.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
     # the inverse response as a table over the stored codes
     v = np.arange(frame.n_codes) / (frame.n_codes - 1.0)
     lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
@@ -52,11 +52,11 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
 
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
-    """Warps bringing every frame onto the reference (``core.align``).  ``auto`` registers
+    """Warps bringing every frame onto the reference (``core.registration``).  ``auto`` registers
     with rotation too and keeps a frame's rotation only where it beats translation, and
     applies the warps only when some frame is displaced by more than
     :data:`AUTO_ALIGN_PX`.  A pair is registered when both frames have texture in the
-    irradiance range they share (:func:`~hdrmerge_cli.core.align.registrable`: a count of
+    irradiance range they share (:func:`~hdrmerge_cli.core.registration.registrable`: a count of
     pixels, however small a fraction of the frame), and the result is kept when its
     correlation reaches :data:`MIN_CONFIDENCE`.  A frame left unaligned is a warning when
     the mode was asked for or other frames moved; under ``auto`` with nothing applied, an
@@ -76,19 +76,19 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         linear = frames[a].kind != "image"  # RAW or linear TIFF: 16 codes are a signal level
         code_step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
         try:
-            lo, hi = align.common_range([exposures[a], exposures[b]], lo_code=align.dark_floor(code_step))
+            lo, hi = registration.common_range([exposures[a], exposures[b]], lo_code=registration.dark_floor(code_step))
         except HdrMergeError:
             return identity, "no irradiance range is well exposed in both it and its neighbour"
-        ia = align.log_irradiance(image(a), exposures[a], lo, hi)
-        ib = align.log_irradiance(image(b), exposures[b], lo, hi)
-        why = align.registrable(ia, ib)
+        ia = registration.log_irradiance(image(a), exposures[a], lo, hi)
+        ib = registration.log_irradiance(image(b), exposures[b], lo, hi)
+        why = registration.registrable(ia, ib)
         if why is not None:
             return identity, f"{why} in the range it shares with its neighbour"
-        w, rho = align.estimate_warp(ia, ib, motion)
+        w, rho = registration.estimate_warp(ia, ib, motion)
         confidence[b] = round(rho, 4)
         if rho < MIN_CONFIDENCE:
             return identity, f"registration to its neighbour correlates only {rho:.2f}"
-        return (align.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+        return (registration.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
 
     def image(k: int) -> np.ndarray:  # made again for each pair (tens of ms at 6 MP): the codes are
         # decoded once (DecodedOnce), and a held frame-sized float image per side cost 24 MB each at 6 MP
@@ -111,11 +111,11 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         w, why = steps[j]
         if why is not None:
             unaligned.append(frames[j].path)
-        warps[j] = align.compose(w, warps[j - 1 if j > ref else j + 1])
+        warps[j] = registration.compose(w, warps[j - 1 if j > ref else j + 1])
     rotated = any(abs(w[1, 0]) > 1e-9 for w in warps)
     if mode == "auto" and not rotated:
         motion = "translation"  # no frame's rotation beat its translation
-    sizes = [align.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
+    sizes = [registration.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
     applied = mode != "auto" or max(sizes) > AUTO_ALIGN_PX
     # a frame left unaligned is a warning when alignment was asked for or the others moved (a
     # hand-held bracket); under auto on a bracket where nothing registered moved (a tripod, or
@@ -127,7 +127,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     periods = raw and motion == "translation" and (mode == "translation" or whole_periods_suffice(warps))
     if periods:
         applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
-    # RAW: moved by whole CFA periods, or resampled colour by colour (core.align.resample_mosaic)
+    # RAW: moved by whole CFA periods, or resampled colour by colour (core.resample.resample_mosaic)
     resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
     out = {"mode": mode, "motion": motion, "resampling": resampling, "reference": frames[ref].path,
            "applied": bool(applied),
@@ -145,7 +145,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
 
 def whole_periods_suffice(warps) -> bool:
     """RAW: a translation by whole 2 x 2 CFA periods moves codes without resampling them;
-    ``auto`` resamples each colour's sites (``core.align.resample_mosaic``) instead only when whole periods would
+    ``auto`` resamples each colour's sites (``core.resample.resample_mosaic``) instead only when whole periods would
     leave some frame more than :data:`AUTO_ALIGN_PX` off along either axis."""
     return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
 
@@ -212,7 +212,7 @@ class DecodedOnce:
 class AlignedLoader:
     """``frame -> codes`` brought onto the reference.  A RAW frame resampled per CFA
     colour also leaves the spread of the samples each value was interpolated from
-    (:func:`~hdrmerge_cli.core.align.resample_mosaic`'s spread) for :class:`SampleWeights`.  The
+    (:func:`~hdrmerge_cli.core.resample.resample_mosaic`'s spread) for :class:`SampleWeights`.  The
     resampled codes (and spreads) of the latest decodes are kept for the next pass over the
     frames (deghosting reads every frame twice, the merge and its re-weighting once each):
     the :data:`KEEP` latest always (the merge holds two frames), older ones while all of
@@ -242,15 +242,15 @@ class AlignedLoader:
             # full-resolution bilinear resampling of images: no tap variance (on the 8-bit cases
             # of benchmarks/motion.py it cost 1-5 dB away from the ghost: the taps' spread is
             # mostly the codes' noise and quantisation there, which the tables already hold)
-            out = align.apply_warp(codes, w, clip)
+            out = resample.apply_warp(codes, w, clip)
         else:
             from hdrmerge_cli.pipeline.bracket import sample_pattern
 
             cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
             if self.periods:
-                out = align.shift_mosaic(codes, w)
+                out = resample.shift_mosaic(codes, w)
             else:  # resampled colour by colour, with the taps' spread
-                out, spread = align.resample_mosaic(codes, w, clip, frame.cfa_pattern, np.asarray(frame.black)[cell],
+                out, spread = resample.resample_mosaic(codes, w, clip, frame.cfa_pattern, np.asarray(frame.black)[cell],
                                                     spread=True)
         out.flags.writeable = False  # handed out again: read-only
         if isinstance(self.load, DecodedOnce):  # the resampled codes are kept instead
@@ -263,7 +263,7 @@ class AlignedLoader:
 
     def spread(self, frame: Frame) -> np.ndarray | None:
         """The tap variance of the frame's latest decode (coded,
-        :func:`~hdrmerge_cli.core.align.spread_code`), or None."""
+        :func:`~hdrmerge_cli.core.resample.spread_code`), or None."""
         return self.kept[frame.path][1] if frame.path in self.kept else None
 
 
@@ -541,7 +541,7 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
         rows = (np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1)
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
         return rows[:, None] & cols[None, :]
-    return align.covered_mask(warp, h, w)
+    return resample.covered_mask(warp, h, w)
 
 
 def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None,
@@ -647,12 +647,12 @@ def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, s
                      warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None) -> np.ndarray:
     """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
     mosaic resampled by ``warp`` with the interpolation's variance added
-    (:func:`~hdrmerge_cli.core.align.resampled_weight_mosaic`), from the frame's
+    (:func:`~hdrmerge_cli.core.resample.resampled_weight_mosaic`), from the frame's
     ``tables``: the slope of its value table (linear or log value per code) and its
     certainty ``w(z)``.  ``out`` may be ``w``."""
     n = tables.n_codes
     slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
-    return align.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out,
+    return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out,
                                          weight=tables.weight, cfa=cfa)
 
 

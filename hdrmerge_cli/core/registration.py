@@ -1,0 +1,574 @@
+"""Registration of the frames of a hand-held bracket (array code; OpenCV's phase correlation
+and ECC).
+
+Frames differ in exposure, so they are compared in an exposure-invariant form: the
+linearised signal divided by the frame's exposure, limited to the irradiance range both
+frames of a pair measure, in log units (:func:`log_irradiance`).  Phase correlation finds a
+coarse translation; the enhanced correlation coefficient maximisation (Evangelidis and
+Psarakis 2008, ``cv2.findTransformECC``, invariant to gain and offset) refines it on a
+pyramid and on a central full-resolution window, and for ``similarity`` adds a rotation
+(ECC's Euclidean model), kept only where it beats the translation.  A consensus of tiles
+registered on their own removes what a moving object pulls (:func:`estimate_warp`).
+
+A warp is a ``(2, 3)`` affine matrix ``W`` mapping reference-frame coordinates ``(x, y)``
+(pixel centres, x to the right) to the frame's own coordinates: the frame is brought onto
+the reference by sampling it at ``W @ (x, y, 1)`` (:mod:`hdrmerge_cli.core.resample`).
+``translation`` has ``W = [I | t]``; ``similarity`` a rotation and a translation (scale 1:
+exposure brackets do not zoom).
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.resample import covered_mask
+
+#: longest side of the coarse registration level
+COARSE_SIDE = 1024
+#: how far (in pixels of the pyramid's finest level) the full-resolution similarity ECC
+#: may move the window's corners from the pyramid's estimate (:func:`_fine_ecc`)
+FINE_REACH = 4
+#: longest side of the phase correlation's images (pixels): it only starts ECC, which may
+#: correct it by up to :data:`MAX_REFINE_PX`, so half the coarse level suffices
+PHASE_SIDE = 512
+#: side of the full-resolution refinement window
+FINE_SIDE = 1024
+#: longest side of the coarsest ECC pyramid level (at least)
+PYRAMID_MIN = 64
+#: the motion models :func:`estimate_warp` fits
+MOTIONS = ("translation", "similarity")
+#: registration needs this many textured pixels off the plateaus in both frames
+MIN_TEXTURED = 400
+#: registration images narrower than this (pixels) are not registered: the texture test's
+#: 3 x 3 smoothing and gradient need an interior, and ECC's pyramid a few levels
+MIN_SIDE = 8
+#: ... and this many of them (a quarter) textured across each axis (:func:`texture`): edges
+#: all one way fix no shift along them
+MIN_ACROSS = 100
+#: log-irradiance gradient per pixel (about 10 % contrast) that counts as texture
+TEXTURE_LOG_GRAD = 0.1
+#: largest correction (pixels) ECC may make to the phase-correlation translation
+MAX_REFINE_PX = 3.0
+#: a rotation is kept when it moves some corner of the frame by more than this (pixels)
+ROTATION_PX = 0.25
+
+
+def _cv2():
+    import cv2
+
+    return cv2
+
+
+def log_irradiance(lin: np.ndarray, exposure: float, lo: float, hi: float) -> np.ndarray:
+    """``log(clip(lin / exposure, 0, hi) + lo)`` as float32: ``lin`` the linearised signal
+    (full scale 1), ``[lo, hi]`` the irradiance range both frames of a pair measure (see
+    :func:`common_range`).  Above ``hi`` a plateau (the longer frame clips there); below
+    ``lo`` a soft floor rather than a hard one, so the noise of the shorter frame's darkest
+    readings is not turned into a biased edge where they meet the floor."""
+    out = np.clip(np.asarray(lin, np.float32) * np.float32(1.0 / exposure), 0.0, np.float32(hi))
+    out += np.float32(lo)
+    return np.log(out, out=out)
+
+
+def dark_floor(code_step: float | None) -> float:
+    """The darkest signal (fraction of full scale) registration trusts in a frame, the
+    ``lo_code`` of :func:`common_range`: 2 %, or 16 codes where the codes are linear
+    (``code_step``: one code as a fraction of full scale) and that is lower.  None: codes
+    through a response, whose lowest codes stand for signals deep in the sensor's noise."""
+    return 0.02 if code_step is None else min(0.02, 16.0 * code_step)
+
+
+def common_range(exposures, lo_code: float = 0.02, hi_code: float = 0.9) -> tuple[float, float]:
+    """The irradiance range every frame of a pair measures well: above ``lo_code`` of full
+    scale in the shorter exposure (RAW: 16 codes) and below ``hi_code`` in the longer one."""
+    h = np.asarray(exposures, np.float64)
+    lo, hi = lo_code / h.min(), hi_code / h.max()
+    if lo >= hi:
+        raise HdrMergeError("two frames share no well-exposed irradiance range; they cannot be aligned")
+    return lo, hi
+
+
+def block_mean(img: np.ndarray, f: int) -> np.ndarray:
+    """Area average over ``f x f`` blocks (rows and columns beyond whole blocks dropped)."""
+    if f == 1:
+        return img
+    h, w = img.shape[0] // f * f, img.shape[1] // f * f
+    return _cv2().resize(np.ascontiguousarray(img[:h, :w], np.float32), (w // f, h // f),
+                         interpolation=_cv2().INTER_AREA)  # an integer factor: exactly the block mean
+
+
+def rescale_warp(warp: np.ndarray, f: float, c: float) -> np.ndarray:
+    """A warp found on images reduced by ``f`` (coarse pixel ``u`` has its centre at full-
+    resolution ``f u + c``) expressed at full resolution."""
+    a = warp[:, :2]
+    out = warp.copy()
+    out[:, 2] = f * warp[:, 2] + (np.eye(2) - a) @ np.array([c, c])
+    return out
+
+
+def shift_warp(warp: np.ndarray, origin) -> np.ndarray:
+    """The warp in the coordinates of a window whose top-left corner is ``origin = (x0, y0)``
+    in both images (and back with ``-origin``)."""
+    out = warp.copy()
+    out[:, 2] = warp[:, 2] + (warp[:, :2] - np.eye(2)) @ np.asarray(origin, np.float64)
+    return out
+
+
+#: log-irradiance difference (about 25 %) within which a pixel counts as matched
+MATCH_TOL = 0.25
+
+
+def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> tuple[np.ndarray, float]:
+    """Pixels of the reference that ``image`` (brought onto it by ``warp``) matches to
+    :data:`MATCH_TOL` (plateaus included), and the fraction matched among the pixels the
+    warped image covers off the plateaus.  Moving objects and misregistered texture are
+    the unmatched ones."""
+    cv2 = _cv2()
+    h, w = reference.shape
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    moved = cv2.warpAffine(image, warp.astype(np.float32), (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=np.nan)
+    lo, hi = float(reference.min()), float(reference.max())
+    # pixels on the clipping plateaus of the common range match trivially: they do not vote
+    inside = np.isfinite(moved) & (reference > lo + 1e-4) & (reference < hi - 1e-4)
+    ok = inside & (np.abs(np.where(inside, moved, 0) - reference) < MATCH_TOL)
+    return ok | ~inside, float(ok.sum() / max(inside.sum(), 1))
+
+
+def _phase_shift(template: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """The translation warp of the phase-correlation peak (OpenCV, Hann window)."""
+    cv2 = _cv2()
+    win = cv2.createHanningWindow(template.shape[::-1], cv2.CV_64F)
+    (dx, dy), _ = cv2.phaseCorrelate(template.astype(np.float64), image.astype(np.float64), win)
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]])
+
+
+def _window(n: int) -> tuple[int, int]:
+    """The central :data:`FINE_SIDE` span of ``n`` pixels."""
+    start = max(0, (n - FINE_SIDE) // 2)
+    return start, min(n, start + FINE_SIDE)
+
+
+def _central(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """Both images' central :data:`FINE_SIDE` window (:func:`_window`, contiguous) and its
+    origin ``(x0, y0)`` in the frame."""
+    (y0, y1), (x0, x1) = _window(reference.shape[0]), _window(reference.shape[1])
+    return (np.ascontiguousarray(reference[y0:y1, x0:x1]), np.ascontiguousarray(image[y0:y1, x0:x1]), (x0, y0))
+
+
+def off_plateau(img: np.ndarray) -> np.ndarray:
+    """Pixels strictly inside the clipped range of an exposure-invariant image (its
+    plateaus are where one frame of the pair reads dark or clipped), uint8 0/1."""
+    lo, hi = float(img.min()), float(img.max())
+    return ((img > lo + 1e-4) & (img < hi - 1e-4)).astype(np.uint8)
+
+
+def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD) -> tuple[int, int]:
+    """``(textured, across)``: how many pixels off the plateaus carry texture, a
+    log-irradiance gradient (3 x 3 box-smoothed, so single-pixel noise does not count) above
+    ``grad`` per pixel; and the fewer of those whose gradient's x component, and
+    those whose y component, is above ``grad`` / sqrt 2: edges in one direction only fix
+    no shift along them (the aperture problem)."""
+    cv2 = _cv2()
+    f = max(1, -(-max(img.shape) // COARSE_SIDE))
+    small = block_mean(img, f)
+    smooth = cv2.blur(small, (3, 3))
+    inside = off_plateau(small) > 0
+    gy, gx = np.gradient(smooth)
+    limit = grad * f  # per full-resolution pixel
+    textured = int(np.count_nonzero((np.hypot(gx, gy) > limit) & inside))
+    across = min(int(np.count_nonzero((np.abs(g) > limit / np.sqrt(2)) & inside)) for g in (gx, gy))
+    return textured * f * f, across * f * f
+
+
+def registrable(a: np.ndarray, b: np.ndarray) -> str | None:
+    """Why two exposure-invariant images cannot be registered, or None: each needs
+    :data:`MIN_TEXTURED` textured pixels and :data:`MIN_ACROSS` textured across each axis
+    (:func:`texture`), so an image of fewer than :data:`MIN_TEXTURED` pixels, or narrower
+    than :data:`MIN_SIDE`, never is."""
+    if min(a.shape) < MIN_SIDE or a.size < MIN_TEXTURED:
+        return f"a {a.shape[0]} x {a.shape[1]} registration image is too small to register"
+    (ta, xa), (tb, xb) = texture(a), texture(b)
+    if min(ta, tb) < MIN_TEXTURED:
+        return f"only {min(ta, tb)} textured pixels"
+    if min(xa, xb) < MIN_ACROSS:
+        return f"only {min(xa, xb)} pixels textured across each axis (edges all one way)"
+    return None
+
+
+def ecc_score(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> float:
+    """The enhanced correlation coefficient (Evangelidis and Psarakis 2008) of ``reference``
+    and ``image`` sampled at ``warp`` (OpenCV's ``computeECC``), over a set of pixels that
+    does not depend on the warp beyond the frame's edge: the reference's pixels off its
+    plateaus that the warped image covers.  The image's own plateaus count (misplaced,
+    they fall on the reference's texture).  -1 when too few pixels overlap."""
+    cv2 = _cv2()
+    h, w = reference.shape
+    m = warp.astype(np.float32)
+    flags = cv2.WARP_INVERSE_MAP
+    moved = cv2.warpAffine(image, m, (w, h), flags=cv2.INTER_LINEAR | flags, borderMode=cv2.BORDER_REPLICATE)
+    inside = cv2.warpAffine(np.ones(image.shape, np.uint8), m, (w, h), flags=cv2.INTER_NEAREST | flags,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mask = inside & off_plateau(reference)
+    if np.count_nonzero(mask) < 16:
+        return -1.0
+    try:
+        return float(cv2.computeECC(reference, moved, mask))
+    except cv2.error:
+        return -1.0
+
+
+def _ecc(template: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str, eps: float = 1e-5,
+         count: int = 100, template_mask: np.ndarray | None = None) -> np.ndarray | None:
+    """OpenCV's ECC maximisation from ``warp`` (translation, or rotation + translation for
+    ``similarity``; no pre-smoothing: it biases the optimum where plateaus meet texture), None when it does not converge.  No
+    mask on the image: the plateaus are where either frame of the pair clips, the same irradiance in
+    both, so their edges register like any other (a nearest-neighbour-warped mask biases
+    the sub-pixel optimum by tenths of a pixel).  ``template_mask`` (uint8, 0 = left out;
+    ``findTransformECCWithMask``) is not warped, so it adds no such pull.  OpenCV writes the
+    warp it is given: it gets a copy."""
+    cv2 = _cv2()
+    mode = cv2.MOTION_TRANSLATION if motion == "translation" else cv2.MOTION_EUCLIDEAN
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, count, eps)
+    try:
+        if template_mask is None:
+            _, found = cv2.findTransformECC(template, image, warp.astype(np.float32), mode, criteria, None, 1)
+        else:
+            _, found = cv2.findTransformECCWithMask(template, image, template_mask, np.full(image.shape, 255, np.uint8),
+                                                    warp.astype(np.float32), mode, criteria, 1)
+    except cv2.error:
+        return None
+    return found.astype(np.float64)
+
+
+def _pyramid_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray:
+    """ECC coarse to fine on area-averaged levels (factors 2^k, every level between
+    :data:`PYRAMID_MIN` and :data:`COARSE_SIDE` pixels wide; loosely converged), each level
+    starting from the one before; a level that does not converge leaves the warp as it
+    was.  Full resolution is :func:`_fine_ecc`'s."""
+    side = max(reference.shape)
+    levels = [f for f in (2**k for k in range(1, 16)) if PYRAMID_MIN <= side / f <= COARSE_SIDE]
+    for f in sorted(levels, reverse=True):
+        c = (f - 1) / 2
+        level = rescale_warp(warp, 1 / f, -c / f)
+        found = _ecc(block_mean(reference, f), block_mean(image, f), level, motion, eps=1e-4)
+        if found is not None:
+            warp = rescale_warp(found, f, c)
+    return warp
+
+
+def _finest_level(shape: tuple[int, ...]) -> int:
+    """The factor of :func:`_pyramid_ecc`'s finest level (at most :data:`COARSE_SIDE` wide)."""
+    return next(f for f in (2**k for k in range(1, 32)) if max(shape) / f <= COARSE_SIDE)
+
+
+def _fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+    """ECC at full resolution on the central :data:`FINE_SIDE` window, from ``warp``; None
+    when it does not converge or, for ``similarity``, moves a corner of the window by more
+    than :data:`FINE_REACH` pixels of the pyramid's finest level (a refinement does not
+    jump; a false optimum, e.g. a moving object filling the window, does).  At most
+    :data:`FINE_ITERATIONS` iterations, and None if the run has not settled by then
+    (:data:`FINE_SETTLED_PX`); a similarity run is also checked after :data:`FINE_CHECK`
+    iterations (:data:`FINE_WANDER_PX`, :data:`FINE_CONVERGED_PX`)."""
+    ref, img, (x0, y0) = _central(reference, image)
+    start = shift_warp(warp, (x0, y0))
+    reach = max(MAX_REFINE_PX, FINE_REACH * _finest_level(reference.shape))
+    size = ref.shape
+
+    def jumped(warp):
+        return motion == "similarity" and corner_distance(warp, start, *size) > reach
+
+    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS if motion == "translation" else FINE_CHECK - 1)
+    if found is None:
+        return None
+    if motion == "similarity":  # checked after FINE_CHECK iterations too: a run that jumped, or still
+        # moves a corner by FINE_WANDER_PX per iteration, is not refining; one that moves none by
+        # FINE_CONVERGED_PX has converged (a restarted run takes at least two iterations more)
+        step = _ecc(ref, img, found, motion, count=1)
+        moved = None if step is None else corner_distance(step, found, *size)
+        if step is None or moved > FINE_WANDER_PX or jumped(step):
+            return None
+        if moved <= FINE_CONVERGED_PX:
+            return shift_warp(step, (-x0, -y0))
+        found = _ecc(ref, img, step, motion, count=FINE_ITERATIONS - FINE_CHECK)
+        if found is None:
+            return None
+    step = _ecc(ref, img, found, motion, count=1)  # settled: it moves no corner by FINE_SETTLED_PX
+    if step is None or corner_distance(step, found, *size) > FINE_SETTLED_PX or jumped(found):
+        return None
+    return shift_warp(found, (-x0, -y0))
+
+
+#: iterations of :func:`_fine_ecc` at most: from the pyramid's estimate a refinement
+#: converges in far fewer; a run drifting to a false optimum stops here
+FINE_ITERATIONS = 30
+#: a fine run has settled when one more iteration moves no window corner farther (pixels)
+FINE_SETTLED_PX = 0.5
+#: a similarity run is checked after this many iterations too: refused if it moved a corner
+#: beyond :data:`FINE_REACH` or its last iteration moved one by more than :data:`FINE_WANDER_PX`
+FINE_CHECK = 10
+#: the most (pixels) a window corner may move in one iteration at that check
+FINE_WANDER_PX = 2.0
+#: ... and taken as converged if that iteration moved no corner by this much (pixels)
+FINE_CONVERGED_PX = 0.01
+
+
+#: a registered pair's log difference farther than this many robust deviations (1.4826 MAD)
+#: from its median is a moving object's (:func:`_moved_region`)
+MOVED_SIGMAS = 5.0
+#: a moved region covers at least this fraction of the window (noise outliers are scattered)
+MOVED_MIN_AREA = 1e-3
+#: a moved region is grown by this many pixels (its blurred edge, the warp's error)
+MOVED_GROW_PX = 4
+
+
+def _moved_region(reference: np.ndarray, moved: np.ndarray) -> np.ndarray | None:
+    """Where a registered pair disagrees over a region (a moving object), ``(H, W)`` uint8
+    255 = moved, or None where no region does: the log difference beyond
+    :data:`MOVED_SIGMAS` robust deviations of its median, opened (isolated noise goes), its
+    connected regions of at least :data:`MOVED_MIN_AREA` of the frame kept and grown by
+    :data:`MOVED_GROW_PX`.  Both images on the reference's grid, off the reference's
+    plateaus only (where one frame clips or reads dark the difference says nothing)."""
+    cv2 = _cv2()
+    on = off_plateau(reference) > 0
+    if np.count_nonzero(on) < MIN_TEXTURED:
+        return None
+    d = reference - moved
+    med = float(np.median(d[on]))
+    scale = 1.4826 * float(np.median(np.abs(d[on] - med)))
+    far = (on & (np.abs(d - med) > MOVED_SIGMAS * max(scale, 1e-6))).astype(np.uint8)
+    far = cv2.morphologyEx(far, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(far, connectivity=8)
+    big = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= MOVED_MIN_AREA * far.size)
+    big = big[big > 0]
+    if big.size == 0:
+        return None
+    region = np.isin(labels, big).astype(np.uint8) * np.uint8(255)
+    side = 2 * MOVED_GROW_PX + 1
+    return cv2.dilate(region, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side)))
+
+
+def _masked_fine_ecc(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> np.ndarray | None:
+    """``warp`` refined at full resolution on the central window (as :func:`_fine_ecc`) with
+    the region a moving object covers in the reference left out (:func:`_moved_region`,
+    found on the pair registered by ``warp``; OpenCV's ``findTransformECCWithMask``, whose
+    template mask is not warped, so the mask adds no pull of its own).  None where no
+    region moved, ECC does not converge, or it moves a window corner by more than
+    :data:`MAX_REFINE_PX`.  The tile consensus does this where enough tiles register; a
+    dark short frame's few textured tiles do not."""
+    cv2 = _cv2()
+    ref, img, (x0, y0) = _central(reference, image)
+    start = shift_warp(warp, (x0, y0)).astype(np.float32)
+    moved = cv2.warpAffine(img, start, ref.shape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)
+    region = _moved_region(ref, moved)
+    if region is None:
+        return None
+    found = _ecc(ref, img, start, motion, count=FINE_ITERATIONS, template_mask=cv2.bitwise_not(region))
+    if found is None or corner_distance(found, start, *ref.shape) > MAX_REFINE_PX:
+        return None
+    return shift_warp(found, (-x0, -y0))
+
+
+def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """Whole-image translation: the phase-correlation peak (OpenCV, sub-pixel) on area-
+    averaged images against no motion, the one matching more pixels kept (a bright object
+    crossing a still scene can win the correlation peak, but not the vote of the pixels)."""
+    h, w = reference.shape
+    f = max(1, -(-max(h, w) // PHASE_SIDE))
+    ref_c, img_c = block_mean(reference, f), block_mean(image, f)
+    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
+    return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
+
+
+#: tiles per side of the robust consensus (:func:`_tile_consensus`)
+CONSENSUS_TILES = 5
+#: a tile's correction farther than this (pixels) from the consensus is an outlier (motion)
+CONSENSUS_TOL_PX = 0.25
+#: textured pixels a tile needs to take part: log-irradiance gradient above
+#: :data:`TEXTURE_LOG_GRAD` per 1/:data:`COARSE_SIDE` of the frame's longer side (per pixel
+#: up to that size: the same scene has less contrast per pixel on a sensor with more pixels)
+CONSENSUS_MIN_TEXTURED = 200
+#: tiles (a third of them) that must register for their disagreement to mean a non-rigid
+#: scene rather than one moving object
+CONSENSUS_JUDGE = 8
+#: a tile is registered on its central window at most this many pixels on a side
+CONSENSUS_TILE_SIDE = 256
+#: ECC's convergence threshold (change of the correlation) for a tile
+CONSENSUS_EPS = 1e-4
+
+
+def _euclidean_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The rotation and translation (no scale: a camera that turned, not zoomed) taking the
+    points ``src`` nearest to ``dst`` in least squares (2-D Procrustes: the angle of the
+    summed cross and dot products of the centred points), ``(2, 3)``."""
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    theta = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b))
+    r = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    return np.hstack([r, (dst.mean(axis=0) - r @ src.mean(axis=0))[:, None]])
+
+
+def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, motion: str) -> tuple[np.ndarray | None, bool]:
+    """A correction of ``warp`` that a moving object cannot bias, by a consensus of tiles.
+
+    ``image`` is resampled onto ``reference`` by ``warp`` (bicubic) and each of
+    :data:`CONSENSUS_TILES` x :data:`CONSENSUS_TILES` tiles registered on its own (ECC
+    translation on its central :data:`CONSENSUS_TILE_SIDE` window); the tile shifts are
+    fitted robustly (the median, or for ``similarity`` OpenCV's least-median-of-squares
+    similarity), tiles beyond :data:`CONSENSUS_TOL_PX` of the fit dropped and the fit redone
+    without scale (:func:`_euclidean_fit`; its rotation kept where ``warp`` rotates or it
+    moves a corner by :data:`ROTATION_PX`).  Returns ``(warp, judged)``: the corrected
+    ``(2, 3)`` warp, or None unless at least 4 textured tiles
+    (:data:`CONSENSUS_MIN_TEXTURED`) registered within :data:`MAX_REFINE_PX` and at least
+    half of them agree; ``judged``: True with a warp, and with None when
+    :data:`CONSENSUS_JUDGE` tiles registered but agree on no rigid motion."""
+    cv2 = _cv2()
+    h, w = reference.shape
+    n = CONSENSUS_TILES
+    th, tw = h // n, w // n
+    if min(th, tw) < 32:
+        return None, False
+    moved = cv2.warpAffine(image, warp.astype(np.float32), (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)
+    inside = covered_mask(warp, *image.shape)
+    sh, sw = min(th, CONSENSUS_TILE_SIDE), min(tw, CONSENSUS_TILE_SIDE)
+    grad = TEXTURE_LOG_GRAD / max(1.0, max(h, w) / COARSE_SIDE)  # per pixel, as at the coarse level
+
+    def register(corner):  # one tile: its centre and shift, or None
+        y0, x0 = corner
+        rows, cols = slice(y0, y0 + sh), slice(x0, x0 + sw)
+        if not inside[rows, cols].all():
+            return None
+        tile = np.ascontiguousarray(reference[rows, cols])
+        if texture(tile, grad)[0] < CONSENSUS_MIN_TEXTURED:  # isotropic: the directional count lost rotations
+            return None
+        found = _ecc(tile, np.ascontiguousarray(moved[rows, cols]), np.eye(2, 3), "translation", eps=CONSENSUS_EPS)
+        if found is None or not np.all(np.abs(found[:, 2]) <= MAX_REFINE_PX):
+            return None
+        return (x0 + (sw - 1) / 2, y0 + (sh - 1) / 2), found[:, 2]
+
+    corners = [(i * th + (th - sh) // 2, j * tw + (tw - sw) // 2) for i in range(n) for j in range(n)]
+    with ThreadPoolExecutor(2) as pool:  # OpenCV's ECC releases the GIL: both cores
+        results = [r for r in pool.map(register, corners) if r is not None]
+    centres = [c for c, _ in results]
+    shifts = [d for _, d in results]
+    if len(shifts) < 4:
+        return None, False
+    src = np.asarray(centres, np.float64)
+    dst = src + np.asarray(shifts, np.float64)
+    fit = cv2.estimateAffinePartial2D(src, dst, method=cv2.LMEDS)[0] if motion == "similarity" else None
+    pred = src + np.median(dst - src, axis=0) if fit is None else src @ fit[:, :2].T + fit[:, 2]
+    keep = np.hypot(*(pred - dst).T) <= CONSENSUS_TOL_PX
+    if keep.sum() < max(4, len(src) // 2):
+        return None, len(src) >= CONSENSUS_JUDGE
+    correction = np.hstack([np.eye(2), np.mean(dst[keep] - src[keep], axis=0)[:, None]])
+    if motion == "similarity":  # the rotation too: the warp rotates already, or it moves a corner by > ROTATION_PX
+        rotated = _euclidean_fit(src[keep], dst[keep])
+        if not np.allclose(warp[:, :2], np.eye(2)) or corner_distance(rotated, correction, h, w) > ROTATION_PX:
+            correction = rotated
+    return compose(warp, correction.astype(np.float64)), True
+
+
+def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> tuple[np.ndarray, float]:
+    """The warp bringing ``image`` onto ``reference`` and its confidence.
+
+    ``reference``, ``image``: ``(H, W)`` float32 exposure-invariant images
+    (:func:`log_irradiance`); ``motion``: one of :data:`MOTIONS`.  Returns ``(warp, rho)``:
+    ``(2, 3)`` float64 (reference to image coordinates) and the enhanced correlation
+    coefficient of the registered pair off the plateaus (:func:`ecc_score`).
+    Phase correlation (:func:`_translation`) starts ECC (Evangelidis and Psarakis 2008) on
+    a pyramid (:func:`_pyramid_ecc`) and the central full-resolution window
+    (:func:`_fine_ecc`), kept within :data:`MAX_REFINE_PX` of it.  ``similarity`` adds a
+    rotation where the change is mostly one (:func:`_turned`), refined by the tile consensus
+    or on the window, kept where it correlates better and moves a corner by
+    :data:`ROTATION_PX`, never where the tiles agree on no rigid motion.  Last the tile
+    consensus (:func:`_tile_consensus`), or with too few tiles :func:`_masked_fine_ecc`,
+    removes what a moving object pulled."""
+    if motion not in MOTIONS:
+        raise ValueError(f"unknown motion {motion!r}")
+    ref_w, img_w, origin = _central(reference, image)
+
+    def score(warp):
+        return ecc_score(ref_w, img_w, shift_warp(warp, origin))
+
+    phase = _translation(reference, image)
+
+    def near(warp):  # ECC's result stands within MAX_REFINE_PX of the phase correlation's
+        return warp is not None and np.max(np.abs(warp[:, 2] - phase[:, 2])) <= MAX_REFINE_PX
+
+    coarse = _pyramid_ecc(reference, image, phase, "translation")
+    best = coarse if near(coarse) else phase
+
+    def refine_translation():  # at full resolution, on the central window
+        refined = _fine_ecc(reference, image, coarse, "translation")
+        return refined if near(refined) else phase
+
+    rotated = _pyramid_ecc(reference, image, best, "similarity") if motion == "similarity" else None
+    # a rotation the fine window sees (its corners turn by FINE_SETTLED_PX) is tried first: a
+    # translation cannot fit that window, and is refined only if the rotation is not kept
+    later = (rotated is not None and _turned(rotated, best, reference.shape)
+             and _window_turn(rotated, best, reference.shape) > FINE_SETTLED_PX)
+    if not later:
+        best = refine_translation()
+    rho = score(best)
+    if motion == "similarity":
+        corners = corner_distance(rotated, best, *reference.shape)
+        if corners > ROTATION_PX and _turned(rotated, best, reference.shape):  # the coarse levels see a
+            # rotation that is not negligible: refine it over the whole frame by the tile consensus, or at full
+            # resolution on the central window where the tiles cannot (the pyramid's estimate stands where both
+            # fail), keep it if it correlates better.  Tiles that registered but agree on no rigid motion (a
+            # non-rigid scene: foliage in wind) refuse it: ECC's extra parameter always correlates a little better
+            fine, judged = _tile_consensus(reference, image, rotated, motion)
+            if fine is not None or not judged:
+                fine = _fine_ecc(reference, image, rotated, "similarity") if fine is None else fine
+                rotated = rotated if fine is None else fine
+                if ((r := score(rotated)) > rho
+                        and corner_distance(rotated, best, *reference.shape) > ROTATION_PX):
+                    best, rho = rotated, r
+                    later = False
+    if later:  # the rotation was not kept
+        best = refine_translation()
+        rho = score(best)
+    robust, _ = _tile_consensus(reference, image, best, motion)
+    if robust is None:  # too few tiles registered: leave out what moved, if anything did
+        turned = not np.allclose(best[:, :2], np.eye(2))
+        robust = _masked_fine_ecc(reference, image, best, "similarity" if turned else "translation")
+    if robust is not None:
+        best, rho = robust, score(robust)
+    return best, rho
+
+
+def _turned(rotated: np.ndarray, warp: np.ndarray, shape: tuple[int, ...]) -> bool:
+    """Whether what a rotation step changed from ``warp`` is mostly a rotation: the frame's
+    centre moved by at most :data:`MAX_REFINE_PX` or half what its corners move (a drift
+    moves the centre as far as the corners)."""
+    centre = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+    return bool(np.hypot(*((rotated - warp) @ centre)) <= max(MAX_REFINE_PX, corner_distance(rotated, warp, *shape) / 2))
+
+
+def _window_turn(rotated: np.ndarray, warp: np.ndarray, shape: tuple[int, ...]) -> float:
+    """How far (pixels) ``rotated`` moves the corners of :func:`_fine_ecc`'s window (of a frame
+    of ``shape``) about its centre, beyond ``warp``: what a translation of the window cannot fit."""
+    a = (rotated - warp)[:, :2]
+    hy, hx = ((min(FINE_SIDE, n) - 1) / 2 for n in shape[:2])
+    return float(max(np.hypot(*(a @ np.array([sx * hx, sy * hy]))) for sx in (-1, 1) for sy in (-1, 1)))
+
+
+def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """``outer o inner``: first ``inner``, then ``outer`` (both ``(2, 3)``)."""
+    out = outer[:, :2] @ inner
+    out[:, 2] += outer[:, 2]
+    return out
+
+
+def corner_distance(a: np.ndarray, b: np.ndarray, height: int, width: int) -> float:
+    """Largest distance (pixels) between where two warps take a corner of the frame."""
+    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], np.float64)
+    return float(np.max(np.hypot(*(corners @ a.T - corners @ b.T).T)))
+
+
+def warp_size(warp: np.ndarray, height: int, width: int) -> float:
+    """Largest displacement (pixels) the warp causes anywhere in the frame."""
+    return corner_distance(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), height, width)
