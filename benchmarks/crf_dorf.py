@@ -1,4 +1,4 @@
-"""CRF estimation on the 101 real camera response curves of DoRF (issue 4).
+"""CRF estimation on the 101 real camera response curves of DoRF.
 
 A real HDR scene (``ScanLines_StillLife.exr``, luminance, 282 x 414 pixels) is exposed in
 5 frames 2 stops apart through the sensor model (Poisson photons, Gaussian read noise,

@@ -1,4 +1,4 @@
-"""Alignment and ghost removal on randomised brackets nobody tuned to (issue 17, item 4).
+"""Alignment and ghost removal on randomised brackets nobody tuned to.
 
 Protocol (everything seeded: case ``i`` of a run uses ``numpy.random.default_rng(SEED + i)``;
 32 cases in the full run, 6 with ``--quick``, ``--cases N`` to change it)
@@ -33,7 +33,7 @@ same scene position (so its footprint in reference coordinates is known exactly)
 
 **Sensor.**  RAW (every other case): ``core.sensor`` (Poisson photons, Gaussian read noise;
 ``SensorModel()``: 14 bit, black 512, alpha 0.25, sigma_o^2 9), RGGB mosaic, written with
-``io.raw.write_dng``.  8-bit (the other cases): the same noise on a 12-bit linear converter
+``io.dng_integer.write_dng``.  8-bit (the other cases): the same noise on a 12-bit linear converter
 (sqrt(alpha) = 1, sigma_o = 2 codes, black 0), then gamma 2.2 (``x^(1/2.2)``) to 8-bit codes,
 written as lossless 8-bit TIFF with EXIF ExposureTime and merged with ``--crf gamma:2.2``.
 The *static* twin of a case is the same bracket without motion and without the ghost (same
@@ -157,7 +157,7 @@ GHOST = ("stack_ghost_jpg",)
 #: its three shorter frames (1/40-1/15 s) and off in the two longer ones (1/13, 1/6 s), which
 #: deghosting rightly rejects there (seen in the frames; the README of ../shared calls it static)
 LIGHTING = ("em1ii_kitchen_jpg",)
-#: the cost targets' sizes (issue 17: "at 6 and 24 MP"): one moving bracket each, (case
+#: the cost targets' sizes, 6 and 24 MP: one moving bracket each, (case
 #: index, width, height); even indices are RAW, odd 8-bit (:func:`draw_case`)
 LARGE = ((0, 6000, 4000), (1, 3000, 2000))
 #: plain and auto/auto merges of each of them, alternating; the medians are reported (single
@@ -614,9 +614,9 @@ def run_case(case: Case, work: Path, peers: bool = True) -> dict:
     if e_oracle is not None:
         f = f0 & (np.abs(e_oracle) <= np.minimum(np.abs(r.contrast) / 2, ORACLE_MAX))
         res["ghost_f"] = int(f.sum())
-        # (+ 1e-4: a merge that reads a pixel as the oracle does must not fail it on round-off;
-        # case 12's dark ghost at black in the RAW reference: 30 % of F at the oracle's very
-        # error plus 6e-6 after a change that moved no decision there)
+        # (+ 1e-4: a merge that reads a pixel as the oracle does must not fail it on round-off,
+        # e.g. a dark ghost at black in a RAW reference, where much of F sits at the oracle's
+        # very error plus a few 1e-6)
         tol = max(0.05, float(np.percentile(np.abs(e_oracle[f]), 99))) + 1e-4 if f.any() else float("nan")
         res["ghost_tol"] = tol
     err = log_error(true_rgb, r.truth, region & ~r.footprint)
@@ -653,7 +653,7 @@ def run_case(case: Case, work: Path, peers: bool = True) -> dict:
 
 
 def run_large(index: int, width: int, height: int, work: Path) -> dict:
-    """One moving bracket at the issue's sizes: plain and auto/auto, time, peak RSS and the
+    """One moving bracket at a cost target's size: plain and auto/auto, time, peak RSS and the
     alignment's error (the cost targets are stated at 6 and 24 MP)."""
     case = draw_case(index, width, height, scene_names())
     folder = work / f"large{index}"
@@ -731,18 +731,9 @@ def _pct(a) -> str:
     return f"{100 * np.mean(a):.0f} % ({int(np.sum(a))}/{len(a)})" if a else "-"
 
 
-def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, seconds: float, width: int,
-           height: int, large: list[dict] = ()) -> list[str]:
-    ok = [r for r in rows if "error" not in r]
-    lines = ["# Motion: alignment and ghost removal on randomised brackets", "",
-             f"`python -m benchmarks.motion{' --quick' if quick else ''}` at revision {revision()}; {seconds:.0f} s; "
-             f"{len(rows)} random cases ({sum(r['case'].fmt == 'raw' for r in rows)} RAW, "
-             f"{sum(r['case'].fmt == '8bit' for r in rows)} 8-bit), {width} x {height} px, seeds {SEED}+i.  "
-             "Protocol in the module docstring: shifts +-20 px and rotations +-2 deg of every non-reference frame, "
-             "1-3 EV steps with a dark short frame, one ghost of random size/brightness in a random frame, real HDR "
-             "scenes (../shared/data/hdr).", ""]
-    lines += notes + ([""] if notes else [])
-
+def _targets_section(ok: list[dict], real: list[dict], large) -> list[str]:
+    """The table of the targets: each measured over the cases that ran."""
+    lines = []
     lines += ["## Against the targets", "",
               "| target | measured (`--align auto --deghost auto`) | `--align similarity --deghost auto` |",
               "|---|---|---|"]
@@ -821,7 +812,12 @@ def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, se
     lines += ["", "Shift/rotation errors are of the warps merge reports (`alignment.warps` in `--json`), whether "
               "or not `auto` decided to apply them; 'aligned' below says whether it did.", ""]
 
-    # errors summary
+    return lines
+
+
+def _alignment_section(ok: list[dict]) -> list[str]:
+    """Alignment errors (the worst frame of a case), ours and the peers'."""
+    lines = []
     lines += ["## Alignment error (worst frame of a case), ours and the peers", "",
               "| method | cases | shift px median | shift px p90 | shift px worst | rotation deg median | worst | "
               "shift <= 0.2 px | shift <= 1 px |", "|---|---|---|---|---|---|---|---|---|"]
@@ -837,6 +833,12 @@ def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, se
     s = np.array([max(r["mtb"]["shift"]) for r in ok])
     lines.append(f"| OpenCV AlignMTB (translation, integer px) | {len(s)} | {np.median(s):.3f} | "
                  f"{np.percentile(s, 90):.3f} | {s.max():.2f} | - | - | {np.mean(s <= 0.2):.0%} | {np.mean(s <= 1):.0%} |")
+    return lines
+
+
+def _psnr_section(ok: list[dict]) -> list[str]:
+    """PSNR against the static twin, per method and format (HDRMerge on RAW)."""
+    lines = []
     hm = [r["hdrmerge"] for r in ok if "hdrmerge" in r and np.isfinite(r["hdrmerge"]["psnr"] - r["hdrmerge"]["psnr_static"])]
     raw_rows = [r for r in ok if r["case"].fmt == "raw"]
     lines += ["", "## PSNR against the static twin (RAW cases: HDRMerge alongside)", "",
@@ -859,6 +861,12 @@ def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, se
                    "not installed (apt-get install hdrmerge)" if not shutil.which("hdrmerge") else "not run")
         lines.append(f"| HDRMerge | 0 | {why} | | | |")
 
+    return lines
+
+
+def _cases_section(rows: list[dict]) -> list[str]:
+    """One table row per random case."""
+    lines = []
     lines += ["", "## Every case", "",
               "| # | fmt | N | EV step | short frame peak | scene | ghost frame (ref) / area | max shift px / rot deg | "
               "auto: aligned, shift err px, rot err deg, corner err px | similarity: shift err, rot err, corner err | "
@@ -886,39 +894,72 @@ def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, se
             + f" | {100 * r['static_rejected']:.2f} % / {100 * max(r['rejected_auto'] or [float('nan')]):.2f} %"
             + f" | {r['s_static_plain']:.1f} / {r['s_auto']:.1f} | {r['mib_static_plain']:.0f} / {r['mib_auto']:.0f}"
             + (f" | {hmr['psnr_static']:.2f} / {hmr['psnr']:.2f} |" if hmr else " | - |"))
+    return lines
+
+
+def _large_section(large) -> list[str]:
+    """Time and memory of one moving bracket at each large size."""
+    lines = []
+    lines += ["", "## Cost at 6 and 24 MP (one moving bracket each, a fresh render; no peers)", "",
+              f"| case | fmt | size | frames | s plain / auto (ratio; medians of {LARGE_REPEATS}, alternating) | "
+              "MiB plain / auto (ratio) | shift / corner err px, "
+              "rot err deg | auto's stages s |", "|" + "---|" * 8]
+    for x in large:
+        c = x["case"]
+        if "error" in x:
+            lines.append(f"| {c.index} | {c.fmt} | {c.width} x {c.height} | failed: {x['error']} |" + " |" * 4)
+            continue
+        st = ", ".join(f"{k} {v:.2f}" for k, v in x["stages"].items() if v >= 0.05)
+        lines.append(f"| {c.index} | {c.fmt} | {c.width} x {c.height} | {c.n} | {x['s_plain']:.1f} / "
+                     f"{x['s_auto']:.1f} ({x['s_auto'] / x['s_plain']:.2f}x) | {x['mib_plain']:.0f} / "
+                     f"{x['mib_auto']:.0f} ({x['mib_auto'] / x['mib_plain']:.2f}x) | {x['shift']:.3f} / "
+                     f"{x['corner']:.2f}, {x['rot']:.4f} | {st} |")
+    return lines
+
+
+def _real_section(real: list[dict]) -> list[str]:
+    """One table row per real bracket."""
+    lines = []
+    lines += ["", "## Real brackets (`--crf srgb`, no truth)", "",
+              "| bracket | kind | frames | size | aligned | largest displacement px | rotation deg | AlignMTB largest "
+              "shift px | cells rejected (worst frame); through its own response | deghosted | s plain / auto | "
+              "MiB plain / auto |",
+              "|" + "---|" * 12]
+    for x in real:
+        kind = ("hand-held" if x["name"] in HANDHELD else "ghost" if x["name"] in GHOST
+                else "lamps switched off" if x["name"] in LIGHTING else "static")
+        if "error" in x:
+            lines.append(f"| {x['name']} | {kind} | failed: {x['error']} |" + " |" * 9)
+            continue
+        lines.append(f"| {x['name']} | {kind} | {x['frames']} | {x['width']} x {x['height']} | {x['aligned']} | "
+                     f"{x['displacement']:.2f} | {_f(x['rotation'], '{:.3f}')} | {x['mtb']:.1f} | "
+                     f"{100 * x['rejected']:.2f} %"
+                     + (f"; {100 * x['rejected_own']:.2f} %" if "rejected_own" in x else "")
+                     + f" | {x['deghosted']} | {x['s_plain']:.1f} / {x['s_auto']:.1f} | "
+                     f"{x['mib_plain']:.0f} / {x['mib_auto']:.0f} |")
+    return lines
+
+
+def report(rows: list[dict], real: list[dict], notes: list[str], quick: bool, seconds: float, width: int,
+           height: int, large: list[dict] = ()) -> list[str]:
+    ok = [r for r in rows if "error" not in r]
+    lines = ["# Motion: alignment and ghost removal on randomised brackets", "",
+             f"`python -m benchmarks.motion{' --quick' if quick else ''}` at revision {revision()}; {seconds:.0f} s; "
+             f"{len(rows)} random cases ({sum(r['case'].fmt == 'raw' for r in rows)} RAW, "
+             f"{sum(r['case'].fmt == '8bit' for r in rows)} 8-bit), {width} x {height} px, seeds {SEED}+i.  "
+             "Protocol in the module docstring: shifts +-20 px and rotations +-2 deg of every non-reference frame, "
+             "1-3 EV steps with a dark short frame, one ghost of random size/brightness in a random frame, real HDR "
+             "scenes (../shared/data/hdr).", ""]
+    lines += notes + ([""] if notes else [])
+
+    lines += _targets_section(ok, real, large)
+    lines += _alignment_section(ok)
+    lines += _psnr_section(ok)
+    lines += _cases_section(rows)
     if large:
-        lines += ["", "## Cost at the issue's sizes (one moving bracket each, a fresh render; no peers)", "",
-                  f"| case | fmt | size | frames | s plain / auto (ratio; medians of {LARGE_REPEATS}, alternating) | "
-                  "MiB plain / auto (ratio) | shift / corner err px, "
-                  "rot err deg | auto's stages s |", "|" + "---|" * 8]
-        for x in large:
-            c = x["case"]
-            if "error" in x:
-                lines.append(f"| {c.index} | {c.fmt} | {c.width} x {c.height} | failed: {x['error']} |" + " |" * 4)
-                continue
-            st = ", ".join(f"{k} {v:.2f}" for k, v in x["stages"].items() if v >= 0.05)
-            lines.append(f"| {c.index} | {c.fmt} | {c.width} x {c.height} | {c.n} | {x['s_plain']:.1f} / "
-                         f"{x['s_auto']:.1f} ({x['s_auto'] / x['s_plain']:.2f}x) | {x['mib_plain']:.0f} / "
-                         f"{x['mib_auto']:.0f} ({x['mib_auto'] / x['mib_plain']:.2f}x) | {x['shift']:.3f} / "
-                         f"{x['corner']:.2f}, {x['rot']:.4f} | {st} |")
+        lines += _large_section(large)
     if real:
-        lines += ["", "## Real brackets (`--crf srgb`, no truth)", "",
-                  "| bracket | kind | frames | size | aligned | largest displacement px | rotation deg | AlignMTB largest "
-                  "shift px | cells rejected (worst frame); through its own response | deghosted | s plain / auto | "
-                  "MiB plain / auto |",
-                  "|" + "---|" * 12]
-        for x in real:
-            kind = ("hand-held" if x["name"] in HANDHELD else "ghost" if x["name"] in GHOST
-                    else "lamps switched off" if x["name"] in LIGHTING else "static")
-            if "error" in x:
-                lines.append(f"| {x['name']} | {kind} | failed: {x['error']} |" + " |" * 9)
-                continue
-            lines.append(f"| {x['name']} | {kind} | {x['frames']} | {x['width']} x {x['height']} | {x['aligned']} | "
-                         f"{x['displacement']:.2f} | {_f(x['rotation'], '{:.3f}')} | {x['mtb']:.1f} | "
-                         f"{100 * x['rejected']:.2f} %"
-                         + (f"; {100 * x['rejected_own']:.2f} %" if "rejected_own" in x else "")
-                         + f" | {x['deghosted']} | {x['s_plain']:.1f} / {x['s_auto']:.1f} | "
-                         f"{x['mib_plain']:.0f} / {x['mib_auto']:.0f} |")
+        lines += _real_section(real)
     lines += ["", "Columns: 'short frame peak' = the fraction of saturation the scene's 99.9th percentile reaches in "
               "the shortest frame; errors are the worst non-reference frame's; 'ghost removed' over F pixels (see the "
               "docstring; '-' when the oracle leaves none); 'rejected' = largest fraction of a frame's cells "

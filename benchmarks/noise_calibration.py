@@ -1,4 +1,4 @@
-"""Accuracy of calibrate-noise (issue 5) on simulated DNG brackets with known (17).
+"""Accuracy of calibrate-noise on simulated DNG brackets with known (17).
 
 For the paper's gain/offset sweep values (sqrt(alpha) in {0.25 .. 4}, sigma_o in
 {1 .. 16}) taken in the 14-bit RAW codes of the simulated DNGs (full well 65 000 to
@@ -20,8 +20,8 @@ standard error of sigma_o^2 and alpha from the exposure contrasts of every pixel
 unknown), and the error in units of that standard error (an efficient estimator gives
 a median of 0.67 and a 90th percentile of 1.64): a large error with a small ratio is a
 parameter the bracket does not identify, a large ratio an estimator failure.  "target
-reachable" is the fraction of channels where 1.64 standard errors fit in the issue's
-target (sigma_o^2 5 %, alpha 2 %), "within target" where the error does.  "model picked" is the fraction of runs where the
+reachable" is the fraction of channels where 1.64 standard errors fit in the
+target (sigma_o^2 5 %, alpha 2 %: :data:`TARGETS`), "within target" where the error does.  "model picked" is the fraction of runs where the
 F-test (bracket) or z-test (flats) kept beta exactly when it is > 0.  Also the fit on the
 real DNG of ../shared/data/raw.
 
@@ -52,7 +52,7 @@ GAINS = (0.25, 0.5, 1.0, 2.0, 4.0)
 SIGMAS = (1.0, 2.0, 4.0, 8.0, 16.0)
 PRNU2 = 1e-4  # beta / alpha
 CHANNELS = ("R", "G", "B", "G2")
-TARGETS = {"sigma_o2": 0.05, "alpha": 0.02}  # issue 15 item 7
+TARGETS = {"sigma_o2": 0.05, "alpha": 0.02}  # relative error a calibration should reach
 
 
 def achievable(frames: list[str], truth: dict) -> dict[str, dict]:

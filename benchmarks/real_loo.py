@@ -122,7 +122,7 @@ LEGEND = {
     "defaults": "what `estimate-crf` then `merge --crf` do with no option: the goossens QP with coupled channels, "
                 "triangle weights, the log estimator (7), the `codes` variance factor",
     "indep. channels": "defaults with `estimate-crf --coupling 0`",
-    "var=photon": "defaults with `merge --variance photon` (the previous default)",
+    "var=photon": "defaults with `merge --variance photon` (photon noise alone)",
     "var=none": "defaults with `merge --variance none` (weights alone, as OpenCV and colour-hdri)",
     "noise measured": "defaults with the noise measured on the bracket (`--variance model`)",
     "debevec CRF": "`estimate-crf --method debevec`, merge defaults",

@@ -274,7 +274,7 @@ def jpeg_bracket(folder: Path, mp: float, n_frames: int = 5) -> list[Path]:
     return paths
 
 
-# ---------------------------------------------------------------- whole commands (issue 19)
+# ---------------------------------------------------------------- whole commands
 GNU_TIME = "/usr/bin/time"
 OPENCV_SCRIPT = r"""
 import os, sys, time
@@ -381,9 +381,63 @@ def merge_split(stdout: str) -> dict:
         return {}
 
 
+def _row(rows: list[str], case: str, tool: str, r: dict | None, ref: float | None = None, extra: str = "") -> None:
+    """Append one table row of :func:`whole_commands`: wall time, its ratio to ``ref`` and peak RSS."""
+    if r is None:
+        rows.append(f"| {case} | {tool} | failed / skipped | - | - | {extra} |")
+        return
+    ratio = f"{r['wall'] / ref:.2f}" if ref else "-"
+    peak = f"{r['peak'] / 1e6:.0f}" if r.get("peak") else "-"
+    rows.append(f"| {case} | {tool} | {r['wall']:.2f} | {ratio} | {peak} | {extra} |")
+
+
+def _whole_tiff(tmp: Path, quick: bool, luminance: str | None, cache: dict, row) -> dict:
+    """The 8-bit TIFF case of :func:`whole_commands` (3 x 12 MP; quick: 2 MP): ours, OpenCV and
+    Luminance HDR as table rows through ``row``; returns our merge's per-stage split."""
+    tw, th = (1728, 1152) if quick else (4240, 2832)
+    tif_dir = tmp / "tif"
+    cli(["simulate", "-o", str(tif_dir), "--size", f"{tw}x{th}", "--frames", "3", "--format", "tif", "--crf", "srgb",
+         "--overwrite"])
+    tifs = sorted(tif_dir.glob("frame_*.tif"))
+    times = json.loads((tif_dir / "simulation.json").read_text())["exposure_times"]
+    ocv = best_timed([sys.executable, "-c", OPENCV_SCRIPT, str(tmp / "tif_cv.exr"), ",".join(map(str, times)),
+                      *map(str, tifs)], None, 2)
+    ours_tif = best_timed(ours() + ["merge", *map(str, tifs), "-o", str(tmp / "tif.exr"), "--crf", "srgb",
+                                    "--overwrite", "--json"], cache, 2)
+    lum_tif = best_timed([luminance, "-s", str(tmp / "tif_lum.exr"), *map(str, tifs)], None, 1, timeout=900) \
+        if luminance else None
+    ref = ocv["wall"] if ocv else None
+    case = f"3 x {tw * th / 1e6:.0f} MP 8-bit TIFF"
+    row(case, "hdrmerge-cli merge --crf srgb", ours_tif, ref)
+    row(case, "OpenCV imread + MergeDebevec (known sRGB response) + EXR write", ocv, ref, "python + cv2 start-up included; EXR by OpenImageIO (uncompressed) where cv2 has no OpenEXR")
+    row(case, "luminance-hdr-cli -s out.exr", lum_tif, ref, "" if luminance else "not installed")
+    return merge_split(ours_tif["stdout"]) if ours_tif else {}
+
+
+def _whole_lines(rows: list[str], startup: dict, splits: list, mp: float, t_load) -> list[str]:
+    """The markdown of :func:`whole_commands`: its table rows, start-up times and stage splits."""
+    lines = ["## Whole commands as a user runs them", "",
+             f"Fresh process per run, wall time (best of 2-3) and peak RSS from GNU time (`%M`).  Load average at the "
+             f"start {t_load[0]:.1f} on {os.cpu_count()} cores (other jobs shared the machine: ratios measured back to "
+             "back are what count).  The DNGs are simulated (`simulate`, 14-bit, uncompressed) and rewritten with a "
+             "camera make so the per-camera noise cache applies; 'ratio' is against the case's first peer "
+             "(HDRMerge for DNG, OpenCV for TIFF).", "",
+             "| case | tool | wall s | ratio | peak MB | note |", "|---|---|---|---|---|---|", *rows, "",
+             "Start-up (no work done): wall time and the sum of the top-level imports (`python -X importtime`).", "",
+             "| command | wall s | imports ms |", "|---|---|---|"]
+    for k, (wall, imp) in startup.items():
+        lines.append(f"| `hdrmerge-cli {k}` | {wall:.2f} | {imp:.0f} |")
+    steps = ("read_metadata", "align", "noise_estimate", "tables", "decode_and_merge_wall", "irls", "color_and_write")
+    lines += ["", f"Per-stage split of `merge --json` (seconds, {mp:.0f} MP x 3 DNG and the TIFF case):", "",
+              "| run | " + " | ".join(steps) + " |", "|---|" + "---|" * len(steps)]
+    for name, st in splits:
+        lines.append(f"| {name} | " + " | ".join(f"{st.get(k, 0.0):.2f}" for k in steps) + " |")
+    return lines
+
+
 def whole_commands(tmp: Path, quick: bool) -> list[str]:
     """Whole commands as a user runs them, against HDRMerge, Luminance HDR and OpenCV on the
-    same files (issue 19)."""
+    same files: markdown lines of the table."""
     hdrmerge = shutil.which("hdrmerge")
     luminance = shutil.which("luminance-hdr-cli")
     qt = {"QT_QPA_PLATFORM": "offscreen"}
@@ -392,12 +446,7 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
     t_load = os.getloadavg()
 
     def row(case, tool, r, ref=None, extra=""):
-        if r is None:
-            rows.append(f"| {case} | {tool} | failed / skipped | - | - | {extra} |")
-            return
-        ratio = f"{r['wall'] / ref:.2f}" if ref else "-"
-        peak = f"{r['peak'] / 1e6:.0f}" if r.get("peak") else "-"
-        rows.append(f"| {case} | {tool} | {r['wall']:.2f} | {ratio} | {peak} | {extra} |")
+        _row(rows, case, tool, r, ref, extra)
 
     # start-up
     startup = {}
@@ -466,43 +515,9 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
     row(f"{mp:.0f} MP x 9 DNG", "hdrmerge-cli merge", ours_nine, None,
         f"peak 9 / 3 frames = {mem_ratio:.2f}" if mem_ratio else "")
 
-    # 3 x 12 MP 8-bit TIFF (quick: 2 MP)
-    tw, th = (1728, 1152) if quick else (4240, 2832)
-    tif_dir = tmp / "tif"
-    cli(["simulate", "-o", str(tif_dir), "--size", f"{tw}x{th}", "--frames", "3", "--format", "tif", "--crf", "srgb",
-         "--overwrite"])
-    tifs = sorted(tif_dir.glob("frame_*.tif"))
-    times = json.loads((tif_dir / "simulation.json").read_text())["exposure_times"]
-    ocv = best_timed([sys.executable, "-c", OPENCV_SCRIPT, str(tmp / "tif_cv.exr"), ",".join(map(str, times)),
-                      *map(str, tifs)], None, 2)
-    ours_tif = best_timed(ours() + ["merge", *map(str, tifs), "-o", str(tmp / "tif.exr"), "--crf", "srgb",
-                                    "--overwrite", "--json"], cache, 2)
-    lum_tif = best_timed([luminance, "-s", str(tmp / "tif_lum.exr"), *map(str, tifs)], None, 1, timeout=900) \
-        if luminance else None
-    ref = ocv["wall"] if ocv else None
-    case = f"3 x {tw * th / 1e6:.0f} MP 8-bit TIFF"
-    row(case, "hdrmerge-cli merge --crf srgb", ours_tif, ref)
-    row(case, "OpenCV imread + MergeDebevec (known sRGB response) + EXR write", ocv, ref, "python + cv2 start-up included; EXR by OpenImageIO (uncompressed) where cv2 has no OpenEXR")
-    row(case, "luminance-hdr-cli -s out.exr", lum_tif, ref, "" if luminance else "not installed")
-    splits.append(("TIFF", merge_split(ours_tif["stdout"]) if ours_tif else {}))
+    splits.append(("TIFF", _whole_tiff(tmp, quick, luminance, cache, row)))
 
-    lines = ["## Whole commands as a user runs them (issue 19)", "",
-             f"Fresh process per run, wall time (best of 2-3) and peak RSS from GNU time (`%M`).  Load average at the "
-             f"start {t_load[0]:.1f} on {os.cpu_count()} cores (other jobs shared the machine: ratios measured back to "
-             "back are what count).  The DNGs are simulated (`simulate`, 14-bit, uncompressed) and rewritten with a "
-             "camera make so the per-camera noise cache applies; 'ratio' is against the case's first peer "
-             "(HDRMerge for DNG, OpenCV for TIFF).", "",
-             "| case | tool | wall s | ratio | peak MB | note |", "|---|---|---|---|---|---|", *rows, "",
-             "Start-up (no work done): wall time and the sum of the top-level imports (`python -X importtime`).", "",
-             "| command | wall s | imports ms |", "|---|---|---|"]
-    for k, (wall, imp) in startup.items():
-        lines.append(f"| `hdrmerge-cli {k}` | {wall:.2f} | {imp:.0f} |")
-    steps = ("read_metadata", "align", "noise_estimate", "tables", "decode_and_merge_wall", "irls", "color_and_write")
-    lines += ["", f"Per-stage split of `merge --json` (seconds, {mp:.0f} MP x 3 DNG and the TIFF case):", "",
-              "| run | " + " | ".join(steps) + " |", "|---|" + "---|" * len(steps)]
-    for name, st in splits:
-        lines.append(f"| {name} | " + " | ".join(f"{st.get(k, 0.0):.2f}" for k in steps) + " |")
-    return lines + notes
+    return _whole_lines(rows, startup, splits, mp, t_load) + notes
 
 
 def main_whole(quick: bool = False) -> str:

@@ -89,7 +89,7 @@ def test_missing_exposure_time_suggests_times(run, tmp_path):
 
 
 def test_equal_exposure_times_are_merged_and_a_disagreement_is_named(run, tmp_path):
-    """Two frames of one exposure are a burst: merged (issue 18), with a warning when their
+    """Two frames of one exposure are a burst: merged, with a warning when their
     content disagrees beyond the noise (here a whole stop brighter: the exposure changed)."""
     a, b = _jpeg(tmp_path / "a.jpg", size=(64, 64)), _jpeg(tmp_path / "b.jpg", value=120, size=(64, 64))
     proc = run("merge", a, b, "-o", tmp_path / "out.exr", "--crf", "srgb", check=False)

@@ -1,4 +1,4 @@
-"""Exposures measured on the frames (issue 18): the estimator against known exposures,
+"""Exposures measured on the frames: the estimator against known exposures,
 the warning on a mislabelled bracket (and none on a correct one), the order check on a
 film-bracket-like case, ``--times estimate`` and ``info --times``."""
 from __future__ import annotations
@@ -143,7 +143,7 @@ def test_times_estimate_merges_as_with_the_true_labels(run, dng_bracket, tmp_pat
         d -= np.median(d)
         return 20 * np.log10(np.ptp(np.log(truth[ok])) / np.sqrt(np.mean(d * d)))
 
-    # the issue's target: within 0.3 dB of the merge with the true labels (a 1 EV label error)
+    # the target: within 0.3 dB of the merge with the true labels (a 1 EV label error)
     assert abs(log_psnr(tmp_path / "est.exr") - log_psnr(tmp_path / "true.exr")) < 0.3
 
 

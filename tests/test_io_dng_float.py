@@ -1,4 +1,4 @@
-"""The floating-point DNG writer (issue 20 item 1): read back through tifffile, LibRaw
+"""The floating-point DNG writer: read back through tifffile, LibRaw
 (rawpy), darktable-cli and rawtherapee-cli (the last two skip when not installed)."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What merge hands on (issue 20): EXRs that state their colour space."""
+"""What merge hands on: EXRs that state their colour space."""
 from __future__ import annotations
 
 import shutil

@@ -1,4 +1,4 @@
-"""Outputs as one transaction (issue 16): all or nothing, no clobbering of a file that
+"""Outputs as one transaction: all or nothing, no clobbering of a file that
 appeared meanwhile, outputs that collide with each other or with an input refused first,
 errors naming the user's path, SIGTERM cleaned up like SIGINT."""
 import os

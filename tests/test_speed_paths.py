@@ -1,4 +1,4 @@
-"""Speed paths (issue 19): lazy imports, the fused colour kernel against the reference
+"""Speed paths: lazy imports, the fused colour kernel against the reference
 colour path, EXR compression, the per-camera noise cache."""
 from __future__ import annotations
 

@@ -620,41 +620,68 @@ def _largest_change(new, old, flags):  # pragma: no cover
     return float(best.max()) if rows else 0.0
 
 
+def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h: float, y_full: float, max_rows,
+                    rows, weight, prev_den, factor, cen, variance: bool):
+    """Add one frame's clipped readings to a pass of :func:`irls` as censored terms.
+
+    A clipped reading whose current estimate lies more than :data:`CENSORED_SDS` noise sds
+    above full scale carries no information (weight ~ phi(8)) and is skipped; one whose
+    estimate lies more than that many sds below it is impossible under the model
+    (probability ~ Phi(-8)): the frame saw something else there (motion, a ghost), and it is
+    skipped too.  That sd combines the noise at full scale with the estimate's own
+    uncertainty (``Var E = 1 / den`` of the previous pass: the prediction ``E h y_full`` is
+    uncertain by ``h y_full / sqrt(den)``).
+
+    With the previous pass's ``prev_den`` (which samples some frame measures) the terms go
+    straight into ``acc``; without it they are held apart in ``cen = (num, den)``, made on
+    first use, until every frame is in.  Returns ``cen`` (None when the terms go direct).
+    """
+    shape2 = log_e2.shape
+    sd_full2 = max_rows[0] + max_rows[1] * y_full + max_rows[2] * y_full ** 2
+    log_hi = np.float32(np.log((y_full - 0.5 + CENSORED_SDS * np.sqrt(sd_full2)) / (h * y_full)))
+    direct = prev_den is not None
+    if not direct and cen is None:
+        cen = (np.zeros(shape2, np.float32), np.zeros(shape2, np.float32))
+    targets = ((acc.num.reshape(shape2), acc.den.reshape(shape2),
+                (acc.var if variance else acc.num).reshape(shape2)) if direct
+               else (cen[0], cen[1], cen[0]))
+    _censored_rows(codes.reshape(shape2), pat, tab.saturated.reshape(-1, tab.n_codes), log_e2,
+                   weight if prev_den is None else prev_den.reshape(shape2), direct,
+                   float(h * y_full), float(y_full), float(sd_full2), log_hi, *rows,
+                   weight if factor is None else factor.reshape(shape2), factor is not None,
+                   *targets, direct and variance)
+    return cen
+
+
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
          den: np.ndarray | None = None):
     """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
-    until no measured sample moves more than ``tol`` (in log E).
+    until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
 
     codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
     y_full : per frame, the full-scale code value ``white - black``
     rows : :func:`noise_rows`
     adjust : optional ``(k, codes, w, own) -> (w', factor)``: frame k's weights ``w``
-        (``(rows, cols)`` of the samples) as the merge uses them (e.g. with a resampling
-        variance added and a ghost / coverage ``factor`` in [0, 1] applied, or None), the
-        factor also applied to the frame's censored terms; ``own``: ``w`` is not read
-        again, so ``w'`` may be written into it (24 MP: a 96 MB array less at the peak)
-    den : the summed inverse-variance weights of ``log_e``'s estimate (ML: ``1 / Var E``;
-        :class:`LogMerge`'s ``den``; released during the first pass, so a caller that holds
-        no other reference saves its memory), which lets the first pass drop clipped readings the
-        estimate makes impossible (motion) and add the censored terms straight into the
-        sums where it is positive (without it they wait in two more arrays until every
-        frame is in); later passes use their predecessor's
-    variance : also return the variance of ``log E`` of the last pass (needs no
-        ``with_variance`` tables): each frame's weight ``w_j = w(z) I_j`` is its certainty
-        times its Fisher information at the previous estimate, ``I_j = 1 / Var(x_j)`` with
-        the clipping-free variance (21) (``Var(log y) = v(mu) / mu^2``, ``Var(y / k) = v(mu)
-        / k^2``, ``k = h y_full``, ``mu = E k``), so ``w_j^2 Var(x_j) = w(z) w_j`` and the
-        weighted mean's variance is ``sum_j w(z_j) w_j / (sum_j w_j)^2`` (``1 / sum_j I_j``,
-        the inverse of the summed information, for uniform certainty); a clipped reading's
-        censored term (:func:`censored_terms`) adds its information to both sums.  ML: the
-        variance of ``E`` divided by ``E^2``, the delta method (exact to first order, as is
-        ``Var(E scale) = (E scale)^2 Var(log E)`` that takes it back).  Unmeasured samples:
-        :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a non-linear response
-        (:func:`code_error_variance`) is not part of these weights, nor of this variance.
+        (``(rows, cols)``) as the merge uses them (e.g. a resampling variance added) and a
+        ghost / coverage ``factor`` in [0, 1] (or None), also applied to the frame's
+        censored terms; ``own``: ``w`` is not read again, so ``w'`` may be written into it
+    den : the summed inverse-variance weights of ``log_e``'s estimate (:class:`LogMerge`'s
+        ``den``; released during the first pass).  With it the first pass drops clipped
+        readings the estimate makes impossible and adds the censored terms straight into
+        the sums; later passes use their predecessor's
+    variance : also return the variance of ``log E`` of the last pass
     Returns ``(log_e, flags, den, passes, largest_change)``, and with ``variance`` the
     variance of ``log_e`` (float32, like ``log_e``) as a sixth element.
+
+    Notes: each frame's weight ``w_j = w(z) I_j`` is its certainty times its Fisher
+    information ``I_j = 1 / Var(x_j)`` at the previous estimate, with the clipping-free
+    variance (21), so the weighted mean's variance is ``sum_j w(z_j) w_j / (sum_j w_j)^2``
+    (``1 / sum_j I_j`` for uniform certainty); censored terms (:func:`censored_terms`) add
+    their information to both sums.  ML: ``Var(E) / E^2`` (the delta method);
+    unmeasured samples: :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a
+    non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
     flags = None
     prev_den = den if linear else None
@@ -668,7 +695,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     max_rows = [float(np.max(m)) for m in rows]
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern, variance=variance)
-        cen_num = cen_den = None  # ML: the clipped readings as censored observations (censored_terms)
+        cen = None  # ML: the clipped readings as censored observations (censored_terms), when held apart
         log_e2 = log_e.reshape(shape2)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
@@ -683,37 +710,16 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
                 acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True,
                         factor=factor)
             if linear and tab.saturated is not None:
-                # a clipped reading whose current estimate lies more than CENSORED_SDS noise
-                # sds above full scale carries no information (weight ~ phi(8)): skipped; one
-                # whose estimate lies more than CENSORED_SDS sds below it is impossible under
-                # the model (probability ~ Phi(-8)): the frame saw something else there
-                # (motion, a ghost), and its bound must not pull the estimate: skipped too.
-                # That sd combines the noise at full scale with the estimate's own
-                # uncertainty (``Var E = 1 / den`` of the previous pass: the prediction
-                # ``E h y_full`` is uncertain by ``h y_full / sqrt(den)``)
-                sd_full2 = max_rows[0] + max_rows[1] * y_full[k] + max_rows[2] * y_full[k] ** 2
-                log_hi = np.float32(np.log((y_full[k] - 0.5 + CENSORED_SDS * np.sqrt(sd_full2)) / (h * y_full[k])))
-                # with the previous pass's den (which samples some frame measures): straight
-                # into the accumulators; without it, apart until every frame is in
-                direct = prev_den is not None
-                if not direct and cen_num is None:
-                    cen_num, cen_den = np.zeros(shape2, np.float32), np.zeros(shape2, np.float32)
-                targets = ((acc.num.reshape(shape2), acc.den.reshape(shape2),
-                            (acc.var if variance else acc.num).reshape(shape2)) if direct
-                           else (cen_num, cen_den, cen_num))
-                _censored_rows(codes.reshape(shape2), pat, tab.saturated.reshape(-1, tab.n_codes), log_e2,
-                               weight if prev_den is None else prev_den.reshape(shape2), direct,
-                               float(h * y_full[k]), float(y_full[k]), float(sd_full2), log_hi, *rows,
-                               weight if factor is None else factor.reshape(shape2), factor is not None,
-                               *targets, direct and variance)
+                cen = _censored_frame(acc, codes, tab, pat, log_e2, h, y_full[k], max_rows, rows, weight, prev_den,
+                                      factor, cen, variance)
         # the previous pass's weights and the last frame's codes are not needed any more:
         # freed before the new sums are finished (the peak memory of the pass)
         codes = den = prev_den = None
-        if cen_num is not None:  # only where some frame measured the sample (den > 0): a sample
+        if cen is not None:  # only where some frame measured the sample (den > 0): a sample
             # clipped in every frame has no finite ML estimate and keeps its flag; with the
             # variance, certainty 1: w^2 Var = the information itself
             _add_censored(acc.num.reshape(shape2), acc.den.reshape(shape2),
-                          (acc.var if variance else acc.num).reshape(shape2), cen_num, cen_den, variance)
+                          (acc.var if variance else acc.num).reshape(shape2), *cen, variance)
         new, flags = acc.finish(linear)
         den = prev_den = acc.den
         change = _largest_change(new.reshape(shape2), log_e2, flags.reshape(shape2))
