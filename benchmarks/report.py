@@ -127,7 +127,7 @@ def headline() -> str:
     row("... left-out frames where the error is at or below every peer's", "real_loo",
         cell(rl, "merge (no option)", "cases <= best peer"),
         colour_hdri=cell(rl, "colour-hdri", "cases <= best peer"))
-    row("Real brackets aligned, then merged: the same error", "align_loo",
+    row("Real brackets aligned by each program, merged by ours: leave-one-out error", "align_loo",
         f"{_fmt2(cell(al, 'hdrmerge-cli --align auto (default)', mean))}",
         Hugin=_fmt2(cell(al, "Hugin align_image_stack", mean)),
         OpenCV=f"{_fmt2(cell(al, 'OpenCV AlignMTB', mean))} (AlignMTB)")
@@ -135,7 +135,7 @@ def headline() -> str:
         cell(mo, "hdrmerge-cli --align auto", "shift <= 0.2 px"),
         OpenCV=f"{cell(mo, 'OpenCV AlignMTB (translation, integer px)', 'shift <= 0.2 px')} (AlignMTB)")
     exact = "below exact CRB, < 0.1 (mean)"
-    row("Simulated 12-bit RAW: dB below the Cramer-Rao bound (lower is better)", "cli_defaults",
+    row("Simulated 12-bit RAW: dB below the exact Cramer-Rao bound (lower is better)", "cli_defaults",
         cell(cd, "hdrmerge-cli defaults", exact),
         HDRMerge=cell(cd, "HDRMerge --no-align", exact) + " (`--no-align`)")
     tif = [t for t in tables(cd) if exact in t[0]][1]  # section B, the 8-bit TIFFs
