@@ -3,8 +3,16 @@ import cv2
 import numpy as np
 import pytest
 
+from dataclasses import replace
+
 from hdrmerge_cli.core import deghost
 from hdrmerge_cli.core.noise import NoiseParams
+
+#: the per-cell chi-square test alone: a cubic tone match, the gradient registration
+#: tolerance, no smooth field, no region test, no minimum change
+CELL = replace(deghost.IMAGE_PARAMS, smooth_field=False, envelope_reach=0, min_log_change=0.0)
+#: ... with the image's smooth ratio field and minimum log change
+GATED = replace(CELL, smooth_field=True, min_log_change=deghost.IMAGE_PARAMS.min_log_change)
 
 
 def _gain_field_case(rng, ghost: bool):
@@ -37,16 +45,12 @@ def test_ghost_test_false_alarm_rate_and_detection():
     x = truth + rng.normal(0, 1e-2, shape)
     ok = np.ones(shape, bool)
     flat = np.zeros(shape, np.float32)
-    saved = deghost.MODEL_TOLERANCE
-    deghost.MODEL_TOLERANCE = 0.0
-    try:
-        bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), p_fa=0.01)
-        assert 0.007 < bad.mean() < 0.013
-        x[100:150, 300:390] *= 1.5
-        bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), p_fa=0.001)
-    finally:
-        deghost.MODEL_TOLERANCE = saved
-    cleaned = deghost.clean(bad)
+    exact = replace(CELL, model_tolerance=0.0)
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), replace(exact, p_fa=0.01))
+    assert 0.007 < bad.mean() < 0.013
+    x[100:150, 300:390] *= 1.5
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), replace(exact, p_fa=0.001))
+    cleaned = deghost.clean(bad, 64)
     assert cleaned[100:150, 100:130].mean() > 0.95 and cleaned[:80].mean() == 0
 
 
@@ -54,7 +58,7 @@ def test_dark_reference_bounds_a_bright_reading():
     x = np.array([0.5, 0.001, 0.3])  # beyond the bounds by more than BOUND_FACTOR = 2: 0.5 > 0.02, 0.3 < 0.45
     s = np.full(3, 1e-6)
     bound = np.array([0.01, 0.01, -0.9])  # dark, dark (upper bound 0.01), clipped (lower bound 0.9)
-    assert deghost.violates_bound(x, s, bound).tolist() == [True, False, True]
+    assert deghost.violates_bound(x, s, bound, 1e-3).tolist() == [True, False, True]
 
 
 # ---------------------------------------------------------------- deghosting decision rules (issue 17)
@@ -96,13 +100,9 @@ def test_level_scale_keeps_the_false_alarm_rate_when_the_model_underestimates_th
     x = truth + rng.normal(0, 3 * 0.01 * truth)
     ok = np.ones(shape, bool)
     flat = np.zeros(shape, np.float32)
-    saved = deghost.MODEL_TOLERANCE
-    deghost.MODEL_TOLERANCE = 0.0
-    try:
-        raw = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), p_fa=0.01, scale=False)
-        scaled = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), p_fa=0.01)
-    finally:
-        deghost.MODEL_TOLERANCE = saved
+    exact = replace(CELL, model_tolerance=0.0, p_fa=0.01)
+    raw = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), replace(exact, level_scale=False))
+    scaled = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), exact)
     assert raw.mean() > 0.3
     assert 0.005 < scaled.mean() < 0.015
 
@@ -116,7 +116,7 @@ def test_intensity_matching_does_not_absorb_an_object_alone_at_its_brightness():
     x = (xa * 1.05).astype(np.float32)  # 5 % exposure error: absorbed
     x[:4000] = 0.6  # the object: 2 % of the samples, far above everything else
     both = np.ones(x.size, bool)
-    m = deghost.match_anchor(x, xa, both)
+    m = deghost.match_anchor(x, xa, both, degree=3)
     np.testing.assert_allclose(m[4000:], xa[4000:], rtol=0.01)
     assert np.all(m[:4000] > 0.4)
 
@@ -171,14 +171,13 @@ def test_smooth_gain_field_is_not_motion_but_a_compact_object_over_it_is():
     change nothing is rejected.  A compact object over the same field still is."""
     rng = np.random.default_rng(21)
     x, s, ok, xa, flat = _gain_field_case(rng, ghost=False)
-    plain = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), scale=False))
+    plain = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3),
+                                                     replace(CELL, level_scale=False)), 64)
     assert plain.mean() > 0.05  # the noise model alone calls the gain motion
-    new = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), smooth=True,
-                                     min_change=deghost.MIN_LOG_CHANGE)
-    assert deghost.clean(new).mean() <= 0.002
+    new = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), GATED)
+    assert deghost.clean(new, 64).mean() <= 0.002
     x, s, ok, xa, flat = _gain_field_case(np.random.default_rng(22), ghost=True)
-    new = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), smooth=True,
-                                                   min_change=deghost.MIN_LOG_CHANGE))
+    new = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), GATED), 64)
     assert new[125:155, 205:235].mean() > 0.95
     outside = np.ones(new.shape, bool)
     outside[110:170, 190:250] = False
@@ -202,7 +201,7 @@ def test_glare_near_the_clipped_highlights_of_the_longer_frame_is_not_motion():
     x[60:64, 126:174] *= 0.3  # darker next to it: an object
     x[80:84, 126:174] *= 2.0  # brighter, but beyond the glare's reach
     bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros_like(xa), (1, 3),
-                                     min_change=deghost.MIN_LOG_CHANGE, excuse=e)
+                                     replace(CELL, min_log_change=GATED.min_log_change), excuse=e)
     assert not bad[36:40, 42:58].any() and bad[60:64, 42:58].all() and bad[80:84, 42:58].all()
 
 
@@ -231,8 +230,8 @@ def test_dark_bound_adapts_to_a_crushed_toe_but_still_finds_a_bright_object():
     x = rng.uniform(0.0, 0.04, 10_000).astype(np.float32)
     x[:200] = 0.5
     s = np.full(x.shape, 1e-8, np.float32)
-    fixed = deghost.violates_bound(x, s, bound)
-    adapted = deghost.violates_bound(x, s, bound, adapt=True)
+    fixed = deghost.violates_bound(x, s, bound, 1e-3)
+    adapted = deghost.violates_bound(x, s, bound, 1e-3, adapt=True)
     assert fixed[200:].mean() > 0.3 and adapted[200:].mean() < 0.01
     assert adapted[:200].all()
 
@@ -319,8 +318,8 @@ def test_a_dark_bound_carries_the_reference_noise():
     s_ref = np.full(4, 0.01**2, np.float32)  # the reference's read noise: sd 0.01
     x = np.array([0.02, 0.028, 0.2, 0.5], np.float32)
     s = np.full(4, 0.002**2, np.float32)
-    assert deghost.violates_bound(x, s, bound, s_bound=s_ref).tolist() == [False, False, True, True]
-    assert deghost.violates_bound(x, s, bound).tolist() == [True, True, True, True]
+    assert deghost.violates_bound(x, s, bound, 1e-3, s_bound=s_ref).tolist() == [False, False, True, True]
+    assert deghost.violates_bound(x, s, bound, 1e-3).tolist() == [True, True, True, True]
 
 
 def test_region_mean_against_brute_force():
@@ -389,8 +388,8 @@ def test_the_log_change_of_a_reading_at_zero_is_bounded_by_the_noise_not_undefin
     x = np.where(np.arange(shape[1]) < 128, 5.0, 0.0).astype(np.float32) + rng.normal(0, 0.01, shape).astype(np.float32)
     s = np.full(shape, 1e-4, np.float32)
     ok = np.ones(shape, bool)
-    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros(shape, np.float32), (1, 4), scale=False,
-                                     min_change=deghost.MIN_LOG_CHANGE)
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros(shape, np.float32), (1, 4),
+                                     replace(CELL, level_scale=False, min_log_change=GATED.min_log_change))
     assert bad[:, :32].all() and not bad[:, 32:].any()
 
 
@@ -406,10 +405,11 @@ def test_region_shifts_false_alarms_and_a_dim_ghost(seed):
     level = np.exp(rng.uniform(-3, 1, (h, w * nc))).astype(np.float32)
     var = np.full((h, w * nc), 1.0, np.float32)
     d = (rng.normal(0, np.sqrt(2.0), (h, w * nc)) + 0.3 * np.log(level)).astype(np.float32)
-    quiet = deghost.region_shifts(d, var, level, nc)
+    scales = deghost.RAW_PARAMS.coarse_scales
+    quiet = deghost.region_shifts(d, var, level, nc, 1e-3, scales)
     assert quiet.mean() < 0.005
     ghost = d.copy()
     ghost[100:140, 400:560] += np.float32(0.5 * np.sqrt(2.0))  # 40 x 40 cells of 4 channels
-    found = deghost.region_shifts(ghost, var, level, nc)
+    found = deghost.region_shifts(ghost, var, level, nc, 1e-3, scales)
     assert found[104:136, 104:136].mean() > 0.9
     assert (found & ~quiet).sum() < 2 * 48 * 48

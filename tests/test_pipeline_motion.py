@@ -1,6 +1,7 @@
 """merge --align / --deghost (pipeline/motion.py): alignment and deghosting of frames on disk, end to end."""
 import json
 import logging
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -84,12 +85,13 @@ def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None, curve=None):
     return frames, codes, times
 
 
-def _ghosts_of(frames, codes, times, mode="on"):
+def _ghosts_of(frames, codes, times, mode="on", crf=None, params=None):
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.pipeline.motion import find_ghosts
 
     load = {f.path: c for f, c in zip(frames, codes)}
-    return find_ghosts(frames, np.asarray(times), CRF("gamma", 2.2), None, lambda f: load[f.path], mode)
+    return find_ghosts(frames, np.asarray(times), crf or CRF("gamma", 2.2), None, lambda f: load[f.path], mode,
+                       params=params)
 
 
 # ---------------------------------------------------------------- static JPEG brackets (issue 17)
@@ -131,13 +133,15 @@ def _jpeg_frames(rng, scene, times, quality=90, ghost=None):
     return out
 
 
-def _worst_rejected(seed: int) -> float:
-    import hdrmerge_cli
+def _worst_rejected(seed: int, params) -> float:
+    """The largest fraction of a frame's blocks rejected on a static JPEG bracket."""
+    from hdrmerge_cli.core.crf import CRF
 
     rng = np.random.default_rng(1000 + seed)
     times = [0.25, 1.0, 4.0]
-    frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
-    return max(hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto").ghosts["rejected_fraction"])
+    codes = _jpeg_frames(rng, _jpeg_scene(rng), times)
+    frames = [_image_frame(f"f{k}", t, *codes[k].shape[:2]) for k, t in enumerate(times)]
+    return max(_ghosts_of(frames, codes, times, "auto", CRF("srgb"), params)["rejected_fraction"])
 
 
 def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, seed: int) -> dict:
@@ -481,7 +485,7 @@ def test_an_image_rolling_off_towards_white_bounds_the_light_from_below(seed, fr
     frames, codes, times = _gamma_bracket(np.random.default_rng(seed), curve={frame: shoulder})
     near_white = (codes[frame].min(axis=-1) >= 0.9 * 255) & (codes[frame].max(axis=-1) < 255)
     assert near_white.mean() > 0.1 and (codes[frame] == 255).all(axis=-1).mean() > 0.02
-    assert max(_ghosts_of(frames, codes, times)["rejected_fraction"]) <= deghost.AUTO_FRACTION
+    assert max(_ghosts_of(frames, codes, times)["rejected_fraction"]) <= deghost.IMAGE_PARAMS.auto_fraction
     cols = slice(150, 170) if frame == 1 else slice(112, 128)
     row_ok = near_white[:, cols].all(axis=1)
     top = next(r for r in range(row_ok.size - 11) if row_ok[r:r + 12].all())
@@ -575,17 +579,15 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     assert rms(weighted) < 0.5 * rms(unweighted)
 
 
-def test_envelope_tolerance_cuts_the_false_alarms_of_static_jpeg_brackets(monkeypatch):
-    """The registration tolerance as a local range (envelope_residual) against the older
-    variance form (half a pixel times the anchor's gradient): on static textured JPEG
-    brackets it rejects under half as many cells (measured: 5.8 % -> 1.7 % summed over
-    seeds 0-2; 6.6 % -> 2.3 % on the worst of seeds 0-5), both without the shoulder excuse
-    (with it, none are left to compare)."""
-    monkeypatch.setattr(deghost, "SHOULDER_CODE", 2.0)  # beyond white: no reading is near it
-    after = sum(_worst_rejected(s) for s in range(3))
-    monkeypatch.setattr(deghost, "ENVELOPE_REACH", 0)
-    before = sum(_worst_rejected(s) for s in range(3))
-    assert after < 0.5 * before
+def test_envelope_tolerance_cuts_the_false_alarms_of_static_jpeg_brackets():
+    """The registration tolerance as a local range (envelope_residual) against the variance
+    form (half a pixel times the anchor's gradient): on static textured JPEG brackets it
+    rejects under half as many cells, both without the shoulder excuse (with it, none are
+    left to compare)."""
+    no_shoulder = replace(deghost.IMAGE_PARAMS, shoulder_code=2.0)  # beyond white: no reading is near it
+    envelope = sum(_worst_rejected(s, no_shoulder) for s in range(3))
+    gradient = sum(_worst_rejected(s, replace(no_shoulder, envelope_reach=0)) for s in range(3))
+    assert envelope < 0.5 * gradient
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5])
@@ -601,7 +603,7 @@ def test_static_jpeg_bracket_is_not_deghosted(seed):
     times = [0.25, 1.0, 4.0]
     frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
     m = hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto")
-    assert max(m.ghosts["rejected_fraction"]) <= deghost.AUTO_FRACTION
+    assert max(m.ghosts["rejected_fraction"]) <= deghost.IMAGE_PARAMS.auto_fraction
     assert not m.ghosts["applied"]
 
 

@@ -1,101 +1,115 @@
-"""Ghost rejection by the noise model (array code).
+"""Ghost detection by the noise model (array code): which blocks of each frame show another
+moment than the reference.
 
 A frame ``j`` reads at each sample an estimate of the exposure-normalised signal,
-``x_j = gamma^-1(z_j) / h_j`` (full scale 1 at an exposure of 1 s; the paper's (7) before
-the weighting), whose variance the noise model predicts: ``s_j = (v(y) / y_full^2 +
-q(z)) / h_j^2`` with ``v`` the clipping-free variance (17)/(21) at ``y = gamma^-1(z)
-y_full`` and ``q`` the quantisation variance of one code step (step^2 / 12).  The test
-runs on blocks (means of ``b x b`` cells, :func:`block_size`; their variance is the
-mean variance / b^2), so that large frames cost little.
+``x_j = gamma^-1(z_j) / h_j`` (the paper's (7) before the weighting), whose variance the
+noise model predicts: ``s_j = (v(y) / y_full^2 + q(z)) / h_j^2``, ``v`` the variance
+(17)/(21) and ``q`` one code step's quantisation (step^2 / 12).  The test runs on block
+means (:func:`block_size`).  Where the frame and the *anchor* (the reference frame, or where
+it does not measure, the measuring frame nearest to it in exposure) both measure, after
+:func:`match_channels` removes what differs globally and smoothly, a cell of ``k`` samples
+is inconsistent when
 
-In a static scene every frame that measures a sample estimates the same ``x`` (after
-:func:`match_anchor` removes what differs globally and smoothly, with a 1 % model
-tolerance and half a pixel of registration tolerance along edges); a frame is
-inconsistent with the *anchor* (the reference frame, or where the reference does not
-measure the sample, the measuring frame nearest to it in exposure) when, over the ``k``
-samples of a cell (a block's channels) that both measure,
+    T = sum (x_j - x_anchor)^2 / (lambda (s_j + s_anchor + tolerances))  >  chi2_k^-1(1 - p_fa),
 
-    T = sum (x_j - x_anchor)^2 / (lambda (s_j + s_anchor + tolerances))  >  chi2_k quantile (1 - p_fa),
+a chi-square test at false-alarm rate ``p_fa`` per cell, ``lambda >= 1`` the noise the model
+leaves out, measured on the pair from medians (:func:`level_scale`).  Where the reference
+reads dark or clipped it still bounds the signal (:func:`violates_bound`).  A RAW mosaic is
+also tested over regions against the pair's empirical null (:func:`region_shifts`).
+Rejections are cleaned (:func:`clean`) and feathered (:func:`feather`), so a frame's weight
+falls smoothly to zero over a moving object (``w (1 - m)``); the anchor is never dropped.
 
-a chi-square test at false-alarm rate ``p_fa`` per cell, where ``lambda >= 1``
-(:func:`level_scale`) is measured on the frame pair itself: what the noise model leaves
-out at each brightness (JPEG compression, in-camera processing), from medians, which a
-moving minority does not move.  Where the reference reads dark or clipped it still
-bounds the signal (censoring, :func:`violates_bound`): a frame reading far outside that
-bound shows another moment and is dropped too, and never becomes the anchor.
-
-A RAW mosaic (linear, physical noise model) is also tested over regions
-(:func:`region_shifts`): a dim object in a short, noisy frame shifts every cell it covers
-by less than each cell's noise, but a region's mean by many of its deviations; the
-region statistics are measured against the pair's own empirical null.  There a code
-below black is a reading too (:func:`ghost_tables` with ``footroom``), and the exposure
-factor is one constant measured over regions (:func:`region_ratio`).
-
-Rejections are decided over regions: an opening removes isolated false alarms, connected
-regions smaller than :data:`MIN_BLOB_PX` go, a dilation covers the soft edges of moving
-objects, and the mask is feathered (:func:`feather`), so a frame's weight falls smoothly
-to zero over a moving object (``w (1 - m)``) and no seam separates a region taken from
-one frame from its surround taken from another.  The anchor is never dropped, so the
-result shows one moment.
+The decisions (:func:`ghost_masks`) take one :class:`DeghostParams`: :data:`RAW_PARAMS` for
+linear mosaics, :data:`IMAGE_PARAMS` for processed images.
 """
 from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import numba
 import numpy as np
 
 from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
-#: false-alarm rate of the per-cell test
-P_FALSE_ALARM = 1e-3
+
+@dataclass(frozen=True)
+class DeghostParams:
+    """The parameters of the ghost test for one kind of input (:data:`RAW_PARAMS`,
+    :data:`IMAGE_PARAMS`); pass a modified copy (``dataclasses.replace``) to change one."""
+
+    #: readings linear in light with a physical noise model (RAW): a code below black is a
+    #: reading, the reference's dark bound carries its noise, glare cancels between exposures
+    #: (only blooming excuses), and the exposure-factor fit and the region test read only
+    #: blocks none of whose readings is truncated.  Else (images) the dark bound is measured
+    #: on the frame and glare is bounded by the light of what clips
+    linear: bool
+    #: degree of the polynomial in log x matching each channel to the anchor (0: a constant
+    #: exposure factor measured over regions, :func:`region_ratio`)
+    match_degree: int
+    #: divide out a smooth field of the log ratio (:func:`smooth_ratio_field`)
+    smooth_field: bool
+    #: region sides (cells) of the region test (:func:`region_shifts`); () none
+    coarse_scales: tuple[int, ...]
+    #: registration tolerance as a local range (blocks, :func:`envelope_residual`); 0: the
+    #: anchor's gradient times :attr:`align_tolerance_px` instead
+    envelope_reach: int
+    #: fraction of the code range from which an image's reading bounds the light from below
+    #: (:func:`shoulder_excuse`); None: never
+    shoulder_code: float | None
+    #: false-alarm rate per cell of the chi-square test (and of the bound and region tests)
+    p_fa: float = 1e-3
+    #: relative error allowed beyond the noise (what the tone match leaves)
+    model_tolerance: float = 0.01
+    #: registration error allowed (pixels) along the anchor's gradient
+    align_tolerance_px: float = 0.5
+    #: smallest |mean log ratio| of a cell that can be motion (tone mapping, glare and an
+    #: unlike response differ by a few tenths at most between static frames)
+    min_log_change: float = 0.3
+    #: smallest connected rejected region kept (pixels; at least 8 blocks)
+    min_blob_px: int = 64
+    #: Gaussian sigma of a mask's soft edge (pixels; at least 1.5 blocks)
+    feather_px: float = 4.0
+    #: distance (pixels) from a clipped region within which it may spread (blooming, the
+    #: lens's point-spread core, sharpening halos)
+    bloom_px: float = 8.0
+    #: ``auto`` applies the masks when some frame has more than this fraction of its blocks
+    #: rejected
+    auto_fraction: float = 0.002
+    #: measure the factor ``lambda`` the noise model leaves out (:func:`level_scale`)
+    level_scale: bool = True
+
+
+#: a linear RAW mosaic: one exposure factor measured over regions, no smooth field, the
+#: region test over 2-8 cells, the gradient form of the registration tolerance
+RAW_PARAMS = DeghostParams(linear=True, match_degree=0, smooth_field=False, coarse_scales=(2, 4, 8),
+                           envelope_reach=0, shoulder_code=None)
+#: a processed image (tone curve, compression, sharpening): a cubic tone match per channel,
+#: a smooth ratio field, a registration tolerance of one block, readings from 0.9 of the
+#: code range (registration's upper margin) bounding the light from below
+IMAGE_PARAMS = DeghostParams(linear=False, match_degree=3, smooth_field=True, coarse_scales=(),
+                             envelope_reach=1, shoulder_code=0.9)
+
 #: samples the intensity matching and the level scale are fitted on
 FIT_SAMPLES = 1 << 16
 #: regions (of a scale, per channel) from which :func:`region_shifts` measures its null, at
-#: most (about): a 24 MP RAW frame's 2 x 2 regions are 665 000, whose binned medians took
-#: 0.25 s a frame; a 0.7 MP frame's are fewer, all read
+#: most (a subsample beyond)
 NULL_SAMPLES = 1 << 18
-#: an image's reading at or above this fraction of the code range bounds the light from
-#: below (:func:`shoulder_excuse`; registration's margin)
-SHOULDER_CODE = 0.9
-#: degree of the polynomial (in log x) of :func:`match_anchor`
-MATCH_DEGREE = 3
 #: smallest robust scale of :func:`robust_poly` (log units)
 MATCH_MIN_SCALE = 0.02
 #: median of chi-square with one degree of freedom
 CHI2_1_MEDIAN = 0.454936
 #: largest variance factor :func:`level_scale` may measure (10x the model's deviation)
 LAMBDA_MAX = 100.0
-#: relative error allowed beyond the noise (residual model error after :func:`match_anchor`)
-MODEL_TOLERANCE = 0.01
-#: registration error allowed (pixels) by the older, variance form of the registration
-#: tolerance (``grad2`` of :func:`inconsistent_cells`, used when :data:`ENVELOPE_REACH` is 0)
-ALIGN_TOLERANCE_PX = 0.5
-#: registration tolerance of :func:`find_ghosts <hdrmerge_cli.pipeline.motion.find_ghosts>`
-#: (blocks): a difference that a shift of the frame or the anchor by up to this many blocks
-#: explains is not motion (:func:`envelope_residual`).  On real static JPEG brackets the
-#: variance form left most false alarms on edges and fine texture, where JPEG ringing and
-#: 4:2:0 chroma, sharpening halos, sub-pixel registration residuals and lines too thin for a
-#: central-difference gradient make differences that are huge against the noise but lie
-#: within the local range of the other frame.  Images only (a RAW mosaic has none of these;
-#: there the variance form keeps a ghost's low-contrast parts)
-ENVELOPE_REACH = 1
-#: how far beyond a dark / clipped reference's bound a reading must be to be motion
+#: how far beyond a dark / clipped reference's bound a reading must be to be motion (a
+#: factor on the bound, absorbing the response's errors far from mid-grey)
 BOUND_FACTOR = 2.0
-#: quantile of a static scene's readings against a dark / clipped bound (``violates_bound(adapt=True)``)
+#: quantile of a static scene's readings against a dark bound (``violates_bound(adapt=True)``)
 BOUND_QUANTILE = 0.9
-#: smallest connected region of rejected pixels kept as motion (in blocks: at least 8)
-MIN_BLOB_PX = 64
-#: width (Gaussian sigma, pixels; at least 1.5 blocks) of a rejection mask's soft edge
-FEATHER_PX = 4.0
 #: the test runs on at most about this many blocks per frame
 CELL_TARGET = 1 << 20
-#: ``auto`` deghosts when a frame has more than this fraction of its cells rejected
-AUTO_FRACTION = 0.002
-#: smallest change (|mean log ratio| of a cell's channels, after the corrections) that can be
-#: motion: in-camera tone mapping, glare and a response unlike the assumed one differ by a
-#: few tenths at most between static frames, a moving object usually by much more
-MIN_LOG_CHANGE = 0.3
-#: region sides (cells) of :func:`region_shifts`, the test of a shift shared by a region
-COARSE_SCALES = (2, 4, 8)
 #: tiles across the longer side of the frame for :func:`smooth_ratio_field`
 FIELD_TILES = 16
 #: largest |log ratio| :func:`smooth_ratio_field` absorbs
@@ -104,12 +118,8 @@ FIELD_MAX = 0.5
 #: longer exposure of a pair, that frame reading brighter is not motion (:func:`glare_excuse`)
 GLARE_REACH = 0.05
 #: the most of its surround's mean light that veiling glare adds to a dark patch (ISO 9358's
-#: veiling glare index, a black patch in a bright field, is a few per cent for camera
-#: lenses): glare cannot explain a reading that needs more (:func:`glare_excuse`)
+#: veiling glare index of camera lenses is a few per cent)
 GLARE_FRACTION = 0.1
-#: pixels from a clipped region within which it may spread without that bound (blooming,
-#: the lens's point-spread core, sharpening halos)
-BLOOM_PX = 8.0
 
 
 def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: float,
@@ -139,7 +149,7 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
 def near_white(x: np.ndarray, valid: np.ndarray, exposure: np.ndarray | float, lin_hi: np.ndarray) -> np.ndarray:
     """Per cell, whether an image's readings ``x`` ``(h, w, C)`` (where ``valid``; from
     frames of ``exposure``, a scalar or per reading) reach ``lin_hi`` (linear, full scale
-    1, per channel; the :data:`SHOULDER_CODE` of the response) in some channel."""
+    1, per channel; :attr:`DeghostParams.shoulder_code` through the response) in some channel."""
     return any_channel(valid & (x * exposure >= lin_hi))
 
 
@@ -264,7 +274,7 @@ def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndar
     return np.asarray(c), np.asarray(m), np.asarray(n, float)
 
 
-def robust_poly(c: np.ndarray, d: np.ndarray, n: np.ndarray, degree: int = MATCH_DEGREE,
+def robust_poly(c: np.ndarray, d: np.ndarray, n: np.ndarray, degree: int,
                 iterations: int = 10) -> np.ndarray:
     """Polynomial coefficients fitted to points ``(c, d)`` with weights ``n`` by iterated
     Tukey-bisquare re-weighting (start: the weighted median, a constant): an outlying
@@ -292,8 +302,7 @@ def _inlier_range(coef: np.ndarray, c: np.ndarray, d: np.ndarray) -> tuple[float
     return (float(d[keep].min()), float(d[keep].max())) if keep.any() else (0.0, 0.0)
 
 
-def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32,
-                 degree: int = MATCH_DEGREE) -> np.ndarray:
+def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, degree: int, bins: int = 32) -> np.ndarray:
     """``x`` mapped onto the anchor's scale: ``x exp(p(log x))`` with ``p`` a low-degree
     polynomial fitted robustly (:func:`robust_poly`) to the median log-ratio
     ``log xa - log x`` in equal-count bins of ``log x`` (over samples both measure).  It
@@ -342,7 +351,7 @@ def region_ratio(x: np.ndarray, xa: np.ndarray, both: np.ndarray, m: int = 8) ->
     return float(np.exp(r[order][np.searchsorted(cw, cw[-1] / 2)]))
 
 
-def match_channels(x: np.ndarray, xa: np.ndarray, both: np.ndarray, nc: int, degree: int = MATCH_DEGREE) -> np.ndarray:
+def match_channels(x: np.ndarray, xa: np.ndarray, both: np.ndarray, nc: int, degree: int) -> np.ndarray:
     """:func:`match_anchor` for each of the ``nc`` interleaved channels of ``(H, W * nc)``
     samples on its own: a camera applies its tone curve per channel after white balance,
     so where the assumed response is not the camera's, each channel is off by a curve of
@@ -385,7 +394,7 @@ def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, 
     return lam.astype(np.float32)
 
 
-def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float = P_FALSE_ALARM,
+def violates_bound(x: np.ndarray, s: np.ndarray, bound: np.ndarray, p_fa: float,
                    adapt: bool = False, s_bound: np.ndarray | None = None) -> np.ndarray:
     """Where the reference does not measure a sample it still bounds it: a dark reading
     says ``x <= bound`` (``bound > 0``, the x of its lowest measuring code), a clipped one
@@ -431,7 +440,7 @@ def cell_sums(a: np.ndarray, ph: int, pw: int) -> np.ndarray:
     return out
 
 
-def chi2_thresholds(k_max: int, p_fa: float = P_FALSE_ALARM) -> np.ndarray:
+def chi2_thresholds(k_max: int, p_fa: float) -> np.ndarray:
     """``t[k]``: the (1 - p_fa) quantile of chi-square with ``k`` degrees of freedom
     (``t[0] = inf``: no test)."""
     from scipy.special import chdtri
@@ -559,58 +568,58 @@ def envelope_residual(x: np.ndarray, xa: np.ndarray, nc: int, reach: int) -> np.
     return np.where(np.abs(d1) < np.abs(d2), d1, d2).astype(np.float32)
 
 
+def _log_change(x: np.ndarray, xa: np.ndarray, var: np.ndarray, both: np.ndarray):
+    """``(r, pos, xaf)``: the log change ``log(xf / xaf)`` of each sample where both readings,
+    each raised to at least the pair's noise deviation ``sqrt(var)``, are positive
+    (``pos``; 0 elsewhere), float32; a reading within its noise of zero is about that
+    dark, so the change of a dark object over a bright surround is large, not undefined."""
+    floor = np.sqrt(var, dtype=np.float32)
+    xf, xaf = np.maximum(x, floor), np.maximum(xa, floor)
+    del floor
+    pos = both & (xf > 0) & (xaf > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(pos, np.log(np.maximum(xf, 1e-30) / np.maximum(xaf, 1e-30)), 0.0).astype(np.float32)
+    return r, pos, xaf
+
+
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
-                       valid_a: np.ndarray, grad2: np.ndarray, cell: tuple[int, int],
-                       p_fa: float = P_FALSE_ALARM, scale: bool = True, smooth: bool = False,
-                       min_change: float = 0.0, excuse: np.ndarray | None = None, reach: int = 0,
-                       coarse: tuple[int, ...] = (), steady: np.ndarray | None = None,
-                       match_degree: int = MATCH_DEGREE) -> np.ndarray:
-    """Cells where a frame disagrees with the anchor: all inputs ``(H, W')`` per sample
-    (``W' = W * C`` for interleaved channels), ``grad2`` the anchor's squared gradient
-    times the squared registration tolerance in its units (:func:`squared_gradient`;
-    pixels: ``ALIGN_TOLERANCE_PX^2 |grad x|^2``), ``cell = (ph, pw)`` samples per cell.
-    The variance of a difference is the noise of both frames, the model tolerance and
-    the registration tolerance along the gradient, times the measured level scale
-    (:func:`level_scale`, with ``scale``), after each channel is matched to the anchor
-    (:func:`match_channels`, ``pw`` the channels per cell).  With ``smooth`` the frame is also divided by
-    :func:`smooth_ratio_field` (``pw`` the channels per cell); a cell is then kept only
-    where its mean log ratio exceeds ``min_change`` in size and, where ``excuse``
-    (:func:`glare_excuse`, :func:`shoulder_excuse`, per cell) is +1 or -1, does not have
-    its sign (2: either sign is excused).  Returns
-    ``(H // ph, W' // pw)`` bool."""
+                       valid_a: np.ndarray, grad2: np.ndarray | None, cell: tuple[int, int], params: DeghostParams,
+                       excuse: np.ndarray | None = None, steady: np.ndarray | None = None) -> np.ndarray:
+    """Cells where a frame disagrees with the anchor, by the chi-square test at ``params.p_fa``.
+
+    ``x, s, valid`` (frame) and ``xa, sa, valid_a`` (anchor): readings, variances and
+    whether they measure, ``(H, W')`` float32 / bool per sample (``W' = W * C``, channels
+    interleaved); ``grad2``: the anchor's squared gradient times the squared registration
+    tolerance (used when ``params.envelope_reach`` is 0); ``cell = (ph, pw)`` samples per
+    cell; ``excuse``: per cell, the sign of change that is not motion (:func:`glare_excuse`,
+    :func:`shoulder_excuse`; 2 either); ``steady``: the samples the tone match and the
+    region test read (None: all).  Returns ``(H // ph, W' // pw)`` bool.
+    Notes: the variance of a difference is both readings' noise, ``params.model_tolerance``
+    and the registration tolerance, times :func:`level_scale`'s ``lambda``; a cell is kept
+    only where its mean log change exceeds ``params.min_log_change``."""
+    p = params
     both = valid & valid_a
-    use = both if steady is None else both & steady  # what the match and the region test read
-    x = match_channels(x, xa, use, cell[1], match_degree)
+    use = both if steady is None else both & steady
+    x = match_channels(x, xa, use, cell[1], p.match_degree)
     r = None
-    if smooth or min_change > 0 or excuse is not None:
-        # the log change, each reading at least the pair's noise deviation: a reading within
-        # its noise of zero (a RAW one at or below black) is about that dark, so the change
-        # of a dark object over a bright surround is large, not undefined (before: left out
-        # as 0, which failed the min_change gate)
-        # (frame-sized temporaries are released as soon as they are dead: at 0.7 MP an 8-bit
-        # frame's samples are 8.4 MB per float32 array)
-        floor = np.sqrt(s + sa, dtype=np.float32)
-        xf, xaf = np.maximum(x, floor), np.maximum(xa, floor)
-        del floor
-        pos = both & (xf > 0) & (xaf > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.where(pos, np.log(np.maximum(xf, 1e-30) / np.maximum(xaf, 1e-30)), 0.0).astype(np.float32)
-        del xf
-        if smooth:
+    if p.smooth_field or p.min_log_change > 0 or excuse is not None:
+        r, pos, xaf = _log_change(x, xa, s + sa, both)
+        if p.smooth_field:
             f = smooth_ratio_field(r, pos, cell[1])
             r = np.where(pos, r - f, 0.0).astype(np.float32)
             x = x * np.exp(-f).astype(np.float32)
             del f
     var = s + sa
-    tol = MODEL_TOLERANCE * xa
+    tol = p.model_tolerance * xa
     tol *= tol
     var += tol
     del tol
-    if reach:
-        d = envelope_residual(x, xa, cell[1], reach)
+    if p.envelope_reach:
+        d = envelope_residual(x, xa, cell[1], p.envelope_reach)
         if r is not None:  # the log change beyond what a shift within reach explains
             with np.errstate(divide="ignore", invalid="ignore"):
-                r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xaf, 1e-30))), 0.0).astype(np.float32)
+                r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xaf, 1e-30))),
+                             0.0).astype(np.float32)
     else:
         d = x - xa
         var = var + grad2
@@ -620,31 +629,32 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         t = d * d
         t /= np.maximum(var, 1e-30)
     t[~both] = 0.0
-    if scale:
+    if p.level_scale:
         lam = level_scale(t, x, xa, both)
         t /= lam
-        if coarse:  # the region test's variances
+        if p.coarse_scales:  # the region test's variances
             var *= lam
         del lam
     stat = cell_sums(t, *cell)
     k = cell_sums(both.astype(np.int32), *cell)
-    bad = stat > chi2_thresholds(cell[0] * cell[1], p_fa)[k]
-    if cell[0] == 1 and coarse:
+    bad = stat > chi2_thresholds(cell[0] * cell[1], p.p_fa)[k]
+    if cell[0] == 1 and p.coarse_scales:
         bad |= region_shifts(np.where(use, d, 0.0), np.where(use, var, 0.0),
-                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), cell[1], p_fa, coarse)
-    if r is not None and (min_change > 0 or excuse is not None):
+                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), cell[1], p.p_fa,
+                             p.coarse_scales)
+    if r is not None and (p.min_log_change > 0 or excuse is not None):
         rm = cell_sums(r, *cell) / np.maximum(cell_sums(pos.astype(np.int32), *cell), 1)
-        if coarse:  # a region's change is its mean change (a noisy cell's own mean may not pass)
-            rm = np.where(np.abs(rm) > min_change, rm, region_mean(r, pos, cell[1], coarse))
-        if min_change > 0:
-            bad &= np.abs(rm) > min_change
+        if p.coarse_scales:  # a region's change is its mean change (a noisy cell's own mean may not pass)
+            rm = np.where(np.abs(rm) > p.min_log_change, rm, region_mean(r, pos, cell[1], p.coarse_scales))
+        if p.min_log_change > 0:
+            bad &= np.abs(rm) > p.min_log_change
         if excuse is not None:
             bad &= ~((excuse * rm > 0) | (excuse == 2))
     return bad
 
 
-def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_fa: float = P_FALSE_ALARM,
-                  scales: tuple[int, ...] = COARSE_SCALES, bins: int = 16) -> np.ndarray:
+def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_fa: float,
+                  scales: tuple[int, ...], bins: int = 16) -> np.ndarray:
     """Cells inside an ``m x m`` region (for each ``m`` of ``scales``, regions on a grid)
     whose differences ``d`` (frame minus anchor, ``(H, W * nc)`` with ``nc`` interleaved
     channels, 0 where not both measure) are shifted together.  Per region and channel the
@@ -690,7 +700,7 @@ def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_
     return out
 
 
-def region_mean(r: np.ndarray, pos: np.ndarray, nc: int, scales: tuple[int, ...] = COARSE_SCALES) -> np.ndarray:
+def region_mean(r: np.ndarray, pos: np.ndarray, nc: int, scales: tuple[int, ...]) -> np.ndarray:
     """Per cell of ``(H, W * nc)`` samples, the mean of ``r`` over ``pos`` in the ``m x m``
     region around it (grid regions as in :func:`region_shifts`) with the largest magnitude
     over ``scales`` (0 where none is measured)."""
@@ -706,7 +716,7 @@ def region_mean(r: np.ndarray, pos: np.ndarray, nc: int, scales: tuple[int, ...]
     return best
 
 
-def clean(mask: np.ndarray, open_radius: int = 1, min_cells: int = MIN_BLOB_PX, grow: int = 2) -> np.ndarray:
+def clean(mask: np.ndarray, min_cells: int, open_radius: int = 1, grow: int = 2) -> np.ndarray:
     """Morphological clean-up of a rejection mask: an opening and the removal of
     connected regions smaller than ``min_cells`` (isolated false alarms, and the sparse
     ones along edges, go; a moving object is a large connected region), then a dilation by
@@ -731,9 +741,9 @@ def expand(cells: np.ndarray, cell: tuple[int, int], shape: tuple[int, int]) -> 
     return np.pad(full, pad, mode="edge") if any(p[1] for p in pad) else full
 
 
-def min_blob(block_px: float) -> int:
-    """:data:`MIN_BLOB_PX` in blocks of ``block_px`` pixels a side (at least 8)."""
-    return max(8, int(round(MIN_BLOB_PX / block_px**2)))
+def min_blob(min_px: float, block_px: float) -> int:
+    """An area of ``min_px`` pixels in blocks of ``block_px`` pixels a side (at least 8)."""
+    return max(8, int(round(min_px / block_px**2)))
 
 
 def feather(mask: np.ndarray, sigma: float) -> np.ndarray:
@@ -752,3 +762,178 @@ def feather(mask: np.ndarray, sigma: float) -> np.ndarray:
     wide = ndimage.binary_dilation(mask, st, iterations=grow) if grow else mask
     soft = ndimage.gaussian_filter(wide.astype(np.float32), sigma, mode="nearest")
     return np.maximum(soft, mask, dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------ decisions
+class Blocks(NamedTuple):
+    """One frame's block estimates, each ``(h, w, C)``: ``x`` float32 readings, ``s`` their
+    variance, ``ok`` bool (every sample of the block measures), ``bound`` float32 (> 0: the
+    x below which an all-dark block lies, < 0: minus the x above which an all-clipped one
+    lies, 0 elsewhere; :func:`block_statistics`), ``steady`` bool (the blocks the tone
+    match and the region test may read: for linear data those with no truncated reading)."""
+
+    x: np.ndarray
+    s: np.ndarray
+    ok: np.ndarray
+    bound: np.ndarray
+    steady: np.ndarray
+
+
+@dataclass
+class Anchor:
+    """What every frame is tested against, ``(h, w, C)`` per block unless noted: the anchor's
+    readings ``x``, variances ``s``, ``valid`` and ``steady`` blocks; ``source`` (int16) the
+    frame each block is read from (-1: none); the reference's ``bound`` and, for linear data,
+    its variance ``s_bound``; per frame (``{k: (h, w) bool}``) its ``clipped`` blocks and the
+    blocks ``beyond`` the reference's bound; ``level`` ``(h, w)`` the anchor's brightest
+    channel (inf where clipped in every frame; images, for :func:`glare_excuse`); ``near``
+    ``(h, w)`` its readings near white (images); ``grad2`` ``(h, w * C)`` the registration
+    tolerance's variance (:attr:`DeghostParams.envelope_reach` 0)."""
+
+    x: np.ndarray
+    s: np.ndarray
+    valid: np.ndarray
+    steady: np.ndarray
+    source: np.ndarray
+    bound: np.ndarray
+    s_bound: np.ndarray | None
+    clipped: dict
+    beyond: dict
+    level: np.ndarray | None = None
+    near: np.ndarray | None = None
+    grad2: np.ndarray | None = None
+
+
+def anchor_order(exposures: np.ndarray, ref: int) -> list[int]:
+    """The frames in the order the anchor takes them: the reference, then by distance in
+    exposure (log ratio) from it."""
+    return sorted(range(len(exposures)), key=lambda k: (k != ref, abs(np.log(exposures[k] / exposures[ref])), k))
+
+
+def build_anchor(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: int, params: DeghostParams,
+                 block_px: float, lin_hi: np.ndarray | None = None) -> tuple[Anchor, tuple[int, Blocks]]:
+    """The anchor: the reference where it measures, else the nearest frame in exposure that
+    measures and is not beyond the reference's bound (:func:`violates_bound`; for images the
+    dark bound adapts to each frame).  ``estimate(k)``: frame ``k``'s :class:`Blocks`, called
+    once per frame; ``block_px``: a block's side in pixels; ``lin_hi``: per channel the
+    linear value of :attr:`DeghostParams.shoulder_code` (images).  Returns the
+    :class:`Anchor` and ``(k, blocks)`` of the last frame read (its test may reuse them)."""
+    p = params
+    order = anchor_order(exposures, ref)
+    anchor = None
+    clipped, beyond = {}, {}
+    for k in order:
+        blocks = estimate(k)
+        x, s, ok, bound, steady = blocks
+        if anchor is None:
+            bound_r, s_r = bound, (s.copy() if p.linear else None)
+        clipped[k] = any_channel(bound < 0)
+        beyond[k] = violates_bound(x, s, bound_r, p.p_fa, adapt=k != ref and not p.linear, s_bound=s_r) & ok
+        ok = ok & ~beyond[k]
+        if anchor is None:
+            anchor = Anchor(x, s, ok, steady & ok, np.where(ok, k, -1).astype(np.int16), bound_r, s_r, clipped, beyond)
+            continue
+        take = ok & ~anchor.valid
+        anchor.x[take], anchor.s[take], anchor.steady[take], anchor.source[take] = x[take], s[take], steady[take], k
+        anchor.valid |= ok
+        if k != order[-1]:
+            del x, s, ok, bound, steady, blocks
+    a = anchor
+    if not p.linear:  # what a clipped region can spread as glare: the anchor's level (unknown where clipped)
+        a.level = reduce_channels(np.maximum, np.where(a.valid, a.x, np.where(a.bound < 0, np.float32(np.inf),
+                                                                               np.float32(0.0))))
+    if not p.envelope_reach:  # the anchor's contrast along the registration tolerance
+        reg = (p.align_tolerance_px / block_px) ** 2
+        a.grad2 = _samples(squared_gradient(a.x, "rgb") * np.float32(reg))
+    if p.shoulder_code is not None and lin_hi is not None:
+        a.near = near_white(a.x, a.valid, exposures[np.maximum(a.source, 0)].astype(np.float32), lin_hi)
+    return a, (order[-1], blocks)
+
+
+def _samples(a: np.ndarray) -> np.ndarray:
+    """``(h, w, C)`` as ``(h, w * C)`` samples, channels interleaved."""
+    return a.reshape(a.shape[0], -1)
+
+
+def _clipped_beyond_anchor(blocks: Blocks, anchor: Anchor, k: int, params: DeghostParams,
+                           block_px: float) -> np.ndarray:
+    """Per block ``(h, w)`` bool: a clipped reading of frame ``k``, the longer exposure,
+    that the anchor makes impossible (it measures far below the clipping level), unless
+    glare from what clips in agreement with the anchor explains it (:func:`glare_excuse`:
+    for linear data within blooming only, else bounded by the light glare can add)."""
+    a = anchor
+    clip_bound = np.where(blocks.bound < 0, blocks.bound, np.float32(0.0))
+    violated = violates_bound(a.x, a.s, clip_bound, params.p_fa) & a.valid
+    impossible = any_channel(violated)
+    need = None if params.linear else reduce_channels(np.maximum, np.where(violated, -clip_bound - a.x,
+                                                                            np.float32(0.0)))
+    impossible &= glare_excuse(a.clipped[k] & ~impossible, 1, **_glare(anchor, params, block_px, need)) == 0
+    return impossible
+
+
+def _glare(anchor: Anchor, params: DeghostParams, block_px: float, need: np.ndarray | None) -> dict:
+    """:func:`glare_excuse`'s keywords: linear data within the bloom alone; images as far as
+    glare can add the light ``need`` (None: unbounded)."""
+    bloom = params.bloom_px / block_px
+    if params.linear:
+        return dict(reach=bloom / max(anchor.x.shape[:2]))
+    return {} if need is None else dict(source=anchor.level, need=need, bloom=bloom)
+
+
+def frame_mask(k: int, blocks: Blocks, anchor: Anchor, exposures: np.ndarray, ref: int, params: DeghostParams,
+               block_px: float, lin_hi: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Frame ``k`` tested against the anchor (:func:`build_anchor`): ``(fraction of its
+    blocks rejected, (h, w) uint8 feathered mask, 255 = dropped)``.  Rejected are the cells
+    :func:`inconsistent_cells` finds (excused where glare or a reading near white explains
+    the sign of the change), the blocks beyond the reference's bound and, for the longer
+    exposure of the pair, its clipped readings the anchor makes impossible; cleaned
+    (:func:`clean`), never where the frame is the anchor, and feathered (:func:`feather`)."""
+    p, a = params, anchor
+    x, s, ok, _, steady = blocks
+    longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
+    impossible = (_clipped_beyond_anchor(blocks, a, k, p, block_px) if longer > 0
+                  else np.zeros(a.clipped[k].shape, bool))
+    brighter = (reduce_channels(np.maximum, np.where(ok & a.valid, x - a.x, np.float32(0.0)))
+                if longer > 0 and not p.linear else None)
+    glare = _glare(a, p, block_px, brighter) if p.linear or longer > 0 else {}
+    excuse = glare_excuse(a.clipped[k] & ~impossible if longer > 0 else a.clipped[ref], longer, **glare)
+    if a.near is not None:
+        excuse = either_excuse(excuse, shoulder_excuse(a.near, near_white(x, ok, np.float32(exposures[k]), lin_hi)))
+    nc = x.shape[-1]
+    bad = inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(a.x), _samples(a.s),
+                             _samples(a.valid), a.grad2, (1, nc), p, excuse=excuse,
+                             steady=_samples(steady & a.steady) if p.linear else None)
+    bad |= any_channel(a.beyond.pop(k)) | impossible
+    del x, s, ok, steady
+    bad = clean(bad, min_blob(p.min_blob_px, block_px))
+    own = any_channel(a.source == k)  # the anchor itself stays
+    bad &= ~own
+    soft = feather(bad, max(1.5, p.feather_px / block_px))
+    soft[own] = 0.0
+    return float(bad.mean()), np.rint(soft * 255).astype(np.uint8)
+
+
+def ghost_masks(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: int, params: DeghostParams,
+                block_px: float, lin_hi: np.ndarray | None = None, workers: int = 1) -> tuple[list[float], list]:
+    """Every frame's :func:`frame_mask` against one anchor (:func:`build_anchor`):
+    ``(fractions, masks)`` in frame order.  ``estimate(k)`` is called twice per frame (for
+    the anchor, then for the test; once for the anchor's last frame), so that only the
+    anchor's estimates are held; ``workers`` frames are tested at a time."""
+    anchor, held = build_anchor(estimate, exposures, ref, params, block_px, lin_hi)
+
+    def test(k: int, blocks: Blocks | None = None):
+        return frame_mask(k, blocks if blocks is not None else estimate(k), anchor, exposures, ref, params,
+                          block_px, lin_hi)
+
+    with ThreadPoolExecutor(workers) as pool:
+        jobs = {held[0]: pool.submit(test, *held)}
+        held = None  # handed over: its memory goes with its test
+        jobs.update({k: pool.submit(test, k) for k in range(len(exposures)) if k not in jobs})
+        fractions, masks = (list(v) for v in zip(*(jobs[k].result() for k in range(len(exposures)))))
+    return fractions, masks
+
+
+def applies(fractions: list[float], mode: str, params: DeghostParams) -> bool:
+    """Whether the masks are applied: ``on``, or ``auto`` with some frame's rejected fraction
+    above :attr:`DeghostParams.auto_fraction`."""
+    return mode == "on" or max(fractions) > params.auto_fraction

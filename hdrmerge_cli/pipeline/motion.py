@@ -2,6 +2,7 @@
 moving objects from the frames that disagree with it (see core/registration.py, core/resample.py, core/deghost.py)."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -312,8 +313,7 @@ def _untruncated(x: np.ndarray, s: np.ndarray, frame: Frame, pattern: np.ndarray
     """Where a frame's block readings ``(h, w, C)`` lie more than 3 sample noise deviations
     inside its measuring range (per channel, the x of its lowest and highest measuring
     code): there no reading of a block was lost to black or to clipping, which biases the
-    mean of those kept (the region test of ``core.deghost.region_shifts`` adds such
-    biases up)."""
+    mean of those kept."""
     sd = np.sqrt(s) * np.float32(3 * b)
     out = np.empty(x.shape, bool)
     for c, row in enumerate(_rows(frame, pattern, x.shape[-1])):
@@ -323,182 +323,64 @@ def _untruncated(x: np.ndarray, s: np.ndarray, frame: Frame, pattern: np.ndarray
     return out
 
 
+def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoiseParams] | None, linear: bool) -> list:
+    """Per channel of ``frame``, :func:`~hdrmerge_cli.core.deghost.ghost_tables` (float32
+    ``x`` and ``s``, bool ``ok`` per code); without ``noise``, the quantisation of half a
+    code of an 8-bit range."""
+    out = []
+    for c in range(len(frame.black)):
+        nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
+            (0.5 * float(frame.white[c] - frame.black[c]) / 255.0) ** 2, 1e-12, 0.0)
+        x_t, s_t, ok_t = deghost.ghost_tables(frame.n_codes, frame.black[c], frame.white[c],
+                                              lambda v, c=c: crf.inverse(v, 0 if linear else c), exposure, nz,
+                                              footroom=linear)
+        out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
+    return out
+
+
 def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
-                mode: str, p_fa: float = deghost.P_FALSE_ALARM) -> dict:
-    """Per frame, the blocks inconsistent with the anchor (``core.deghost``), cleaned and
-    feathered.  ``noise``: one parameter set per channel (code units), or None (the
-    quantisation of the codes alone; :func:`~hdrmerge_cli.core.deghost.level_scale`
-    measures the rest).  The test runs on block means
-    (:func:`~hdrmerge_cli.core.deghost.block_size`); each frame is decoded twice, for the
-    anchor and for its test, so that only the anchor's block estimates are held (memory flat
-    in the frame count); the anchor pass's last frame is tested first, on its estimates.  Returns ``{"mode", "applied",
-    "p_false_alarm", "rejected_fraction": [...], "masks": [(h, w) uint8 soft masks, 255 =
-    dropped], "block", "covered"}``, masks over blocks of ``block`` x ``block`` pixels
-    (RAW: CFA periods) covering the first ``covered`` = (rows, cols) samples; ``auto``
-    applies them only when some frame has more than
-    :data:`~hdrmerge_cli.core.deghost.AUTO_FRACTION` of its blocks rejected."""
-    first = frames[0]
-    raw = first.kind == "raw"
+                mode: str, p_fa: float | None = None, params: deghost.DeghostParams | None = None) -> dict:
+    """Per frame, the blocks inconsistent with the anchor (:func:`~hdrmerge_cli.core.deghost.ghost_masks`),
+    cleaned and feathered.  ``noise``: one parameter set per channel (code units), or None
+    (the codes' quantisation; :func:`~hdrmerge_cli.core.deghost.level_scale` measures the
+    rest); ``params``: :data:`~hdrmerge_cli.core.deghost.RAW_PARAMS` or ``IMAGE_PARAMS`` by
+    the frames' kind unless given, ``p_fa`` overriding its false-alarm rate.  Each frame is
+    decoded twice (anchor, test), so memory is flat in the frame count.  Returns ``{"mode",
+    "applied", "p_false_alarm", "rejected_fraction": [...], "masks": [(h, w) uint8 soft
+    masks, 255 = dropped], "block", "covered"}``, masks over blocks of ``block`` x ``block``
+    pixels (RAW: CFA periods) covering the first ``covered`` = (rows, cols) samples."""
     from hdrmerge_cli.pipeline.bracket import sample_pattern
 
+    first = frames[0]
+    raw = first.kind == "raw"
+    params = params or (deghost.RAW_PARAMS if raw else deghost.IMAGE_PARAMS)
+    if p_fa is not None:
+        params = dataclasses.replace(params, p_fa=p_fa)
     pattern = sample_pattern(first)
     per_px = 2 if raw else 1  # pixels per cell side of the planes
     h, w = (first.height // 2, first.width // 2) if raw else (first.height, first.width)
     b = deghost.block_size(h, w)
-    ref = reference_index(frames)
+    one_at_a_time = threading.Lock()  # Numba's workqueue layer runs one parallel kernel at a time
 
-    def tables(k: int) -> list:
-        f = frames[k]
-        out = []
-        for c in range(len(f.black)):
-            nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
-                (0.5 * float(f.white[c] - f.black[c]) / 255.0) ** 2, 1e-12, 0.0)
-            x_t, s_t, ok_t = deghost.ghost_tables(f.n_codes, f.black[c], f.white[c],
-                                                  lambda v, c=c: crf.inverse(v, 0 if raw else c), exposures[k], nz,
-                                                  footroom=raw)
-            out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
-        return out
-
-    one_at_a_time = threading.Lock()
-
-    def estimate(k: int):  # decoded again for each pass: the block estimates of every frame at
-        # once would make the memory grow with the frame count (9 frames: +245 MB at 0.7 MP)
-        t_k = tables(k)
+    def estimate(k: int) -> deghost.Blocks:
+        t_k = _ghost_tables(frames[k], exposures[k], crf, noise, params.linear)
         with one_at_a_time:
             x, s, ok, bound = _block_estimates(frames[k], load(frames[k]), pattern, t_k, b)
-        return x, s, ok, bound, (_untruncated(x, s, frames[k], pattern, t_k, b) & ok) if raw else ok
+        steady = (_untruncated(x, s, frames[k], pattern, t_k, b) & ok) if params.linear else ok
+        return deghost.Blocks(x, s, ok, bound, steady)
 
-    # A RAW mosaic is linear, with a physical noise model: a code below black is a reading
-    # (footroom in ``tables``), the reference's dark bound carries its read noise, none of
-    # the corrections for image processing applies (bounds measured on the frame, a smooth
-    # ratio field, a tone-curve match: a constant exposure factor, measured over regions,
-    # suffices), and a region test (``core.deghost.region_shifts``) finds the ghosts that
-    # each cell's noise hides.  Images keep the per-cell test: on the real static JPEG
-    # brackets the region test raised the false rejections (eos70d_kitchen_jpg 0.36 ->
-    # 3.85 % of a frame's cells, stack_jpg 0.50 -> 2.48 %)
-    per_kind = (dict(smooth=False, coarse=deghost.COARSE_SCALES, match_degree=0) if raw else
-                dict(smooth=True, coarse=(), match_degree=deghost.MATCH_DEGREE))
-
-    # the anchor: the reference where it measures, else the nearest frame consistent with it
-    order = sorted(range(len(frames)), key=lambda k: (k != ref, abs(np.log(exposures[k] / exposures[ref])), k))
-    xa = sa = va = ua = source = bound_r = s_r = None
-    clipped, beyond = {}, {}  # per frame: blocks clipped in a channel; readings far outside the
-    held = None  # the anchor pass's last frame's estimates: its test runs first, on them
-    for k in order:  # reference's dark / clipped bound
-        x, s, ok, bound, untruncated = estimates = estimate(k)
-        if bound_r is None:
-            bound_r, s_r = bound, (s.copy() if raw else None)  # RAW: the reference's noise bounds (sa becomes s)
-        clipped[k] = deghost.any_channel(bound < 0)
-        # an image's tone curve may crush far more than its assumed response says, so its
-        # bound is measured (adapt)
-        beyond[k] = deghost.violates_bound(x, s, bound_r, adapt=k != ref and not raw,
-                                           s_bound=s_r if raw else None) & ok
-        ok = ok & ~beyond[k]
-        if xa is None:
-            xa, sa, va, ua = x, s, ok, untruncated & ok
-            source = np.where(ok, k, -1).astype(np.int16)
-            continue
-        take = ok & ~va
-        xa[take], sa[take], ua[take], source[take] = x[take], s[take], untruncated[take], k
-        va |= ok
-        held = (k, estimates) if k == order[-1] else None
-        del x, s, ok, bound, untruncated, estimates
-    hb, wb, nc = xa.shape
-    # the anchor's level per block (its brightest channel; unknown where it is clipped: no
-    # frame measures it), what a clipped region can spread as glare (images; RAW: blooming only)
-    level_a = None if raw else deghost.reduce_channels(
-        np.maximum, np.where(va, xa, np.where(bound_r < 0, np.float32(np.inf), np.float32(0.0))))
-    # registration tolerance: a shift within reach (blocks) is not motion.  Images only: the
-    # envelope excuses what image processing does to edges (JPEG ringing, 4:2:0 chroma,
-    # sharpening halos); a RAW mosaic has none of it, and there the envelope hid a ghost's
-    # low-contrast parts (motion benchmark, RAW cases 0, 16, 24: 99 -> 91-78 % removed)
-    reach = 0 if raw else deghost.ENVELOPE_REACH
-    grad2 = None
-    if not reach:  # the older tolerance: the anchor's contrast along half a pixel of misregistration
-        reg = (deghost.ALIGN_TOLERANCE_PX / (b * per_px)) ** 2
-        grad2 = _samples(deghost.squared_gradient(xa, "rgb") * np.float32(reg))
-    lin_hi = anchor_near = None
-    if not raw:  # an image's reading near white bounds the light from below
-        lin_hi = np.float32([crf.inverse(np.float64(deghost.SHOULDER_CODE), c) for c in range(nc)])
-        anchor_near = deghost.near_white(xa, va, exposures[np.maximum(source, 0)].astype(np.float32), lin_hi)
-    sigma = max(1.5, deghost.FEATHER_PX / (b * per_px))
-    bloom = deghost.BLOOM_PX / (b * per_px)
-    blooming = dict(reach=bloom / max(hb, wb))  # glare_excuse within the bloom alone (RAW)
-
-    def bounded(need: np.ndarray) -> dict:  # glare_excuse as far as glare can add the light ``need`` (images)
-        return dict(source=level_a, need=need, bloom=bloom)
-    min_cells = deghost.min_blob(b * per_px)
-
-    def test(k: int, estimates=None) -> tuple[float, np.ndarray]:  # frame k against the anchor: (fraction, mask)
-        x, s, ok, bound_k, untruncated = estimates if estimates is not None else estimate(k)
-        del estimates
-        longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
-        impossible = np.zeros(clipped[k].shape, bool)
-        if longer > 0:
-            # a clipped reading of the longer frame that the anchor makes impossible (it measures
-            # far below the frame's clipping level): something bright was there in this frame
-            # only, unless glare from what is clipped in agreement with the anchor spread there
-            # (beyond its bloom, by more than glare adds: a tenth of the mean light, in the
-            # anchor, of what clips around it).  On RAW glare is no excuse at all: the optics
-            # are linear, so glare adds the same light per second to every frame and cancels
-            # in the comparison; what a clipped area does to its surround in one frame only is
-            # the sensor's blooming, within BLOOM_PX (before, glare bounded as for images
-            # excused a dark object in the short frame beside a lamp clipped in every frame:
-            # benchmark case 10, 51 -> 91 % of the ghost removed)
-            clip_bound = np.where(bound_k < 0, bound_k, np.float32(0.0))
-            violated = deghost.violates_bound(xa, sa, clip_bound, p_fa) & va
-            impossible = deghost.any_channel(violated)
-            glare = blooming if raw else bounded(
-                deghost.reduce_channels(np.maximum, np.where(violated, -clip_bound - xa, np.float32(0.0))))
-            impossible &= deghost.glare_excuse(clipped[k] & ~impossible, longer, **glare) == 0
-        # glare spreads from what is bright in every frame, not from such an object.  A longer
-        # image reading brighter beside its clipped areas is excused as far as glare can add
-        # that light (bounded as above).  Unbounded, it excused the long frame's bright
-        # background over the reference's walking woman in stack_ghost_jpg (translucent in
-        # the merge) and part of benchmark case 7's ghost (93.3 % removed, bounded 98.6 %);
-        # bounding it had cost the real static brackets more false rejections (stack_jpg 0.50
-        # -> 1.11 %) until readings near white became bounds (shoulder_excuse: 0.38 % either
-        # way).  RAW, as above, only within blooming
-        brighter = (deghost.reduce_channels(np.maximum, np.where(ok & va, x - xa, np.float32(0.0)))
-                    if longer > 0 and not raw else None)
-        glare = blooming if raw else (bounded(brighter) if longer > 0 else {})
-        excuse = deghost.glare_excuse(clipped[k] & ~impossible if longer > 0 else clipped[ref], longer, **glare)
-        if anchor_near is not None:
-            shoulder = deghost.shoulder_excuse(anchor_near, deghost.near_white(x, ok, np.float32(exposures[k]), lin_hi))
-            excuse = deghost.either_excuse(excuse, shoulder)
-        bad = deghost.inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(xa), _samples(sa),
-                                         _samples(va), grad2, (1, nc), p_fa, min_change=deghost.MIN_LOG_CHANGE,
-                                         excuse=excuse, reach=reach, steady=_samples(untruncated & ua) if raw else None,
-                                         **per_kind)
-        bad |= deghost.any_channel(beyond.pop(k)) | impossible
-        del x, s, ok, untruncated
-        bad = deghost.clean(bad, min_cells=min_cells)
-        anchor = deghost.any_channel(source == k)  # the anchor itself stays
-        bad &= ~anchor
-        soft = deghost.feather(bad, sigma)
-        soft[anchor] = 0.0
-        return float(bad.mean()), np.rint(soft * 255).astype(np.uint8)
-
-    # two frames at a time where blocks are larger than a cell: one frame's test (NumPy and
-    # OpenCV, which release the GIL) runs beside the other's estimates (decode, resampling,
-    # compiled block statistics: one at a time, ``one_at_a_time``, as Numba's workqueue
-    # threading layer cannot run two parallel kernels at once).  On a 6 MP 8-bit bracket
-    # deghosting took 0.9-1.05 s instead of 1.05-1.2 s, for 60-100 MB more peak memory (one
-    # frame's test temporaries, at most CELL_TARGET blocks).  With blocks of one cell (frames
-    # up to CELL_TARGET cells) those temporaries are as large as the frame's own samples: a
-    # second test raised a 0.7 MP bracket's peak from 437 to 534 MB (a plain merge's: 250),
-    # so one at a time there
-    with ThreadPoolExecutor(2 if b > 1 else 1) as pool:
-        jobs = {}
-        if held is not None:  # handed over, not kept here: its memory goes with its test
-            jobs[held[0]] = pool.submit(test, *held)
-            held = None
-        jobs.update({k: pool.submit(test, k) for k in range(len(frames)) if k not in jobs})
-        fractions, masks = (list(v) for v in zip(*(jobs[k].result() for k in range(len(frames)))))
-    applied = mode == "on" or max(fractions) > deghost.AUTO_FRACTION
+    lin_hi = None
+    if params.shoulder_code is not None:  # an image's reading near white bounds the light from below
+        lin_hi = np.float32([crf.inverse(np.float64(params.shoulder_code), c) for c in range(len(first.black))])
+    # two frames at a time where blocks are larger than a cell (one's test beside the other's
+    # estimates); with blocks of one cell a test's temporaries are as large as the frame's samples
+    fractions, masks = deghost.ghost_masks(estimate, np.asarray(exposures), reference_index(frames), params,
+                                           b * per_px, lin_hi, workers=2 if b > 1 else 1)
+    applied = deghost.applies(fractions, mode, params)
     log.info("deghosting (blocks of %d px): up to %.2f %% of a frame's blocks move; %s", b * per_px,
              100 * max(fractions), "applied" if applied else "not needed")
-    return {"mode": mode, "applied": bool(applied), "p_false_alarm": p_fa, "block": b,
+    hb, wb = masks[0].shape
+    return {"mode": mode, "applied": bool(applied), "p_false_alarm": params.p_fa, "block": b,
             "covered": [hb * b * per_px, wb * b * per_px],
             "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks}
 
