@@ -1,38 +1,22 @@
 """Noise-parameter estimation from ordinary photographs (the paper's section "HDR
-reconstruction of RAW sensor data"): local means and noise variances in 7 x 7 windows,
-rejection of textured windows by the local Laplacian magnitude, and a robust fit of the
-variance model (17),
+reconstruction of RAW sensor data"): a robust fit of the variance model (17),
 
     Var[y] = sigma_o^2 + alpha x + beta x^2,   E[y] = mu = sqrt(alpha) x,
 
-rewritten in the measured mean ``mu`` (code values above black):
+written in the measured mean ``mu`` (code values above black) as ``Var[y] = c0 + c1 mu +
+c2 mu^2`` with ``c0 = sigma_o^2``, ``c1 = sqrt(alpha)``, ``c2 = beta / alpha``.  Two kinds
+of measurement are rows of the same linear fit:
 
-    Var[y] = c0 + c1 mu + c2 mu^2,   c0 = sigma_o^2,  c1 = sqrt(alpha),  c2 = beta / alpha.
+- *local statistics* of one frame (:func:`window_statistics`, the paper's method): flat
+  7 x 7 windows, rows ``[1, mu, mu^2]``;
+- *exposure pairs* of a static bracket (:func:`pixel_pair_statistics`): ``d = y_long - r
+  y_short`` cancels the scene and the gain FPN, ``Var[d] = c0 (1 + r^2) + c1 mu (1 + r)``,
+  rows ``[1 + r^2, mu (1 + r), 0]``, every unclipped pixel counting.
 
-Two kinds of measurement feed the same fit, as rows of a linear model in ``c``:
-
-- *local statistics* of one frame (the paper's method), rows ``[1, mu, mu^2]``: the
-  spatial variance of a flat window holds the read noise, the photon noise and the gain
-  fixed-pattern noise, but also any scene texture the Laplacian test lets through;
-- *exposure pairs* of a bracket (two frames of one static scene, exposure ratio ``r``):
-  ``d = y_long - r y_short`` cancels the scene (texture included) and the gain FPN, which
-  is the same in both frames, so ``Var[d] = c0 (1 + r^2) + c1 mu_long (1 + r)``, rows
-  ``[1 + r^2, mu (1 + r), 0]``.  This is the photon-transfer idea applied to a bracket.
-  Since the scene cancels, every unclipped pixel counts (not only flat windows away from
-  clipped pixels): per pixel ``d^2``, binned by an estimate of the pixel's mean whose
-  noise is independent of the pair's (another frame, scaled), with the bin's mean taken
-  from the pixels' own long-frame values.  Binning by the pair's own noisy values would
-  shift each bin's mean by about the noise variance times the log-slope of the scene's
-  histogram, an error that the fit multiplies into sigma_o^2 when photon noise dominates.
-
-What a bracket can tell at best is :func:`achievable_errors` (the Cramer-Rao bound of the
-per-pixel exposure contrasts, every pixel's irradiance unknown): with strong photon noise
-and few dark pixels, sigma_o^2 is not identified, whatever the estimator.
-
-A single bracket cannot tell gain FPN from static scene texture (both are per-pixel,
-static and proportional to the signal); only flat fields can (:mod:`photon_transfer`).
-
-The quadratic term is kept only when an F-test of the nested models says the data need it.
+The quadratic term is kept only when an F-test needs it.  A single bracket cannot tell
+gain FPN from static scene texture; only flat fields can (:mod:`photon_transfer`).
+:func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell.  Method:
+docs/method.md, "Calibrating the noise".
 """
 from __future__ import annotations
 
@@ -66,9 +50,9 @@ BLACK_CLIPPED = 1e-3
 #: deviations (of a first fit) are outliers (hot pixels, motion)
 OUTLIER_SIGMAS = 8.0
 #: exposure pairs predicting more than this times the variance of the frames' own flat
-#: windows did not see the same scene (:func:`_pairs_moved`): on a static simulated 24 MP
-#: bracket the two fits agree within 5 %, on the same bracket moved by a hand (shifts of
-#: 20 px, rotations of 1 degree) the pairs' alpha came out 10^5 times too large
+#: windows did not see the same scene (:func:`_pairs_moved`): on a static bracket the two
+#: agree within a few percent, while motion puts scene texture into the pairs' differences
+#: and inflates their prediction by orders of magnitude
 PAIR_EXCESS = 2.0
 
 
@@ -181,7 +165,10 @@ class PixelPairs:
     ``long`` (the pixel's value in the longer frame, an unbiased estimate of its mean),
     ``dsq`` (the squared difference ``(long - ratio * short)^2``, an unbiased estimate of
     its variance) and ``key``, an estimate of the pixel's mean whose noise is independent
-    of both frames' (another frame of the bracket, or the neighbours), used to bin;
+    of both frames' (another frame of the bracket, or the neighbours), used to bin
+    (binning by the pair's own noisy values would shift each bin's mean by about the noise
+    variance times the log-slope of the scene's histogram, an error the fit multiplies
+    into sigma_o^2 when photon noise dominates);
     ``key_scale`` the factor ``s`` by which the key's variance is ``s^2 c0 + s c1 key``
     (a frame scaled by ``s``; the 8-neighbour mean has ``s^2 = s = 1/8`` nearly)."""
 
@@ -563,18 +550,16 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
         sorted by exposure (shortest first); one frame is allowed.
     lo, hi : values at or beyond which a pixel is clipped.
     pairs : use the exposure pairs of consecutive frames (needs a static scene).
+    Returns the :class:`NoiseFit` and the measured exposure ratios of the pairs used
+    (none when the pairs were not used).
 
-    With exposure pairs (texture-free; per pixel, :func:`pixel_pair_statistics`, or per
-    window when the frames are clipped at black, see :data:`BLACK_CLIPPED`; a first fit,
-    then without the pixels the clipping or outliers affect), sigma_o^2 and alpha come
-    from the pairs alone, and
-    beta (with its F-test) from the local statistics of every frame, binned after
-    rejecting windows whose Laplacian exceeds :data:`TEXTURE_SIGMAS` noise standard
-    deviations of the pairs' model.  Without pairs (one frame, or frames too far apart)
-    the local statistics give everything (:func:`_local_fit`), as they do where the pairs
-    predict more variance than the frames' own flat windows (:func:`_pairs_moved`: the
-    frames moved; no ratios are returned then).  Returns the fit and the measured exposure
-    ratios of the pairs used."""
+    Notes: with pairs, sigma_o^2 and alpha come from the pairs (per pixel, or per window
+    when the frames are clipped at black, :data:`BLACK_CLIPPED`; refitted without the
+    pixels that clipping or outliers affect) and beta, with its F-test, from the local
+    statistics of every frame after rejecting windows beyond :data:`TEXTURE_SIGMAS`.
+    Without pairs, or where they predict more variance than the frames' own flat windows
+    (:func:`_pairs_moved`: the frames moved), the local statistics give everything.
+    """
     local = [window_statistics(p, lo, hi, window) for p in planes]
     pair_points, ratios = [], []
     if pairs and len(planes) > 1:
