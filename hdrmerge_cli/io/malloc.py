@@ -13,11 +13,9 @@ M_ARENA_MAX = -8
 def one_malloc_arena() -> bool:
     """Make glibc serve every thread from one malloc arena (what ``MALLOC_ARENA_MAX=1``
     does), before any worker thread starts.  With an arena per thread, memory a decode or
-    alignment thread frees stays in its arena and adds to the peak: on the 8 x 8 MP
-    hand-held JPEG bracket, ``--align auto --deghost auto`` peaked at 900-960 MB with the
-    default and 805-860 MB with one arena, a plain merge at 615 against 580 MB, at the same
-    speed (the frames are large arrays; the threads allocate little else).  Returns whether
-    it was set (False off glibc, or when the user set ``MALLOC_ARENA_MAX`` already)."""
+    alignment thread frees stays in its arena and adds to the peak; one arena costs no
+    speed, since the frames are large arrays and the threads allocate little else.  Returns
+    whether it was set (False off glibc, or when the user set ``MALLOC_ARENA_MAX`` already)."""
     if not sys.platform.startswith("linux") or "MALLOC_ARENA_MAX" in os.environ:
         return False
     try:
