@@ -61,7 +61,7 @@ def test_dark_reference_bounds_a_bright_reading():
     assert deghost.violates_bound(x, s, bound, 1e-3).tolist() == [True, False, True]
 
 
-# ---------------------------------------------------------------- deghosting decision rules (issue 17)
+# ---------------------------------------------------------------- deghosting decision rules
 @pytest.mark.parametrize("dtype, n_codes", [(np.uint8, 256), (np.uint16, 4096)])
 @pytest.mark.parametrize("b", [1, 2, 3])
 def test_block_statistics_match_table_lookups_and_block_means(dtype, n_codes, b):
@@ -240,7 +240,7 @@ def test_dark_bound_adapts_to_a_crushed_toe_but_still_finds_a_bright_object():
 def test_envelope_is_the_per_channel_min_and_max_within_reach(nc, reach):
     """OpenCV's erosion / dilation equal SciPy's minimum / maximum filter of each
     interleaved channel on its own, edges repeated (a footprint over the interleaved
-    samples took the neighbouring channel's values at the left and right edges)."""
+    samples would take the neighbouring channel's values at the left and right edges)."""
     from scipy import ndimage
 
     a = np.random.default_rng(3).normal(size=(23, 17 * nc)).astype(np.float32)
@@ -291,7 +291,7 @@ def test_glare_excuse_equals_scipy_euclidean_distance():
     assert not deghost.glare_excuse(np.zeros((8, 8), bool), 1).any()
 
 
-# --- RAW deghosting: readings below black, the reference's noise, regions (issue 17) ---------
+# --- RAW deghosting: readings below black, the reference's noise, regions
 
 
 def test_ghost_tables_with_footroom_read_codes_below_black_linearly():
@@ -361,8 +361,8 @@ def test_channel_reductions_equal_numpy():
 def test_region_ratio_is_not_pulled_by_noise():
     """The exposure factor between two noisy linear frames of a dark scene (readings below
     0 included) is found within 2 % by :func:`region_ratio`, where binned medians of
-    per-sample log ratios (``match_anchor`` with degree 0 before) are off by tens of per
-    cent; a moving minority (20 % of the frame, 3x brighter) does not move it."""
+    per-sample log ratios are off by tens of per cent; a moving minority (20 % of the
+    frame, 3x brighter) does not move it."""
     rng = np.random.default_rng(11)
     truth = np.exp(rng.uniform(np.log(0.02), np.log(2.0), (64, 64)))
     truth = cv2.resize(truth, (512, 512), interpolation=cv2.INTER_LINEAR)
@@ -370,7 +370,7 @@ def test_region_ratio_is_not_pulled_by_noise():
     x = 0.97 * truth + rng.normal(0, 0.2, truth.shape)  # a noisy short frame, 3 % off
     x[:100] *= 3.0
     both = np.ones(truth.shape, bool)
-    assert abs(deghost.region_ratio(x, xa, both) * 0.97 - 1) < 0.02  # measured 1.4 %
+    assert abs(deghost.region_ratio(x, xa, both) * 0.97 - 1) < 0.02
     ok = both & (x > 0) & (xa > 0)
     naive = np.exp(np.median(np.log(xa[ok] / x[ok])))
     assert abs(naive * 0.97 - 1) > 0.1
@@ -379,9 +379,8 @@ def test_region_ratio_is_not_pulled_by_noise():
 def test_the_log_change_of_a_reading_at_zero_is_bounded_by_the_noise_not_undefined():
     """A RAW anchor reading exactly 0 (at black) where the frame reads 5 (noise sd 0.01):
     the log change counts each reading as at least the pair's noise deviation, log(5 /
-    0.014) ~ 5.9, so the min_change gate passes and the cells are rejected (before: a
-    reading <= 0 had no log and counted as no change); readings within the noise of each
-    other are not."""
+    0.014) ~ 5.9, so the min_log_change gate passes and the cells are rejected; readings
+    within the noise of each other are not."""
     rng = np.random.default_rng(3)
     shape = (64, 64 * 4)
     xa = np.zeros(shape, np.float32)

@@ -93,13 +93,11 @@ def test_euclidean_fit_matches_opencv_without_scale():
 
 @pytest.mark.parametrize("motion, rotation", [("translation", 0.0), ("similarity", 0.4)])
 def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
-    """A flat object in one frame only (an object that moved; 6 % of the frame, hard edges)
-    over a textured scene: whole-image ECC is pulled away by it even when started at the
-    true warp (measured 14 and 22 px), so the full-resolution similarity step refuses the
-    jump (_fine_ecc: None beyond FINE_REACH pixels of the pyramid's finest level, 8 px
-    here), and the tile consensus (_tile_consensus: tiles registered on their own, a
-    least-median fit) recovers the true warp within 0.1 px at every corner (measured
-    0.0006, 0.006)."""
+    """A flat object in one frame only (6 % of the frame, hard edges) over a textured
+    scene pulls whole-image ECC away even from the true warp; the full-resolution similarity
+    step refuses the jump (beyond FINE_REACH pixels of the pyramid's finest level), and the
+    tile consensus (tiles registered on their own, a least-median fit) recovers the true
+    warp within 0.1 px at every corner."""
     from scipy import ndimage as ndi
 
     size = (480, 640)
@@ -125,10 +123,8 @@ def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
 def test_a_non_rigid_scene_gets_no_rotation(seed):
     """A scene that no rigid motion describes (a smooth displacement field of +-1.5 px
     across the frame, like foliage in wind, on top of a (2, -1) px shift): the tiles
-    register but disagree, so the similarity registration keeps no rotation (before, ECC's
-    extra parameter correlated a little better and a rotation of 0.04-0.08 degrees was kept
-    in 7 of 8 such fields; on the real ``ex2f_trees_jpg`` 0.22 degrees).  The translation
-    stays within the field's range."""
+    register but disagree, so the similarity registration keeps no rotation.  The
+    translation stays within the field's range."""
     from scipy import ndimage as ndi
 
     size = (480, 640)
@@ -159,13 +155,10 @@ def test_window_turn_is_the_chord_a_rotation_moves_the_window_corners(shape):
 
 
 def test_consensus_tiles_of_a_large_soft_frame_count_as_textured():
-    """The same scene at 9x the pixel count (a sensor with more, smaller pixels behind the
-    same lens: 2400 x 1800, the texture's scale 6 px instead of 2) has a third of the
-    contrast per pixel.  The consensus tiles' texture is counted per 1/1024 of the frame's
-    width, as at the pyramid's coarse level, so the tiles still check the warp: within 0.02
-    px at every corner (measured 0.010; counted per pixel, as before, no tile was textured
-    and the full-resolution window's ECC alone left 0.051; iphone6_window_jpg's 8 MP
-    frames had 1-2 textured tiles of 25)."""
+    """The same scene at 9x the pixel count (2400 x 1800, the texture's scale 6 px instead
+    of 2) has a third of the contrast per pixel.  The consensus tiles' texture is counted per
+    1/1024 of the frame's width, as at the pyramid's coarse level, so the tiles still check
+    the warp: within 0.02 px at every corner."""
     ia, ib, true = _textured_pair(0.0, (3.9, -2.1), size=(1800, 2400), sigma=6.0)
     warp, _ = registration.estimate_warp(ia, ib, "translation")
     assert registration.corner_distance(warp, true, *ia.shape) < 0.02, (warp, true)
@@ -252,11 +245,9 @@ def test_finest_level_is_the_pyramids_finest(side):
 
 def test_a_moving_object_in_a_sparsely_textured_reference_is_left_out():
     """Where too few consensus tiles register (texture in the centre only), a moving object
-    in the reference pulled the full-resolution ECC 0.28-0.50 px off (the motion
-    benchmark's case 13: 0.22 px, 2 of 3 tiles registering in its dark short frame).  The
-    region it covers is found on the registered pair and left out of a last ECC run: the
-    warp within 0.1 px (measured 0.053-0.056, as without the object), and nothing is left
-    out where nothing moved."""
+    in the reference pulls the full-resolution ECC off; the region it covers is found on the
+    registered pair and left out of a last ECC run: the warp within 0.1 px, and nothing is
+    left out where nothing moved."""
     calls = []
     original = registration._masked_fine_ecc
 

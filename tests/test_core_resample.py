@@ -13,7 +13,7 @@ def _bayer(rgb: np.ndarray, cfa: str) -> np.ndarray:
     return out
 
 
-# ---------------------------------------------------------------- resampling variance (issue 17, RAW cases)
+# ---------------------------------------------------------------- resampling variance
 def _tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray, cfa: str | None = None, black=0.0) -> np.ndarray:
     """The reference taps' spread of a resampled mosaic, frame-wide: ``tap_variance`` of
     each same-colour sub-plane on its own, and with ``cfa`` green's on the full-resolution
@@ -83,8 +83,7 @@ def test_resample_mosaic_reads_green_on_its_quincunx_and_interpolates_colour_rat
     colourful scene (six random sinusoids up to 0.2 cycles/px, times a smooth colour field)
     rendered at the frame's and the reference's positions, a warp of (0.5, 0.3) px and
     0.3 deg recovers the reference's mosaic with at most 0.7x the RMS error of resampling
-    each colour's sub-plane on its own (measured 0.56x; 0.50-0.69x for 0.1-0.3 cycles/px);
-    only the inside of a clipped highlight is clipped."""
+    each colour's sub-plane on its own; only the inside of a clipped highlight is clipped."""
     rng = np.random.default_rng(3)
     h, w, black, clip = 96, 128, 256.0, 4095
     codes = rng.integers(300, 3000, (h, w)).astype(np.uint16)
@@ -128,13 +127,10 @@ def test_resample_mosaic_reads_green_on_its_quincunx_and_interpolates_colour_rat
 
 @pytest.mark.parametrize("cfa", ["RGGB", "GBRG"])
 def test_resample_mosaic_reads_a_clipped_code_as_its_floor(cfa):
-    """A clipped code bounds its sample from below, so resample_mosaic interpolates it at the
-    clipping level (leaving it out and renormalising the other taps, as before, read a lamp's
-    ring far too dark: the left-out tap is the brightest).  A lamp (Gaussian, sigma 3 px,
-    peak 4x the clipping level) on a dim wall, shifted by (0.5, 0.5) px: in its ring (outputs
-    that are values, truth above twice the wall) the RMS relative error is at most 0.1
-    (measured 0.078-0.090; renormalised 0.114-0.125) and none is more than 30 % too dark
-    (measured -0.26; renormalised -0.31)."""
+    """A clipped code bounds its sample from below, so resample_mosaic interpolates it at
+    the clipping level.  A lamp (Gaussian, sigma 3 px, peak 4x the clipping level) on a dim
+    wall, shifted by (0.5, 0.5) px: in its ring (outputs that are values, truth above twice
+    the wall) the RMS relative error is at most 0.1 and none is more than 30 % too dark."""
     h, w, black, clip = 96, 128, 256.0, 4095
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
 
@@ -163,13 +159,12 @@ def test_covered_mask_matches_a_pixelwise_test():
 
 
 def test_resample_mosaic_spread_is_the_taps_spread():
-    """resample_mosaic's spread (made band by band from the resampling's own images, kept as
-    16-bit codes) against the reference computed on the whole frame, on a rotated RGGB
-    mosaic of textured codes above a black level: the median within the code's precision
-    (2.2e-4), 99 % within 1e-3 (float32 round-off of E z^2 - (E z)^2), all within 10 %
-    (OpenCV places bilinear taps on a 1/32 px grid, which a band's warp and the whole
-    frame's round apart at a few sharp samples; measured 5e-4, 8 %).  The spread's
-    resampled codes are the plain resampling's."""
+    """resample_mosaic's spread (made band by band, kept as 16-bit codes) against the
+    reference computed on the whole frame, on a rotated RGGB mosaic of textured codes above a
+    black level: the median within the code's precision (2.2e-4), 99 % within 1e-3 (float32
+    round-off of E z^2 - (E z)^2), all within 10 % (OpenCV places bilinear taps on a 1/32 px
+    grid, which a band's warp and the whole frame's round apart at a few sharp samples).  The
+    spread's resampled codes are the plain resampling's."""
     from scipy import ndimage as ndi
 
     rng = np.random.default_rng(4)

@@ -94,7 +94,7 @@ def _ghosts_of(frames, codes, times, mode="on", crf=None, params=None):
                        params=params)
 
 
-# ---------------------------------------------------------------- static JPEG brackets (issue 17)
+# ---------------------------------------------------------------- static JPEG brackets
 def _jpeg_scene(rng, h=240, w=320):
     """Linear radiance of a static scene with hard edges, lines a pixel wide and fine
     texture over a wide range (about 1e-3 .. 1), band-limited by a small blur."""
@@ -252,9 +252,9 @@ def test_static_bracket_is_neither_aligned_nor_deghosted(run, tmp_path, dng_brac
 
 def test_the_default_alignment_leaves_a_static_16bit_bracket_alone(run, tmp_path, tiff_bracket):
     """A static simulated bracket of 16-bit TIFFs 5.4 EV apart through gamma 2.2, merged with
-    the defaults: nothing applied, no warning.  It registered 0.55-0.76 px off (and that was
-    applied) while the dark floor was 16 codes, 2e-8 of full scale through the response, in
-    the sensor's noise; encoded images now start at 2 % (``registration.dark_floor``)."""
+    the defaults: nothing applied, no warning (registration trusts encoded codes only from 2 %
+    of full scale, ``registration.dark_floor``, not where the response puts the sensor's
+    noise)."""
     folder, meta = tiff_bracket
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "m.exr", "--crf", "gamma:2.2", "--json")
     s = json.loads(proc.stdout)
@@ -278,11 +278,10 @@ def test_moving_people_are_deghosted(run, tmp_path):
 
 @needs_shared
 def test_the_walking_woman_is_solid_not_taken_for_glare(run, tmp_path):
-    """stack_ghost_jpg: the woman walking beside the lift is in the reference, dark against
-    glass that the long frame clips around her.  Where the long frame reads that bright
-    background over her torso it is far brighter than glare from the clipped glass can
-    make it, so both other frames are dropped there (ghost channel ~2; with glare unbounded
-    for images, 1.31 on average and 0.45 at least: she came out translucent)."""
+    """The shared bracket of a woman walking beside a lift: she is in the reference, dark
+    against glass that the long frame clips around her.  Where the long frame reads that
+    bright background over her torso it is far brighter than glare from the clipped glass can
+    make it, so both other frames are dropped there (ghost channel ~2)."""
     paths = sorted((SHARED / "brackets" / "stack_ghost_jpg").glob("*.JPG"))
     run("merge", *paths, "-o", tmp_path / "m.exr", "--crf", "srgb", "--align", "auto", "--deghost", "on",
         "--extra-channels", "ghost")
@@ -398,9 +397,7 @@ def test_object_clipped_in_the_long_frame_over_a_dark_reference_region():
     """Censoring the other way: a bright object in the long frame, clipped in green and
     just below clipping in red and blue, where the reference measures a dark value (far
     below half the long frame's clipping level).  Its clipped readings are impossible, so
-    it is not a glare source that excuses its own unclipped channels: dropped (before:
-    the glare excuse around the frame's own clipped cells kept most of it, and its red
-    and blue readings tinted the merge)."""
+    it is not a glare source that excuses its own unclipped channels: dropped."""
     rng = np.random.default_rng(2)
     frames, codes, times = _gamma_bracket(rng)
     obj = (slice(60, 110), slice(20, 55))
@@ -438,8 +435,7 @@ def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare(
     readings there are impossible, and glare from the surround (at most GLARE_FRACTION of
     its level, which the reference measures) cannot explain them, so the long frame is
     dropped over the object although all of it lies within the glare reach of the clipped
-    surround (before: excused, and the long frame's unclipped blue tinted the object); only
-    its rim within BLOOM_PX of the surround may be excused."""
+    surround; only its rim within bloom_px of the surround may be excused."""
     rng = np.random.default_rng(2)
     obj = (slice(60, 120), slice(320, 380))  # the glare reach is 30 cells: all of it within reach
     inner = (slice(69, 111), slice(329, 371))
@@ -593,10 +589,10 @@ def test_envelope_tolerance_cuts_the_false_alarms_of_static_jpeg_brackets():
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5])
 def test_static_jpeg_bracket_is_not_deghosted(seed):
     """Monte-Carlo: static textured scenes through JPEG (quality 90) 2 EV apart: the test
-    rejects at most AUTO_FRACTION of any frame's cells (the false alarms of edges, ringing
+    rejects at most auto_fraction of any frame's cells (the false alarms of edges, ringing
     and fine texture are within a shift of one block, envelope_residual; those of readings
     near white, where JPEG ringing darkens what clips, are bounds: shoulder_excuse), so auto
-    leaves the bracket alone (before the shoulder excuse: up to 2.3 % of a frame's cells)."""
+    leaves the bracket alone."""
     import hdrmerge_cli
 
     rng = np.random.default_rng(1000 + seed)
@@ -635,9 +631,7 @@ def test_raw_glare_is_bounded_by_the_light_of_what_clips(tmp_path):
     the long frame clips (and the reference measures at half scale), over a surround the
     long frame reads at 30 % of full scale.  Glare from the region (at most GLARE_FRACTION
     of its level, 0.1 x 6.7 = 0.67x the surround) cannot explain the long frame's reading,
-    so the long frame is dropped over the object (before: excused as glare, unbounded
-    within 5 % of the frame, and the object took the surround's brightness); the static
-    twin rejects nothing there."""
+    so the long frame is dropped over the object; the static twin rejects nothing there."""
     masks = _raw_object_masks(tmp_path, 3.17e6, (slice(200, 280), slice(372, 392)), frame=1, masked=2, seed=5)
     assert masks["moving"][204:276, 376:388].min() > 0.95
     assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
@@ -647,10 +641,8 @@ def test_raw_glare_is_no_excuse_beyond_blooming(tmp_path):
     """RAW: a dark object in the short frame only, 16-40 px beside a lamp that clips in every
     frame.  Optics are linear, so glare from the lamp adds the same light per second to
     every frame and cannot make the reference read brighter than the short frame; only
-    blooming (within BLOOM_PX) is a sensor effect of one frame.  So the short frame is
-    dropped over the object (before: the lamp, of unknown level, excused every darker
-    reading within glare's reach; benchmark case 10 lost half its ghost), and the static
-    twin rejects nothing."""
+    blooming (within bloom_px) is a sensor effect of one frame.  So the short frame is
+    dropped over the object, and the static twin rejects nothing."""
     masks = _raw_object_masks(tmp_path, 1e8, (slice(200, 280), slice(360, 384)), frame=0, masked=0, seed=6)
     assert masks["moving"][204:276, 364:380].min() > 0.95
     assert masks["static"].max() < 0.05 and masks["moving"][:, :300].max() < 0.05
@@ -661,8 +653,7 @@ def test_static_raw_bracket_deghosting_rejects_nothing_wherever_the_camera_puts_
     """A static RAW bracket of a dark-heavy scene 2.5 stops apart: with read noise kept on
     both sides of black (``None``: black 512 and footroom), or clipped at a black level of
     512 or 0 (cameras that subtract or clip it), ``--deghost on`` rejects at most 0.2 % of
-    any frame's cells.  (A guard: this scene passes with black censored too; the motion
-    benchmark's case-10 static twin clipped at black did not: 0.68 % of a frame's cells.)"""
+    any frame's cells."""
     from hdrmerge_cli.core import sensor as sm
     from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.io.dng_integer import write_dng

@@ -130,11 +130,9 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     ``footroom`` (a linear RAW) every code below white is a reading, ``x <= 0`` at and below
     black: read noise spreads a dark signal's codes to both sides of black, so dropping
     those at or below it would bias the mean of a dark region upwards (by more in the
-    noisier frame) and leave a reference that reads a dark object without a reading there.
-    A camera that clips at black (or whose black level is 0) reads the lower half as
-    black itself; as readings of 0 those stay comparable between frames too (a static
-    bracket clipped at black, black level 512 or 0: no false rejection this way, 0.7 % of a
-    frame's cells with black censored, where the region test summed the truncation)."""
+    noisier frame).  A camera that clips at black reads the lower half as black itself;
+    as readings of 0 those stay comparable between frames too.  Returns three ``(N,)``
+    arrays: float64 ``x``, float64 ``s``, bool."""
     y_full = white - black
     v = (np.arange(n_codes, dtype=np.float64) - black) / y_full
     valid = ((v >= -black / y_full) if footroom else (v > 0)) & (v < 1)
@@ -171,18 +169,11 @@ def shoulder_excuse(anchor_near: np.ndarray, frame_near: np.ndarray) -> np.ndarr
     """Per cell, the sign of change that an image's readings near white
     (:func:`near_white`) leave unexplained (int8, as :func:`glare_excuse`): +1 where the
     anchor reads near white, -1 where the tested frame does, 2 (either sign) where both
-    do, 0 elsewhere.  A camera's JPEG tone curve rolls off towards white and desaturates
-    highlights where the assumed response (sRGB) runs straight on, so there a code stands
-    for more light than that response says: such a reading bounds the light from below,
-    as a clipped one does, and a static frame compared with it reads brighter (the anchor
-    near white) or darker (the frame near white).  On the real static JPEG brackets: the
-    reference's blue codes 240-251 of ``eos5d3_foyer_jpg`` span the light its short frame
-    reads at codes 150-180 (1.5x, against 1.1x by sRGB), and that frame was rejected over
-    a lamp-lit wall (0.26 % of its cells), leaving the reference's washed-out reading
-    (blue 1.85x too low against the plain merge); longer frames near white were rejected
-    against the reference in ``eos70d_kitchen_jpg`` (0.30 %), ``eos350d_lamps_night_jpg``
-    (0.42 %) and ``ex2f_trees_jpg`` (0.21 %).  The margin is registration's
-    (:func:`~hdrmerge_cli.core.align.common_range`)."""
+    do, 0 elsewhere.  A camera's tone curve rolls off towards white and desaturates
+    highlights where the assumed response runs straight on, so there a code stands for
+    more light than that response says: such a reading bounds the light from below, as a
+    clipped one does, and a static frame compared with it reads brighter (the anchor near
+    white) or darker (the frame near white)."""
     return (anchor_near.astype(np.int8) - frame_near.astype(np.int8)
             + 2 * (anchor_near & frame_near).astype(np.int8))
 
@@ -260,7 +251,7 @@ def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndar
     """``(centres, medians, counts)`` of ``val`` in equal-count bins of ``key`` (bins with at
     least 10 samples; bin ``j`` holds ``edges[j] <= key < edges[j + 1]``, the last one its
     upper edge too, the edges from :func:`_level_bins`).  One sort of ``key`` makes each bin
-    a run of the sorted samples (a stable sort of the bin indices as well took a third more)."""
+    a run of the sorted samples."""
     order = np.argsort(key)
     ks, vs = key[order], val[order]
     edges = _level_bins(ks, bins)  # the same edges, from the sorted samples (faster)
@@ -337,8 +328,8 @@ def region_ratio(x: np.ndarray, xa: np.ndarray, both: np.ndarray, m: int = 8) ->
     Sums over a region first, so readings of any noise (zero or negative ones of a linear
     RAW near black included) enter unbiased: a median of per-sample ratios, or of ratios
     binned by one frame's own noisy reading, is pulled away from 1 by the noise (regression
-    dilution: 0.42-0.88 on a static dark RAW frame); the median over regions ignores a
-    moving minority.  1 when no region has both sums positive."""
+    dilution); the median over regions ignores a moving minority.  1 when no region has
+    both sums positive."""
     sx = cell_sums(np.where(both, x, 0.0).astype(np.float64), m, m)
     sa = cell_sums(np.where(both, xa, 0.0).astype(np.float64), m, m)
     n = cell_sums(both.astype(np.float64), m, m)
@@ -505,18 +496,15 @@ def glare_excuse(clipped: np.ndarray, sign: int, reach: float = GLARE_REACH, sou
     cell is excused only where :data:`GLARE_FRACTION` of the mean light of the clipped cells
     around it (``source`` where clipped, 0 elsewhere, averaged over the part of the square
     of side ``2 reach + 1`` inside the frame) reaches ``need``, where a clipped cell of
-    unknown level lies in that square, or within ``bloom`` cells of a clipped cell.  Glare
-    scales with how much of the surround is bright, not only with its brightest point (the
-    veiling glare index, :data:`GLARE_FRACTION`'s bound, is that of a bright field all
-    around): a dark object in the anchor where a longer frame clips on a surround only a few
-    times brighter, or beside a small bright source, is not glare but another moment."""
+    unknown level lies in that square, or within ``bloom`` cells of a clipped cell (glare
+    scales with how much of the surround is bright).  Returns ``(h, w)`` int8."""
     import cv2
 
     if not clipped.any() or not sign:
         return np.zeros(clipped.shape, np.int8)
     r = reach * max(clipped.shape)
-    # the exact Euclidean distance to the nearest clipped cell (OpenCV's, 3-4x SciPy's EDT
-    # here), compared as a whole squared distance so that no rounding moves the boundary
+    # the exact Euclidean distance to the nearest clipped cell, compared as a whole squared
+    # distance so that no rounding moves the boundary
     d = cv2.distanceTransform(np.ascontiguousarray(~clipped, np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     d2 = np.rint(np.square(d, dtype=np.float64))
     near = d2 <= r**2
@@ -558,9 +546,7 @@ def envelope_residual(x: np.ndarray, xa: np.ndarray, nc: int, reach: int) -> np.
     lies outside it wherever its value differs from everything around it in the other
     (over a flat surround: everywhere; over texture: where it is brighter or darker than
     the texture's local extremes).  The symmetric form excuses blur and sharpening in
-    either frame; its cost: where an object that is itself textured straddles the level of
-    a flat surround, the cells whose anchor value lies within the object's local range are
-    not found (the region step, :func:`clean` and :func:`feather`, covers small gaps)."""
+    either frame.  Returns float32 ``(H, W * nc)``."""
     lo, hi = envelope(xa, nc, reach)
     d1 = x - np.clip(x, lo, hi)
     lo, hi = envelope(x, nc, reach)
@@ -750,10 +736,9 @@ def feather(mask: np.ndarray, sigma: float) -> np.ndarray:
     """A soft mask in [0, 1] (float32): the region grown by ``3 sigma`` and blurred by a
     Gaussian of ``sigma`` (at least Phi(3) = 0.9987 on the region itself, falling smoothly
     to 0 about ``5 sigma`` outside it).  Weights ``w (1 - m)`` then fade a frame out over a
-    moving object instead of cutting it off.  The region must sit well inside the plateau:
-    a frame whose weight is 10x the anchor's (a longer exposure) still shows through a
-    mask of 0.98 by a sixth (grown by 2 sigma, the motion benchmark's ghosts in the
-    reference kept 77-87 % of their pixels in cases 3 and 7; by 3 sigma 86-93 %)."""
+    moving object instead of cutting it off.  The region sits well inside the plateau: a
+    frame whose weight is 10x the anchor's (a longer exposure) still shows through a mask
+    of 0.98 by a sixth."""
     from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     if not mask.any():
         return np.zeros(mask.shape, np.float32)

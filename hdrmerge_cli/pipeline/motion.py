@@ -91,8 +91,8 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
             return identity, f"registration to its neighbour correlates only {rho:.2f}"
         return (registration.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
 
-    def image(k: int) -> np.ndarray:  # made again for each pair (tens of ms at 6 MP): the codes are
-        # decoded once (DecodedOnce), and a held frame-sized float image per side cost 24 MB each at 6 MP
+    def image(k: int) -> np.ndarray:  # made again for each pair rather than held: the codes are
+        # decoded once (DecodedOnce)
         return _linear(frames[k], load(frames[k]), crf)
 
     def chain(indices: list[int]) -> dict:
@@ -165,11 +165,8 @@ class DecodedOnce:
     deghosting reads every frame twice, the noise measurement once), as long as all the
     kept codes take at most :data:`BUDGET_BYTES` (the oldest dropped first); :meth:`release`
     drops them and passes every later call through (the merge streams the frames).  The
-    codes are handed out read-only.  A 6 MP 8-bit bracket of three TIFFs was decoded nine
-    times with ``--align auto --deghost auto`` (0.12-0.14 s each).  ``max_frames``: keep at
-    most that many too (alignment alone reads each frame with its neighbours: its two
-    threads need 4; holding a 9-frame 24 MP bracket's 430 MB raised the default merge's
-    peak from 726 to 1095 MB)."""
+    codes are handed out read-only.  ``max_frames``: keep at most that many too (alignment
+    alone reads each frame with its neighbours: its two threads need 4)."""
 
     BUDGET_BYTES = 512 << 20
 
@@ -217,8 +214,7 @@ class AlignedLoader:
     resampled codes (and spreads) of the latest decodes are kept for the next pass over the
     frames (deghosting reads every frame twice, the merge and its re-weighting once each):
     the :data:`KEEP` latest always (the merge holds two frames), older ones while all of
-    them take at most :data:`CACHE_BYTES`.  A 24 MP RAW frame took 0.9 s per pass to decode,
-    resample and spread, four passes per frame."""
+    them take at most :data:`CACHE_BYTES`."""
 
     KEEP = 3
     CACHE_BYTES = 512 << 20
@@ -240,9 +236,8 @@ class AlignedLoader:
         clip = int(np.max(frame.white))
         spread = None
         if frame.kind != "raw":
-            # full-resolution bilinear resampling of images: no tap variance (on the 8-bit cases
-            # of benchmarks/motion.py it cost 1-5 dB away from the ghost: the taps' spread is
-            # mostly the codes' noise and quantisation there, which the tables already hold)
+            # full-resolution bilinear resampling of images: no tap variance (the taps' spread
+            # is mostly the codes' noise and quantisation there, which the tables already hold)
             out = resample.apply_warp(codes, w, clip)
         else:
             from hdrmerge_cli.pipeline.bracket import sample_pattern
@@ -395,8 +390,7 @@ def ghost_weight(ghosts: dict, k: int, height: int, width: int) -> np.ndarray:
     ch, cw = ghosts["covered"]
     hb, wb = m.shape
     # pixel centre (x + 1/2) lands on block coordinate (x + 1/2) wb / cw - 1/2, as a resize
-    # to the covered pixels reads it; beyond them the border repeats (one pass: a resize
-    # and an edge pad of a 24 MP frame took 0.2 s more in a merge)
+    # to the covered pixels reads it; beyond them the border repeats (one pass)
     sx, sy = wb / cw, hb / ch
     a = np.float64([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5]])
     return cv2.warpAffine(m.astype(np.float32) * np.float32(1 / 255), a, (width, height),
