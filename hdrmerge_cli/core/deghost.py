@@ -24,7 +24,6 @@ linear mosaics, :data:`IMAGE_PARAMS` for processed images.
 """
 from __future__ import annotations
 
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
@@ -236,10 +235,10 @@ def _block_statistics(plane, x_t, s_t, ok_t, lo, hi, b, xs, ss, ok, bound):  # p
             bound[i, j] = dark_x if dark else (-clip_x if clipped else 0.0)
 
 
-def block_size(h: int, w: int, target: int = CELL_TARGET) -> int:
+def block_size(h: int, w: int) -> int:
     """Side (in cells of the frame's own layout) of the blocks the test runs on: the
-    smallest giving at most ``target`` blocks (1 for small frames)."""
-    return max(1, int(np.ceil(np.sqrt(h * w / target))))
+    smallest giving at most :data:`CELL_TARGET` blocks (1 for small frames)."""
+    return max(1, int(np.ceil(np.sqrt(h * w / CELL_TARGET))))
 
 
 def _level_bins(values: np.ndarray, bins: int) -> np.ndarray:
@@ -265,16 +264,16 @@ def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndar
     return np.asarray(c), np.asarray(m), np.asarray(n, float)
 
 
-def robust_poly(c: np.ndarray, d: np.ndarray, n: np.ndarray, degree: int,
-                iterations: int = 10) -> np.ndarray:
-    """Polynomial coefficients fitted to points ``(c, d)`` with weights ``n`` by iterated
-    Tukey-bisquare re-weighting (start: the weighted median, a constant): an outlying
-    minority of points (a moving object that is alone at its brightness) gets no weight."""
+def robust_poly(c: np.ndarray, d: np.ndarray, n: np.ndarray, degree: int) -> np.ndarray:
+    """Polynomial coefficients fitted to points ``(c, d)`` with weights ``n`` by ten rounds
+    of Tukey-bisquare re-weighting (tuning constant 4.685 robust scales; start: the weighted
+    median, a constant): an outlying minority of points (a moving object that is alone at
+    its brightness) gets no weight."""
     order = np.argsort(d)
     cw = np.cumsum(n[order])
     coef = np.array([d[order][np.searchsorted(cw, cw[-1] / 2)]])
     deg = min(degree, max(c.size - 2, 0))
-    for _ in range(iterations):
+    for _ in range(10):
         r = d - np.polyval(coef, c)
         scale = max(1.4826 * np.median(np.abs(r)), MATCH_MIN_SCALE)
         u = r / (4.685 * scale)
@@ -293,7 +292,7 @@ def _inlier_range(coef: np.ndarray, c: np.ndarray, d: np.ndarray) -> tuple[float
     return (float(d[keep].min()), float(d[keep].max())) if keep.any() else (0.0, 0.0)
 
 
-def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, degree: int, bins: int = 32) -> np.ndarray:
+def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, degree: int) -> np.ndarray:
     """``x`` mapped onto the anchor's scale: ``x exp(p(log x))`` with ``p`` a low-degree
     polynomial fitted robustly (:func:`robust_poly`) to the median log-ratio
     ``log xa - log x`` in equal-count bins of ``log x`` (over samples both measure).  It
@@ -304,6 +303,7 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, degree: int, b
     what the reference sees dark): the robust smooth fit leaves it out."""
     if degree == 0:
         return x * np.float32(region_ratio(x, xa, both))
+    bins = 32
     ok = both & (x > 0) & (xa > 0)
     n_ok = np.count_nonzero(ok)
     if n_ok < 10 * bins:
@@ -321,15 +321,16 @@ def match_anchor(x: np.ndarray, xa: np.ndarray, both: np.ndarray, degree: int, b
     return (x * np.exp(shift)).astype(x.dtype)
 
 
-def region_ratio(x: np.ndarray, xa: np.ndarray, both: np.ndarray, m: int = 8) -> float:
+def region_ratio(x: np.ndarray, xa: np.ndarray, both: np.ndarray) -> float:
     """The constant ``c`` with ``xa ~ c x`` (``(H, W)`` readings, used where ``both``): the
-    median over ``m x m`` regions of ``sum xa / sum x``, weighted by the anchor's sum (its
+    median over 8 x 8 regions of ``sum xa / sum x``, weighted by the anchor's sum (its
     signal: the ratio of a dark region is mostly noise).
     Sums over a region first, so readings of any noise (zero or negative ones of a linear
     RAW near black included) enter unbiased: a median of per-sample ratios, or of ratios
     binned by one frame's own noisy reading, is pulled away from 1 by the noise (regression
     dilution); the median over regions ignores a moving minority.  1 when no region has
     both sums positive."""
+    m = 8
     sx = cell_sums(np.where(both, x, 0.0).astype(np.float64), m, m)
     sa = cell_sums(np.where(both, xa, 0.0).astype(np.float64), m, m)
     n = cell_sums(both.astype(np.float64), m, m)
@@ -356,7 +357,7 @@ def match_channels(x: np.ndarray, xa: np.ndarray, both: np.ndarray, nc: int, deg
     return out
 
 
-def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, bins: int = 32) -> np.ndarray:
+def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray) -> np.ndarray:
     """Per sample, the factor ``lambda`` by which the model variance under-predicts the
     spread of a static scene's differences: ``median(T) / median(chi2_1)`` in equal-count
     bins of the lower of the two readings (``T`` the per-sample normalised squared
@@ -367,6 +368,7 @@ def level_scale(t: np.ndarray, x: np.ndarray, xa: np.ndarray, both: np.ndarray, 
     puts a moving object among static samples of its level (a bright object in a short
     frame sits at the dark level the anchor reads, a dark one in a long frame at its own),
     so it cannot make up a bin of its own and raise its own threshold."""
+    bins = 32
     lo = np.minimum(x, xa)
     ok = both & (lo > 0)
     n_ok = np.count_nonzero(ok)
@@ -454,18 +456,17 @@ def squared_gradient(xa: np.ndarray, layout: str) -> np.ndarray:
     return (gy * gy + gx * gx).astype(np.float32)
 
 
-def smooth_ratio_field(r: np.ndarray, ok: np.ndarray, nc: int, tiles: int = FIELD_TILES,
-                       limit: float = FIELD_MAX) -> np.ndarray:
+def smooth_ratio_field(r: np.ndarray, ok: np.ndarray, nc: int) -> np.ndarray:
     """A smooth, low-frequency field of the log ratio ``r`` (``(H, W * nc)`` per sample, used
-    where ``ok``): per-tile medians over about ``tiles`` tiles across the longer side (tiles
+    where ``ok``): per-tile medians over about :data:`FIELD_TILES` across the longer side (tiles
     with under 10 % usable samples take their nearest neighbour's), a 3 x 3 median across
     tiles (a moving object filling most of one tile does not make its value), clipped to
-    ``+-limit`` and interpolated bilinearly.  Dividing it out absorbs what varies slowly
+    ``+-FIELD_MAX`` and interpolated bilinearly.  Dividing it out absorbs what varies slowly
     over the frame (vignetting, in-camera local tone mapping, broad glare) while a compact
     object with sharp edges stays."""
     from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     h, w = r.shape[0], r.shape[1] // nc
-    t = max(8, int(np.ceil(max(h, w) / tiles)))
+    t = max(8, int(np.ceil(max(h, w) / FIELD_TILES)))
     gh, gw = -(-h // t), -(-w // t)
     grid = np.full((gh, gw), np.nan, np.float32)
     rr = np.where(ok, r, np.nan).reshape(h, w, nc)
@@ -478,7 +479,7 @@ def smooth_ratio_field(r: np.ndarray, ok: np.ndarray, nc: int, tiles: int = FIEL
     if np.all(np.isnan(grid)):
         return np.zeros(r.shape, np.float32)
     idx = ndimage.distance_transform_edt(np.isnan(grid), return_distances=False, return_indices=True)
-    grid = np.clip(ndimage.median_filter(grid[tuple(idx)], 3, mode="nearest"), -limit, limit)
+    grid = np.clip(ndimage.median_filter(grid[tuple(idx)], 3, mode="nearest"), -FIELD_MAX, FIELD_MAX)
     import cv2
 
     f = cv2.resize(grid, (gw * t, gh * t), interpolation=cv2.INTER_LINEAR)[:h, :w]
@@ -640,7 +641,7 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
 
 
 def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_fa: float,
-                  scales: tuple[int, ...], bins: int = 16) -> np.ndarray:
+                  scales: tuple[int, ...]) -> np.ndarray:
     """Cells inside an ``m x m`` region (for each ``m`` of ``scales``, regions on a grid)
     whose differences ``d`` (frame minus anchor, ``(H, W * nc)`` with ``nc`` interleaved
     channels, 0 where not both measure) are shifted together.  Per region and channel the
@@ -658,6 +659,7 @@ def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_
     at every scale).  Returns ``(H, W)`` bool per cell."""
     h, w = d.shape[0], d.shape[1] // nc
     out = np.zeros((h, w), bool)
+    bins = 16
     for m in scales:
         if h < 2 * m or w < 2 * m:
             continue
@@ -702,21 +704,21 @@ def region_mean(r: np.ndarray, pos: np.ndarray, nc: int, scales: tuple[int, ...]
     return best
 
 
-def clean(mask: np.ndarray, min_cells: int, open_radius: int = 1, grow: int = 2) -> np.ndarray:
+def clean(mask: np.ndarray, min_cells: int) -> np.ndarray:
     """Morphological clean-up of a rejection mask: an opening and the removal of
     connected regions smaller than ``min_cells`` (isolated false alarms, and the sparse
     ones along edges, go; a moving object is a large connected region), then a dilation by
-    ``grow`` cells (its soft edge is covered)."""
+    two cells (its soft edge is covered).  ``mask``: ``(h, w)`` bool; returns the same."""
     from scipy import ndimage  # deghosting only: not on a plain merge's start-up
     st = ndimage.generate_binary_structure(2, 1)
-    out = ndimage.binary_opening(mask, st, iterations=open_radius) if open_radius else mask
+    out = ndimage.binary_opening(mask, st, iterations=1)
     if min_cells > 1 and out.any():
         labels, n = ndimage.label(out, st)
         sizes = np.bincount(labels.ravel(), minlength=n + 1)
         big = sizes >= min_cells
         big[0] = False
         out = big[labels]
-    return ndimage.binary_dilation(out, st, iterations=grow) if grow else out
+    return ndimage.binary_dilation(out, st, iterations=2)
 
 
 def expand(cells: np.ndarray, cell: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
@@ -766,14 +768,15 @@ class Blocks(NamedTuple):
 
 @dataclass
 class Anchor:
-    """What every frame is tested against, ``(h, w, C)`` per block unless noted: the anchor's
-    readings ``x``, variances ``s``, ``valid`` and ``steady`` blocks; ``source`` (int16) the
-    frame each block is read from (-1: none); the reference's ``bound`` and, for linear data,
-    its variance ``s_bound``; per frame (``{k: (h, w) bool}``) its ``clipped`` blocks and the
-    blocks ``beyond`` the reference's bound; ``level`` ``(h, w)`` the anchor's brightest
-    channel (inf where clipped in every frame; images, for :func:`glare_excuse`); ``near``
+    """What every frame is tested against (:func:`build_anchor`), ``(h, w, C)`` per block
+    unless noted: the anchor's readings ``x``, variances ``s``, ``valid`` and ``steady``
+    blocks; ``source`` (int16) the frame each block is read from (-1: none); the reference's
+    ``bound`` and, for linear data, its variance ``s_bound``; per frame (``{k: (h, w)
+    bool}``) its ``clipped`` blocks and the blocks ``beyond`` the reference's bound; ``level``
+    ``(h, w)`` its brightest channel (inf where clipped in every frame; images); ``near``
     ``(h, w)`` its readings near white (images); ``grad2`` ``(h, w * C)`` the registration
-    tolerance's variance (:attr:`DeghostParams.envelope_reach` 0)."""
+    tolerance's variance; and the test's setting: the frames' ``exposures``, the reference
+    ``ref``, the ``params``, a block's side ``block_px`` and ``lin_hi``."""
 
     x: np.ndarray
     s: np.ndarray
@@ -784,6 +787,11 @@ class Anchor:
     s_bound: np.ndarray | None
     clipped: dict
     beyond: dict
+    exposures: np.ndarray
+    ref: int
+    params: DeghostParams
+    block_px: float
+    lin_hi: np.ndarray | None = None
     level: np.ndarray | None = None
     near: np.ndarray | None = None
     grad2: np.ndarray | None = None
@@ -805,25 +813,26 @@ def build_anchor(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: 
     :class:`Anchor` and ``(k, blocks)`` of the last frame read (its test may reuse them)."""
     p = params
     order = anchor_order(exposures, ref)
-    anchor = None
-    clipped, beyond = {}, {}
+    a = None
     for k in order:
         blocks = estimate(k)
         x, s, ok, bound, steady = blocks
-        if anchor is None:
-            bound_r, s_r = bound, (s.copy() if p.linear else None)
-        clipped[k] = any_channel(bound < 0)
-        beyond[k] = violates_bound(x, s, bound_r, p.p_fa, adapt=k != ref and not p.linear, s_bound=s_r) & ok
-        ok = ok & ~beyond[k]
-        if anchor is None:
-            anchor = Anchor(x, s, ok, steady & ok, np.where(ok, k, -1).astype(np.int16), bound_r, s_r, clipped, beyond)
+        if a is None:
+            s_r = s.copy() if p.linear else None
+            beyond = violates_bound(x, s, bound, p.p_fa, s_bound=s_r) & ok
+            ok = ok & ~beyond
+            a = Anchor(x, s, ok, steady & ok, np.where(ok, k, -1).astype(np.int16), bound, s_r, {}, {k: beyond},
+                       exposures, ref, p, block_px, lin_hi)
+            a.clipped[k] = any_channel(bound < 0)
             continue
-        take = ok & ~anchor.valid
-        anchor.x[take], anchor.s[take], anchor.steady[take], anchor.source[take] = x[take], s[take], steady[take], k
-        anchor.valid |= ok
+        a.clipped[k] = any_channel(bound < 0)
+        a.beyond[k] = violates_bound(x, s, a.bound, p.p_fa, adapt=not p.linear, s_bound=a.s_bound) & ok
+        ok = ok & ~a.beyond[k]
+        take = ok & ~a.valid
+        a.x[take], a.s[take], a.steady[take], a.source[take] = x[take], s[take], steady[take], k
+        a.valid |= ok
         if k != order[-1]:
             del x, s, ok, bound, steady, blocks
-    a = anchor
     if not p.linear:  # what a clipped region can spread as glare: the anchor's level (unknown where clipped)
         a.level = reduce_channels(np.maximum, np.where(a.valid, a.x, np.where(a.bound < 0, np.float32(np.inf),
                                                                                np.float32(0.0))))
@@ -840,75 +849,71 @@ def _samples(a: np.ndarray) -> np.ndarray:
     return a.reshape(a.shape[0], -1)
 
 
-def _clipped_beyond_anchor(blocks: Blocks, anchor: Anchor, k: int, params: DeghostParams,
-                           block_px: float) -> np.ndarray:
+def _clipped_beyond_anchor(a: Anchor, k: int, blocks: Blocks) -> np.ndarray:
     """Per block ``(h, w)`` bool: a clipped reading of frame ``k``, the longer exposure,
     that the anchor makes impossible (it measures far below the clipping level), unless
     glare from what clips in agreement with the anchor explains it (:func:`glare_excuse`:
     for linear data within blooming only, else bounded by the light glare can add)."""
-    a = anchor
     clip_bound = np.where(blocks.bound < 0, blocks.bound, np.float32(0.0))
-    violated = violates_bound(a.x, a.s, clip_bound, params.p_fa) & a.valid
+    violated = violates_bound(a.x, a.s, clip_bound, a.params.p_fa) & a.valid
     impossible = any_channel(violated)
-    need = None if params.linear else reduce_channels(np.maximum, np.where(violated, -clip_bound - a.x,
-                                                                            np.float32(0.0)))
-    impossible &= glare_excuse(a.clipped[k] & ~impossible, 1, **_glare(anchor, params, block_px, need)) == 0
+    need = None if a.params.linear else reduce_channels(np.maximum, np.where(violated, -clip_bound - a.x,
+                                                                              np.float32(0.0)))
+    impossible &= glare_excuse(a.clipped[k] & ~impossible, 1, **_glare(a, need)) == 0
     return impossible
 
 
-def _glare(anchor: Anchor, params: DeghostParams, block_px: float, need: np.ndarray | None) -> dict:
+def _glare(a: Anchor, need: np.ndarray | None) -> dict:
     """:func:`glare_excuse`'s keywords: linear data within the bloom alone; images as far as
     glare can add the light ``need`` (None: unbounded)."""
-    bloom = params.bloom_px / block_px
-    if params.linear:
-        return dict(reach=bloom / max(anchor.x.shape[:2]))
-    return {} if need is None else dict(source=anchor.level, need=need, bloom=bloom)
+    bloom = a.params.bloom_px / a.block_px
+    if a.params.linear:
+        return dict(reach=bloom / max(a.x.shape[:2]))
+    return {} if need is None else dict(source=a.level, need=need, bloom=bloom)
 
 
-def frame_mask(k: int, blocks: Blocks, anchor: Anchor, exposures: np.ndarray, ref: int, params: DeghostParams,
-               block_px: float, lin_hi: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """Frame ``k`` tested against the anchor (:func:`build_anchor`): ``(fraction of its
+def frame_mask(a: Anchor, k: int, blocks: Blocks) -> tuple[float, np.ndarray]:
+    """Frame ``k`` (its :class:`Blocks`) tested against the anchor: ``(fraction of its
     blocks rejected, (h, w) uint8 feathered mask, 255 = dropped)``.  Rejected are the cells
     :func:`inconsistent_cells` finds (excused where glare or a reading near white explains
     the sign of the change), the blocks beyond the reference's bound and, for the longer
     exposure of the pair, its clipped readings the anchor makes impossible; cleaned
     (:func:`clean`), never where the frame is the anchor, and feathered (:func:`feather`)."""
-    p, a = params, anchor
+    p = a.params
     x, s, ok, _, steady = blocks
-    longer = int(np.sign(np.log(exposures[k] / exposures[ref])))  # +1: frame k is the longer of the pair
-    impossible = (_clipped_beyond_anchor(blocks, a, k, p, block_px) if longer > 0
-                  else np.zeros(a.clipped[k].shape, bool))
+    longer = int(np.sign(np.log(a.exposures[k] / a.exposures[a.ref])))  # +1: frame k is the longer of the pair
+    impossible = _clipped_beyond_anchor(a, k, blocks) if longer > 0 else np.zeros(a.clipped[k].shape, bool)
+    del blocks
     brighter = (reduce_channels(np.maximum, np.where(ok & a.valid, x - a.x, np.float32(0.0)))
                 if longer > 0 and not p.linear else None)
-    glare = _glare(a, p, block_px, brighter) if p.linear or longer > 0 else {}
-    excuse = glare_excuse(a.clipped[k] & ~impossible if longer > 0 else a.clipped[ref], longer, **glare)
+    glare = _glare(a, brighter) if p.linear or longer > 0 else {}
+    excuse = glare_excuse(a.clipped[k] & ~impossible if longer > 0 else a.clipped[a.ref], longer, **glare)
     if a.near is not None:
-        excuse = either_excuse(excuse, shoulder_excuse(a.near, near_white(x, ok, np.float32(exposures[k]), lin_hi)))
-    nc = x.shape[-1]
+        frame_near = near_white(x, ok, np.float32(a.exposures[k]), a.lin_hi)
+        excuse = either_excuse(excuse, shoulder_excuse(a.near, frame_near))
     bad = inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(a.x), _samples(a.s),
-                             _samples(a.valid), a.grad2, (1, nc), p, excuse=excuse,
+                             _samples(a.valid), a.grad2, (1, x.shape[-1]), p, excuse=excuse,
                              steady=_samples(steady & a.steady) if p.linear else None)
     bad |= any_channel(a.beyond.pop(k)) | impossible
     del x, s, ok, steady
-    bad = clean(bad, min_blob(p.min_blob_px, block_px))
+    bad = clean(bad, min_blob(p.min_blob_px, a.block_px))
     own = any_channel(a.source == k)  # the anchor itself stays
     bad &= ~own
-    soft = feather(bad, max(1.5, p.feather_px / block_px))
+    soft = feather(bad, max(1.5, p.feather_px / a.block_px))
     soft[own] = 0.0
     return float(bad.mean()), np.rint(soft * 255).astype(np.uint8)
 
 
 def ghost_masks(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: int, params: DeghostParams,
                 block_px: float, lin_hi: np.ndarray | None = None, workers: int = 1) -> tuple[list[float], list]:
-    """Every frame's :func:`frame_mask` against one anchor (:func:`build_anchor`):
-    ``(fractions, masks)`` in frame order.  ``estimate(k)`` is called twice per frame (for
-    the anchor, then for the test; once for the anchor's last frame), so that only the
-    anchor's estimates are held; ``workers`` frames are tested at a time."""
+    """Every frame's :func:`frame_mask` against one anchor (:func:`build_anchor`, whose
+    arguments these are): ``(fractions, masks)`` in frame order.  ``estimate(k)`` is called
+    twice per frame (for the anchor, then for the test; once for the anchor's last frame),
+    so that only the anchor's estimates are held; ``workers`` frames are tested at a time."""
     anchor, held = build_anchor(estimate, exposures, ref, params, block_px, lin_hi)
 
     def test(k: int, blocks: Blocks | None = None):
-        return frame_mask(k, blocks if blocks is not None else estimate(k), anchor, exposures, ref, params,
-                          block_px, lin_hi)
+        return frame_mask(anchor, k, blocks if blocks is not None else estimate(k))
 
     with ThreadPoolExecutor(workers) as pool:
         jobs = {held[0]: pool.submit(test, *held)}
