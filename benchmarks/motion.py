@@ -263,7 +263,7 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
             opts[flag.lstrip("-")] = next(it)
     pipeline_motion.estimate_alignment = true_alignment
     try:
-        hdrmerge_cli.merge([str(p) for p in paths], **opts).write(str(out))
+        hdrmerge_cli.merge_files([str(p) for p in paths], **opts).write(str(out))
     finally:
         pipeline_motion.estimate_alignment = estimate
     return read_output(out)["_rgb"]
