@@ -359,3 +359,45 @@ def test_a_wrong_power_is_told_from_a_wrong_label():
     power = ExposureEstimate(log_h, 0.2 * (np.arange(5.0) - 2) * 1.5, [], 2, 1.0)
     label = ExposureEstimate(log_h, np.array([0.0, 0.0, 0.0, 0.0, 1.0]), [], 2, 1.0)
     assert power_explains(power) and not power_explains(label)
+
+
+@pytest.mark.parametrize("raw", [False, True])
+def test_samples_registered_by_the_alignment_warps_line_up(raw):
+    """``Samples.registered``: samples of a frame shifted by a known full-resolution
+    translation, brought back by that warp, equal the reference's samples (bilinear, off
+    the uncovered edge) to within the interpolation of a smooth field; RAW samples are
+    moved as whole CFA cells."""
+    from hdrmerge_cli.pipeline.exposure_check import Samples
+
+    yy, xx = np.mgrid[0:96, 0:128].astype(np.float32)
+    field = lambda dy, dx: (0.5 + 0.3 * np.sin((xx + dx) / 9.0) * np.cos((yy + dy) / 7.0))[..., None]
+    step = 2
+    pick = (lambda a: a[[i for i in range(a.shape[0]) if (i // 2) % step == 0]][:, [j for j in range(a.shape[1])
+                                                                                     if (j // 2) % step == 0]]
+            ) if raw else (lambda a: a[::step, ::step])
+    ref, moved = pick(field(0, 0)), pick(field(6, -8))  # the frame's pixel (x, y) saw the scene at (x - 8, y + 6)
+    s = Samples([ref, moved], np.ones(ref.shape[:2], bool), (0, 0, 0, 0), step, 1 / 4095, raw)
+    warp = np.array([[1.0, 0.0, 8.0], [0.0, 1.0, -6.0]])  # reference pixel -> the frame's pixel
+    r = s.registered([np.eye(2, 3), warp])
+    assert r.v[0] is ref and 0.5 < r.inside.mean() < 0.95
+    err = np.abs(r.v[1] - ref)[r.inside]
+    assert err.max() < 0.02, err.max()
+
+
+def test_label_motion_comes_from_the_alignment():
+    """``alignment_motion``: applied warps leave no displacement between registered frames
+    and none is known for a frame left unaligned; warps not applied give the distance
+    between where the pair's warps take a corner."""
+    from hdrmerge_cli.pipeline.exposure_check import Samples, alignment_motion
+
+    class F:
+        def __init__(self, path):
+            self.path, self.height, self.width = path, 100, 200
+
+    frames = [F("a"), F("b"), F("c")]
+    s = Samples([np.zeros((50, 100, 3), np.float32)] * 3, np.ones((50, 100), bool), (0, 0, 0, 0), 2, 1 / 255)
+    warps = [np.array([[1.0, 0, 0.1], [0, 1, 0]]), np.eye(2, 3), np.array([[1.0, 0, 0], [0, 1, -0.2]])]
+    m = alignment_motion(frames, {"warps": warps, "unaligned": ["c"], "applied": True}, s)
+    assert m.px == {0: 0.0, 1: None} and m.threshold_px == 3.0
+    m = alignment_motion(frames, {"warps": warps, "unaligned": [], "applied": False}, s)
+    assert m.px[0] == pytest.approx(0.1) and m.px[1] == pytest.approx(0.2) and not m.moved()

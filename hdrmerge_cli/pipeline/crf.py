@@ -236,7 +236,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     first = frames[0]
     smoothing = method.smoothing if opts.smoothing is None else opts.smoothing
     n_samples = method.samples if opts.samples is None else opts.samples
-    fits, changed, points, exposure_check = [], False, None, None
+    fits, changed, points, label_report = [], False, None, None
     if first.kind in ("raw", "linear") and not opts.force:
         log.info("RAW data is linear: no CRF to estimate; writing an identity (linear) CRF (use --force to fit one)")
         crf = CRF("linear")
@@ -280,7 +280,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         exposure_check.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
                                        else "; estimate-crf --times estimate fits with the estimates", motion=motion,
                                        crf=crf)
-        exposure_check = exposure_check.report(frames, labels, est,
+        label_report = exposure_check.report(frames, labels, est,
                                               "estimates" if opts.times == ESTIMATE else "labels", crf, motion=motion)
         points = (codes, log_h)
     details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}
@@ -305,7 +305,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     save_profile(output, profile, opts.overwrite or updating)
     return {
         "output": str(output), "method": opts.method, "frames": [f.summary() for f in frames],
-        "crf": crf.describe(), "made_monotone": changed, "exposure_check": exposure_check, **{k: v for k, v in details.items() if k != "method"},
+        "crf": crf.describe(), "made_monotone": changed, "exposure_check": label_report, **{k: v for k, v in details.items() if k != "method"},
         "seconds": round(time.perf_counter() - t0, 4),
     }
 

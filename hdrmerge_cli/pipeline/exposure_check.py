@@ -66,6 +66,49 @@ class Samples:
         (RAW: between CFA cells)."""
         return 2 * self.step if self.raw else self.step
 
+    def registered(self, warps: list[np.ndarray]) -> Samples:
+        """The samples brought onto the reference by the full-resolution ``warps`` (one
+        ``(2, 3)`` per frame mapping reference pixels to the frame's, as
+        :func:`~hdrmerge_cli.pipeline.motion.estimate_alignment` returns them), bilinear
+        (RAW: each site of the CFA cells from the same site of its neighbour cells);
+        ``inside`` keeps only the samples every frame covers."""
+        import cv2
+
+        inside = self.inside.copy()
+        out = []
+        for v, w in zip(self.v, warps):
+            m = np.array(w, np.float64)
+            if np.allclose(m, np.eye(2, 3)):
+                out.append(v)
+                continue
+            m[:, 2] /= self.pitch  # full-resolution pixels -> samples (RAW: cells)
+            planes = _cell_planes(v) if self.raw else v
+            h, wd = planes.shape[:2]
+            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            moved = cv2.warpAffine(np.ascontiguousarray(planes), m, (wd, h), flags=flags,
+                                   borderMode=cv2.BORDER_REPLICATE).reshape(planes.shape)
+            covered = cv2.warpAffine(np.ones((h, wd), np.uint8), m, (wd, h), flags=flags, borderValue=0) > 0
+            if self.raw:
+                moved, covered = _from_cell_planes(moved, v), _from_cell_planes(np.repeat(covered[..., None], 4, -1), np.zeros(v.shape, bool))[..., 0]
+            out.append(moved)
+            inside &= covered
+        return replace(self, v=out, inside=inside)
+
+
+def _cell_planes(v: np.ndarray) -> np.ndarray:
+    """RAW samples ``(H', W', 1)`` (whole 2 x 2 cells) as ``(H' // 2, W' // 2, 4)`` planes."""
+    h2, w2 = v.shape[0] // 2, v.shape[1] // 2
+    return v[:2 * h2, :2 * w2, 0].reshape(h2, 2, w2, 2).transpose(0, 2, 1, 3).reshape(h2, w2, 4)
+
+
+def _from_cell_planes(planes: np.ndarray, like: np.ndarray) -> np.ndarray:
+    """:func:`_cell_planes` inverted into an array shaped as ``like`` (an odd last row or
+    column, outside every whole cell, keeps ``like``'s values)."""
+    h2, w2 = planes.shape[:2]
+    out = like.copy()
+    out[:2 * h2, :2 * w2, 0] = planes.reshape(h2, w2, 2, 2).transpose(0, 2, 1, 3).reshape(2 * h2, 2 * w2)
+    return out
+
 
 def _subsample_index(n: int, step: int, raw: bool) -> np.ndarray:
     idx = np.arange(n)
@@ -113,28 +156,6 @@ def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_S
     with ThreadPoolExecutor(2) as pool:
         v = list(pool.map(one, frames))
     return _samples(frames, v, step)
-
-
-class SampleTee:
-    """A frame loader that keeps, from each frame's first decode, what :class:`Samples`
-    holds: the label check then reads the frames the merge decodes anyway, with no pass of
-    its own.  Call it as the loader; :meth:`samples` once every frame went through."""
-
-    def __init__(self, frames: list[Frame], load=load_codes):
-        self._load, self._v = load, {}
-        self._step, self._cell = _step_and_cell(frames[0])
-
-    def __call__(self, frame: Frame) -> np.ndarray:
-        codes = self._load(frame)
-        if frame.path not in self._v:
-            self._v[frame.path] = normalise(frame, codes, self._step, self._cell)
-        return codes
-
-    def samples(self, frames: list[Frame]) -> Samples:
-        missing = [f for f in frames if f.path not in self._v]
-        for f in missing:  # not decoded by the merge (no weight anywhere): read now
-            self(f)
-        return _samples(frames, [self._v[f.path] for f in frames], self._step)
 
 
 # ---------------------------------------------------------------- checks
@@ -372,6 +393,25 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     return Motion(px, moved_threshold_px(s.pitch))
 
 
+def alignment_motion(frames: list[Frame], alignment: dict, s: Samples) -> Motion:
+    """The neighbour pairs' displacement as the merge's registration measured it
+    (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`), for samples brought onto the
+    reference with its warps when it applies them (:meth:`Samples.registered`): 0 left
+    between two registered frames, unknown (None) where either was left unaligned;
+    otherwise the largest distance between where the two frames' warps take a corner."""
+    from hdrmerge_cli.core.registration import corner_distance
+
+    warps, unaligned = alignment["warps"], set(alignment["unaligned"])
+    px: dict[int, float | None] = {}
+    for j in range(len(frames) - 1):
+        if {frames[j].path, frames[j + 1].path} & unaligned:
+            px[j] = None
+        else:
+            px[j] = 0.0 if alignment["applied"] else corner_distance(warps[j], warps[j + 1], frames[j].height,
+                                                                      frames[j].width)
+    return Motion(px, moved_threshold_px(s.pitch))
+
+
 def label_motion(s: Samples, exposures: np.ndarray, crf: CRF, est: ExposureEstimate) -> Motion:
     """:func:`moved_pairs` of only the pairs that decided a label in question (none: no
     cost), for :func:`warn_mislabelled` and :func:`report`."""
@@ -508,10 +548,13 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
 
 
 def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
-                      samples: Samples | None = None):
+                      samples: Samples | None = None, alignment: dict | None = None):
     """merge: check the frames' order, measure their exposures and warn about labels more
     than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
-    instead (frames re-sorted by them, their ``exposure_time`` set to them).
+    instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
+    merge's ``alignment``, the samples are brought onto the reference by its warps where it
+    applies them and the pairs' motion is what it measured (:func:`alignment_motion`);
+    without, the pairs in question are registered on the samples (:func:`moved_pairs`).
 
     Returns (frames, exposures, the report for ``--json``).  A single frame has nothing to
     compare: returned as it is, with no report."""
@@ -521,17 +564,21 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         return frames, exposures, None
     s = samples if samples is not None else sample_frames(frames, load)
     check_order(frames, s)
+    if alignment is not None and alignment["applied"]:
+        s = s.registered(alignment["warps"])
     est, used = estimate_with_response(frames, exposures, s, crf, rounds=2 if use_estimates else 1)
-    if use_estimates:
-        # every estimate is used: every pair registered; a pair that moved keeps its labels' ratio
+    if alignment is not None:
+        motion = alignment_motion(frames, alignment, s)
+    elif use_estimates:  # every estimate is used: every pair registered
         motion = moved_pairs(s, exposures, crf, range(len(frames) - 1))
+    else:
+        motion = label_motion(s, exposures, crf, est)
+    if use_estimates:  # a pair that moved keeps its labels' ratio
         if motion.moved():
             est, used = estimate_with_response(frames, exposures, s, crf, rounds=2, moved=motion.moved())
             for j in sorted(motion.moved()):
                 warn_moved(frames, j + 1, j, motion,
                            "their exposures' ratio is not estimated (their labels' ratio is kept)")
-    else:
-        motion = label_motion(s, exposures, crf, est)
     unmeasured = [k for k, p in enumerate(est.pairs) if not p.measured and not p.moved]
     for k in unmeasured:
         log.info("%s / %s: too few pixels both expose well (%d) to measure their ratio; their labels are kept",

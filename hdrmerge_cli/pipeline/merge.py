@@ -1,14 +1,19 @@
 """merge: read a bracket, reconstruct (7) frame by frame, write the EXR and its profile.
 
-The merge runs as stages that the CLI and the Python API (:mod:`hdrmerge_cli.api`) share:
+The merge runs as stages, each entered once, that the CLI and the Python API
+(:mod:`hdrmerge_cli.api`) share:
 
-1. read and check the bracket (:func:`~hdrmerge_cli.pipeline.bracket.read_bracket`,
-   :func:`~hdrmerge_cli.pipeline.bracket.choose_crf`);
-2. optional motion: the warps that register the frames (:func:`prepare_loader`);
-3. choose the models: estimator, weights, noise, tables
-   (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`), then deghosting;
-4. reconstruct: stream the frames through (7), IRLS (:func:`reconstruct`);
-5. finish and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
+1. read: the frames' metadata and the response (:func:`open_bracket`);
+2. exposures: samples of every frame, their order checked, the response measured on them
+   when none was given (:func:`~hdrmerge_cli.pipeline.crf.measure_response`);
+3. registration: the warps that bring the frames onto the reference
+   (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`); the exposure labels are then
+   checked on the registered samples, with the motion registration measured
+   (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
+4. noise and the weights' tables (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`);
+5. ghosts (:func:`~hdrmerge_cli.pipeline.motion.find_ghosts`);
+6. merge: the frames streamed through (7), then re-weighting (:func:`reconstruct`);
+7. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
 """
 from __future__ import annotations
 
@@ -35,7 +40,7 @@ from hdrmerge_cli.pipeline.bracket import (
     reference_exposure,
 )
 from hdrmerge_cli.pipeline.crf import measure_response
-from hdrmerge_cli.pipeline.exposure_check import SampleTee, check_order, resolve_exposures, sample_frames
+from hdrmerge_cli.pipeline.exposure_check import check_order, resolve_exposures, sample_frames
 from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
@@ -105,7 +110,7 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
 
 # ---------------------------------------------------------------- the stages
 def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
-    """Stages 1-4 on files: :func:`open_bracket`, then :func:`merge_frames`."""
+    """Stages 1-6 on files: :func:`open_bracket`, then :func:`merge_frames`."""
     t0 = time.perf_counter()
     frames, crf = open_bracket(paths, opts)
     return merge_frames(frames, crf, opts, t_start=t0)
@@ -118,35 +123,39 @@ def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF
 
 
 def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_codes,
-                 t_start: float | None = None) -> Merged:
-    """Stages 2-4 on read frames (sorted by exposure), ``load(frame)`` decoding each
-    frame's codes: motion, models, reconstruction.  Nothing is written."""
+                 t_start: float | None = None, noise: dict | None = None) -> Merged:
+    """Stages 2-6 on read frames (sorted by exposure), ``load(frame)`` decoding each
+    frame's codes.  Nothing is written."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter() if t_start is None else t_start
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
     exposures = exposure_values(frames)
-    noise = resolve_noise(opts, frames)
+    noise = noise if noise is not None else resolve_noise(opts, frames)  # per channel NoiseParams, or None
     alignment = None
     if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
         load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
     unaligned = load
-    measure = crf.assumed  # an image bracket given no response
-    if opts.align != "off" or measure:
+    samples = None
+    if len(frames) > 1 or crf.assumed:  # exposures: the frames' order, the response
         t1 = time.perf_counter()
         samples = sample_frames(frames, load)
         if len(frames) > 1:  # registration and the response trust the labels' order: a disordered bracket fails first
             check_order(frames, samples)
-        if measure:  # no response given: the bracket's own, or sRGB with a warning
+        if crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
             crf = measure_response(frames, samples, cache=opts.noise_cache) or crf
             timings["response"] = time.perf_counter() - t1
-        del samples
-    if opts.align != "off":
+    if opts.align != "off":  # registration
         t1 = time.perf_counter()
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
         timings["align"] = time.perf_counter() - t1
+    t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
+    frames, exposures, exposure_report = resolve_exposures(frames, exposures, crf, load, opts.times == ESTIMATE,
+                                                           samples, alignment)
+    timings["exposure_check"] = time.perf_counter() - t1
+    del samples
     aligned = motion.loader(frames, alignment, load)
-    load, frames, exposures, checks = prepare_loader(frames, exposures, crf, opts, aligned)
+    load, groups, seen = _watch_repeats(aligned, frames, exposures)
     if opts.colorspace == "camera" and frames[0].kind == "image":
         log.warning("--colorspace camera: %s carries no camera matrix (camera-processed image); the output is "
                     "Rec.709 (sRGB primaries)", frames[0].path)
@@ -157,7 +166,8 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     models = choose_models(frames, exposures, crf, opts, unaligned, noise)
     timings.update(models.timings)
     timings["read_metadata"] = (time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
-                                - timings.get("align", 0.0) - timings.get("response", 0.0) - timings["tables"])
+                                - timings.get("align", 0.0) - timings.get("response", 0.0) - timings["tables"]
+                                - timings["exposure_check"])
     ghosts = None
     if opts.deghost != "off":
         t0 = time.perf_counter()
@@ -174,34 +184,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         "variance" in opts.extra_channels)
     check_range(result, opts.half, opts.reference, h_ref)
     warn_unmeasured(frames, result, flags)
-    exposure_check, repeats = checks(frames, exposures, timings)
+    repeats = _check_repeats(groups, seen, frames, crf)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,
-                  output_orientation(frames), alignment, ghosts, exposure_check, repeats, timings)
-
-
-def prepare_loader(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: MergeOptions, load):
-    """The frames' loader with the label and repeat checks attached.  The labels are
-    checked against the frames (a warning per label off by > 1/3 EV), or replaced
-    (``--times estimate``: before the merge, on a pass of its own; otherwise after it, on
-    samples of the frames the merge decodes anyway).  Returns ``(load, frames, exposures,
-    checks)``; ``checks(frames, exposures, timings)`` runs the checks after the merge and
-    returns ``(exposure_check, repeat_report)``."""
-    tee, estimated_check = None, None
-    if opts.times == ESTIMATE:
-        frames, exposures, estimated_check = resolve_exposures(frames, exposures, crf, load, True)
-    else:
-        load = tee = SampleTee(frames, load)
-    load, groups, seen = _watch_repeats(load, frames, exposures)
-
-    def checks(frames, exposures, timings):
-        exposure_check = estimated_check
-        if tee is not None:
-            t0 = time.perf_counter()
-            exposure_check = resolve_exposures(frames, exposures, crf, samples=tee.samples(frames))[2]
-            timings["exposure_check"] = time.perf_counter() - t0
-        return exposure_check, _check_repeats(groups, seen, frames, crf)
-
-    return load, frames, exposures, checks
+                  output_orientation(frames), alignment, ghosts, exposure_report, repeats, timings)
 
 
 def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,
