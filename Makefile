@@ -52,6 +52,7 @@ bench: $(STAMP)
 ## Regenerate the man pages from the click definitions.
 man: $(STAMP)
 	$(BIN)/python -m hdrmerge_cli.manpages man
+	$(BIN)/python -m hdrmerge_cli.manpages --usage docs/usage.md
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache
