@@ -465,21 +465,18 @@ def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
 
 def pair_information(planes: list[np.ndarray], lo: float, hi: float, ratios: list, coef) -> np.ndarray:
     """Fisher information (2, 2) about ``(c0, c1) = (sigma_o^2, sqrt(alpha))`` in the
-    exposure contrasts of a bracket: the most any estimator can learn about them without
-    assuming anything about the scene (every pixel's irradiance a free parameter).
+    exposure contrasts of a bracket: the most any estimator can learn about them with every
+    pixel's irradiance a free parameter.
 
     planes : frames (H, W) sorted by exposure; ratios : the exposure ratios of consecutive
     frames (None where not measured: the bracket splits there); coef : the true (or
-    fitted) ``(c0, c1, ...)``.  Per pixel, the frames ``k`` where it is unclipped
-    (``lo < y_k < hi``) are independent Gaussians ``y_k ~ N(g_k mu, v_k)``, ``g_k`` the
-    exposure relative to the pixel's reference frame, ``v_k = c0 + c1 g_k mu``; the
-    scene term ``mu`` is removed by restricting to contrasts (REML), whose information is
-    ``I_ij = 1/2 tr(P D_i P D_j)`` with ``P = V^-1 - V^-1 g (g' V^-1 g)^-1 g' V^-1`` and
-    ``D_0 = I``, ``D_1 = diag(g mu)`` (Harville 1977).  ``mu`` is taken from the pixel's
-    longest unclipped frame (its noise changes the information only to second order).
-    Gain FPN is proportional to the signal in every frame, so it lies in ``g`` and does
-    not enter.  A Gaussian approximation: a pixel of a few photons has heavier tails
-    than the Gaussian of its variance."""
+    fitted) ``(c0, c1, ...)``.
+
+    Notes: per pixel, its unclipped frames are independent Gaussians ``y_k ~ N(g_k mu,
+    c0 + c1 g_k mu)``; restricting to contrasts removes ``mu`` (REML, Harville 1977):
+    ``I_ij = 1/2 tr(P D_i P D_j)``, ``P = V^-1 - V^-1 g (g' V^-1 g)^-1 g' V^-1``, ``D_0 = I``,
+    ``D_1 = diag(g mu)``, ``mu`` from the pixel's longest unclipped frame.  Gain FPN lies
+    in ``g`` and does not enter.  Gaussian: a pixel of a few photons has heavier tails."""
     c0, c1 = float(coef[0]), float(coef[1])
     info = np.zeros((2, 2))
     segments, start = [], 0

@@ -169,20 +169,15 @@ def camera_chromaticities(xyz_to_camera, white_balance=None) -> tuple[float, ...
     """The OpenEXR ``chromaticities`` (8 floats: red, green, blue, white xy) of a camera's
     native RGB, from its DNG-style ``(3, 3)`` XYZ -> camera matrix (ColorMatrix, e.g.
     LibRaw's ``rgb_xyz_matrix[:3, :3]``); None when the matrix is singular or not finite or
-    a primary has no chromaticity (X + Y + Z = 0).
+    a primary has no chromaticity (X + Y + Z = 0).  ``white_balance``: the per-channel gains
+    the data were multiplied by before writing (``rgb * white_balance``), or None for raw
+    camera RGB.
 
-    The camera -> XYZ matrix is the inverse, so a camera primary (1, 0, 0) has the XYZ of
-    its first column: the primaries are the xy of the inverse's columns.  They do not depend
-    on how the matrix is scaled, row by row or as a whole (per-channel gains only rescale the
-    columns), so a DNG matrix normalised in any of the usual ways gives the same primaries.
-
-    The white is by OpenEXR's definition the xy of camera (1, 1, 1), i.e. of the inverse's
-    row sums, and *does* depend on the channel gains.  For camera RGB written as the sensor
-    measured it (raw, not white-balanced) it is the camera's own equal-response white,
-    usually a magenta-ish colour far from any illuminant; for data multiplied per channel by
-    ``white_balance`` (as ``rgb * white_balance`` before writing), pass those gains: the
-    white is then the xy of the illuminant that the balance made neutral (with the as-shot
-    white balance, the scene's white; with ``1 / (M @ XYZ_D65)``, D65)."""
+    Notes: the primaries are the xy of the inverse matrix's columns, independent of how the
+    matrix is scaled.  The white is by OpenEXR's definition the xy of camera (1, 1, 1), the
+    inverse's row sums, and depends on the gains: without them it is the camera's own
+    equal-response white (usually magenta-ish); with them, the illuminant the balance made
+    neutral (the as-shot balance: the scene's white; ``1 / (M @ XYZ_D65)``: D65)."""
     m = np.asarray(xyz_to_camera, dtype=np.float64)
     if m.shape != (3, 3) or not np.all(np.isfinite(m)):
         return None

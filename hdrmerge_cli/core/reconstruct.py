@@ -4,27 +4,14 @@
 
 with ``g = log gamma^-1`` (2), ``h_j`` the exposure of frame j (exposure time times the
 gain ratio ``sqrt(alpha_j)``, see (1)), ``w_ij = w(z_ij)`` a weighting function and
-``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` evaluated at each frame's own
-estimate (:func:`inverse_variance`).
-
-Because ``w`` and ``g`` depend on the code value ``z`` and the frame ``j`` only, each
-frame is reduced to lookup tables over all code values (:func:`exposure_tables`), and
-merging a frame is two gathers and two additions per sample (:class:`LogMerge`).
-
-Tables are indexed by the *stored* code value ``r`` (for RAW: before black-level
-subtraction), ``z = r - black``, full scale ``z_max = white - black``.  A table has one
-row per channel ``c`` (flattened ``(C * N,)``); which row a sample reads is a small
-periodic pattern (the CFA cell, or the channel of interleaved RGB), so no per-sample
-index array is ever built.
-
-Pixels that no frame measures (weight 0 in every frame) get a finite, documented value
-and a flag (see :meth:`LogMerge.finish`).
-
-On request (``merge --extra-channels variance``) the merge also propagates the noise
-model's variance of each merged value: per frame and code the variance of the frame's own
-estimate (:func:`estimate_variance_table`), summed as ``sum_j w_j^2 Var_j / (sum_j w_j)^2``
-(:func:`combined_variance`) by ``LogMerge(..., variance=True)``, or at the re-weighted
-estimate by ``irls(..., variance=True)``; off, nothing of it runs or is allocated.
+``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` at each frame's own estimate
+(:func:`inverse_variance`).  As ``w`` and ``g`` depend on the code and the frame only,
+each frame is reduced to lookup tables over all code values (:func:`exposure_tables`,
+indexed by the *stored* code, one row per channel, the row of a sample given by a small
+periodic pattern), and merging a frame is two gathers and two additions per sample
+(:class:`LogMerge`).  Pixels that no frame measures get a finite, documented value and a
+flag (:meth:`LogMerge.finish`).  On request the noise model's variance of each merged
+value is propagated too (:func:`estimate_variance_table`, :func:`combined_variance`).
 """
 from __future__ import annotations
 
@@ -279,31 +266,21 @@ UNMEASURED_RELATIVE_VARIANCE = 1.0
 def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: float,
                             noise: list[NoiseParams] | None = None, estimator: str = "log",
                             tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
-    """Variance of one frame's own estimate (the ``value`` table of
-    :func:`exposure_tables`) at every stored code, in the estimator's domain,
-    flattened ``(C * N,)`` float32.
-
-    The linearised reading ``y = gamma^-1(z) y_full`` (code values above black) has the
-    variance ``V(y) = v(y) + c(y)``: the sensor's (17) as a function of the mean,
-    ``v(mu) = sigma_o^2 + sqrt(alpha) mu + (beta / alpha) mu^2``
-    (:func:`~hdrmerge_cli.core.noise.code_variance`), plus, for a non-linear response, the
-    code error ``c`` of :func:`code_error_variance` (quantisation through ``gamma^-1`` and
-    ``tolerance``; a linear sensor's measured read noise already holds its quantisation).
-    Both are evaluated at the frame's own reading (``mu = y``), as the tables' weights are.
-
-    * ``estimator="log"``: the value is ``log y - log(h y_full)``, variance
-      ``V(y) / y^2`` (the clipping-free (21) of the paper, ``sigma^2(E, t_j)``, i.e. the
-      delta method ``Var log y ~= Var y / mu^2``); dimensionless.
-    * ``estimator="ml"``: the value is ``y / (h y_full)``, variance ``V(y) / (h y_full)^2``,
-      in (full scale per second)^2.
-
-    Without ``noise`` only the code error remains (``c(y)``, or ``1/12`` for a linear
-    response): a lower bound, the ``codes`` variance of (7)'s factor.  Codes at or below
-    black (``y = 0``) read :data:`VARIANCE_CAP` (they carry no weight).
+    """Variance of one frame's own estimate (the ``value`` table of :func:`exposure_tables`)
+    at every stored code, in the estimator's domain, flattened ``(C * N,)`` float32:
+    ``estimator="log"``: ``V(y) / y^2`` (dimensionless; the clipping-free (21), by the delta
+    method); ``estimator="ml"``: ``V(y) / (h y_full)^2`` (in (full scale per second)^2).
+    Codes at or below black read :data:`VARIANCE_CAP` (they carry no weight).
 
     n_codes, black, white, crf, exposure, noise : as :func:`exposure_tables`
     tolerance : the code error's relative model tolerance (:data:`MODEL_TOLERANCE`; 0 for
         a camera whose response is known exactly, e.g. a simulation)
+
+    Notes: the linearised reading ``y = gamma^-1(z) y_full`` has the variance ``V(y) = v(y)
+    + c(y)``: the sensor's (17) as a function of the mean (:func:`code_variance`) plus, for
+    a non-linear response, the code error of :func:`code_error_variance`; both at the
+    frame's own reading, as the tables' weights are.  Without ``noise`` only ``c(y)`` remains (``1/12`` for a linear response): the
+    ``codes`` variance factor of (7), a lower bound.
     """
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
