@@ -49,9 +49,11 @@ MIN_SIDE = 8
 MIN_ACROSS = 100
 #: log-irradiance gradient per pixel (about 10 % contrast) that counts as texture
 TEXTURE_LOG_GRAD = 0.1
-#: largest correction (pixels) ECC may make to the phase-correlation translation
+#: largest correction (pixels) ECC may make to the phase-correlation translation: beyond
+#: it ECC has left the optimum the phase correlation started it in
 MAX_REFINE_PX = 3.0
-#: a rotation is kept when it moves some corner of the frame by more than this (pixels)
+#: a rotation is kept when it moves some corner of the frame by more than this (pixels): a
+#: smaller one is not worth resampling for
 ROTATION_PX = 0.25
 
 
@@ -316,7 +318,8 @@ FINE_CONVERGED_PX = 0.01
 
 
 #: a registered pair's log difference farther than this many robust deviations (1.4826 MAD)
-#: from its median is a moving object's (:func:`_moved_region`)
+#: from its median is a moving object's (:func:`_moved_region`): for Gaussian noise a
+#: two-sided false-alarm rate of 6e-7 per pixel, before the opening and the area test
 MOVED_SIGMAS = 5.0
 #: a moved region covers at least this fraction of the window (noise outliers are scattered)
 MOVED_MIN_AREA = 1e-3
@@ -385,7 +388,8 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
 
 #: tiles per side of the robust consensus (:func:`_tile_consensus`)
 CONSENSUS_TILES = 5
-#: a tile's correction farther than this (pixels) from the consensus is an outlier (motion)
+#: a tile's correction farther than this (pixels) from the consensus is an outlier (motion);
+#: the registration accuracy asked of a static tile
 CONSENSUS_TOL_PX = 0.25
 #: textured pixels a tile needs to take part: log-irradiance gradient above
 #: :data:`TEXTURE_LOG_GRAD` per 1/:data:`COARSE_SIDE` of the frame's longer side (per pixel
