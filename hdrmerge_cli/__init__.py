@@ -3,16 +3,24 @@
 Implements Goossens, Luong, Aelterman, Pizurica, Philips, "Realistic camera noise
 modeling with application to improved HDR synthesis", EURASIP J. Adv. Signal Process.
 2012:171 ("the paper"; equations cited as (N)).
+
+The Python API (:mod:`hdrmerge_cli.api`) works on arrays: :func:`merge`,
+:func:`estimate_response`, :func:`estimate_noise`, :func:`register`, :func:`ghost_mask`;
+:func:`merge_files` merges files as ``hdrmerge-cli merge`` does.
 """
 from hdrmerge_cli._version import __version__
 
 #: the Python API (:mod:`hdrmerge_cli.api`), imported on first use so that the command
 #: line's start-up does not pay for it
-__all__ = ["Merged", "MergeOptions", "merge", "merge_arrays", "__version__"]
+__all__ = ["CRF", "Merged", "MergeSettings", "NoiseParams", "Registration", "estimate_noise", "estimate_response",
+           "ghost_mask", "merge", "merge_files", "register", "__version__"]
+
+#: names the API module still answers for its callers, not exported (see :func:`hdrmerge_cli.api.merge_arrays`)
+_UNEXPORTED = ("merge_arrays",)
 
 
 def __getattr__(name: str):
-    if name in ("Merged", "MergeOptions", "merge", "merge_arrays"):
+    if (name in __all__ and name != "__version__") or name in _UNEXPORTED:
         from hdrmerge_cli import api
 
         return getattr(api, name)

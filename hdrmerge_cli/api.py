@@ -1,99 +1,118 @@
-"""The Python API: merge a bracket from files or from arrays, arrays out.
+"""The Python API: HDR merging of exposure stacks held as NumPy arrays, and of files.
 
-``hdrmerge-cli merge`` runs the same stages (:mod:`hdrmerge_cli.pipeline.merge`); this
-module only builds the options and, for arrays, the frames' metadata.
+Arrays in, arrays out, as in scikit-image or colour-hdri.  ``stack`` is the frames of one
+bracket, any order: a sequence of K arrays of one shape and dtype, or one array whose
+first axis is the frame.  Each frame is
 
->>> import hdrmerge_cli
->>> merged = hdrmerge_cli.merge(["a.CR2", "b.CR2", "c.CR2"], align="auto")   # doctest: +SKIP
->>> merged.image.shape, merged.flags.shape                                     # doctest: +SKIP
-((3456, 5184, 3), (3456, 5184))
->>> merged.write("out.exr")                                                    # doctest: +SKIP
+* an image, ``(H, W, 3)`` or ``(H, W)`` uint8/uint16 code values through the camera
+  response ``response`` (a JPEG's or TIFF's pixels), or
+* with ``cfa="RGGB"`` (``"BGGR"``, ``"GRBG"``, ``"GBRG"``), an ``(H, W)`` uint16 Bayer
+  mosaic of linear sensor data (black level ``black``, clipping at ``white``).
+
+``times`` are the frames' exposure times in seconds (any unit proportional to the light
+collected will do).  Radiance comes out in units of the full-scale signal per second: a
+frame of ``t`` seconds records the linear signal ``radiance * t`` (1 = clipping) unless
+``reference`` says otherwise.
+
+* :func:`merge`: the merged radiance (and its variance), the estimate (7) of Goossens et
+  al. 2012 under their noise model (17);
+* :func:`estimate_response`: the camera response, measured on the stack;
+* :func:`estimate_noise`: the parameters of (17) per channel, measured on the stack;
+* :func:`register`: the warps that bring the frames onto the reference frame;
+* :func:`ghost_mask`: per frame, where it is dropped as inconsistent with the reference.
+
+Each runs the stage of ``hdrmerge-cli merge`` of that name on the arrays (caches off), so
+it returns what the command would use.  :func:`merge_files` merges files as the command
+does, returning a :class:`Merged` that writes the EXR.
+
+>>> import numpy as np, hdrmerge_cli
+>>> rng = np.random.default_rng(0)
+>>> scene = np.geomspace(0.02, 60.0, 48 * 64).reshape(48, 64, 1) * [1.0, 0.8, 0.6]  # full scale per s
+>>> times = [1 / 64, 1 / 8, 1.0]
+>>> stack = [np.clip(rng.poisson(scene * t * 20000) / 20000 * 65535, 0, 65535).astype(np.uint16) for t in times]
+>>> hdr = hdrmerge_cli.merge(stack, times, response="linear", align="off")
+>>> hdr.shape, hdr.dtype
+((48, 64, 3), dtype('float32'))
+>>> float(np.median(np.abs(hdr / scene - 1))) < 0.02                  # photon noise: 20000 e- full scale
+True
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+import logging
+import math
+import numbers
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.crf import CRF, gamma_crf, table_crf
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.io.frames import Frame
-from hdrmerge_cli.pipeline.merge import check_options, merge_bracket, merge_frames
-from hdrmerge_cli.pipeline.options import MergeOptions
+from hdrmerge_cli.pipeline.options import ESTIMATORS, MergeOptions, MergeSettings, OutputOptions
 from hdrmerge_cli.pipeline.output import Merged
 
-__all__ = ["Merged", "MergeOptions", "merge", "merge_arrays"]
+__all__ = ["CRF", "Merged", "MergeSettings", "NoiseParams", "Registration", "estimate_noise", "estimate_response",
+           "ghost_mask", "merge", "merge_files", "register"]
+
+log = logging.getLogger("hdrmerge_cli")
 
 #: LibRaw's colour index (R 0, G 1, B 2, second green 3) of each Bayer pattern's 2 x 2 cell
 _CFA_INDEX = {"RGGB": [[0, 1], [3, 2]], "BGGR": [[2, 3], [1, 0]], "GRBG": [[1, 0], [2, 3]], "GBRG": [[3, 2], [0, 1]]}
 
-
-def merge(paths: Sequence[str | Path], **options) -> Merged:
-    """Merge the bracket of image or RAW files ``paths`` (any order).
-
-    Parameters
-    ----------
-    paths : sequence of str or Path
-        The frames: RAW files (LibRaw), or 8/16-bit JPEG/TIFF/PNG; exposure times from EXIF
-        unless ``times`` is given.
-    **options
-        The fields of :class:`MergeOptions`, as the command line takes them (``crf="srgb"``,
-        ``align="auto"``, ``deghost="auto"``, ``extra_channels=("variance",)``,
-        ``colorspace="acescg"`` ...); ``output`` is not needed (:meth:`Merged.write` takes it).
-
-    Returns
-    -------
-    Merged
-        ``.image`` (H, W, 3) float32 scene-linear (1.0 = the full-scale signal of an
-        exposure of ``.h_ref`` seconds), ``.flags`` (H, W) int8 (1 saturated, -1 dark),
-        ``.variance`` (with ``extra_channels=("variance",)``), ``.profile()``, ``.summary()``
-        and ``.write(path)`` (EXR, or a float DNG from RAW).
-
-    Raises
-    ------
-    HdrMergeError
-        Unreadable or inconsistent frames, bad options (one-line message).
-    """
-    opts = _options(options)
-    return merge_bracket([str(p) for p in paths], opts)
+_DOC_STACK = """stack : sequence of K arrays, or an array of shape (K, ...)
+        The frames, any order: ``(H, W, 3)`` or ``(H, W)`` uint8/uint16 images, or with
+        ``cfa`` ``(H, W)`` uint16 Bayer mosaics.
+    times : sequence of K float
+        Exposure times in seconds, positive."""
 
 
-def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",
-                 cfa_pattern: str | None = None, black: float = 0.0, white: float | None = None,
-                 bits: int | None = None, **options) -> Merged:
-    """Merge decoded frames held in memory.
+# ---------------------------------------------------------------- the stack
+@dataclass
+class _Stack:
+    """A stack as the pipeline reads a bracket: frames sorted by exposure (``frames[k]``
+    is input frame ``order[k]``), ``load(frame)`` their codes."""
 
-    Parameters
-    ----------
-    codes : sequence of arrays, all of one shape and dtype
-        The stored code values of each frame: ``(H, W, 3)`` or ``(H, W)`` uint8/uint16
-        camera-processed images (through the response ``crf``), or, with ``cfa_pattern``,
-        ``(H, W)`` uint16 Bayer mosaics of linear sensor data.
-    exposure_times : sequence of float
-        Each frame's exposure in seconds (or any unit proportional to the light collected).
-    crf : str or CRF
-        The images' camera response: ``"srgb"``, ``"linear"``, ``"gamma:2.2"``, a CSV table
-        or profile JSON path, or a :class:`~hdrmerge_cli.core.crf.CRF`; ignored for mosaics
-        (linear).
-    cfa_pattern : str, optional
-        The mosaic's 2 x 2 colour filter: ``"RGGB"``, ``"BGGR"``, ``"GRBG"`` or ``"GBRG"``.
-    black, white : float
-        The code values of no light and of clipping (default: 0 and the dtype's maximum,
-        or ``2**bits - 1``).
-    bits : int, optional
-        Significant bits of the codes (default: the dtype's).
-    **options
-        As for :func:`merge`.
+    frames: list[Frame]
+    codes: dict[str, np.ndarray]
+    order: np.ndarray
+    grey: bool
 
-    Returns
-    -------
-    Merged
-        As :func:`merge`.  Mosaics have as-shot white balance 1 and the identity camera
-        matrix (native camera RGB is taken as linear Rec.709).
-    """
-    arrays = [np.asarray(c) for c in codes]
-    times = [float(t) for t in exposure_times]
+    def load(self, frame: Frame) -> np.ndarray:
+        return self.codes[frame.path]
+
+    @property
+    def raw(self) -> bool:
+        return self.frames[0].kind == "raw"
+
+    @property
+    def exposures(self) -> np.ndarray:
+        from hdrmerge_cli.pipeline.bracket import exposure_values
+
+        return exposure_values(self.frames)
+
+    def to_input_order(self, per_frame: list) -> list:
+        out = [None] * len(per_frame)
+        for k, item in enumerate(per_frame):
+            out[int(self.order[k])] = item
+        return out
+
+
+def _stack(stack, times, cfa: str | None = None, black: float = 0.0, white: float | None = None,
+           bits: int | None = None) -> _Stack:
+    """Check ``stack`` and ``times`` and describe the frames as the pipeline's
+    :class:`~hdrmerge_cli.io.frames.Frame` (sorted by exposure)."""
+    if isinstance(stack, (str, Path)) or (isinstance(stack, Sequence) and stack
+                                          and isinstance(stack[0], (str, Path))):
+        raise HdrMergeError("the stack holds file names: merge arrays with hdrmerge_cli.merge, files with "
+                            "hdrmerge_cli.merge_files")
+    arrays = [np.asarray(c) for c in stack]
+    try:
+        times = [float(t) for t in np.atleast_1d(np.asarray(times, dtype=object))]
+    except (TypeError, ValueError):
+        raise HdrMergeError("times: exposure times are numbers of seconds") from None
     if not arrays:
         raise HdrMergeError("no input frames given")
     if len(times) != len(arrays):
@@ -108,45 +127,17 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
         raise HdrMergeError(f"codes must be uint8 or uint16, not {first.dtype}")
     container = 8 * first.dtype.itemsize
     bits = bits or container
+    if not 1 <= bits <= container:
+        raise HdrMergeError(f"bits: {bits} significant bits do not fit {first.dtype} codes")
     white = float(white if white is not None else (2**bits - 1))
-    if not black < white:
+    if not (math.isfinite(black) and math.isfinite(white) and black < white):
         raise HdrMergeError(f"white level {white:g} is not above the black level {black:g}")
     order = np.argsort(times, kind="stable")
-    arrays, times = [arrays[i] for i in order], [times[i] for i in order]
-    frames = [_frame(f"<array {order[k]}>", a, t, cfa_pattern, black, white, bits, container)
-              for k, (a, t) in enumerate(zip(arrays, times))]
+    frames = [_frame(f"<array {order[k]}>", arrays[i], times[i], cfa, black, white, bits, container)
+              for k, i in enumerate(order)]
     grey = frames[0].kind == "image" and first.ndim == 2  # decoded images are (H, W, C)
-    by_path = {f.path: a[..., None] if grey else a for f, a in zip(frames, arrays)}
-    options.setdefault("noise_cache", False)  # no camera to key a cache entry by
-    opts = _options(options)
-    if frames[0].kind == "raw":
-        response = CRF("linear")
-    elif isinstance(crf, CRF):
-        response = crf
-    else:
-        from hdrmerge_cli.pipeline.bracket import choose_crf
-
-        response = choose_crf(frames, crf, warn=False)  # none given: merge_frames measures it
-    return merge_frames(frames, response, opts, load=lambda f: by_path[f.path])
-
-
-def _options(options: dict) -> MergeOptions:
-    """The checked :class:`MergeOptions` of the API's keywords.  Times may be numbers
-    (seconds) or text as on the command line: ``reference=0.01`` or ``"1/100"``,
-    ``times=[0.01, 0.04]``, ``"1/100,1/25"`` or ``"estimate"``."""
-    from hdrmerge_cli.io.times import ESTIMATE, parse_times, seconds
-
-    times = options.get("times")
-    if isinstance(times, str):
-        options["times"] = ESTIMATE if times.strip().lower() == ESTIMATE else parse_times(times)
-    elif times is not None:
-        try:
-            options["times"] = [seconds(t) for t in times]
-        except (HdrMergeError, TypeError) as exc:
-            raise HdrMergeError(f"times: {exc}") from None
-    opts = MergeOptions(**options)
-    check_options(opts)
-    return opts
+    codes = {f.path: arrays[i][..., None] if grey else arrays[i] for f, i in zip(frames, order)}
+    return _Stack(frames, codes, order, grey)
 
 
 def _frame(name: str, a: np.ndarray, t: float, cfa_pattern: str | None, black: float, white: float, bits: int,
@@ -163,7 +154,561 @@ def _frame(name: str, a: np.ndarray, t: float, cfa_pattern: str | None, black: f
                      cfa_pattern=cfa_pattern, channel_colors="RGBG",
                      cfa_cell=np.array(_CFA_INDEX[cfa_pattern], np.intp))
     if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (1, 3)):
-        raise HdrMergeError(f"an image is (H, W) or (H, W, 3), not {a.shape} (give cfa_pattern for a mosaic)")
+        raise HdrMergeError(f"an image is (H, W) or (H, W, 3), not {a.shape} (give cfa for a mosaic)")
     channels = 1 if a.ndim == 2 else a.shape[2]
     return Frame(**common, kind="image", black=np.full(channels, black), white=np.full(channels, white),
                  channels=channels, channel_colors="RGB" if channels == 3 else "Y")
+
+
+# ---------------------------------------------------------------- models given as objects
+def _given_response(response, st: _Stack) -> CRF:
+    """The response a caller gave (a CRF, ``"linear"``, ``"srgb"``, a gamma as a number, an
+    inverse table), or for None sRGB marked assumed (the merge then measures it)."""
+    if st.raw:
+        if response is not None and not (isinstance(response, str) and response == "linear") and not (
+                isinstance(response, CRF) and response.is_linear):
+            raise HdrMergeError("a Bayer mosaic is linear sensor data: leave response unset")
+        return CRF("linear")
+    if response is None:
+        return CRF("srgb", assumed=True)
+    if isinstance(response, CRF):
+        crf = response
+    elif isinstance(response, str):
+        if response not in ("linear", "srgb"):
+            raise HdrMergeError(f"response {response[:40]!r}: give 'linear', 'srgb', a gamma (a number), an inverse "
+                                "table or a CRF")
+        crf = CRF(response)
+    elif isinstance(response, numbers.Real):
+        crf = gamma_crf(float(response), "response")
+    elif isinstance(response, (np.ndarray, Sequence)):
+        crf = table_crf(np.asarray(response, np.float64), "table")
+    else:
+        raise HdrMergeError(f"response: a CRF, 'linear', 'srgb', a gamma or an inverse table, not "
+                            f"{type(response).__name__}")
+    n = st.frames[0].n_codes
+    if crf.table is not None and crf.table.shape[1] != n:
+        raise HdrMergeError(f"response: the inverse table has {crf.table.shape[1]} entries per channel, but the codes "
+                            f"take {n} values")
+    return crf
+
+
+def _response(response, st: _Stack) -> CRF:
+    """:func:`_given_response`, with None measured on the stack as the merge measures it
+    (sRGB, with a warning, where the stack cannot pin it)."""
+    crf = _given_response(response, st)
+    if not crf.assumed:
+        return crf
+    from hdrmerge_cli.pipeline.crf import measure_response
+    from hdrmerge_cli.pipeline.exposure_check import check_order, sample_frames
+
+    samples = sample_frames(st.frames, st.load)
+    if len(st.frames) > 1:
+        check_order(st.frames, samples)
+    return measure_response(st.frames, samples, cache=False) or crf
+
+
+def _noise(noise) -> dict[str, NoiseParams] | None:
+    """Noise parameters as the pipeline takes them, ``{channel or "*": NoiseParams}``."""
+    if noise is None:
+        return None
+    try:
+        if isinstance(noise, NoiseParams):
+            return {"*": noise}
+        if isinstance(noise, Mapping):
+            if {"sigma_o2", "alpha"} <= set(noise):
+                return {"*": NoiseParams(**noise)}
+            out = {}
+            for ch, p in noise.items():
+                out[str(ch).upper()] = p if isinstance(p, NoiseParams) else NoiseParams(**p)
+            if out:
+                return out
+    except (TypeError, ValueError) as exc:
+        raise HdrMergeError(f"noise: {exc}") from None
+    raise HdrMergeError("noise: a NoiseParams, a dict of sigma_o2, alpha (and beta), or such per channel "
+                        "({'R': ..., 'G': ..., 'B': ...})")
+
+
+def _choice(name: str, value, choices) -> None:
+    if not isinstance(value, str) or value not in choices:
+        raise HdrMergeError(f"{name}: {value!r} is not one of {', '.join(choices)}")
+
+
+def _settings(weighting, estimator, variance_model, irls, k, align, deghost, reference) -> MergeSettings:
+    """The checked :class:`MergeSettings` of the array API's keywords."""
+    from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
+    from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+    from hdrmerge_cli.pipeline.bracket import reference_exposure
+    from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
+
+    _choice("weighting", weighting, ("auto", *sorted(WEIGHTING_FUNCTIONS)))
+    _choice("estimator", estimator, ESTIMATORS)
+    _choice("variance_model", variance_model, ("auto", *VARIANCE_FACTORS))
+    _choice("align", align, ALIGN_MODES)
+    _choice("deghost", deghost, DEGHOST_MODES)
+    if irls is not None and (not isinstance(irls, numbers.Integral) or not 0 <= irls <= 50):
+        raise HdrMergeError(f"irls: {irls!r} is not a number of passes from 0 to 50")
+    if not isinstance(k, numbers.Real) or not 0.5 <= k <= 10:
+        raise HdrMergeError(f"k: {k!r} is not a number of standard deviations from 0.5 to 10")
+    reference_exposure(reference, np.ones(1))
+    return MergeSettings(estimator=estimator, weights=weighting, variance=variance_model, irls=irls, k=float(k),
+                         align=align, deghost=deghost, reference=reference)
+
+
+# ---------------------------------------------------------------- the functions
+def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", estimator: str = "auto",
+          variance_model: str = "auto", irls: int | None = None, k: float = DEFAULT_K, align: str = "auto",
+          deghost: str = "off", reference: float | str = 1.0, cfa: str | None = None, black: float = 0.0,
+          white: float | None = None, bits: int | None = None, demosaic: bool = True, return_variance: bool = False):
+    """Merge an exposure stack into one scene-linear radiance image.
+
+    Parameters
+    ----------
+    {stack}
+    response : CRF, str, float, array or None
+        The images' camera response: a :class:`~hdrmerge_cli.core.crf.CRF` (e.g. from
+        :func:`estimate_response`), ``"linear"``, ``"srgb"``, a gamma ``G`` (codes
+        ``v = x**(1/G)``), or the inverse response as a ``(N,)`` or ``(C, N)`` table of the
+        linear signal at each code value.  None: measured on the stack
+        (:func:`estimate_response`; sRGB, with a warning, where the stack cannot pin it).
+        Mosaics are linear.
+    noise : NoiseParams, dict or None
+        The noise model (17) in code units of the linear signal: a
+        :class:`~hdrmerge_cli.core.noise.NoiseParams`, a dict ``{{"sigma_o2", "alpha",
+        "beta"}}``, or either per channel (``{{"R": ..., "G": ..., "B": ...}}``; mosaics
+        also ``"G2"``).  None: measured on the stack where the merge needs it
+        (:func:`estimate_noise`: mosaics and linear images always).
+    weighting : str
+        The weighting function of (7): ``"auto"``, ``"triangle"``, ``"uniform"``,
+        ``"probabilistic"`` (32), ``"direct"`` (33), ``"optimal"`` (29), ``"bounded"``,
+        ``"mann"``, ``"deneve"``, ``"gaussian"``.  auto: uniform with the ML estimator,
+        triangle with the log estimator.
+    estimator : {{"auto", "log", "ml"}}
+        ``log``: the paper's log-domain (7); ``ml``: linear inverse-variance with clipped
+        readings censored.  auto: ml for mosaics and linear images, else log.
+    variance_model : {{"auto", "model", "codes", "photon", "none"}}
+        The variance factor of (7); auto: model when noise parameters are known.
+    irls : int, optional
+        Re-weighting passes at the merged estimate (default: one for ML with a noise model).
+    k : float
+        Clipping margin of (47) in standard deviations.
+    align : {{"auto", "off", "translation", "similarity"}}
+        Registration onto the middle exposure (:func:`register`); auto applies it only when
+        a frame is off by more than a quarter pixel.
+    deghost : {{"off", "auto", "on"}}
+        Drop moving objects (:func:`ghost_mask`).
+    reference : float or str
+        The exposure (seconds) whose full-scale signal is 1.0 in the result, or
+        ``"geomean"``, ``"shortest"``, ``"longest"``.  The default, 1 s, gives radiance in
+        full scale per second.
+    cfa : str, optional
+        The mosaics' 2 x 2 colour filter pattern.
+    black, white : float
+        Code values of no light and of clipping (default 0 and ``2**bits - 1``).
+    bits : int, optional
+        Significant bits of the codes (default: the dtype's).
+    demosaic : bool
+        Mosaics: False returns the merged ``(H, W)`` mosaic itself (camera-native, before
+        white balance and demosaicing).
+    return_variance : bool
+        Also return the variance of each value under the noise model.
+
+    Returns
+    -------
+    radiance : ndarray, float32, (H, W, 3)
+        Scene-linear radiance in units of the full-scale signal of a ``reference`` s
+        exposure ((H, W) for (H, W) images and mosaics not demosaiced).  Mosaics are demosaiced with white balance 1
+        and the identity camera matrix.  Pixels clipped (or dark) in every frame hold a
+        finite lower (upper) bound.
+    variance : ndarray, float32, like ``radiance``
+        Only with ``return_variance``: the variance of each value (units squared).
+
+    Raises
+    ------
+    HdrMergeError
+        Inconsistent frames or times, unknown option values (a one-line message).
+
+    Examples
+    --------
+    A gamma-2.2 8-bit stack of a ramp; the response is measured on it:
+
+    >>> import numpy as np, hdrmerge_cli
+    >>> scene = np.geomspace(0.01, 20.0, 60 * 80).reshape(60, 80)          # full scale per s
+    >>> times = [1 / 16, 1 / 4, 1.0]
+    >>> stack = [np.round(255 * np.clip(scene * t, 0, 1) ** (1 / 2.2)).astype(np.uint8) for t in times]
+    >>> hdr, var = hdrmerge_cli.merge(stack, times, response=2.2, return_variance=True)
+    >>> hdr.shape, var.shape
+    ((60, 80), (60, 80))
+    >>> ok = (scene > 0.02) & (scene < 15)
+    >>> bool(np.all(np.abs(hdr[ok] / scene[ok] - 1) < 0.05))
+    True
+    """
+    from hdrmerge_cli.pipeline.merge import check_options, merge_frames
+
+    settings = _settings(weighting, estimator, variance_model, irls, k, align, deghost, reference)
+    st = _stack(stack, times, cfa, black, white, bits)
+    crf = _given_response(response, st)
+    params = _noise(noise)
+    opts = MergeOptions(settings, io=OutputOptions(extra_channels=("variance",) if return_variance else (),
+                                                   cfa=st.raw and not demosaic, noise_cache=False))
+    check_options(opts)
+    merged = merge_frames(st.frames, crf, opts, load=st.load, noise=params)
+    image = merged.image
+    variance = merged.variance if return_variance else None
+    if image.shape[-1] == 1:  # a grey image, or a mosaic not demosaiced
+        image = image[..., 0]
+        variance = variance[..., 0] if variance is not None else None
+    return (image, variance) if return_variance else image
+
+
+def estimate_response(stack, times, *, black: float = 0.0, white: float | None = None,
+                      bits: int | None = None) -> CRF:
+    """Measure the camera response of an image stack (the merge's measured response:
+    ``estimate-crf``'s Goossens fit with its prior towards sRGB where the frames leave the
+    curve open, the exposure labels checked through it).
+
+    Parameters
+    ----------
+    {stack}
+        Images only: a mosaic is linear.  Two distinct exposures at least, neighbours
+        sharing unclipped pixels.
+    black, white, bits :
+        As for :func:`merge`.
+
+    Returns
+    -------
+    CRF
+        ``.table``: ``(C, N)`` float64, the inverse response (linear signal in [0, 1]) at
+        each of the ``N`` code values per channel; ``.inverse(v, c)`` and ``.forward(x, c)``
+        map normalised codes ``v = z / (N - 1)`` to linear ``x`` and back.  Pass it as
+        :func:`merge`'s ``response``.
+
+    Raises
+    ------
+    HdrMergeError
+        A mosaic; frames whose order contradicts their times; a stack that cannot pin a
+        response (one exposure, too little overlap, a flat fit).
+
+    Examples
+    --------
+    >>> import numpy as np, hdrmerge_cli
+    >>> scene = np.geomspace(0.01, 20.0, 96 * 128).reshape(96, 128)
+    >>> times = [1 / 16, 1 / 4, 1.0]
+    >>> stack = [np.round(255 * np.clip(scene * t, 0, 1) ** (1 / 2.2)).astype(np.uint8) for t in times]
+    >>> crf = hdrmerge_cli.estimate_response(stack, times)
+    >>> crf.table.shape
+    (1, 256)
+    >>> round(float(crf.inverse(128 / 255)), 2)   # gamma 2.2: (128/255)**2.2 = 0.22
+    0.22
+    """
+    from hdrmerge_cli.pipeline.crf import fit_with_labels, is_flat
+    from hdrmerge_cli.pipeline.exposure_check import check_order, sample_frames, thin_overlap
+
+    st = _stack(stack, times, None, black, white, bits)
+    if len(np.unique(st.exposures)) < 2:
+        raise HdrMergeError("a response is measured on two exposures or more")
+    samples = sample_frames(st.frames, st.load)
+    check_order(st.frames, samples)
+    thin = thin_overlap(samples)
+    if thin is not None:
+        k, both = thin
+        raise HdrMergeError(f"frames {st.order[k - 1]} and {st.order[k]} share {both} unclipped pixels: too few to "
+                            "chain a response across")
+    crf = fit_with_labels(st.frames, st.exposures, samples)
+    if is_flat(crf):
+        raise HdrMergeError("the response fitted on the stack is flat: the frames do not pin it")
+    return CRF("measured", table=crf.table)
+
+
+def estimate_noise(stack, times, *, response=None, cfa: str | None = None, black: float = 0.0,
+                   white: float | None = None, bits: int | None = None) -> dict[str, NoiseParams]:
+    """Measure the noise model (17) of the camera on the stack, per channel, as the merge
+    does when given none (``calibrate-noise``'s fit on a subsample of each frame: local
+    means and variances, read noise and gain; the gain FPN ``beta`` is left 0, as scene
+    texture cannot be told from it on photographs).
+
+    Parameters
+    ----------
+    {stack}
+    response : CRF, str, float, array or None
+        As for :func:`merge`: images are measured on their signal linearised through it.
+    cfa, black, white, bits :
+        As for :func:`merge`.
+
+    Returns
+    -------
+    dict of str to NoiseParams
+        Per channel name (``"R"``, ``"G"``, ``"B"``, mosaics also ``"G2"``; grey ``"Y"``):
+        ``sigma_o2`` (read noise, code values squared), ``alpha`` (gain, code values squared
+        per electron), ``beta`` (0).  Code values are those of the linear signal above black
+        (images: the linearised codes, full scale ``white``).  Pass it as :func:`merge`'s
+        ``noise``.
+
+    Raises
+    ------
+    HdrMergeError
+        No frame with usable texture-free regions (all clipped or black), bad input.
+
+    Examples
+    --------
+    12-bit mosaics of grey patches: 0.5 code values per electron (``alpha`` = 0.25), read
+    noise of 3 code values (``sigma_o2`` = 9), black at 64:
+
+    >>> import numpy as np, hdrmerge_cli
+    >>> rng = np.random.default_rng(1)
+    >>> scene = np.kron(np.geomspace(20, 3500, 32).reshape(4, 8), np.ones((24, 16)))  # code values per s
+    >>> times = [0.25, 1.0]
+    >>> stack = [np.clip(np.round(0.5 * rng.poisson(scene * t / 0.5) + rng.normal(0, 3, scene.shape) + 64),
+    ...                  0, 4095).astype(np.uint16) for t in times]
+    >>> noise = hdrmerge_cli.estimate_noise(stack, times, cfa="RGGB", black=64, white=4095, bits=12)
+    >>> sorted(noise)
+    ['B', 'G', 'G2', 'R']
+    >>> p = noise["R"]
+    >>> bool(0.2 < p.alpha < 0.3 and 6 < p.sigma_o2 < 13), p.beta
+    (True, 0.0)
+    """
+    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+
+    st = _stack(stack, times, cfa, black, white, bits)
+    crf = _response(response, st)
+    used, _ = estimate_bracket_noise(st.frames, crf, st.load)
+    return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}
+
+
+@dataclass(frozen=True)
+class Registration:
+    """What :func:`register` found.
+
+    Attributes
+    ----------
+    warps : ndarray, float64, (K, 2, 3)
+        Per input frame, the affine map from the reference frame's pixel coordinates
+        ``(x, y, 1)`` (x along a row) to that frame's: frame ``k`` resampled at
+        ``warps[k] @ (x, y, 1)`` lies on the reference.  The identity for the reference
+        and for frames that could not be registered.
+    applied : bool
+        Whether the merge applies them (``motion="auto"``: some frame is off by more than
+        a quarter pixel).
+    reference : int
+        The input index of the reference frame (the middle exposure).
+    confidence : ndarray, float64, (K,)
+        Each registration's correlation coefficient to its neighbour (1 for the reference).
+    """
+
+    warps: np.ndarray
+    applied: bool
+    reference: int
+    confidence: np.ndarray
+
+
+def register(stack, times, *, response=None, motion: str = "auto", cfa: str | None = None, black: float = 0.0,
+             white: float | None = None, bits: int | None = None) -> Registration:
+    """Register the frames of a hand-held stack onto its middle exposure, as the merge does
+    (phase correlation and ECC on exposure-normalised log irradiance, each frame to its
+    neighbour towards the reference, chained; checked tile by tile).
+
+    Parameters
+    ----------
+    {stack}
+    response : CRF, str, float, array or None
+        As for :func:`merge` (the frames are compared as linear signal).
+    motion : {{"auto", "translation", "similarity"}}
+        The motion model; auto keeps a rotation only where it beats translation.
+    cfa, black, white, bits :
+        As for :func:`merge`.  Mosaics register on 2 x 2 cells; their warps are in mosaic
+        pixels.
+
+    Returns
+    -------
+    Registration
+        ``.warps`` (K, 2, 3) float64, ``.applied``, ``.reference``, ``.confidence``.
+
+    Examples
+    --------
+    The longer frame (the reference, the middle exposure of two) sees the scene 3 px further
+    right and 2 px further down, so the shorter one is read 3 px left and 2 px up:
+
+    >>> import numpy as np, hdrmerge_cli
+    >>> rng = np.random.default_rng(2)
+    >>> scene = np.exp(rng.standard_normal((140, 180)))
+    >>> import cv2; scene = cv2.GaussianBlur(scene, (0, 0), 2) * 0.2          # texture, full scale per s
+    >>> times = [0.5, 2.0]
+    >>> moved = np.roll(scene, (2, 3), axis=(0, 1))
+    >>> stack = [np.round(255 * np.clip(s * t, 0, 1) ** (1 / 2.2)).astype(np.uint8) for s, t in ((scene, times[0]), (moved, times[1]))]
+    >>> reg = hdrmerge_cli.register(stack, times, response=2.2, motion="translation")
+    >>> reg.reference, np.round(reg.warps[0][:, 2]).tolist(), reg.warps[1].tolist() == [[1, 0, 0], [0, 1, 0]]
+    (1, [-3.0, -2.0], True)
+    """
+    from hdrmerge_cli.pipeline.motion import estimate_alignment, reference_index
+
+    if motion == "off":
+        raise HdrMergeError("motion: 'off' registers nothing; choose auto, translation or similarity")
+    _choice("motion", motion, ("auto", "translation", "similarity"))
+    st = _stack(stack, times, cfa, black, white, bits)
+    crf = _response(response, st)
+    alignment = estimate_alignment(st.frames, st.exposures, crf, motion, st.load)
+    warps = np.array(st.to_input_order([np.asarray(w, np.float64) for w in alignment["warps"]]))
+    confidence = np.array(st.to_input_order(list(alignment["confidence"])), np.float64)
+    return Registration(warps, bool(alignment["applied"]), int(st.order[reference_index(st.frames)]), confidence)
+
+
+def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", align: str = "off",
+               cfa: str | None = None, black: float = 0.0, white: float | None = None,
+               bits: int | None = None) -> np.ndarray:
+    """Where each frame disagrees with the reference (the middle exposure) beyond its noise:
+    the merge's deghosting masks, per pixel.
+
+    Each frame is tested block by block against the reference under the noise model (a
+    chi-square test at a false-alarm rate of 1e-3, with the bounds a dark or clipped
+    reading sets), the rejected regions cleaned and feathered.
+
+    Parameters
+    ----------
+    {stack}
+    response : CRF, str, float, array or None
+        As for :func:`merge`.
+    noise : NoiseParams, dict or None
+        As for :func:`merge`.  None: measured for mosaics; for images the codes'
+        quantisation, the rest measured on the frames.
+    mode : {{"on", "auto"}}
+        ``auto``: all zero unless some frame has more than 0.2 % of its blocks rejected.
+    align : {{"off", "auto", "translation", "similarity"}}
+        Register first (:func:`register`); the masks are then on the reference's pixels.
+    cfa, black, white, bits :
+        As for :func:`merge`.
+
+    Returns
+    -------
+    ndarray, float32, (K, H, W)
+        Per input frame and pixel, how much of the frame is dropped: 0 kept, 1 dropped
+        (soft at region edges).  The reference is never dropped.
+
+    Examples
+    --------
+    A bright rectangle in the longest frame only:
+
+    >>> import numpy as np, hdrmerge_cli, cv2
+    >>> rng = np.random.default_rng(3)
+    >>> scene = 0.3 * np.exp(cv2.GaussianBlur(rng.standard_normal((96, 128)), (0, 0), 3))  # full scale per s
+    >>> times = [0.25, 0.5, 1.0]
+    >>> frames = [scene * t for t in times]
+    >>> frames[2] = frames[2].copy(); frames[2][30:60, 40:80] *= 2.5
+    >>> stack = [np.clip(np.round(4000 * f + rng.normal(0, 2, f.shape)), 0, 4095).astype(np.uint16)
+    ...          for f in frames]
+    >>> masks = hdrmerge_cli.ghost_mask(stack, times, response="linear", bits=12)
+    >>> masks.shape, float(masks[2, 45, 60]), float(masks[2, 5, 5]), float(masks[0].max())
+    ((3, 96, 128), 1.0, 0.0, 0.0)
+    """
+    from hdrmerge_cli.pipeline import motion
+
+    _choice("mode", mode, ("on", "auto"))
+    _choice("align", align, motion.ALIGN_MODES)
+    st = _stack(stack, times, cfa, black, white, bits)
+    crf = _response(response, st)
+    params = _noise(noise)
+    if params is None and st.raw:  # as the merge: a mosaic's noise is measured
+        from hdrmerge_cli.pipeline.model_choice import measure_noise
+
+        params, _ = measure_noise(st.frames, crf, st.load, cache=False)
+    alignment = motion.estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
+    load = motion.loader(st.frames, alignment, st.load)
+    ghosts = motion.find_ghosts(st.frames, st.exposures, crf, motion.require_noise(params, st.frames, crf),
+                                load, mode)
+    h, w = st.frames[0].height, st.frames[0].width
+    masks = np.zeros((len(st.frames), h, w), np.float32)
+    if ghosts["applied"]:
+        for k in range(len(st.frames)):
+            masks[st.order[k]] = motion.ghost_weight(ghosts, k, h, w)
+    return masks
+
+
+for _f in (merge, estimate_response, estimate_noise, register, ghost_mask):
+    _f.__doc__ = _f.__doc__.replace("{stack}", _DOC_STACK).replace("{{", "{").replace("}}", "}")
+del _f
+
+
+# ---------------------------------------------------------------- files
+def merge_files(paths: Sequence[str | Path], **options) -> Merged:
+    """Merge the bracket of image or RAW files ``paths`` (any order), as ``hdrmerge-cli
+    merge`` does.
+
+    Parameters
+    ----------
+    paths : sequence of str or Path
+        The frames: RAW files (LibRaw), or 8/16-bit JPEG/TIFF/PNG; exposure times from EXIF
+        unless ``times`` is given.
+    **options
+        The fields of :class:`~hdrmerge_cli.pipeline.options.MergeOptions` as the command
+        line takes them: :class:`MergeSettings` (``align="auto"``, ``deghost="on"``,
+        ``reference=0.01`` ...), the inputs' text (``crf="gamma:2.2"``,
+        ``noise="sigma_o2=4,alpha=1"``, ``profile``, ``times``, ``times_file``) and the
+        outputs' (``extra_channels=("variance",)``, ``colorspace="acescg"``, ``cfa``,
+        ``noise_cache`` ...); ``output`` is not needed (:meth:`Merged.write` takes it).
+
+    Returns
+    -------
+    Merged
+        ``.image`` (H, W, 3) float32 scene-linear (1.0 = the full-scale signal of an
+        exposure of ``.h_ref`` seconds), ``.flags`` (H, W) int8 (1 saturated, -1 dark),
+        ``.variance`` (with ``extra_channels=("variance",)``), ``.profile()``, ``.summary()``
+        and ``.write(path)`` (EXR, or a float DNG from RAW).
+
+    Raises
+    ------
+    HdrMergeError
+        Unreadable or inconsistent frames, bad options (one-line message).
+
+    Examples
+    --------
+    >>> merged = merge_files(["a.CR2", "b.CR2", "c.CR2"], align="auto")   # doctest: +SKIP
+    >>> merged.image.shape, merged.flags.shape                              # doctest: +SKIP
+    ((3456, 5184, 3), (3456, 5184))
+    >>> merged.write("out.exr")                                             # doctest: +SKIP
+    """
+    from hdrmerge_cli.pipeline.merge import merge_bracket
+
+    return merge_bracket([str(p) for p in paths], _options(options))
+
+
+def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",
+                 cfa_pattern: str | None = None, black: float = 0.0, white: float | None = None,
+                 bits: int | None = None, **options) -> Merged:
+    """Superseded by :func:`merge` (and :func:`ghost_mask`, :func:`register`); not exported.
+    Kept while callers move: decoded frames merged with :func:`merge_files`'s options, the
+    response as the command line's text, returning the :class:`Merged`."""
+    st = _stack(codes, exposure_times, cfa_pattern, black, white, bits)
+    options.setdefault("noise_cache", False)  # no camera to key a cache entry by
+    opts = _options(options)
+    if st.raw:
+        response = CRF("linear")
+    elif isinstance(crf, CRF):
+        response = crf
+    else:
+        from hdrmerge_cli.pipeline.bracket import choose_crf
+
+        response = choose_crf(st.frames, crf, warn=False)  # none given: merge_frames measures it
+    from hdrmerge_cli.pipeline.merge import merge_frames
+
+    return merge_frames(st.frames, response, opts, load=st.load)
+
+
+def _options(options: dict) -> MergeOptions:
+    """The checked :class:`MergeOptions` of :func:`merge_files`'s keywords.  Times may be
+    numbers (seconds) or text as on the command line: ``reference=0.01`` or ``"1/100"``,
+    ``times=[0.01, 0.04]``, ``"1/100,1/25"`` or ``"estimate"``."""
+    from hdrmerge_cli.io.times import ESTIMATE, parse_times, seconds
+    from hdrmerge_cli.pipeline.merge import check_options
+
+    times = options.get("times")
+    if isinstance(times, str):
+        options["times"] = ESTIMATE if times.strip().lower() == ESTIMATE else parse_times(times)
+    elif times is not None:
+        try:
+            options["times"] = [seconds(t) for t in times]
+        except (HdrMergeError, TypeError) as exc:
+            raise HdrMergeError(f"times: {exc}") from None
+    try:
+        opts = MergeOptions(**options)
+    except TypeError as exc:
+        raise HdrMergeError(str(exc)) from None
+    check_options(opts)
+    return opts

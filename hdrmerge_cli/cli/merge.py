@@ -1,7 +1,6 @@
 """hdrmerge-cli merge"""
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import sys
@@ -22,7 +21,9 @@ from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
 from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
 from hdrmerge_cli.io.images import EXR_COMPRESSIONS
 from hdrmerge_cli.pipeline.merge import merge
-from hdrmerge_cli.pipeline.options import ESTIMATORS, EXTRA_CHANNELS, MergeOptions
+from hdrmerge_cli.pipeline.options import (
+    ESTIMATORS, EXTRA_CHANNELS, InputOptions, MergeOptions, MergeSettings, OutputOptions,
+)
 from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
 log = logging.getLogger("hdrmerge_cli")
@@ -146,12 +147,13 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
     if times is not None and times != ESTIMATE and times_file:
         raise click.UsageError("give either --times or --times-file, not both (--times estimate may take the labels "
                                "from --times-file)")
-    opts = MergeOptions(
-        output=output, profile_out=profile_out, overwrite=overwrite, weights=weights, crf=crf, times=times,
-        times_file=times_file, reference=reference, cfa=cfa, half=half, extra_channels=extra_channels,
-        noise=noise, profile=profile, variance=variance, estimator=estimator, irls=irls, k=k, lut=lut, bounds=bounds,
-        preview=preview, preview_size=preview_size, align=align, deghost=deghost,
-        compression=compression, noise_cache=not no_cache, colorspace=colorspace,
+    opts = MergeOptions(  # how to merge, what the files are (text resolved as they are read), what to write
+        MergeSettings(estimator=estimator, weights=weights, variance=variance, irls=irls, k=k, lut=lut, bounds=bounds,
+                      align=align, deghost=deghost, reference=reference),
+        InputOptions(crf=crf, profile=profile, noise=noise, times=times, times_file=times_file),
+        OutputOptions(output=output, profile_out=profile_out, overwrite=overwrite, cfa=cfa, half=half,
+                      extra_channels=extra_channels, colorspace=colorspace, compression=compression, preview=preview,
+                      preview_size=preview_size, noise_cache=not no_cache),
     )
     given = _given(click.get_current_context())
     if preview is not None and str(preview).startswith("-"):  # `--preview --overwrite`: click took the option as the path
@@ -197,7 +199,7 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
     if scheduler and jobs != 1:
         log.warning("-j is ignored with --scheduler: the cluster's workers decide how many brackets run at once")
     if scheduler:  # cluster workers do not share our working directory: every file path absolute
-        opts = dataclasses.replace(opts, **{
+        opts = opts.replace(**{
             k: str(Path(v).resolve()) for k in ("crf", "lut", "times_file", "profile")
             if (v := getattr(opts, k)) and Path(v).is_file()})
     bopts = BatchOptions(batch_dir, opts.output, opts, jobs, gap, scheduler, skip_existing)

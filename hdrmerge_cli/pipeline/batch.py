@@ -299,7 +299,7 @@ def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = N
             with tempfile.TemporaryDirectory() as tmp:
                 profile = Path(tmp) / "profile.json"
                 profile.write_text(profile_text, encoding="utf-8")
-                return {"status": "merged", "summary": merge(paths, dataclasses.replace(opts, profile=str(profile)))}
+                return {"status": "merged", "summary": merge(paths, opts.replace(profile=str(profile)))}
         return {"status": "merged", "summary": merge(paths, opts)}
     except HdrMergeError as exc:
         return {"status": "failed", "error": str(exc)}
@@ -319,7 +319,7 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     batch summary; the caller decides the exit status from ``summary["failed"]``."""
     todo = [e for e in entries if e["status"] == "planned"]
     profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
-    jobs = [(e, dataclasses.replace(opts.merge, output=Path(e["output"]), profile_out=None)) for e in todo]
+    jobs = [(e, opts.merge.replace(output=Path(e["output"]), profile_out=None)) for e in todo]
     client = _connect(opts.scheduler) if opts.scheduler and jobs else None  # before anything is created
     # nothing to write: no output folder either; interrupted, or every bracket failed: the
     # folders made for the outputs go again

@@ -1,6 +1,22 @@
-"""The options of a merge (``hdrmerge-cli merge``, :func:`hdrmerge_cli.merge`)."""
+"""The options of a merge, in three parts that say what they are about.
+
+* :class:`MergeSettings`: how to merge (the algorithm): estimator, weights, variance,
+  re-weighting, registration, deghosting, the output's reference exposure.  The array API
+  (:func:`hdrmerge_cli.merge`) takes these and nothing else.
+* :class:`InputOptions`: what the files are, as the command line describes them (text
+  resolved when the bracket is read: ``--crf gamma:2.2``, ``--noise sigma_o2=4,alpha=1``,
+  a profile, exposure times).
+* :class:`OutputOptions`: what is written where (EXR, profile, preview, their format)
+  and the per-camera cache.
+
+:class:`MergeOptions` composes the three for ``hdrmerge-cli merge`` and
+:func:`hdrmerge_cli.merge_files`; it also reads any part's field as its own attribute
+(``opts.estimator``, ``opts.output``) and takes the fields flat (``MergeOptions(output=...,
+deghost="on")``).
+"""
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,38 +29,133 @@ EXTRA_CHANNELS = ("clipped", "weight", "ghost", "variance")
 ESTIMATORS = ("auto", "log", "ml")
 
 
-@dataclass
-class MergeOptions:
-    """What to merge how, and where to write it.  Strings are as the command line takes
-    them (``--weights``, ``--crf`` ...); ``output`` may be None for a merge kept in
-    memory (:func:`hdrmerge_cli.merge`)."""
+@dataclass(frozen=True)
+class MergeSettings:
+    """How a bracket is merged; each ``auto`` is resolved per bracket
+    (:mod:`hdrmerge_cli.pipeline.model_choice`, :mod:`hdrmerge_cli.pipeline.motion`).
+
+    estimator : ``auto``, ``log`` (the paper's (7)) or ``ml`` (linear, censored)
+    weights : ``auto`` or a key of :data:`hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`
+    variance : the variance factor of (7): ``auto``, ``model``, ``codes``, ``photon``, ``none``
+    irls : re-weighting passes at the merged estimate (None: the estimator's default)
+    k : clipping margin of (47), in standard deviations
+    lut : a ``weights-lut`` table (CSV path) instead of ``weights``
+    bounds : the bounded weights' upper bounds, as ``--bounds`` writes them
+    align : registration: ``off``, ``auto``, ``translation``, ``similarity``
+    deghost : ``off``, ``auto``, ``on``
+    reference : the exposure (s) whose full-scale signal is 1.0 in the output:
+        ``geomean``, ``shortest``, ``longest``, or seconds (number or text such as ``1/100``)
+    """
+
+    estimator: str = "auto"
+    weights: str = "auto"
+    variance: str = "auto"
+    irls: int | None = None
+    k: float = DEFAULT_K
+    lut: str | None = None
+    bounds: str | None = None
+    align: str = "auto"
+    deghost: str = "off"
+    reference: str | float = "geomean"
+
+
+@dataclass(frozen=True)
+class InputOptions:
+    """What the files of a bracket are, as text the command line takes; resolved when the
+    bracket is read (:func:`hdrmerge_cli.pipeline.merge.open_bracket`,
+    :func:`hdrmerge_cli.pipeline.model_choice.resolve_noise`).
+
+    crf : images' response: ``linear``, ``srgb``, ``gamma:G``, a CSV table or profile JSON
+        (None: measured on the bracket)
+    profile : a camera profile JSON (noise parameters and response)
+    noise : ``sigma_o2=4,alpha=1,beta=0`` or per channel ``R:... G:...`` (None: measured)
+    times : exposure times (s) in the order of the files, or ``"estimate"``
+    times_file : lines ``name seconds``
+    """
+
+    crf: str | None = None
+    profile: str | None = None
+    noise: str | None = None
+    times: list[float] | str | None = None
+    times_file: str | None = None
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """What a merge writes, where and how.
+
+    output : the EXR or float DNG (None: kept in memory, :meth:`Merged.write` takes a path)
+    profile_out : the profile JSON (None: beside ``output``)
+    overwrite : replace existing files
+    cfa : RAW: write the merged mosaic (no demosaic, camera-native)
+    half : 16-bit half floats
+    extra_channels : a subset of :data:`EXTRA_CHANNELS` (``variance`` also makes the merge
+        compute it)
+    colorspace : a key of :data:`hdrmerge_cli.core.output_colorspace.COLORSPACES`
+    compression : a key of :data:`hdrmerge_cli.io.images.EXR_COMPRESSIONS`
+    preview, preview_size : a tone-mapped picture and its longest side (0: full size)
+    noise_cache : read and store noise and response measurements in the per-camera cache
+    """
 
     output: Path | None = None
     profile_out: Path | None = None
     overwrite: bool = False
-    weights: str = "auto"
-    crf: str | None = None
-    times: list[float] | str | None = None
-    times_file: str | None = None
-    reference: str = "geomean"
     cfa: bool = False
     half: bool = False
     extra_channels: tuple[str, ...] = field(default_factory=tuple)
-    noise: str | None = None
-    profile: str | None = None
-    variance: str = "auto"
-    estimator: str = "auto"
-    irls: int | None = None  # None: models.default_irls
-    k: float = DEFAULT_K
-    lut: str | None = None
-    bounds: str | None = None
+    colorspace: str = "rec709"
+    compression: str = "auto"
     preview: Path | None = None
     preview_size: int = 2048
-    align: str = "auto"
-    deghost: str = "off"
-    #: read/store bracket noise measurements in the per-camera cache (``--no-cache``: off)
     noise_cache: bool = True
-    #: output colour space (a key of :data:`hdrmerge_cli.core.output_colorspace.COLORSPACES`)
-    colorspace: str = "rec709"
-    #: OpenEXR compression (a key of :data:`hdrmerge_cli.io.images.EXR_COMPRESSIONS`)
-    compression: str = "auto"
+
+
+#: each flat field's part
+_PARTS = {"algorithm": MergeSettings, "inputs": InputOptions, "io": OutputOptions}
+_OWNER = {f.name: part for part, cls in _PARTS.items() for f in dataclasses.fields(cls)}
+
+
+@dataclass(init=False, frozen=True)
+class MergeOptions:
+    """A file-level merge's options: ``algorithm`` (:class:`MergeSettings`), ``inputs``
+    (:class:`InputOptions`) and ``io`` (:class:`OutputOptions`).
+
+    Built from the parts, from flat fields, or both (flat fields override the parts'):
+
+    >>> opts = MergeOptions(MergeSettings(deghost="on"), output=Path("m.exr"))
+    >>> opts.deghost, opts.output, opts.io.overwrite
+    ('on', PosixPath('m.exr'), False)
+    >>> opts.replace(overwrite=True).io.overwrite
+    True
+    """
+
+    algorithm: MergeSettings
+    inputs: InputOptions
+    io: OutputOptions
+
+    def __init__(self, algorithm: MergeSettings | None = None, inputs: InputOptions | None = None,
+                 io: OutputOptions | None = None, **fields):
+        parts = {"algorithm": algorithm or MergeSettings(), "inputs": inputs or InputOptions(),
+                 "io": io or OutputOptions()}
+        for name, cls in _PARTS.items():
+            if not isinstance(parts[name], cls):
+                raise TypeError(f"MergeOptions {name}: a {cls.__name__}, not {type(parts[name]).__name__}")
+        unknown = sorted(set(fields) - set(_OWNER))
+        if unknown:
+            raise TypeError(f"MergeOptions: unknown option {unknown[0]!r}")
+        for name in parts:
+            mine = {k: v for k, v in fields.items() if _OWNER[k] == name}
+            if mine:
+                parts[name] = dataclasses.replace(parts[name], **mine)
+        for name, part in parts.items():
+            object.__setattr__(self, name, part)
+
+    def __getattr__(self, name: str):
+        part = _OWNER.get(name)
+        if part is None or part not in self.__dict__:
+            raise AttributeError(f"MergeOptions has no option {name!r}")
+        return getattr(self.__dict__[part], name)
+
+    def replace(self, **fields) -> MergeOptions:
+        """A copy with the given flat fields changed."""
+        return MergeOptions(self.algorithm, self.inputs, self.io, **fields)
