@@ -643,6 +643,8 @@ def merge_files(paths: Sequence[str | Path], **options) -> Merged:
         ``noise="sigma_o2=4,alpha=1"``, ``profile``, ``times``, ``times_file``) and the
         outputs' (``extra_channels=("variance",)``, ``colorspace="acescg"``, ``cfa``,
         ``noise_cache`` ...); ``output`` is not needed (:meth:`Merged.write` takes it).
+        ``crf`` may also be a :class:`CRF` (e.g. from :func:`estimate_response`) and
+        ``noise`` what :func:`merge` takes (e.g. from :func:`estimate_noise`).
 
     Returns
     -------
@@ -664,9 +666,23 @@ def merge_files(paths: Sequence[str | Path], **options) -> Merged:
     ((3456, 5184, 3), (3456, 5184))
     >>> merged.write("out.exr")                                             # doctest: +SKIP
     """
-    from hdrmerge_cli.pipeline.merge import merge_bracket
+    import time
 
-    return merge_bracket([str(p) for p in paths], _options(options))
+    from hdrmerge_cli.pipeline.merge import merge_frames, open_bracket
+
+    t0 = time.perf_counter()
+    noise = options.pop("noise") if not isinstance(options.get("noise"), (str, type(None))) else None
+    crf = options.pop("crf") if isinstance(options.get("crf"), CRF) else None
+    opts = _options(options)
+    noise = _noise(noise)
+    frames, response = open_bracket([str(p) for p in paths], opts)
+    if crf is not None and frames[0].kind == "image":
+        n = frames[0].n_codes
+        if crf.table is not None and crf.table.shape[1] != n:
+            raise HdrMergeError(f"crf: the inverse table has {crf.table.shape[1]} entries per channel, but "
+                                f"{frames[0].path} has {n} code values")
+        response = crf
+    return merge_frames(frames, response, opts, t_start=t0, noise=noise)
 
 
 def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",

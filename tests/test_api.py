@@ -367,6 +367,24 @@ def test_merge_files_time_options_take_numbers(jpeg_bracket):
             hdrmerge_cli.merge_files(["/no/such/frame.jpg"], **kw)
 
 
+def test_merge_files_takes_objects_as_well_as_text(jpeg_bracket, dng_bracket):
+    """``crf`` a CRF and ``noise`` NoiseParams (what the estimators return) merge as their
+    text does."""
+    folder, meta = jpeg_bracket
+    paths = frames_of(folder, meta)
+    a = hdrmerge_cli.merge_files(paths, crf=CRF("srgb"))
+    b = hdrmerge_cli.merge_files(paths, crf="srgb")
+    np.testing.assert_array_equal(a.image, b.image)
+    folder, meta = dng_bracket
+    paths = frames_of(folder, meta)
+    a = hdrmerge_cli.merge_files(paths, noise=NoiseParams(sigma_o2=9, alpha=0.25), align="off")
+    b = hdrmerge_cli.merge_files(paths, noise="sigma_o2=9,alpha=0.25,beta=0", align="off")
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.summary()["noise"] == b.summary()["noise"]
+    with pytest.raises(HdrMergeError, match="noise"):
+        hdrmerge_cli.merge_files(paths, noise=[1, 2])
+
+
 def test_json_summary_matches_cli(tmp_path, run, dng_bracket):
     folder, meta = dng_bracket
     paths = frames_of(folder, meta)
