@@ -4,7 +4,7 @@ predict a left-out frame best (the table behind ``merge --align``'s default).
 For every bracket of ``../shared/data/brackets`` and every interior frame ``k``: the
 response is estimated once on all the frames (``estimate-crf`` defaults: the same for every
 method, so only the geometry differs); the other frames are aligned by each method and
-merged by our merge (:func:`hdrmerge_cli.merge_arrays`); the left-out frame's codes are
+merged by our merge (:func:`hdrmerge_cli.api.merge_arrays`); the left-out frame's codes are
 predicted through the response (``z = gamma(E h_k)``); the prediction is registered onto
 the frame by one evaluator for every method (OpenCV only: phase correlation, then ECC with
 an affine model on a three-level pyramid -- a merge on another frame's grid is not
@@ -106,13 +106,13 @@ def align_hugin(paths: list[str], tmp: Path) -> tuple[list[np.ndarray], np.ndarr
 
 
 def merged(codes, times, crf, options=None) -> tuple[np.ndarray, np.ndarray]:
-    """Our merge of ``codes`` with ``options`` (:func:`hdrmerge_cli.merge_arrays`'s; default
+    """Our merge of ``codes`` with ``options`` (:func:`hdrmerge_cli.api.merge_arrays`'s; default
     ``--align off``): ``(E (H, W, 3) per second of exposure, where every frame has data
     (H, W) bool)``."""
-    import hdrmerge_cli
+    from hdrmerge_cli.api import merge_arrays
     from hdrmerge_cli.core.resample import covered_mask
 
-    m = hdrmerge_cli.merge_arrays(codes, times, crf=crf, **(options or {"align": "off"}))
+    m = merge_arrays(codes, times, crf=crf, **(options or {"align": "off"}))
     h, w = codes[0].shape[:2]
     covered = np.ones((h, w), bool)
     if m.alignment is not None and m.alignment["applied"]:

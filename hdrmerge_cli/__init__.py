@@ -15,12 +15,9 @@ from hdrmerge_cli._version import __version__
 __all__ = ["CRF", "Merged", "MergeSettings", "NoiseParams", "Registration", "estimate_noise", "estimate_response",
            "ghost_mask", "merge", "merge_files", "register", "__version__"]
 
-#: names the API module still answers for its callers, not exported (see :func:`hdrmerge_cli.api.merge_arrays`)
-_UNEXPORTED = ("merge_arrays",)
-
 
 def __getattr__(name: str):
-    if (name in __all__ and name != "__version__") or name in _UNEXPORTED:
+    if name in __all__ and name != "__version__":
         from hdrmerge_cli import api
 
         return getattr(api, name)

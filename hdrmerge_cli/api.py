@@ -686,9 +686,11 @@ def merge_files(paths: Sequence[str | Path], **options) -> Merged:
 def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",
                  cfa_pattern: str | None = None, black: float = 0.0, white: float | None = None,
                  bits: int | None = None, **options) -> Merged:
-    """Superseded by :func:`merge` (and :func:`ghost_mask`, :func:`register`); not exported.
-    Kept while callers move: decoded frames merged with :func:`merge_files`'s options, the
-    response as the command line's text, returning the :class:`Merged`."""
+    """Decoded frames merged with :func:`merge_files`'s options (the response as the command
+    line's text or a :class:`CRF`), returning the whole :class:`Merged`: its summary, the
+    alignment and ghosts it found, for tests and benchmarks that inspect a merge's stages.
+    ``codes``, ``cfa_pattern``, ``black``, ``white``, ``bits`` as :func:`merge`'s ``stack``,
+    ``cfa``, ``black``, ``white``, ``bits``."""
     st = _stack(codes, exposure_times, cfa_pattern, black, white, bits)
     options.setdefault("noise_cache", False)  # no camera to key a cache entry by
     opts = _options(options)

@@ -17,7 +17,7 @@ evaluated at its own noisy reading, ``E[v(y) / y^2] > v(mu) / mu^2``, +3 cv^2).
 import numpy as np
 import pytest
 
-import hdrmerge_cli
+from hdrmerge_cli.api import merge_arrays
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams, clipping_safe_range_exact
@@ -307,7 +307,7 @@ def test_raw_rgb_variance_agrees_with_monte_carlo(colour):
     electrons = 200.0 * np.tile(cell, (size // 2, size // 2)) / np.sqrt(alpha)
     codes = [np.clip(np.round(np.sqrt(alpha) * rng.poisson(electrons * t) + 2.0 * rng.standard_normal(electrons.shape)
                               + black), 0, white).astype(np.uint16) for t in times]
-    m = hdrmerge_cli.merge_arrays(codes, times, cfa_pattern="RGGB", black=black, white=white, bits=12,
+    m = merge_arrays(codes, times, cfa_pattern="RGGB", black=black, white=white, bits=12,
                                   extra_channels=("variance",), reference="1", noise="sigma_o2=4,alpha=0.5,beta=0")
     image, variance = m.image[8:-8, 8:-8], m.variance[8:-8, 8:-8]
     for c in range(3):

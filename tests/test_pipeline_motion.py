@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import SHARED, frames_of, needs_shared
+from hdrmerge_cli.api import merge_arrays
 from hdrmerge_cli.core import deghost, registration, resample
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.scene import procedural_scene
@@ -296,14 +297,12 @@ def test_deghost_with_irls_keeps_the_ghost_out():
     """--deghost with the RAW default of one IRLS pass (ML): the re-weighting keeps the
     ghost weights (SampleWeights.adjust) and drops the clipped readings the estimate makes
     impossible, so the patch reads as the static bracket does."""
-    import hdrmerge_cli
-
     kw = dict(cfa_pattern="RGGB", black=64.0, white=4095.0, bits=12, cfa=True, reference="1",
               noise="sigma_o2=4,alpha=0.5,beta=0")
     static, e = _ghost_mosaics(3, False)
     moving, _ = _ghost_mosaics(3, True)
-    a = hdrmerge_cli.merge_arrays(static, [1.0, 4.0, 16.0], **kw)
-    b = hdrmerge_cli.merge_arrays(moving, [1.0, 4.0, 16.0], deghost="on", **kw)
+    a = merge_arrays(static, [1.0, 4.0, 16.0], **kw)
+    b = merge_arrays(moving, [1.0, 4.0, 16.0], deghost="on", **kw)
     assert a.iterations == 1 and b.iterations == 1 and b.ghosts["applied"]
     patch = (slice(40, 64), slice(20, 44))
     ratio = b.image[patch][..., 0] / a.image[patch][..., 0]
@@ -593,12 +592,11 @@ def test_static_jpeg_bracket_is_not_deghosted(seed):
     and fine texture are within a shift of one block, envelope_residual; those of readings
     near white, where JPEG ringing darkens what clips, are bounds: shoulder_excuse), so auto
     leaves the bracket alone."""
-    import hdrmerge_cli
 
     rng = np.random.default_rng(1000 + seed)
     times = [0.25, 1.0, 4.0]
     frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
-    m = hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto")
+    m = merge_arrays(frames, times, crf="srgb", deghost="auto")
     assert max(m.ghosts["rejected_fraction"]) <= deghost.IMAGE_PARAMS.auto_fraction
     assert not m.ghosts["applied"]
 
@@ -607,7 +605,6 @@ def test_static_jpeg_bracket_is_not_deghosted(seed):
 def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
     """A flat object in one frame only, over the textured part of a JPEG bracket: found
     over (almost) all of its footprint."""
-    import hdrmerge_cli
     from hdrmerge_cli.pipeline import motion
 
     rng = np.random.default_rng(7)
@@ -618,7 +615,7 @@ def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
     level = float(np.median(scene[patch]))
     value = level * (6.0 if frame == 0 else 1 / 6.0)
     frames = _jpeg_frames(rng, scene, times, ghost=(frame, patch, value))
-    m = hdrmerge_cli.merge_arrays(frames, times, crf="srgb", deghost="auto")
+    m = merge_arrays(frames, times, crf="srgb", deghost="auto")
     g = m.ghosts
     assert g["applied"]
     soft = motion.ghost_weight(g, frame, *frames[0].shape[:2])

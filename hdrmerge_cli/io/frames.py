@@ -66,7 +66,7 @@ class Frame:
     orientation: int = 1
     file_levels: tuple | None = None
     #: RAW: the 2 x 2 cell of LibRaw's colour index (0..3): read with the metadata, or given
-    #: (frames made from arrays, :func:`hdrmerge_cli.merge_arrays`); None where the colour
+    #: (frames made from arrays, :func:`hdrmerge_cli.api.merge_arrays`); None where the colour
     #: index does not repeat with a 2 x 2 cell (:func:`cfa_corner` then reads the file)
     cfa_cell: np.ndarray | None = None
     #: images: the index of the file's alpha channel (gray+alpha, RGBA), else None; a pixel
