@@ -63,7 +63,8 @@ log = logging.getLogger("hdrmerge_cli")
                    "with the ml estimator (RAW), triangle with log (images); the measured winners.")
 @click.option("--crf", metavar="CRF",
               help="Camera response of JPEG/TIFF/PNG input: linear, srgb, gamma:G, a CSV table (z, linear) "
-                   "or a profile JSON [default: srgb, with a warning].  RAW input is linear.")
+                   "or a profile JSON [default: measured on the bracket, as estimate-crf does, or read from the "
+                   "response cache; sRGB with a warning where the bracket cannot pin it].  RAW input is linear.")
 @click.option("--times", callback=times_or_estimate_callback, metavar="T1,T2,...|estimate", help=TIMES_HELP)
 @click.option("--times-file", type=click.Path(exists=True, dir_okay=False),
               help="File of lines 'name seconds' giving each image's exposure time (with --times estimate: the "
