@@ -76,6 +76,24 @@ def test_command_help_skips_heavy_libraries(tmp_path, command):
     assert not mods & set(HEAVY), sorted(mods & set(HEAVY))
 
 
+def test_merge_help_imports_no_numba_scipy_or_the_merge(tmp_path):
+    """``merge --help`` reads its choices from the option vocabularies
+    (:mod:`hdrmerge_cli.core.choices`, :mod:`hdrmerge_cli.pipeline.options`), not from the
+    code behind them: no Numba, SciPy or importlib.metadata (the version is read on
+    ``--version`` only), and no merge pipeline."""
+    code, mods = _modules_after(["merge", "--help"], tmp_path)
+    assert code == 0
+    assert not mods & {"numba", "scipy", "importlib.metadata"}, sorted(mods & {"numba", "scipy", "importlib.metadata"})
+    assert not mods & {"hdrmerge_cli.pipeline.merge", "hdrmerge_cli.pipeline.batch", "hdrmerge_cli.core.reconstruct"}
+
+
+def test_choice_vocabularies_match_their_implementations():
+    from hdrmerge_cli.core.choices import WEIGHTINGS
+    from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
+
+    assert set(WEIGHTINGS) == set(WEIGHTING_FUNCTIONS)
+
+
 def test_raw_merge_imports_no_colour_science(tmp_path, dng_frames):
     """A RAW merge with given noise parameters: no colour-science, matplotlib, cvxpy or
     scipy.stats (the demosaic is the fused kernel; the noise is not measured), and no

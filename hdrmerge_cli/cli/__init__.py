@@ -8,7 +8,6 @@ import warnings
 
 import click
 
-from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.errors import HdrMergeError, Terminated, raise_terminated
 
 
@@ -106,8 +105,20 @@ class _Group(click.Group):
             raise DataError(f"{where}{exc.strerror or exc}") from None
 
 
+def _print_version(ctx, param, value):
+    """``--version``: the installed version, read only when asked for (importlib.metadata
+    costs every other command's start-up tens of ms)."""
+    if not value or ctx.resilient_parsing:
+        return
+    from hdrmerge_cli._version import __version__
+
+    click.echo(f"hdrmerge-cli, version {__version__}")
+    ctx.exit()
+
+
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="hdrmerge-cli")
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
+              help="Show the version and exit.")
 def cli():
     """Merge exposure brackets into scene-linear HDR images (OpenEXR) with the camera
     noise model of Goossens et al. (2012).

@@ -12,19 +12,17 @@ from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
     TIMES_HELP, parse_csv_list, times_or_estimate_callback,
 )
+from hdrmerge_cli.core.choices import VARIANCE_FACTORS, WEIGHTINGS
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
-from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
-
-from hdrmerge_cli.pipeline.batch import DEFAULT_GAP
 from hdrmerge_cli.io.images import EXR_COMPRESSIONS
-from hdrmerge_cli.pipeline.merge import merge
+# the vocabularies only: the merge itself (NumPy, Numba, SciPy, OpenCV) is imported when it
+# runs, so that --help and usage errors do not pay for it
 from hdrmerge_cli.pipeline.options import (
-    ESTIMATORS, EXTRA_CHANNELS, InputOptions, MergeOptions, MergeSettings, OutputOptions,
+    ALIGN_MODES, DEFAULT_GAP, DEGHOST_MODES, ESTIMATORS, EXTRA_CHANNELS, InputOptions, MergeOptions, MergeSettings,
+    OutputOptions,
 )
-from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -57,7 +55,7 @@ log = logging.getLogger("hdrmerge_cli")
                    "merge nothing.")
 @click.option("--profile-out", type=click.Path(dir_okay=False, path_type=Path),
               help="Where to write the camera profile JSON used [default: OUTPUT with .profile.json].")
-@click.option("--weights", type=click.Choice(["auto", *sorted(WEIGHTING_FUNCTIONS)]), default="auto", show_default=True,
+@click.option("--weights", type=click.Choice(["auto", *sorted(WEIGHTINGS)]), default="auto", show_default=True,
               help="Weighting function of (7): classical triangle, mann, deneve, gaussian, uniform; the paper's "
                    "probabilistic (32), direct (33), optimal (29), bounded (unknown noise parameters). auto: uniform "
                    "with the ml estimator (RAW), triangle with log (images); the measured winners.")
@@ -171,6 +169,8 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         raise click.UsageError("--jobs, --gap, --scheduler, --skip-existing and --dry-run apply to --batch only")
     if output.is_dir():
         raise click.UsageError(f"{output} is a folder; -o names the EXR or DNG to write (or use --batch DIR)")
+    from hdrmerge_cli.pipeline.merge import merge
+
     summary = merge(list(images), opts)
     written = [summary["output"], summary["profile"]] + ([summary["preview"]] if summary.get("preview") else [])
     said = f"wrote {', '.join(written[:-1])} and {written[-1]}"

@@ -11,8 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import lsqr
 
 from hdrmerge_cli.core.crf_goossens2012 import (
     DEFAULT_LAMBDA, CRFFit, crf_goossens2012, from_knots, knot_levels, to_knots,
@@ -45,6 +43,9 @@ def crf_debevec1997(
     log_exposures : (P,) ``log t_j``
     n_codes : number of code values 2^B
     """
+    import scipy.sparse as sp  # here, not at the top: a merge that estimates no response does not load it
+    from scipy.sparse.linalg import lsqr
+
     codes = np.asarray(codes)
     n_pix, n_frames = codes.shape
     levels = knot_levels(n_codes)

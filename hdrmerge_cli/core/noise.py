@@ -19,13 +19,17 @@ falls; its own formula (48), evaluated as printed, narrows as alpha grows, as he
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
 
-#: Gauss-Legendre nodes for the moment integrals of (19)
-_GL_X, _GL_W = np.polynomial.legendre.leggauss(160)
+
+@functools.cache
+def _gauss_legendre() -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre nodes and weights for the moment integrals of (19), computed on first
+    use (an eigenproblem of 160: tens of ms that a merge without these integrals skips)."""
+    return np.polynomial.legendre.leggauss(160)
 
 #: default number of standard deviations between the mean and a clipping point, ``k``
 #: of (47); erfc(k / sqrt 2) / 2 = 0.13 % of the mass may be clipped at k = 3
@@ -68,19 +72,22 @@ def log_moments_exact(x, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.
 
     x : array of photo-electron counts (any shape).  Returns ``(nu, var)`` arrays, with
     ``nu = M_1 - log f(mu)`` (the paper's definition)."""
+    from scipy.special import ndtr  # here, not at the top: merge --help's option list imports this module
+
     x = np.asarray(x, dtype=np.float64)
     mu = np.sqrt(p.alpha) * x
     sd = np.sqrt(np.maximum(noise_variance(x, p.sigma_o2, p.alpha, p.beta), 1e-300))
+    gl_x, gl_w = _gauss_legendre()
     lo_mass = ndtr((y_min - mu) / sd)
     hi_mass = ndtr((mu - y_max) / sd)
     a = np.clip(mu - 12 * sd, y_min, y_max)
     b = np.clip(mu + 12 * sd, y_min, y_max)
     half = (b - a)[..., None] / 2
-    u = (a + b)[..., None] / 2 + half * _GL_X
+    u = (a + b)[..., None] / 2 + half * gl_x
     pdf = np.exp(-0.5 * ((u - mu[..., None]) / sd[..., None]) ** 2) / (np.sqrt(2 * np.pi) * sd[..., None])
     lu = np.log(u)
-    m1 = np.sum(_GL_W * lu * pdf, axis=-1) * half[..., 0]
-    m2 = np.sum(_GL_W * lu * lu * pdf, axis=-1) * half[..., 0]
+    m1 = np.sum(gl_w * lu * pdf, axis=-1) * half[..., 0]
+    m2 = np.sum(gl_w * lu * lu * pdf, axis=-1) * half[..., 0]
     l_lo, l_hi = np.log(y_min), np.log(y_max)
     m1 = m1 + l_lo * lo_mass + l_hi * hi_mass
     m2 = m2 + l_lo**2 * lo_mass + l_hi**2 * hi_mass

@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import numba
 import numpy as np
 
+from hdrmerge_cli.core.choices import VARIANCE_FACTORS
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
@@ -81,8 +82,6 @@ def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
 #: in a bracket) the frames' own codes must still decide, not the no-information fallback
 WEIGHT_FLOOR = 1e-30
 
-#: choices for the variance factor ``sigma^-2(E, t_j)`` of (7)
-VARIANCE_FACTORS = ("none", "photon", "codes", "model")
 #: relative error of a camera-processed code's linearised value that no noise model
 #: explains (the response's fit, the camera's processing): a 1 % floor on the standard
 #: deviation of ``log gamma^-1(z)``, chosen on the real brackets' leave-one-out
@@ -360,6 +359,15 @@ def _rows_cols(shape):
     return shape[0], int(np.prod(shape[1:]))
 
 
+def _read_only(codes: np.ndarray) -> np.ndarray:
+    """A read-only view of a frame's codes for the compiled kernels: decoded frames are
+    writable, resampled ones read-only, and Numba compiles (and loads from its cache, tens
+    of ms each) one specialisation per kind; as read-only views both share one."""
+    view = codes.view()
+    view.flags.writeable = False
+    return view
+
+
 def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_full: float, noise_maps,
                  linear: bool) -> np.ndarray:
     """Per-sample weights of one frame at the current estimate (iteratively re-weighted
@@ -622,7 +630,7 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
     targets = ((acc.num.reshape(shape2), acc.den.reshape(shape2),
                 (acc.var if variance else acc.num).reshape(shape2)) if direct
                else (cen[0], cen[1], cen[0]))
-    _censored_rows(codes.reshape(shape2), pat, tab.saturated.reshape(-1, tab.n_codes), log_e2,
+    _censored_rows(_read_only(codes.reshape(shape2)), pat, tab.saturated.reshape(-1, tab.n_codes), log_e2,
                    weight if prev_den is None else prev_den.reshape(shape2), direct,
                    float(h * y_full), float(y_full), float(sd_full2), log_hi, *rows,
                    weight if factor is None else factor.reshape(shape2), factor is not None,
@@ -680,8 +688,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             if fused:
                 acc.add_irls(codes, tab, k == len(tables) - 1, log_e2, np.float32(h * y_full[k]), rows, linear)
             else:
-                _irls_weights_rows(codes.reshape(shape2), pat, tab.certainty.reshape(-1, tab.n_codes), log_e2,
-                                   np.float32(h * y_full[k]), *rows, linear, weight)
+                _irls_weights_rows(_read_only(codes.reshape(shape2)), pat, tab.certainty.reshape(-1, tab.n_codes),
+                                   log_e2, np.float32(h * y_full[k]), *rows, linear, weight)
                 # the censored terms of a pass without the previous den read the weights after
                 w, factor = (weight, None) if adjust is None else adjust(k, codes, weight, prev_den is not None)
                 acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True,
@@ -873,7 +881,8 @@ class LogMerge:
             per_pixel = lookup(tables.weight, n, codes, self.pattern).reshape(factor.shape + (-1,))
             weight = (per_pixel * factor[..., None]).reshape(codes.shape)
         elif factor is not None and weight is None:
-            _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), tables.weighted_log.reshape(-1, n),
+            _accumulate(_read_only(self._2d(codes)), self.pattern, tables.weight.reshape(-1, n),
+                        tables.weighted_log.reshape(-1, n),
                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
                         keep, 2, mode, self._2d(self.num), self._2d(self.den), keep, True)
             self._added(tables)
@@ -883,7 +892,7 @@ class LogMerge:
         else:
             num_tab, per_sample = tables.value, self._2d(weight.astype(np.float32, copy=False))
         if self.var is None:
-            _accumulate(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
+            _accumulate(_read_only(self._2d(codes)), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
                         int(weight is not None), mode, self._2d(self.num), self._2d(self.den), keep, factor is not None)
         else:
@@ -891,7 +900,7 @@ class LogMerge:
             q_tab = tables.certainty if use_cert else tables.variance
             if q_tab is None:
                 raise ValueError("LogMerge(..., variance=True) needs tables built with_variance=True")
-            _accumulate_var(self._2d(codes), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
+            _accumulate_var(_read_only(self._2d(codes)), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
                             tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
                             q_tab.reshape(-1, n), per_sample, weight is not None, use_cert, mode,
                             self._2d(self.num), self._2d(self.den), self._2d(self.var), keep, factor is not None)
@@ -906,7 +915,8 @@ class LogMerge:
             raise ValueError("add_irls does not propagate the variance: use add(weight=...)")
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
-        _accumulate_irls(self._2d(codes), self.pattern, tables.certainty.reshape(-1, n), tables.value.reshape(-1, n),
+        _accumulate_irls(_read_only(self._2d(codes)), self.pattern, tables.certainty.reshape(-1, n),
+                         tables.value.reshape(-1, n),
                          tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), log_e, np.float32(k),
                          *rows, linear, mode, self._2d(self.num), self._2d(self.den))
         self._added(tables)

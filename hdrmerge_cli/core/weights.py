@@ -80,8 +80,8 @@ def weights_uniform(v: np.ndarray, lin: np.ndarray, ctx=None) -> np.ndarray:
     return _finish(np.ones_like(v), v)
 
 
-#: name -> weighting function ``(v, lin, ctx) -> w``; the CLI's choices are read from
-#: here.  The last four need a :class:`~hdrmerge_cli.core.weights_goossens2012.WeightContext`
+#: name -> weighting function ``(v, lin, ctx) -> w``, one per name of
+#: :data:`hdrmerge_cli.core.choices.WEIGHTINGS` (the CLI's choices).  The last four need a :class:`~hdrmerge_cli.core.weights_goossens2012.WeightContext`
 #: (the noise model); ``bounded`` needs no noise parameters (it uses upper bounds).
 WEIGHTING_FUNCTIONS = {
     "triangle": weights_debevec1997_triangle,

@@ -28,14 +28,11 @@ from hdrmerge_cli.io.malloc import one_malloc_arena
 from hdrmerge_cli.io.thumbnails import read_thumbnail, thumbnail_shape
 from hdrmerge_cli.pipeline.bracket import fmt_time
 from hdrmerge_cli.pipeline.merge import merge
-from hdrmerge_cli.pipeline.options import MergeOptions
+from hdrmerge_cli.pipeline.options import DEFAULT_GAP, MergeOptions
 from hdrmerge_cli.pipeline.output import default_profile_path
 
 log = logging.getLogger("hdrmerge_cli")
 
-#: default largest time (s) from the end of one exposure to the start of the next inside
-#: one bracket (HDRMerge's -g default)
-DEFAULT_GAP = 3.0
 #: exposure times within this many stops count as the same setting (cameras round the
 #: times they record; bracket steps are 1/3 stop or more)
 SAME_SETTING_STOPS = 1 / 6

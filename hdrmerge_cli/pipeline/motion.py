@@ -14,11 +14,10 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.io.frames import Frame, load_codes, load_validity
+from hdrmerge_cli.pipeline.options import ALIGN_MODES, DEGHOST_MODES  # noqa: F401  (read as motion.*)
 
 log = logging.getLogger("hdrmerge_cli")
 
-ALIGN_MODES = ("off", "auto", "translation", "similarity")
-DEGHOST_MODES = ("off", "auto", "on")
 #: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
 AUTO_ALIGN_PX = 0.25
 #: a registration is kept when its correlation coefficient reaches this

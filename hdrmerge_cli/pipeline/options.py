@@ -28,6 +28,14 @@ EXTRA_CHANNELS = ("clipped", "weight", "ghost", "variance")
 #: estimator choices: log = the paper's (7), ml = linear inverse-variance (censored)
 ESTIMATORS = ("auto", "log", "ml")
 
+#: registration (:mod:`hdrmerge_cli.pipeline.motion`) and deghosting choices
+ALIGN_MODES = ("off", "auto", "translation", "similarity")
+DEGHOST_MODES = ("off", "auto", "on")
+
+#: ``--batch``'s default largest time (s) from the end of one exposure to the start of the
+#: next inside one bracket (HDRMerge's -g default; :mod:`hdrmerge_cli.pipeline.batch`)
+DEFAULT_GAP = 3.0
+
 
 @dataclass(frozen=True)
 class MergeSettings:
