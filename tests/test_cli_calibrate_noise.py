@@ -191,3 +191,36 @@ def test_merge_falls_back_to_photon_weights_when_the_bracket_shows_no_noise(run,
     meta = simulate(run, tmp_path / "sat", "--size", "64x64", "--times", "1000,2000")
     s = json.loads(run("merge", *frames_of(tmp_path / "sat", meta), "-o", tmp_path / "m.exr", "--json").stdout)
     assert s["noise_source"] is None and s["variance"] == "photon"
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_merge_fast_path_lies_within_its_standard_errors_of_the_truth(run, tmp_path, seed):
+    """merge's noise measurement on drawn tiles: within 4 of its reported standard errors of
+    the simulation's sigma_o2 and alpha (from the exposure pairs), the standard errors a few
+    percent at most and not far above the Cramer-Rao bound of the drawn sites; the
+    codes drawn as the frames are decoded, so the measurement decodes nothing itself."""
+    from hdrmerge_cli.io.frames import load_codes, read_frame
+    from hdrmerge_cli.pipeline.bracket import choose_crf
+    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+    from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
+
+    meta = simulate(run, tmp_path / "b", "--frames", "5", "--seed", str(seed), "--alpha", "0.5", "--sigma-o2", "16")
+    frames = sorted((read_frame(p) for p in frames_of(tmp_path / "b", meta)), key=lambda f: f.exposure_time)
+    crf = choose_crf(frames, None, warn=False)
+    draw = NoiseDraw(frames)
+    for f in frames:
+        draw(f, load_codes(f))
+
+    def no_decode(frame):
+        raise AssertionError(f"{frame.path} decoded again")
+
+    used, entries = estimate_bracket_noise(frames, crf, no_decode, draw)
+    truth = meta["sensor"]
+    for ch in ("R", "G", "B", "G2"):
+        se = entries[ch]["stderr"]
+        assert entries[ch]["method"]["alpha"] == "exposure pairs"
+        assert se["alpha"] < 0.05 * truth["alpha"] and se["sigma_o2"] < 0.03 * truth["sigma_o2_total"]
+        assert abs(used[ch]["alpha"] - truth["alpha"]) < 4 * se["alpha"]
+        assert abs(used[ch]["sigma_o2"] - truth["sigma_o2_total"]) < 4 * se["sigma_o2"]
+        assert entries[ch]["achievable_stderr"]["alpha"] <= 1.2 * se["alpha"]  # the bound, and the fit near it
+        assert entries[ch]["achievable_stderr"]["alpha"] >= 0.3 * se["alpha"]

@@ -2,7 +2,7 @@
 on a bracket.
 
 A bracket merged without ``--noise``/``--profile`` has the noise model (17) measured on
-itself (the calibrate-noise fast path, about a second at 24 MP).  The parameters belong to
+itself (the calibrate-noise fast path, on a few 10^5 sites drawn as the frames are decoded).  The parameters belong to
 the camera at an ISO, not to the scene, so the first merge of a camera and ISO stores them
 here and later merges of that camera and ISO read them back instead of measuring again.
 

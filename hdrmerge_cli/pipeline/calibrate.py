@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.calibrate import NoiseFit, estimate_noise
+from hdrmerge_cli.core.calibrate import NoiseFit, achievable_errors, estimate_noise, fit_standard_errors
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable
@@ -20,6 +20,7 @@ from hdrmerge_cli.io.noisespec import iso_key
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
 from hdrmerge_cli.pipeline.bracket import choose_crf
+from hdrmerge_cli.pipeline.noise_draw import NoiseDraw, channel_codes
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -43,29 +44,28 @@ class CalibrateOptions:
     overwrite: bool = False
 
 
-def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None):
-    """(name, plane of linear values above black (H', W') float64, lo, hi) per channel:
-    the CFA sites of one colour for RAW (``corner``: LibRaw's colour index of the top-left
-    2 x 2 visible sites, read from the file when not given), the linearised colour
-    channels otherwise."""
+def linear_plane(frame: Frame, k: int, codes: np.ndarray, crf):
+    """(plane of linear values above black (H', W') float64, lo, hi) of channel ``k``'s codes
+    (:func:`channel_codes`): RAW minus its black level, images linearised by ``crf`` at
+    their bit depth; a value ``<= lo`` or ``>= hi`` is clipped."""
     if frame.kind == "raw":
-        corner = cfa_corner(frame) if corner is None else corner
-        for k, name in enumerate(frame.channel_names):
-            ys, xs = np.nonzero(corner == k)
-            if ys.size:
-                plane = codes[ys[0]::2, xs[0]::2].astype(np.float64) - frame.black[k]
-                yield name, plane, -frame.black[k], frame.white[k] - frame.black[k]
-        return
+        return codes.astype(np.float64) - frame.black[k], -frame.black[k], frame.white[k] - frame.black[k]
     full = frame.n_codes - 1.0
-    for c in range(frame.channels):
-        lin = crf.inverse(codes[..., c] / full, c) * full
-        lo, hi = crf.inverse(np.array([0.5 / full, (full - 0.5) / full]), c) * full
-        yield frame.channel_colors[c], lin, lo, hi
+    lo, hi = crf.inverse(np.array([0.5 / full, (full - 0.5) / full]), k) * full
+    return crf.inverse(codes / full, k) * full, lo, hi
 
 
-def _usable(frame: Frame, planes) -> str | None:
+def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None, pick=None):
+    """(name, plane of linear values above black (H', W') float64, lo, hi) per channel
+    (:func:`channel_codes` through :func:`linear_plane`)."""
+    for name, k, sub in channel_codes(frame, codes, corner, pick):
+        yield (name, *linear_plane(frame, k, sub, crf))
+
+
+def _usable(frame: Frame, planes, sites: int | None = None) -> str | None:
     """Why a frame cannot be used (all clipped, or black), or None.  planes: as
-    :func:`channel_planes` yields them."""
+    :func:`channel_planes` yields them, whole or an even subsample of planes of ``sites``
+    sites each (see :func:`_has_signal`)."""
     inside = np.mean([np.mean((p > lo) & (p < hi)) for _, p, lo, hi in planes])
     if inside < MIN_UNCLIPPED:
         dark = np.mean([np.mean(p <= lo) for _, p, lo, hi in planes])
@@ -73,28 +73,37 @@ def _usable(frame: Frame, planes) -> str | None:
         parts = [f"{100 * v:.1f} % of its pixels {what}" for v, what in ((dark, "read black"),
                                                                          (bright, "are clipped at white")) if v > 0]
         return " and ".join(parts)
-    if not any(_has_signal(p, lo, hi) for _, p, lo, hi in planes):
+    if not any(_has_signal(p, lo, hi, sites) for _, p, lo, hi in planes):
         return "it is black (no signal above its noise floor)"
     return None
 
 
 #: a frame has signal when at least this many of its sites (and this fraction) lie above the noise floor
 MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION = 64, 1e-4
+#: and, judged on an even subsample, at least this many of the subsample's sites
+MIN_SIGNAL_SAMPLES = 8
 
 
-def _has_signal(plane: np.ndarray, lo: float, hi: float) -> bool:
+def _has_signal(plane: np.ndarray, lo: float, hi: float, sites: int | None = None) -> bool:
     """Whether a plane holds signal: enough sites (:data:`MIN_SIGNAL_SITES`, a fraction
     :data:`MIN_SIGNAL_FRACTION`) above its noise floor, 6 robust standard deviations of
     the darker half of the sites (1.4826 times their median absolute deviation) above
     black and at least 0.2 % of the range.  A count, not a percentile: a night frame whose
-    99th percentile is near black but whose lamps and windows are bright has signal."""
+    99th percentile is near black but whose lamps and windows are bright has signal.
+
+    ``sites``: the plane is an even subsample of a plane of that many sites, whose count
+    above the floor is estimated from the subsample's fraction (and at least
+    :data:`MIN_SIGNAL_SAMPLES` of the subsample's sites must lie above it)."""
     sub = (plane[::2, ::2] if plane.size > 1 << 22 else plane).ravel()
     med = float(np.median(sub))
     low = sub[sub <= med]
     sigma = 1.4826 * float(np.median(np.abs(low - np.median(low)))) if low.size else 0.0
     floor = max(6 * sigma, 0.002 * (hi - max(lo, 0.0)))
     above = int(np.count_nonzero(sub > floor))
-    return above >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sub.size)
+    if sites is None or sites <= sub.size:
+        return above >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sub.size)
+    return (above >= MIN_SIGNAL_SAMPLES
+            and above * sites / sub.size >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sites))
 
 
 def _read_group(frames: list[Frame], crf, what: str, reduce=None, load=load_codes) -> list[tuple[Frame, list]]:
@@ -410,36 +419,80 @@ def plot_noise(path: Path, noise: dict, plot_data: dict, overwrite: bool) -> Non
     save_figure(fig, path, overwrite)
 
 
-#: merge's fast path measures the noise on at most this many sites per channel and frame
-FAST_PATH_SITES = 1 << 18
-_TILE = 128
+def _read_drawn(frames: list[Frame], crf, load, draw: NoiseDraw, pool) -> list[tuple[Frame, list]]:
+    """:func:`_read_group`'s list from the drawn codes (frames not yet drawn decoded through
+    ``load``), two frames at a time on ``pool``: each frame's usability judged on its even
+    stride (the rule of :func:`_usable`), its tiles linearised."""
+    def read(f):
+        if f.path not in draw.drawn:
+            draw(f, load(f))
+        channels = draw.drawn[f.path]
+        reason = _usable(f, [(c.name, *linear_plane(f, c.index, c.stride, crf)) for c in channels],
+                         min(c.sites for c in channels))
+        return reason, None if reason else [(c.name, *linear_plane(f, c.index, c.tiles, crf)) for c in channels]
+
+    out = []
+    for f, (reason, planes) in zip(frames, pool.map(read, frames)):
+        if reason:
+            log.warning("%s: skipped, %s", f.path, reason)
+        else:
+            out.append((f, planes))
+    return out
 
 
-def subsample(plane: np.ndarray, budget: int = FAST_PATH_SITES) -> np.ndarray:
-    """At most ``budget`` sites of ``plane`` (H, W): tiles of 128 x 128 spread evenly over
-    the frame, laid side by side (the seams are edges, which the texture test rejects and
-    exposure pairs cancel)."""
-    h, w = plane.shape
-    if plane.size <= budget or h < 2 * _TILE or w < 2 * _TILE:
-        return plane
-    n = max(int(np.sqrt(budget / _TILE**2)), 1)
-    ys = np.linspace(0, h - _TILE, n).astype(int)
-    xs = np.linspace(0, w - _TILE, n).astype(int)
-    return np.block([[plane[y:y + _TILE, x:x + _TILE] for x in xs] for y in ys])
+def _achievable(read: list[tuple[Frame, list]], k: int, fit: NoiseFit) -> tuple[float, float]:
+    """Cramer-Rao standard errors (sigma_o^2, alpha) of channel ``k``'s exposure contrasts on
+    the drawn sites (:func:`~hdrmerge_cli.core.calibrate.achievable_errors`) at the fitted
+    parameters, the frames' exposure ratios from their times (inf with one frame)."""
+    if len(read) < 2:
+        return float("inf"), float("inf")
+    times = [f.exposure_time for f, _ in read]
+    ratios = [b / a if a and b and b > a else None for a, b in zip(times[:-1], times[1:])]
+    _, _, lo, hi = read[0][1][k]
+    return achievable_errors([planes[k][1] for _, planes in read], lo, hi, ratios, fit.coef)
 
 
-def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes) -> tuple[dict, dict]:
+def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: NoiseDraw | None = None,
+                           ) -> tuple[dict, dict]:
     """merge without noise parameters: (17) per channel from the bracket itself, by the
-    calibrate-noise code on a subsample (:func:`subsample`).  Returns
-    ({channel: {"sigma_o2", "alpha", "beta"}}, {channel: profile entry}).
+    calibrate-noise code on :data:`~hdrmerge_cli.pipeline.noise_draw.FAST_PATH_SITES`
+    sites per channel and frame (:func:`~hdrmerge_cli.pipeline.noise_draw.noise_tiles`;
+    ``draw``: the codes drawn as the merge decoded the frames, else decoded here through
+    ``load``).  Returns ({channel: {"sigma_o2", "alpha", "beta"}},
+    {channel: profile entry}); the entry's ``stderr`` holds the fit's standard errors of
+    sigma_o2 and alpha (:func:`~hdrmerge_cli.core.calibrate.fit_standard_errors`) and
+    ``achievable_stderr`` the Cramer-Rao bound of the drawn sites' exposure contrasts
+    (None where they hold none).
 
     merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
     :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used."""
-    read = _read_group(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, "images", reduce=subsample, load=load)
-    if not read:
-        raise HdrMergeError("no usable frame (all clipped or black)")
+    iso = iso_key(frames[0].iso)
+    draw = draw if draw is not None else NoiseDraw(frames)
+    with ThreadPoolExecutor(2) as pool:  # SciPy's filters and NumPy's sorts release the GIL: both cores
+        read = _read_drawn(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, load, draw, pool)
+        if not read:
+            raise HdrMergeError("no usable frame (all clipped or black)")
+
+        def fit(k):
+            name, _, lo, hi = read[0][1][k]
+            try:
+                est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi, solver="numpy")
+            except HdrMergeError as exc:
+                raise HdrMergeError(f"{read[0][0].path} ({iso}, channel {name}): {exc}") from None
+            return name, est, ratios, fit_standard_errors(est, bool(ratios)), _achievable(read, k, est)
+
+        fits = list(pool.map(fit, range(len(read[0][1]))))
     used, entries = {}, {}
-    for name, (fit, ratios) in _fit_channels(read, iso_key(frames[0].iso)).items():
-        entries[name] = _fit_entry(fit, ratios, 7) | {"subsample_sites": int(read[0][1][0][1].size)}
-        used[name] = {"sigma_o2": fit.sigma_o2, "alpha": fit.alpha, "beta": 0.0}
+    sites = min(c.drawn for c in draw.drawn[read[0][0].path])
+    for name, est, ratios, se, crb in fits:
+        entries[name] = _fit_entry(est, ratios, 7) | {
+            "subsample_sites": sites,
+            "stderr": {"sigma_o2": _rounded(se[0]), "alpha": _rounded(se[1])},
+            "achievable_stderr": ({"sigma_o2": _rounded(crb[0]), "alpha": _rounded(crb[1])}
+                                  if np.isfinite(crb[0]) and np.isfinite(crb[1]) else None)}
+        used[name] = {"sigma_o2": est.sigma_o2, "alpha": est.alpha, "beta": 0.0}
     return used, entries
+
+
+def _rounded(x: float) -> float | None:
+    return float(f"{x:.4g}") if np.isfinite(x) else None

@@ -146,12 +146,16 @@ def _samples(frames: list[Frame], v: list[np.ndarray], step: int) -> Samples:
     return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0), first.kind == "raw")
 
 
-def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_SAMPLES) -> Samples:
-    """Decode every frame (two at a time) into :class:`Samples`."""
+def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_SAMPLES, also=None) -> Samples:
+    """Decode every frame (two at a time) into :class:`Samples`; ``also(frame, codes)``, when
+    given, sees each frame's codes too (e.g. :class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`)."""
     step, cell = _step_and_cell(frames[0], max_samples)
 
     def one(frame):
-        return normalise(frame, load(frame), step, cell)
+        codes = load(frame)
+        if also is not None:
+            also(frame, codes)
+        return normalise(frame, codes, step, cell)
 
     with ThreadPoolExecutor(2) as pool:
         v = list(pool.map(one, frames))

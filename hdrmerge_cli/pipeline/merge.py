@@ -43,6 +43,7 @@ from hdrmerge_cli.pipeline.bracket import (
 from hdrmerge_cli.pipeline.crf import measure_response
 from hdrmerge_cli.pipeline.exposure_check import check_order, resolve_exposures, sample_frames
 from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise
+from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 
@@ -164,9 +165,12 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
     unaligned = load
     samples = None
+    # the noise's sites drawn as the exposure check decodes the frames, should the bracket's
+    # noise be measured (no parameters given, none cached): no decode of its own
+    draw = NoiseDraw(frames) if noise is None and not opts.lut else None
     if len(frames) > 1 or crf.assumed:  # exposures: the frames' order, the response
         t1 = time.perf_counter()
-        samples = sample_frames(frames, load)
+        samples = sample_frames(frames, load, also=draw)
         if len(frames) > 1:  # registration and the response trust the labels' order: a disordered bracket fails first
             check_order(frames, samples)
         if crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
@@ -190,7 +194,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
     # the noise is measured on the frames as decoded: resampling smooths it, and frames that
     # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    models = choose_models(frames, exposures, crf, opts, unaligned, noise)
+    models = choose_models(frames, exposures, crf, opts, unaligned, noise, draw)
     timings.update(models.timings)
     timings["read_metadata"] = (time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
                                 - timings.get("align", 0.0) - timings.get("response", 0.0) - timings["tables"]

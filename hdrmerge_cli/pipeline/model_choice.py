@@ -55,9 +55,11 @@ class Models:
 
 
 def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: MergeOptions, load=load_codes,
-                  noise: dict[str, NoiseParams] | None = None) -> Models:
+                  noise: dict[str, NoiseParams] | None = None, draw=None) -> Models:
     """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
-    else measured on the bracket through ``load`` where the options need them), variance
+    else measured on the bracket, on the sites ``draw`` kept as the frames were decoded
+    (:class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`) or through ``load``, where the
+    options need them), variance
     mode and the per-frame tables, each option's ``auto`` resolved by the defaults below."""
     first = frames[0]
     timings = {}
@@ -71,7 +73,7 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
                    or "variance" in opts.extra_channels)
     if noise is None and needs_noise and not opts.lut:
         t1 = time.perf_counter()
-        noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache)
+        noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache, draw=draw)
         timings["noise_estimate"] = time.perf_counter() - t1
     variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf)
     if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
@@ -131,12 +133,12 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
     return int(estimator == "ml" and bool(noise) and not lut)
 
 
-def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True):
+def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, draw=None):
     """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
     code, fast path; for images on the signal linearised by ``crf``); on failure fall back
-    to photon-noise weights.  With ``cache``, an earlier merge's measurement of the same
-    camera and ISO is read from the per-camera cache (:mod:`hdrmerge_cli.io.noisecache`)
-    instead, and a new measurement is stored there."""
+    to photon-noise weights (``draw``: see :func:`choose_models`).  With ``cache``, an
+    earlier merge's measurement of the same camera and ISO is read from the per-camera
+    cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there."""
     from hdrmerge_cli.io import noisecache
 
     key = noisecache.cache_key(frames[0], crf.describe()) if cache else None
@@ -153,7 +155,7 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
     try:
-        used, entries = estimate_bracket_noise(frames, crf, load)
+        used, entries = estimate_bracket_noise(frames, crf, load, draw)
     except HdrMergeError as exc:
         log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
         return None, None
