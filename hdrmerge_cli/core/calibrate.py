@@ -406,93 +406,63 @@ class NoiseFit:
         return {k: float(v) if isinstance(v, (float, np.floating)) else v for k, v in out.items()}
 
 
-def _nnls_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Non-negative least squares ``min |a c - b|, c >= 0`` for a few columns (at most 3):
-    the unconstrained solution when it is feasible, else the best feasible unconstrained
-    solution over the smaller supports (exact: the optimum is the unconstrained solution on
-    its own support)."""
-    k = a.shape[1]
-    gram, rhs = a.T @ a, a.T @ b
-    best, best_cost = np.zeros(k), float(b @ b)
-    for mask in range((1 << k) - 1, 0, -1):
-        s = [j for j in range(k) if mask >> j & 1]
-        g = gram[s][:, s]
-        try:
-            c = np.linalg.solve(g, rhs[s])
-        except np.linalg.LinAlgError:
-            continue
-        if np.all(c >= 0):
-            full = np.zeros(k)
-            full[s] = c
-            if len(s) == k:
-                return full
-            r = a @ full - b
-            cost = float(r @ r)
-            if cost < best_cost:
-                best, best_cost = full, cost
-    return best
-
-
 def _soft_l1(d: np.ndarray, y: np.ndarray, w: np.ndarray, start: np.ndarray, f_scale: float,
              tol: float = 1e-10, max_iter: int = 200) -> np.ndarray:
-    """``argmin_{c >= 0} sum rho((w (d c - y))^2)`` with SciPy's soft-L1 loss
-    ``rho(z) = 2 f^2 (sqrt(1 + z / f^2) - 1)`` (convex in ``c``): iteratively re-weighted
-    non-negative least squares (weights ``1 / sqrt(1 + (r / f)^2)``) from ``start``."""
+    """``argmin_{c >= 0} sum rho((w (d c - y))^2)`` with the soft-L1 loss
+    ``rho(z) = 2 f^2 (sqrt(1 + z / f^2) - 1)`` (scipy.optimize.least_squares' ``soft_l1``;
+    convex in ``c``) by iteratively re-weighted non-negative least squares
+    (``scipy.optimize.nnls``, weights ``1 / sqrt(1 + (r / f)^2)``) from ``start``: the
+    same minimum as ``least_squares`` for the two or three coefficients of (17), at a
+    fraction of its per-call cost."""
+    from scipy.optimize import nnls
+
     c = start
     for _ in range(max_iter):
         r = w * (d @ c - y)
         u = w / np.sqrt(np.sqrt(1.0 + (r / f_scale) ** 2))  # w sqrt(q), q the soft-L1 weight
-        nxt = _nnls_small(d * u[:, None], y * u)
+        nxt = nnls(d * u[:, None], y * u)[0]
         if np.all(np.abs(nxt - c) <= tol * np.maximum(np.abs(nxt), 1e-300)):
             return nxt
         c = nxt
     return c
 
 
-def _robust_wls(design, var, counts, free, fixed, solver: str = "scipy"):
+def _robust_wls(design, var, counts, free, fixed):
     """Non-negative weighted least squares of ``var ~ design @ c`` over the coefficients
     ``free`` (the others held at ``fixed``), with a soft-L1 loss on the standardised
     residuals ``sqrt(count / 2) (var - pred) / pred`` (a bin's variance estimate has
-    relative variance ~2 / count); re-weighted three times.  ``solver``: ``"scipy"``
-    (``scipy.optimize.least_squares``) or ``"numpy"`` (:func:`_soft_l1`, the same
-    minimum without importing scipy.optimize, which costs ~0.5 s).  Returns (c, residuals)."""
+    relative variance ~2 / count; :func:`_soft_l1`); re-weighted three times.  Returns
+    (c, residuals)."""
+    from scipy.optimize import nnls  # here, not at the top: importing it costs every merge's start-up
+
     full = np.array(fixed, dtype=np.float64)
     rest = [k for k in range(3) if k not in free]
     offset = design[:, rest] @ full[rest]
     d = design[:, free]
     pred = np.maximum(var, 1e-12)
-    if free and solver == "scipy":
-        from scipy import optimize  # here, not at the top: importing it costs ~0.5 s of every merge's start-up
     for _ in range(3 if free else 0):
         w = np.sqrt(counts / 2.0) / np.maximum(pred, 1e-12)
-        if solver == "scipy":
-            start, _ = optimize.nnls(d * w[:, None], (var - offset) * w)
-            res = optimize.least_squares(lambda c: w * (d @ c + offset - var), start, bounds=(0, np.inf),
-                                         loss="soft_l1", f_scale=3.0, x_scale="jac")
-            full[free] = res.x
-        else:
-            start = _nnls_small(d * w[:, None], (var - offset) * w)
-            full[free] = _soft_l1(d, var - offset, w, start, 3.0)
+        start = nnls(d * w[:, None], (var - offset) * w)[0]
+        full[free] = _soft_l1(d, var - offset, w, start, 3.0)
         pred = np.maximum(design @ full, 1e-12)
     pred = np.maximum(design @ full, 1e-12)
     return full, np.sqrt(counts / 2.0) * (var - pred) / pred
 
 
 def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
-                    known: tuple[float, float] | None = None, solver: str = "scipy") -> NoiseFit:
+                    known: tuple[float, float] | None = None) -> NoiseFit:
     """Robust fit of (17) to binned points (:class:`VariancePoints`), affine and quadratic;
     the quadratic term is kept when the F-test of the nested models gives
     ``p < p_threshold`` (residual sums over the points both fits treat as inliers,
     |standardised residual| <= 5 robust scales).  ``known = (c0, c1)`` holds sigma_o^2 and
-    sqrt(alpha) fixed (measured elsewhere) and fits and tests beta alone.  ``solver``: as
-    :func:`_robust_wls`."""
+    sqrt(alpha) fixed (measured elsewhere) and fits and tests beta alone."""
     if points.mean.size < 4:
         raise HdrMergeError(f"too few intensity levels ({points.mean.size}) to fit the noise model")
     var, counts, design = points.var, points.count, points.design
     base = [known[0], known[1], 0.0] if known else [0.0, 0.0, 0.0]
-    c_aff, r_aff = _robust_wls(design, var, counts, [] if known else [0, 1], base, solver)
+    c_aff, r_aff = _robust_wls(design, var, counts, [] if known else [0, 1], base)
     quad_possible = bool(np.any(design[:, 2] > 0)) and points.mean.size >= 5
-    c_quad, r_quad = _robust_wls(design, var, counts, [2] if known else [0, 1, 2], base, solver) if quad_possible \
+    c_quad, r_quad = _robust_wls(design, var, counts, [2] if known else [0, 1, 2], base) if quad_possible \
         else (c_aff, r_aff)
     scale = 1.4826 * np.median(np.abs(r_quad)) + 1e-12
     inl = (np.abs(r_quad) <= 5 * scale) & (np.abs(r_aff) <= 5 * max(scale, 1.4826 * np.median(np.abs(r_aff))))
@@ -598,14 +568,14 @@ def fit_standard_errors(fit: NoiseFit, pairs: bool) -> tuple[float, float]:
     return float(np.sqrt(cov[0, 0])), float(2 * abs(fit.coef[1]) * np.sqrt(cov[1, 1]))
 
 
-def _local_fit(pooled: WindowStats, bins: int, p_threshold: float, solver: str = "scipy") -> NoiseFit:
+def _local_fit(pooled: WindowStats, bins: int, p_threshold: float) -> NoiseFit:
     """(17) from the frames' local statistics alone: a first fit with median-relative texture
     rejection, then the noise-relative rejection (:func:`texture_limit`) and the final fit."""
-    first = fit_noise_model(binned_variance(pooled, bins=bins), p_threshold, solver=solver).coef
+    first = fit_noise_model(binned_variance(pooled, bins=bins), p_threshold).coef
     points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, first))
     if points.mean.size < 4:
         raise HdrMergeError(f"too few usable flat windows ({pooled.mean.size}) to measure the noise")
-    return fit_noise_model(points, p_threshold, solver=solver)
+    return fit_noise_model(points, p_threshold)
 
 
 def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
@@ -619,15 +589,14 @@ def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
 
 
 def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int = 7, bins: int = 64,
-                   pairs: bool = True, p_threshold: float = 0.01, pair_bins: int = 128,
-                   solver: str = "scipy") -> tuple[NoiseFit, list[float]]:
+                   pairs: bool = True, p_threshold: float = 0.01,
+                   pair_bins: int = 128) -> tuple[NoiseFit, list[float]]:
     """Noise parameters of (17) for one channel from frames of one scene at one ISO.
 
     planes : list of (H, W) float arrays, linear values (code values above black),
         sorted by exposure (shortest first); one frame is allowed.
     lo, hi : values at or beyond which a pixel is clipped.
     pairs : use the exposure pairs of consecutive frames (needs a static scene).
-    solver : the robust fits' solver, ``"scipy"`` or ``"numpy"`` (:func:`_robust_wls`).
     Returns the :class:`NoiseFit` and the measured exposure ratios of the pairs used
     (none when the pairs were not used).
 
@@ -670,7 +639,7 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
             # a first fit, then without the pixels whose noise the clipping may cut (by the
             # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
             # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
-            coef = fit_noise_model(VariancePoints.concat(first_points), p_threshold, solver=solver).coef
+            coef = fit_noise_model(VariancePoints.concat(first_points), p_threshold).coef
             for pp in pixel_pairs:
                 mu = np.maximum(np.maximum(pp.key, pp.long), 0.0)
                 pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * mu
@@ -678,18 +647,18 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
                 pair_points.append(binned_pairs(pp.subset(keep), pair_bins, coef=coef))
     pooled = WindowStats.concat(local)
     if not pair_points:
-        return _local_fit(pooled, bins, p_threshold, solver), ratios
+        return _local_fit(pooled, bins, p_threshold), ratios
     pair_data = VariancePoints.concat(pair_points)
-    fit = fit_noise_model(pair_data, p_threshold, solver=solver)
+    fit = fit_noise_model(pair_data, p_threshold)
     try:
-        alone = _local_fit(pooled, bins, p_threshold, solver)
+        alone = _local_fit(pooled, bins, p_threshold)
     except HdrMergeError:
         alone = None
     if alone is not None and _pairs_moved(fit, alone, pooled):
         return alone, []
     local_points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, fit.coef))
     if local_points.mean.size >= 4:  # beta from the flat windows, sigma_o^2 and alpha held
-        fit = fit_noise_model(local_points, p_threshold, known=(fit.coef[0], fit.coef[1]), solver=solver)
+        fit = fit_noise_model(local_points, p_threshold, known=(fit.coef[0], fit.coef[1]))
     data = VariancePoints.concat([pair_data, local_points])
     rel = (data.var - data.design @ fit.coef) / np.maximum(data.design @ fit.coef, 1e-12)
     fit.data, fit.points, fit.residual_rms = data, int(data.mean.size), float(np.sqrt(np.mean(rel**2)))

@@ -476,7 +476,7 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
         def fit(k):
             name, _, lo, hi = read[0][1][k]
             try:
-                est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi, solver="numpy")
+                est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi)
             except HdrMergeError as exc:
                 raise HdrMergeError(f"{read[0][0].path} ({iso}, channel {name}): {exc}") from None
             return name, est, ratios, fit_standard_errors(est, bool(ratios)), _achievable(read, k, est)
