@@ -15,7 +15,7 @@ A hand-held bracket merged without alignment breaks the premise (the same pixels
 frames): a pair's ratio is then read across edges that moved, and a label can look wrong
 when only the camera moved.  Before a label is called wrong, the pairs its estimate chains
 through are registered on the same samples (:func:`pair_displacement`, OpenCV through
-:mod:`hdrmerge_cli.core.align`); past :func:`moved_threshold_px` the label is reported as
+:mod:`hdrmerge_cli.core.registration`); past :func:`moved_threshold_px` the label is reported as
 unchecked instead.
 
 Everything here is pure array code: no paths, no printing.
@@ -238,21 +238,21 @@ def moved_threshold_px(pitch: float) -> float:
 
 def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     """How far (in pixels of the images) ``b`` sits from ``a``: the length of the
-    translation registering them (:func:`hdrmerge_cli.core.align.estimate_warp`: phase
+    translation registering them (:func:`hdrmerge_cli.core.registration.estimate_warp`: phase
     correlation against no motion by the vote of the pixels, refined by ECC), or None when
     the pair cannot be registered (too little texture in either,
-    :func:`hdrmerge_cli.core.align.registrable`, or a correlation under
+    :func:`hdrmerge_cli.core.registration.registrable`, or a correlation under
     :data:`MOVED_MIN_CONFIDENCE`).
 
     a, b : (H, W) float32 exposure-invariant images of the same pixels (see
-    :func:`hdrmerge_cli.core.align.log_irradiance`)
+    :func:`hdrmerge_cli.core.registration.log_irradiance`)
     """
-    from hdrmerge_cli.core import registration as align
+    from hdrmerge_cli.core import registration
 
     a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
-    if min(a.shape) < 16 or align.registrable(a, b) is not None:
+    if min(a.shape) < 16 or registration.registrable(a, b) is not None:
         return None
-    warp, rho = align.estimate_warp(a, b, "translation")
+    warp, rho = registration.estimate_warp(a, b, "translation")
     if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
         return None
     return float(np.hypot(warp[0, 2], warp[1, 2]))

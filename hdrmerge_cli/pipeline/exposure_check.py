@@ -348,17 +348,17 @@ class Motion:
 def registration_image(s: Samples, k: int, crf: CRF, exposure: float, lo: float, hi: float,
                        lin: np.ndarray | None = None) -> np.ndarray:
     """Frame ``k``'s samples as an exposure-invariant image for registration
-    (:func:`~hdrmerge_cli.core.align.log_irradiance` of the linearised channels' mean over
+    (:func:`~hdrmerge_cli.core.registration.log_irradiance` of the linearised channels' mean over
     ``exposure``, within ``[lo, hi]``), the constant borders cut off; RAW: the mean of each
     2 x 2 CFA cell.  ``lin``: :func:`_registration_linear` of the frame when already made."""
-    from hdrmerge_cli.core import registration as align
+    from hdrmerge_cli.core import registration
 
     lin = _registration_linear(s, k, crf) if lin is None else lin
-    return align.log_irradiance(lin, exposure, lo, hi)
+    return registration.log_irradiance(lin, exposure, lo, hi)
 
 
 def _registration_linear(s: Samples, k: int, crf: CRF) -> np.ndarray:
-    from hdrmerge_cli.core import registration as align
+    from hdrmerge_cli.core import registration
 
     top, bottom, left, right = s.border
     v = s.v[k]
@@ -366,7 +366,7 @@ def _registration_linear(s: Samples, k: int, crf: CRF) -> np.ndarray:
         top, left = top + top % 2, left + left % 2
     v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
     lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
-    return align.block_mean(lin, 2) if s.raw else lin
+    return registration.block_mean(lin, 2) if s.raw else lin
 
 
 def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
@@ -376,14 +376,14 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     ``exposures``, the labels: registration is invariant to the gain a wrong label makes),
     in full-resolution pixels (the samples' pitch).  A few tens of milliseconds a pair on
     the default :data:`MAX_SAMPLES`; only the pairs asked about are registered."""
-    from hdrmerge_cli.core import registration as align
+    from hdrmerge_cli.core import registration
 
     lin: dict[int, np.ndarray] = {}
     px: dict[int, float | None] = {}
     for j in sorted(set(pairs)):
         try:
-            lo, hi = align.common_range([exposures[j], exposures[j + 1]],
-                                        lo_code=align.dark_floor(s.codes_step if s.raw else None))
+            lo, hi = registration.common_range([exposures[j], exposures[j + 1]],
+                                        lo_code=registration.dark_floor(s.codes_step if s.raw else None))
         except HdrMergeError:
             px[j] = None
             continue
