@@ -35,7 +35,16 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     (black subtracted; half resolution), images the mean of the linearised channels."""
     if frame.kind == "raw":
         black = float(np.mean(frame.black))
-        return registration.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
+        scale = float(np.mean(frame.white) - black)
+        h, w = codes.shape[0] // 2 * 2, codes.shape[1] // 2 * 2
+        out = np.empty((h // 2, w // 2), np.float32)
+        rows = 64  # in strips: small temporaries, reused rather than faulted in afresh
+        for r in range(0, h, rows):
+            strip = codes[r:min(h, r + rows), :w].astype(np.float32)
+            strip -= black
+            strip /= scale
+            out[r // 2:(r + strip.shape[0]) // 2] = registration.block_mean(strip, 2)
+        return out
     # the inverse response as a table over the stored codes
     v = np.arange(frame.n_codes) / (frame.n_codes - 1.0)
     lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
@@ -60,9 +69,13 @@ def _coarse_linear(frame: Frame, codes: np.ndarray, crf: CRF, f: int) -> np.ndar
     import cv2
 
     h, w = codes.shape[0] // f * f, codes.shape[1] // f * f
-    cells = cv2.resize(codes[:h, :w], (w // 2, h // 2), interpolation=cv2.INTER_AREA)  # 2 x 2 means (rounded)
+    out = np.empty((h // f, w // f), np.float32)
+    rows = 32  # coarse rows per strip: small temporaries, reused rather than faulted in afresh
+    for r in range(0, h // f, rows):
+        strip = codes[r * f:min(h, (r + rows) * f), :w]
+        cells = cv2.resize(strip, (w // 2, strip.shape[0] // 2), interpolation=cv2.INTER_AREA)  # 2 x 2 means
+        out[r:r + strip.shape[0] // f] = registration.block_mean(cells.astype(np.float32), f // 2)
     black = float(np.mean(frame.black))
-    out = registration.block_mean(cells.astype(np.float32), f // 2)
     out -= np.float32(black)
     out *= np.float32(1.0 / (float(np.mean(frame.white)) - black))
     return out
