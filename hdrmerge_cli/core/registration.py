@@ -611,24 +611,20 @@ def _dft_side(n: int) -> int:
 
 def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int, width: int, tol: float,
                p_miss: float = STILL_P_MISS) -> tuple[bool, np.ndarray, float, float]:
-    """Whether ``image`` is displaced from ``reference`` by less than ``tol`` frame pixels
-    everywhere, decided on coarse exposure-invariant images without registering them.
+    """Whether ``image`` lies within ``tol`` frame pixels of ``reference`` everywhere, decided
+    on coarse images without registering them.
 
-    ``reference``, ``image``: ``(h, w)`` :func:`log_irradiance` images of block means, pixel
-    ``u`` centred on frame pixel ``scale u + (scale - 1) / 2`` of a ``height`` x ``width``
-    frame (reduced further to at most :data:`PHASE_SIDE` on a side).  The displacement, a
-    rotation and a translation with a gain and an offset, is estimated by one linearised step
-    from no motion with instrumental variables (``reference``'s gradients the regressors,
-    ``image``'s the instruments: their noises are independent, so noise does not shrink the
-    estimate), its covariance by the sandwich over tiles of :data:`STILL_TILE` pixels (noise
-    of any level, correlated within a tile).  Still when at every frame corner the
-    estimate's length plus ``z(1 - p_miss)`` standard deviations along its least certain
-    direction is below ``tol``: a pair displaced by ``tol`` or more at some corner is declared
-    still with probability at most ``p_miss``.  Never still when the phase correlation puts
-    the pair a pixel or more apart (beyond the linear step's range).  Returns ``(still,
-    warp, bound, rho)``: the estimated translation as a warp (the frame centre's
-    displacement), the bound on the largest corner displacement (frame pixels) and the
-    pair's correlation coefficient (:func:`correlation`)."""
+    ``reference``, ``image``: :func:`log_irradiance` images of block means, pixel ``u`` centred
+    on frame pixel ``scale u + (scale - 1) / 2`` of a ``height`` x ``width`` frame.  Rule: the
+    motion (rotation, translation; gain, offset) of :func:`linear_step`, with its covariance;
+    still when at each frame corner the estimated displacement plus ``z(1 - p_miss)``
+    standard deviations along its least certain direction is below ``tol``.  Meaning: a pair
+    displaced by ``tol`` or more at some corner is declared still with probability at most
+    ``p_miss`` (the linear step's range: a phase correlation a pixel or more off is never
+    still).  A still pair needs no registration; any other is registered in full.
+    Returns ``(still, warp, bound, rho)``: the estimated translation as a warp (the frame
+    centre's displacement), the corner bound (frame pixels) and the correlation coefficient
+    (:func:`correlation`)."""
     from statistics import NormalDist
 
     cv2 = _cv2()
@@ -669,8 +665,11 @@ def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, n
     """The motion of ``image`` against ``reference`` (``(h, w)`` float32, at least
     ``2 STILL_TILE + 4`` on a side) by one linearised step from no motion: ``(theta, cov)``,
     ``theta`` = (x, y translation in pixels, rotation about the centre in radians times half
-    the longer side, gain, offset) and its ``(5, 5)`` covariance (:func:`still_test`), or
-    None when the step is singular."""
+    the longer side, gain, offset), or None when the step is singular.  Instrumental
+    variables: ``reference``'s gradients are the regressors, ``image``'s the instruments
+    (five-tap differences that leave a pixel's own value out), so noise does not shrink the
+    estimate; ``cov``, ``(5, 5)``, is the sandwich over tiles of :data:`STILL_TILE` pixels
+    (noise of any level, correlated within a tile)."""
     h, w = reference.shape
     a, b = reference, image
     t = STILL_TILE
