@@ -305,3 +305,62 @@ def test_masked_ecc_that_runs_away_is_refused():
     assert cv2.findTransformECCWithMask is real
     found = registration._masked_fine_ecc(ghosted, image, true, "translation")
     assert found is not None and registration.corner_distance(found, true, *image.shape) < 0.1
+
+
+def _still_scene(rng, n=96):
+    """A smooth random log-irradiance texture, ``(n, n)`` float64."""
+    s = cv2.GaussianBlur(rng.standard_normal((n, n)), (0, 0), 2.0)
+    return s / s.std() * 0.5
+
+
+def _shifted(scene, dx):
+    """``scene`` seen ``dx`` px further right (exactly: a Fourier phase ramp)."""
+    kx = np.fft.fftfreq(scene.shape[1])[None, :]
+    return np.real(np.fft.ifft2(np.fft.fft2(scene) * np.exp(2j * np.pi * kx * dx)))
+
+
+def test_still_test_covariance_holds_on_noise():
+    """On 200 seeded noise draws over a still scene, the linear step's estimate falls outside
+    its 95 % confidence ellipse (translation and rotation) in 5 % of the draws, within the
+    binomial spread (99.9 % bounds of 200 draws: 2 to 21)."""
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(7)
+    scene = _still_scene(rng)
+    limit = chi2.ppf(0.95, 3)
+    outside = 0
+    for _ in range(200):
+        a = (scene + 0.05 * rng.standard_normal(scene.shape)).astype(np.float32)
+        b = (scene + 0.05 * rng.standard_normal(scene.shape)).astype(np.float32)
+        theta, cov = registration.linear_step(a, b)
+        d = theta[:3]
+        outside += float(d @ np.linalg.solve(cov[:3, :3], d)) > limit
+    assert 2 <= outside <= 21
+
+
+def test_still_test_declares_a_frame_displaced_by_the_tolerance_still_at_most_at_its_rate():
+    """A frame displaced by exactly the tolerance, in noise that puts the undisplaced pair's
+    bound near the tolerance, is declared still in at most p_miss = 5 % of 200 seeded draws
+    (binomial 99.9 % bound: 21; the corner bound is conservative), while the same scene
+    undisplaced is declared still in most."""
+    rng = np.random.default_rng(11)
+    scene = _still_scene(rng)
+    moved = _shifted(scene, 0.25)
+    still = {0.0: 0, 0.25: 0}
+    for d, other in ((0.0, scene), (0.25, moved)):
+        for _ in range(200):
+            a = (scene + 0.2 * rng.standard_normal(scene.shape)).astype(np.float32)
+            b = (other + 0.2 * rng.standard_normal(scene.shape)).astype(np.float32)
+            still[d] += registration.still_test(a, b, 1, 96, 96, 0.25, p_miss=0.05)[0]
+    assert still[0.25] <= 21 and still[0.0] >= 100
+
+
+def test_still_test_sends_large_motion_to_the_full_registration():
+    """Shifts of 0.5 to 5 px and a 1 degree turn are never still at a quarter-pixel tolerance."""
+    rng = np.random.default_rng(3)
+    scene = _still_scene(rng, 128).astype(np.float32)
+    for dx in (0.5, 1.5, 5.0):
+        assert not registration.still_test(scene, _shifted(scene, dx).astype(np.float32), 1, 128, 128, 0.25)[0]
+    turn = cv2.getRotationMatrix2D((63.5, 63.5), 1.0, 1.0).astype(np.float32)
+    turned = cv2.warpAffine(scene, turn, (128, 128), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    assert not registration.still_test(scene, turned, 1, 128, 128, 0.25)[0]

@@ -715,3 +715,66 @@ def test_decoded_once_decodes_each_frame_once_until_released():
     c = SimpleNamespace(path="c.tif")
     few(a), few(b), few(c)
     assert list(few.kept) == ["b.tif", "c.tif"] and few(b)[0, 0] == 2 and few(a)[0, 0] == 4
+
+
+def _raw_stack(shifts, seed=1, h=384, w=512):
+    """Three 14-bit mosaics (0.5, 1, 2 s; black 512, photon and read noise) of a textured
+    scene, the first and last frames seeing it ``shifts`` px further right."""
+    rng = np.random.default_rng(seed)
+    e = np.exp(cv2.GaussianBlur(rng.standard_normal((h, w)), (0, 0), 2.0) * 8.0) * np.linspace(0.3, 1.0, w)[None]
+    e /= np.percentile(e, 99)
+    stack = []
+    for k, t in enumerate((0.5, 1.0, 2.0)):
+        dx = {0: shifts[0], 2: shifts[1]}.get(k, 0.0)
+        m = np.float32([[1, 0, dx], [0, 1, 0]])
+        s = cv2.warpAffine(e.astype(np.float32), m, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REFLECT) if dx else e
+        signal = np.maximum(s * t, 0) * 8000.0
+        y = rng.poisson(signal / 2.0) * 2.0 + rng.normal(0, 3, signal.shape) + 512
+        stack.append(np.clip(np.rint(y), 0, 16383).astype(np.uint16))
+    return stack
+
+
+def _alignment_counting(stack, monkeypatch, coarse=True):
+    """The alignment of a RAW stack under ``auto`` (``hdrmerge_cli.api``'s stack, the merge's
+    estimate_alignment) and how many frames were registered at full resolution; ``coarse``
+    False: no pair is found still at coarse resolution."""
+    from hdrmerge_cli import api
+    from hdrmerge_cli.pipeline.motion import estimate_alignment
+
+    calls = []
+    full = registration.estimate_warp
+
+    def counting(reference, image, motion="translation"):
+        calls.append(image.shape)
+        return full(reference, image, motion)
+
+    monkeypatch.setattr(registration, "estimate_warp", counting)
+    if not coarse:
+        monkeypatch.setattr(registration, "still_test", lambda a, b, *args, **kw: (False, None, np.inf, -1.0))
+    st = api._stack(stack, [0.5, 1.0, 2.0], "RGGB", 512.0, 16383.0, None)
+    out = estimate_alignment(st.frames, st.exposures, api._response(None, st), "auto", st.load)
+    monkeypatch.undo()
+    return out, len(calls)
+
+
+def test_a_still_bracket_is_found_still_without_a_full_registration(monkeypatch):
+    """A tripod RAW bracket (photon and read noise): under ``auto`` both other frames are
+    found still by the coarse test and keep a translation within a hundredth of a pixel;
+    nothing is registered at full resolution or applied."""
+    out, registered = _alignment_counting(_raw_stack((0.0, 0.0)), monkeypatch)
+    assert registered == 0 and not out["applied"] and not out["unaligned"] and len(out["still"]) == 2
+    assert max(out["largest_displacement_px"]) < 0.01 and min(out["confidence"]) > 0.9
+    assert all(np.allclose(w[:, :2], np.eye(2)) for w in out["warps"])
+
+
+def test_frames_that_moved_are_registered_at_full_resolution_as_before(monkeypatch):
+    """Frames moved by 0.5 px and by 5 px fail the coarse test and are registered at full
+    resolution, to the same warps as without the coarse test."""
+    stack = _raw_stack((0.5, 5.0))
+    out, registered = _alignment_counting(stack, monkeypatch)
+    before, _ = _alignment_counting(stack, monkeypatch, coarse=False)
+    assert registered == 2 and out["still"] == [] and out["applied"]
+    for est, old in zip(out["warps"], before["warps"]):
+        assert np.array_equal(est, old)
+    assert abs(out["warps"][2][0, 2] + 5.0) < 0.1

@@ -167,32 +167,36 @@ def off_plateau(img: np.ndarray) -> np.ndarray:
     return ((img > lo + 1e-4) & (img < hi - 1e-4)).astype(np.uint8)
 
 
-def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD) -> tuple[int, int]:
+def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD, scale: int = 1) -> tuple[int, int]:
     """``(textured, across)``: how many pixels off the plateaus carry texture, a
     log-irradiance gradient (3 x 3 box-smoothed, so single-pixel noise does not count) above
     ``grad`` per pixel; and the fewer of those whose gradient's x component, and
     those whose y component, is above ``grad`` / sqrt 2: edges in one direction only fix
-    no shift along them (the aperture problem)."""
+    no shift along them (the aperture problem).  Measured at most :data:`COARSE_SIDE` on a
+    side; ``scale``: full-resolution pixels per pixel of ``img`` (counts and gradients are per
+    full-resolution pixel)."""
     cv2 = _cv2()
     f = max(1, -(-max(img.shape) // COARSE_SIDE))
     small = block_mean(img, f)
     smooth = cv2.blur(small, (3, 3))
     inside = off_plateau(small) > 0
     gy, gx = np.gradient(smooth)
+    f *= scale
     limit = grad * f  # per full-resolution pixel
     textured = int(np.count_nonzero((np.hypot(gx, gy) > limit) & inside))
     across = min(int(np.count_nonzero((np.abs(g) > limit / np.sqrt(2)) & inside)) for g in (gx, gy))
     return textured * f * f, across * f * f
 
 
-def registrable(a: np.ndarray, b: np.ndarray) -> str | None:
+def registrable(a: np.ndarray, b: np.ndarray, scale: int = 1) -> str | None:
     """Why two exposure-invariant images cannot be registered, or None: each needs
     :data:`MIN_TEXTURED` textured pixels and :data:`MIN_ACROSS` textured across each axis
     (:func:`texture`), so an image of fewer than :data:`MIN_TEXTURED` pixels, or narrower
-    than :data:`MIN_SIDE`, never is."""
-    if min(a.shape) < MIN_SIDE or a.size < MIN_TEXTURED:
-        return f"a {a.shape[0]} x {a.shape[1]} registration image is too small to register"
-    (ta, xa), (tb, xb) = texture(a), texture(b)
+    than :data:`MIN_SIDE`, never is.  ``scale``: full-resolution pixels per pixel of the
+    images (reduced images: :func:`coarse_factor`)."""
+    if min(a.shape) * scale < MIN_SIDE or a.size * scale * scale < MIN_TEXTURED:
+        return f"a {a.shape[0] * scale} x {a.shape[1] * scale} registration image is too small to register"
+    (ta, xa), (tb, xb) = texture(a, scale=scale), texture(b, scale=scale)
     if min(ta, tb) < MIN_TEXTURED:
         return f"only {min(ta, tb)} textured pixels"
     if min(xa, xb) < MIN_ACROSS:
@@ -576,3 +580,151 @@ def corner_distance(a: np.ndarray, b: np.ndarray, height: int, width: int) -> fl
 def warp_size(warp: np.ndarray, height: int, width: int) -> float:
     """Largest displacement (pixels) the warp causes anywhere in the frame."""
     return corner_distance(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), height, width)
+
+
+#: the still test's error rate (:func:`still_test`): a pair displaced by its tolerance or
+#: more is declared still with at most this probability
+STILL_P_MISS = 1e-3
+#: side (coarse pixels) of the tiles whose scores :func:`still_test`'s covariance sums
+#: (residuals correlated within a tile are allowed for)
+STILL_TILE = 16
+
+
+def coarse_factor(height: int, width: int, cell: int = 1) -> int:
+    """Frame pixels per coarse pixel: ``cell`` (a registration image's pixel: 2 for a RAW
+    frame's CFA cells) times the reduction :func:`texture` makes of the registration image
+    (at most :data:`COARSE_SIDE` on a side)."""
+    return cell * max(1, -(-max(height // cell, width // cell) // COARSE_SIDE))
+
+
+def _dft_side(n: int) -> int:
+    """The longest side at most ``n`` that is even and a product of 2, 3 and 5 only."""
+    for m in range(n - n % 2, 1, -2):
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+    return n
+
+
+def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int, width: int, tol: float,
+               p_miss: float = STILL_P_MISS) -> tuple[bool, np.ndarray, float, float]:
+    """Whether ``image`` lies within ``tol`` frame pixels of ``reference`` everywhere, decided
+    on coarse images without registering them.
+
+    ``reference``, ``image``: :func:`log_irradiance` images of block means, pixel ``u`` centred
+    on frame pixel ``scale u + (scale - 1) / 2`` of a ``height`` x ``width`` frame.  Rule: the
+    motion (rotation, translation; gain, offset) of :func:`linear_step`, with its covariance;
+    still when at each frame corner the estimated displacement plus ``z(1 - p_miss)``
+    standard deviations along its least certain direction is below ``tol``.  Meaning: a pair
+    displaced by ``tol`` or more at some corner is declared still with probability at most
+    ``p_miss`` (the linear step's range: a phase correlation a pixel or more off is never
+    still).  A still pair needs no registration; any other is registered in full.
+    Returns ``(still, warp, bound, rho)``: the estimated translation as a warp (the frame
+    centre's displacement), the corner bound (frame pixels) and the correlation coefficient
+    (:func:`correlation`)."""
+    from statistics import NormalDist
+
+    cv2 = _cv2()
+    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+    k = max(1, -(-max(reference.shape) // PHASE_SIDE))
+    a, b = block_mean(reference, k), block_mean(image, k)
+    h, w = _dft_side(a.shape[0]), _dft_side(a.shape[1])  # even (OpenCV's phase correlation is biased on odd
+    # sides) and fast to transform
+    a, b = np.ascontiguousarray(a[:h, :w], np.float32), np.ascontiguousarray(b[:h, :w], np.float32)
+    scale *= k
+    t = STILL_TILE
+    if min(h, w) < 2 * t + 4:
+        return False, identity, float("inf"), -1.0
+    rho = correlation(a, b)
+    (px, py), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64),
+                                     cv2.createHanningWindow((w, h), cv2.CV_64F))
+    if max(abs(px), abs(py)) >= 1.0:
+        return False, identity, float("inf"), rho
+    step = linear_step(a, b)
+    if step is None:
+        return False, identity, float("inf"), rho
+    theta, cov = step
+    cy, cx = (h - 1) / 2, (w - 1) / 2
+    s = max(cx, cy)
+    z = NormalDist().inv_cdf(1.0 - p_miss)
+    bound = 0.0
+    for fx, fy in ((0, 0), (width - 1, 0), (0, height - 1), (width - 1, height - 1)):
+        ux, uy = (fx - (scale - 1) / 2) / scale, (fy - (scale - 1) / 2) / scale  # in the test's pixels
+        lin = scale * np.array([[1.0, 0.0, -(uy - cy) / s, 0.0, 0.0], [0.0, 1.0, (ux - cx) / s, 0.0, 0.0]])
+        spread = float(np.sqrt(max(np.linalg.eigvalsh(lin @ cov @ lin.T)[-1], 0.0)))
+        bound = max(bound, float(np.hypot(*(lin @ theta))) + z * spread)
+    warp = identity.copy()
+    warp[:, 2] = scale * theta[:2]
+    return bound < tol, warp, bound, rho
+
+
+def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The motion of ``image`` against ``reference`` (``(h, w)`` float32, at least
+    ``2 STILL_TILE + 4`` on a side) by one linearised step from no motion: ``(theta, cov)``,
+    ``theta`` = (x, y translation in pixels, rotation about the centre in radians times half
+    the longer side, gain, offset), or None when the step is singular.  Instrumental
+    variables: ``reference``'s gradients are the regressors, ``image``'s the instruments
+    (five-tap differences that leave a pixel's own value out), so noise does not shrink the
+    estimate; ``cov``, ``(5, 5)``, is the sandwich over tiles of :data:`STILL_TILE` pixels
+    (noise of any level, correlated within a tile)."""
+    h, w = reference.shape
+    a, b = reference, image
+    t = STILL_TILE
+    ny, nx = (h - 4) // t * t, (w - 4) // t * t  # interior pixels in whole tiles
+    rows, cols = slice(2, 2 + ny), slice(2, 2 + nx)
+    cy, cx = (h - 1) / 2, (w - 1) / 2
+    s = np.float32(max(cx, cy))
+    ry = (-(np.arange(2, 2 + ny, dtype=np.float32) - np.float32(cy)) / s)[:, None]  # a rotation's displacement per
+    rx = ((np.arange(2, 2 + nx, dtype=np.float32) - np.float32(cx)) / s)[None, :]  # radian and s
+    m = a + b
+    near = m[rows, 3:3 + nx] + m[rows, 1:1 + nx] + m[3:3 + ny, cols] + m[1:1 + ny, cols]  # neighbours (not the pixel)
+    near -= near.mean(dtype=np.float64)
+
+    def columns(img):  # gradients by five-tap central differences (the pixel's own value left out), rotation,
+        # gain, offset
+        out = np.empty((5, ny, nx), np.float32)
+        for c, (lo2, lo1, hi1, hi2) in enumerate(((img[rows, 0:nx], img[rows, 1:1 + nx], img[rows, 3:3 + nx],
+                                                   img[rows, 4:4 + nx]),
+                                                  (img[0:ny, cols], img[1:1 + ny, cols], img[3:3 + ny, cols],
+                                                   img[4:4 + ny, cols]))):
+            np.subtract(hi1, lo1, out=out[c])
+            out[c] *= np.float32(8.0 / 12.0)
+            out[c] -= (hi2 - lo2) * np.float32(1.0 / 12.0)
+        np.multiply(out[0], ry, out=out[2])
+        out[2] += out[1] * rx
+        out[3] = near
+        out[4] = 1.0
+        return out.reshape(5, -1)
+
+    x_reg, z_ins = columns(a), columns(b)
+    r = (a - b)[rows, cols].reshape(-1)
+    zx = (z_ins @ x_reg.T).astype(np.float64)
+    try:
+        inv = np.linalg.inv(zx)
+    except np.linalg.LinAlgError:
+        return None
+    theta = inv @ (z_ins @ r).astype(np.float64)
+    e = r - (theta.astype(np.float32) @ x_reg)
+    z_ins *= e
+    scores = z_ins.reshape(5, ny // t, t, nx // t, t).sum(axis=(2, 4), dtype=np.float64).reshape(5, -1)
+    g = scores.shape[1]
+    cov = inv @ (scores @ scores.T) @ inv.T * (g / max(g - 1, 1))
+    return theta, cov
+
+
+def correlation(reference: np.ndarray, image: np.ndarray) -> float:
+    """The correlation coefficient of two images over the reference's pixels off its
+    plateaus (the measure :func:`ecc_score` takes of a registered pair); -1 when fewer than
+    16 pixels are."""
+    on = off_plateau(reference).ravel().astype(np.float32)
+    n = float(on.sum(dtype=np.float64))
+    if n < 16:
+        return -1.0
+    a, b = reference.ravel(), image.ravel()
+    a = (a - np.float32(np.dot(a, on) / n)) * on
+    b = (b - np.float32(np.dot(b, on) / n)) * on
+    den = float(np.sqrt(float(np.dot(a, a)) * float(np.dot(b, b))))
+    return float(np.dot(a, b)) / den if den > 0 else -1.0

@@ -34,7 +34,16 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     (black subtracted; half resolution), images the mean of the linearised channels."""
     if frame.kind == "raw":
         black = float(np.mean(frame.black))
-        return registration.block_mean((codes.astype(np.float32) - black) / float(np.mean(frame.white) - black), 2)
+        scale = float(np.mean(frame.white) - black)
+        h, w = codes.shape[0] // 2 * 2, codes.shape[1] // 2 * 2
+        out = np.empty((h // 2, w // 2), np.float32)
+        rows = 64  # in strips: small temporaries, reused rather than faulted in afresh
+        for r in range(0, h, rows):
+            strip = codes[r:min(h, r + rows), :w].astype(np.float32)
+            strip -= black
+            strip /= scale
+            out[r // 2:(r + strip.shape[0]) // 2] = registration.block_mean(strip, 2)
+        return out
     # the inverse response as a table over the stored codes
     v = np.arange(frame.n_codes) / (frame.n_codes - 1.0)
     lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
@@ -51,6 +60,26 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     return lin.mean(axis=-1, dtype=np.float32)
 
 
+def _coarse_linear(frame: Frame, codes: np.ndarray, crf: CRF, f: int) -> np.ndarray:
+    """:func:`_linear` reduced to blocks of ``f`` x ``f`` frame pixels (block means; RAW: ``f``
+    even, whole CFA cells; coarse pixel ``u`` centred on frame pixel ``f u + (f - 1) / 2``)."""
+    if frame.kind != "raw":
+        return registration.block_mean(_linear(frame, codes, crf), f)
+    import cv2
+
+    h, w = codes.shape[0] // f * f, codes.shape[1] // f * f
+    out = np.empty((h // f, w // f), np.float32)
+    rows = 32  # coarse rows per strip: small temporaries, reused rather than faulted in afresh
+    for r in range(0, h // f, rows):
+        strip = codes[r * f:min(h, (r + rows) * f), :w]
+        cells = cv2.resize(strip, (w // 2, strip.shape[0] // 2), interpolation=cv2.INTER_AREA)  # 2 x 2 means
+        out[r:r + strip.shape[0] // f] = registration.block_mean(cells.astype(np.float32), f // 2)
+    black = float(np.mean(frame.black))
+    out -= np.float32(black)
+    out *= np.float32(1.0 / (float(np.mean(frame.white)) - black))
+    return out
+
+
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
     """Warps bringing every frame onto the reference (``core.registration``).  ``auto`` registers
     with rotation too and keeps a frame's rotation only where it beats translation, and
@@ -60,15 +89,22 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     pixels, however small a fraction of the frame), and the result is kept when its
     correlation reaches :data:`MIN_CONFIDENCE`.  A frame left unaligned is a warning when
     the mode was asked for or other frames moved; under ``auto`` with nothing applied, an
-    info line.  Returns ``{"mode", "reference",
+    info line.  Under ``auto`` each pair is first tested at coarse resolution (the level the
+    texture test measures at): a pair without texture there is left unaligned, one
+    found still (:func:`~hdrmerge_cli.core.registration.still_test`, at
+    :data:`AUTO_ALIGN_PX` divided by the frame's steps from the reference, so the chained
+    warp stays within it) keeps the coarse translation estimate and is not registered at
+    full resolution.  Returns ``{"mode", "reference",
     "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
-    "unaligned": [...]}`` with warps in the frames' own sample coordinates and confidence
-    the registration's correlation coefficient to its neighbour (1 for the reference)."""
+    "unaligned": [...], "still": [...]}`` with warps in the frames' own sample coordinates,
+    confidence the registration's correlation coefficient to its neighbour (1 for the
+    reference) and ``still`` the frames found still at coarse resolution."""
     ref = reference_index(frames)
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
     confidence = [1.0] * len(frames)
+    judged_still: list[int] = []
 
     def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
         """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
@@ -94,9 +130,55 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         # decoded once (DecodedOnce)
         return _linear(frames[k], load(frames[k]), crf)
 
+    scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if raw else 1)
+    small: dict[int, np.ndarray] = {}
+    making = {k: threading.Lock() for k in range(len(frames))}
+
+    def coarse(k: int) -> np.ndarray:  # the registration image reduced as the texture test
+        # reduces it; the reference's made once for both sides
+        with making[k]:
+            if k not in small:
+                small[k] = _coarse_linear(frames[k], load(frames[k]), crf, scale)
+            return small[k]
+
+    def still(a: int, b: int) -> tuple[np.ndarray, str | None] | None:
+        """Under ``auto``: the step from frame a to b at coarse resolution when the pair is
+        still (:func:`~hdrmerge_cli.core.registration.still_test`, the tolerance
+        :data:`AUTO_ALIGN_PX` shared by the steps between b and the reference), else None."""
+        linear = frames[a].kind != "image"
+        code_step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
+        try:
+            lo, hi = registration.common_range([exposures[a], exposures[b]], lo_code=registration.dark_floor(code_step))
+        except HdrMergeError:
+            return None
+        ia = registration.log_irradiance(coarse(a), exposures[a], lo, hi)
+        ib = registration.log_irradiance(coarse(b), exposures[b], lo, hi)
+        why = registration.registrable(ia, ib, scale // (2 if raw else 1))
+        if why is not None:  # the texture test measures at this level
+            return identity, f"{why} in the range it shares with its neighbour"
+        tol = AUTO_ALIGN_PX / abs(b - ref)
+        is_still, w, bound, rho = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
+        if not is_still:
+            log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
+                     "resolution", frames[b].path, tol)
+            return None
+        confidence[b] = round(rho, 4)
+        log.info("%s: still against its neighbour (coarse test: displaced at most %.3f px at %g confidence, by "
+                 "(%.3f, %.3f) px as estimated); not registered at full resolution", frames[b].path, bound,
+                 1 - registration.STILL_P_MISS, w[0, 2], w[1, 2])
+        judged_still.append(b)
+        if rho < MIN_CONFIDENCE:
+            return identity, f"its still test correlates only {rho:.2f} with its neighbour"
+        return w, None
+
     def chain(indices: list[int]) -> dict:
-        """The steps of one side of the reference, outwards."""
-        return {j: step(j - 1 if j > ref else j + 1, j, image) for j in indices}
+        """The steps of one side of the reference, outwards: under ``auto`` a step found still at
+        coarse resolution is not registered at full resolution."""
+        out = {}
+        for j in indices:
+            a = j - 1 if j > ref else j + 1
+            out[j] = (mode == "auto" and still(a, j)) or step(a, j, image)
+        return out
 
     # each frame is registered to its neighbour towards the reference (they share the most
     # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1).  The
@@ -133,7 +215,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
            "applied": bool(applied),
            "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
            "largest_displacement_px": [round(s, 3) for s in sizes], "confidence": confidence,
-           "unaligned": unaligned}
+           "unaligned": unaligned, "still": [frames[j].path for j in sorted(judged_still)]}
     if motion == "similarity":
         out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in warps]
         out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in warps]
