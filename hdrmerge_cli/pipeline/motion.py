@@ -103,89 +103,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    confidence = [1.0] * len(frames)
-    judged_still: list[int] = []
-
-    def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
-        """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
-        identity and why they cannot be registered."""
-        linear = frames[a].kind != "image"  # RAW or linear TIFF: 16 codes are a signal level
-        code_step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
-        try:
-            lo, hi = registration.common_range([exposures[a], exposures[b]], lo_code=registration.dark_floor(code_step))
-        except HdrMergeError:
-            return identity, "no irradiance range is well exposed in both it and its neighbour"
-        ia = registration.log_irradiance(image(a), exposures[a], lo, hi)
-        ib = registration.log_irradiance(image(b), exposures[b], lo, hi)
-        why = registration.registrable(ia, ib)
-        if why is not None:
-            return identity, f"{why} in the range it shares with its neighbour"
-        w, rho = registration.estimate_warp(ia, ib, motion)
-        confidence[b] = round(rho, 4)
-        if rho < MIN_CONFIDENCE:
-            return identity, f"registration to its neighbour correlates only {rho:.2f}"
-        return (registration.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
-
-    def image(k: int) -> np.ndarray:  # made again for each pair rather than held: the codes are
-        # decoded once (DecodedOnce)
-        return _linear(frames[k], load(frames[k]), crf)
-
-    scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if raw else 1)
-    small: dict[int, np.ndarray] = {}
-    making = {k: threading.Lock() for k in range(len(frames))}
-
-    def coarse(k: int) -> np.ndarray:  # the registration image reduced as the texture test
-        # reduces it; the reference's made once for both sides
-        with making[k]:
-            if k not in small:
-                small[k] = _coarse_linear(frames[k], load(frames[k]), crf, scale)
-            return small[k]
-
-    def still(a: int, b: int) -> tuple[np.ndarray, str | None] | None:
-        """Under ``auto``: the step from frame a to b at coarse resolution when the pair is
-        still (:func:`~hdrmerge_cli.core.registration.still_test`, the tolerance
-        :data:`AUTO_ALIGN_PX` shared by the steps between b and the reference), else None."""
-        linear = frames[a].kind != "image"
-        code_step = 1.0 / float(np.min(frames[a].white - frames[a].black)) if linear else None
-        try:
-            lo, hi = registration.common_range([exposures[a], exposures[b]], lo_code=registration.dark_floor(code_step))
-        except HdrMergeError:
-            return None
-        ia = registration.log_irradiance(coarse(a), exposures[a], lo, hi)
-        ib = registration.log_irradiance(coarse(b), exposures[b], lo, hi)
-        why = registration.registrable(ia, ib, scale // (2 if raw else 1))
-        if why is not None:  # the texture test measures at this level
-            return identity, f"{why} in the range it shares with its neighbour"
-        tol = AUTO_ALIGN_PX / abs(b - ref)
-        is_still, w, bound, rho = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
-        if not is_still:
-            log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
-                     "resolution", frames[b].path, tol)
-            return None
-        confidence[b] = round(rho, 4)
-        log.info("%s: still against its neighbour (coarse test: displaced at most %.3f px at %g confidence, by "
-                 "(%.3f, %.3f) px as estimated); not registered at full resolution", frames[b].path, bound,
-                 1 - registration.STILL_P_MISS, w[0, 2], w[1, 2])
-        judged_still.append(b)
-        if rho < MIN_CONFIDENCE:
-            return identity, f"its still test correlates only {rho:.2f} with its neighbour"
-        return w, None
-
-    def chain(indices: list[int]) -> dict:
-        """The steps of one side of the reference, outwards: under ``auto`` a step found still at
-        coarse resolution is not registered at full resolution."""
-        out = {}
-        for j in indices:
-            a = j - 1 if j > ref else j + 1
-            out[j] = (mode == "auto" and still(a, j)) or step(a, j, image)
-        return out
-
-    # each frame is registered to its neighbour towards the reference (they share the most
-    # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1).  The
-    # two sides of the reference run on two threads (OpenCV's ECC releases the GIL)
-    sides = [list(range(ref + 1, len(frames))), list(range(ref - 1, -1, -1))]
-    with ThreadPoolExecutor(2) as pool:
-        steps = {j: st for side in pool.map(chain, [s for s in sides if s]) for j, st in side.items()}
+    steps, sides, confidence, judged_still = _register_steps(frames, exposures, crf, mode, motion, ref, load)
     warps = [None] * len(frames)
     warps[ref] = identity
     unaligned = []
@@ -223,6 +141,108 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
              "applied" if applied else "not needed")
     return out
+
+
+
+
+def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[float, float] | None:
+    """The irradiance range two frames both expose well
+    (:func:`~hdrmerge_cli.core.registration.common_range`; ``frame``: the first, whose code
+    step sets the dark floor of linear data), or None when there is none."""
+    linear = frame.kind != "image"  # RAW or linear TIFF: 16 codes are a signal level
+    code_step = 1.0 / float(np.min(frame.white - frame.black)) if linear else None
+    try:
+        return registration.common_range([exposure_a, exposure_b], lo_code=registration.dark_floor(code_step))
+    except HdrMergeError:
+        return None
+
+
+def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, motion: str, ref: int, load):
+    """The steps of :func:`estimate_alignment`: per frame ``j`` other than the reference,
+    ``(warp from its neighbour towards the reference to it, why it is left unaligned or
+    None)``, the two sides' frame orders, the confidences and the frames found still."""
+    raw = frames[0].kind == "raw"
+    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+    confidence = [1.0] * len(frames)
+    judged_still: list[int] = []
+
+    def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
+        """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
+        identity and why they cannot be registered."""
+        shared = _shared_range(frames[a], exposures[a], exposures[b])
+        if shared is None:
+            return identity, "no irradiance range is well exposed in both it and its neighbour"
+        lo, hi = shared
+        ia = registration.log_irradiance(image(a), exposures[a], lo, hi)
+        ib = registration.log_irradiance(image(b), exposures[b], lo, hi)
+        why = registration.registrable(ia, ib)
+        if why is not None:
+            return identity, f"{why} in the range it shares with its neighbour"
+        w, rho = registration.estimate_warp(ia, ib, motion)
+        confidence[b] = round(rho, 4)
+        if rho < MIN_CONFIDENCE:
+            return identity, f"registration to its neighbour correlates only {rho:.2f}"
+        return (registration.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+
+    def image(k: int) -> np.ndarray:  # made again for each pair rather than held: the codes are
+        # decoded once (DecodedOnce)
+        return _linear(frames[k], load(frames[k]), crf)
+
+    scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if raw else 1)
+    small: dict[int, np.ndarray] = {}
+    making = {k: threading.Lock() for k in range(len(frames))}
+
+    def coarse(k: int) -> np.ndarray:  # the registration image reduced as the texture test
+        # reduces it; the reference's made once for both sides
+        with making[k]:
+            if k not in small:
+                small[k] = _coarse_linear(frames[k], load(frames[k]), crf, scale)
+            return small[k]
+
+    def still(a: int, b: int) -> tuple[np.ndarray, str | None] | None:
+        """Under ``auto``: the step from frame a to b at coarse resolution when the pair is
+        still (:func:`~hdrmerge_cli.core.registration.still_test`, the tolerance
+        :data:`AUTO_ALIGN_PX` shared by the steps between b and the reference), else None."""
+        shared = _shared_range(frames[a], exposures[a], exposures[b])
+        if shared is None:
+            return None
+        lo, hi = shared
+        ia = registration.log_irradiance(coarse(a), exposures[a], lo, hi)
+        ib = registration.log_irradiance(coarse(b), exposures[b], lo, hi)
+        why = registration.registrable(ia, ib, scale // (2 if raw else 1))
+        if why is not None:  # the texture test measures at this level
+            return identity, f"{why} in the range it shares with its neighbour"
+        tol = AUTO_ALIGN_PX / abs(b - ref)
+        is_still, w, bound, rho = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
+        if not is_still:
+            log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
+                     "resolution", frames[b].path, tol)
+            return None
+        confidence[b] = round(rho, 4)
+        log.info("%s: still against its neighbour (coarse test: displaced at most %.3f px at %g confidence, by "
+                 "(%.3f, %.3f) px as estimated); not registered at full resolution", frames[b].path, bound,
+                 1 - registration.STILL_P_MISS, w[0, 2], w[1, 2])
+        judged_still.append(b)
+        if rho < MIN_CONFIDENCE:
+            return identity, f"its still test correlates only {rho:.2f} with its neighbour"
+        return w, None
+
+    def chain(indices: list[int]) -> dict:
+        """The steps of one side of the reference, outwards: under ``auto`` a step found still at
+        coarse resolution is not registered at full resolution."""
+        out = {}
+        for j in indices:
+            a = j - 1 if j > ref else j + 1
+            out[j] = (mode == "auto" and still(a, j)) or step(a, j, image)
+        return out
+
+    # each frame is registered to its neighbour towards the reference (they share the most
+    # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1).  The
+    # two sides of the reference run on two threads (OpenCV's ECC releases the GIL)
+    sides = [list(range(ref + 1, len(frames))), list(range(ref - 1, -1, -1))]
+    with ThreadPoolExecutor(2) as pool:
+        steps = {j: st for side in pool.map(chain, [s for s in sides if s]) for j, st in side.items()}
+    return steps, sides, confidence, judged_still
 
 
 def whole_periods_suffice(warps) -> bool:
