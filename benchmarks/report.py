@@ -157,14 +157,17 @@ def headline() -> str:
 
     def sw_cell(case, tool, column):
         return next(r for r in tables(sw)[0][1] if r[0] == case and r[1] == tool)[tables(sw)[0][0].index(column)]
+    first = "hdrmerge-cli merge: first merge (default options, empty cache)"
     for case, ours, peers in (
-            ("24 MP x 3 DNG", "hdrmerge-cli merge (default EXR, noise cache filled)",
+            ("24 MP x 3 DNG", first,
              {"HDRMerge": "HDRMerge -b 32 (float DNG)", "Luminance_HDR": "luminance-hdr-cli -s out.exr"}),
-            ("4 x 0.4 MP DNG", "hdrmerge-cli merge (noise cache filled)", {"HDRMerge": "HDRMerge -b 32 (float DNG)"}),
-            ("3 x 12 MP 8-bit TIFF", "hdrmerge-cli merge --crf srgb",
+            ("24 MP x 3 DNG, hand-held", "hdrmerge-cli merge: first merge (default options: aligned)",
+             {"HDRMerge": "HDRMerge -b 32 (float DNG; aligns by default)"}),
+            ("4 x 0.4 MP DNG", first, {"HDRMerge": "HDRMerge -b 32 (float DNG)"}),
+            ("3 x 12 MP 8-bit TIFF", "hdrmerge-cli merge: first merge (default options: response measured)",
              {"OpenCV": "OpenCV imread + MergeDebevec (known sRGB response) + EXR write",
               "Luminance_HDR": "luminance-hdr-cli -s out.exr"})):
-        row(f"Whole command, {case}: seconds / peak MB", "speed_whole",
+        row(f"A camera's first merge, {case}: seconds / peak MB", "speed_whole",
             f"{sw_cell(case, ours, wall)} / {sw_cell(case, ours, peak)}",
             **{p: f"{sw_cell(case, t, wall)} / {sw_cell(case, t, peak)}" for p, t in peers.items()})
     kinds = dict(zip(tables(ik)[0][0], next(r for r in tables(ik)[0][1] if "kinds merged" in r[0])))
