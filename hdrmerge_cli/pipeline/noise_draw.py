@@ -59,7 +59,7 @@ def noise_tiles(codes: np.ndarray, fill: int, sites: int = FAST_PATH_SITES, tile
     h, w = codes.shape
     grid = _grid(h, w, sites, tile)
     if grid is None:
-        return codes
+        return codes.copy()  # not a view: it would keep the whole decoded frame alive
     ny, nx = grid
     step = tile + 1
     out = np.full((ny * step - 1, nx * step - 1), fill, codes.dtype)
@@ -70,9 +70,10 @@ def noise_tiles(codes: np.ndarray, fill: int, sites: int = FAST_PATH_SITES, tile
 
 
 def strided(codes: np.ndarray, sites: int = USABILITY_SITES) -> np.ndarray:
-    """An even stride of at most about ``sites`` codes of one channel (H, W)."""
+    """An even stride of at most about ``sites`` codes of one channel (H, W), a copy (a view
+    would keep the whole decoded frame alive)."""
     step = max(1, int(np.ceil(np.sqrt(codes.size / sites))))
-    return codes[::step, ::step]
+    return codes[::step, ::step].copy()
 
 
 class DrawnChannel(NamedTuple):
