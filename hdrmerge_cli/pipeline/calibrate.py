@@ -55,10 +55,10 @@ def linear_plane(frame: Frame, k: int, codes: np.ndarray, crf):
     return crf.inverse(codes / full, k) * full, lo, hi
 
 
-def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None, pick=None):
+def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None):
     """(name, plane of linear values above black (H', W') float64, lo, hi) per channel
     (:func:`channel_codes` through :func:`linear_plane`)."""
-    for name, k, sub in channel_codes(frame, codes, corner, pick):
+    for name, k, sub in channel_codes(frame, codes, corner):
         yield (name, *linear_plane(frame, k, sub, crf))
 
 
@@ -106,27 +106,30 @@ def _has_signal(plane: np.ndarray, lo: float, hi: float, sites: int | None = Non
             and above * sites / sub.size >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sites))
 
 
-def _read_group(frames: list[Frame], crf, what: str, reduce=None, load=load_codes) -> list[tuple[Frame, list]]:
+def _read_group(frames: list[Frame], crf, what: str, load=load_codes) -> list[tuple[Frame, list]]:
     """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
     ``frames``; photographs that are all clipped or black are skipped with a warning.
-    ``reduce`` picks the sites to keep of each plane as it is read (e.g. :func:`subsample`;
-    usability is judged on the whole planes first), so a bracket's full-size planes are never
-    all held at once.  Frames are decoded two at a time (both cores)."""
+    Frames are decoded two at a time (both cores)."""
     # one camera (checked): the CFA layout is read once, not by a second decode per frame
     corner = cfa_corner(frames[0]) if frames and frames[0].kind == "raw" else None
 
-    def read(f):  # usability is judged on the whole frame (sparse lamps may miss a subsample)
+    def read(f):
         planes = list(channel_planes(f, load(f), crf, corner))
-        reason = _usable(f, planes) if what == "images" else None
-        return reason, planes if reduce is None else [(n, reduce(p), lo, hi) for n, p, lo, hi in planes]
+        return _usable(f, planes) if what == "images" else None, planes
 
-    out = []
     with ThreadPoolExecutor(2) as pool:
-        for f, (reason, planes) in zip(frames, pool.map(read, frames)):
-            if reason:
-                log.warning("%s: skipped, %s", f.path, reason)
-            else:
-                out.append((f, planes))
+        return _usable_frames(frames, pool.map(read, frames))
+
+
+def _usable_frames(frames: list[Frame], results) -> list[tuple[Frame, list]]:
+    """[(frame, planes)] of ``results`` (``(why the frame is unusable or None, its planes)``
+    per frame), each unusable frame skipped with a warning."""
+    out = []
+    for f, (reason, planes) in zip(frames, results):
+        if reason:
+            log.warning("%s: skipped, %s", f.path, reason)
+        else:
+            out.append((f, planes))
     return out
 
 
@@ -431,13 +434,7 @@ def _read_drawn(frames: list[Frame], crf, load, draw: NoiseDraw, pool) -> list[t
                          min(c.sites for c in channels))
         return reason, None if reason else [(c.name, *linear_plane(f, c.index, c.tiles, crf)) for c in channels]
 
-    out = []
-    for f, (reason, planes) in zip(frames, pool.map(read, frames)):
-        if reason:
-            log.warning("%s: skipped, %s", f.path, reason)
-        else:
-            out.append((f, planes))
-    return out
+    return _usable_frames(frames, pool.map(read, frames))
 
 
 def _achievable(read: list[tuple[Frame, list]], k: int, fit: NoiseFit) -> tuple[float, float]:
