@@ -191,6 +191,7 @@ def exposure_tables(
     estimator: str = "log",
     bounds=None,
     with_variance: bool = False,
+    excess=None,
 ) -> ExposureTables:
     """Build the per-channel tables of one exposure for (7): the weight ``w(z)`` times the
     variance factor ``sigma^-2`` of :func:`inverse_variance`.
@@ -207,6 +208,10 @@ def exposure_tables(
         (weight 0) as every weight is there
     with_variance : also build the ``variance`` table (:func:`estimate_variance_table`),
         for ``LogMerge(..., variance=True)``; off by default (no cost)
+    excess : the variance of ``log E`` a camera-processed code carries beyond (17) and its
+        quantisation, measured on the bracket
+        (:class:`~hdrmerge_cli.core.excess_variance.ExcessVariance`); it replaces the fixed
+        :data:`MODEL_TOLERANCE` of :func:`code_error_variance`
     """
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
@@ -226,7 +231,12 @@ def exposure_tables(
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
         # camera-processed codes' own error; a linear sensor's measured read noise already
         # holds its quantisation
-        code_error = None if crf.is_linear else code_error_variance(lin, wl - b)
+        if crf.is_linear:
+            code_error = None
+        elif excess is not None:
+            code_error = quantisation_variance(lin, wl - b) + excess.at(v) * (lin * (wl - b)) ** 2
+        else:
+            code_error = code_error_variance(lin, wl - b)
         if estimator == "ml":
             y = lin * (wl - b)
             var_y = code_variance(y, chan_noise) if chan_noise is not None else np.maximum(y, 1.0)

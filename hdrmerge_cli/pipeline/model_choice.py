@@ -32,6 +32,7 @@ class Models:
     table_channels : the tables' row names (``R``, ``G``, ``B``, ``G2`` ...)
     noise : per channel :class:`NoiseParams` in code units, or None
     estimated : how the noise was measured (bracket or cache), for the profile
+    excess : the variance beyond the noise model measured on an image bracket, or None
     """
 
     estimator: str
@@ -45,6 +46,7 @@ class Models:
     tables: list
     pattern: np.ndarray | None
     table_channels: list[str]
+    excess: object = None  # core.excess_variance.ExcessVariance of a camera-processed bracket, or None
     timings: dict[str, float] = field(default_factory=dict)
 
     def noise_used(self, frame: Frame) -> dict | None:
@@ -55,26 +57,36 @@ class Models:
 
 
 def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: MergeOptions, load=load_codes,
-                  noise: dict[str, NoiseParams] | None = None, draw=None) -> Models:
+                  noise: dict[str, NoiseParams] | None = None, draw=None, samples=None) -> Models:
     """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
     else measured on the bracket, on the sites ``draw`` kept as the frames were decoded
     (:class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`) or through ``load``, where the
-    options need them), variance
-    mode and the per-frame tables, each option's ``auto`` resolved by the defaults below."""
+    options need them), the variance beyond the noise model of a camera-processed bracket
+    (measured on the exposure check's ``samples``, :mod:`hdrmerge_cli.pipeline.excess`),
+    variance mode and the per-frame tables, each option's ``auto`` resolved by the defaults below."""
     first = frames[0]
     timings = {}
     estimated = None
-    estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first, crf)
-    weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
-    # RAW: always measured (the ML default needs it); images only where the options ask for
-    # a noise model (their default, the log estimator with code-error variances, does not)
-    needs_noise = (opts.variance == "model" or (weights in NOISE_MODEL_WEIGHTS and weights != "bounded")
-                   or bool(opts.irls) or estimator == "ml" or (opts.variance == "auto" and first.kind in ("raw", "linear"))
+    processed = first.kind == "image" and not crf.is_linear and not opts.lut
+    measure_excess_term = processed and samples is not None and len(frames) > 1
+    needs_noise = (opts.variance == "model" or (opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded")
+                   or bool(opts.irls) or opts.estimator == "ml" or measure_excess_term
+                   or (opts.estimator == "auto" and (first.kind == "raw" or crf.is_linear))
+                   or (opts.variance == "auto" and first.kind in ("raw", "linear"))
                    or "variance" in opts.extra_channels)
     if noise is None and needs_noise and not opts.lut:
         t1 = time.perf_counter()
         noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache, draw=draw)
         timings["noise_estimate"] = time.perf_counter() - t1
+    excess = None
+    if measure_excess_term:
+        from hdrmerge_cli.pipeline.excess import measure_excess
+
+        t1 = time.perf_counter()
+        excess = measure_excess(samples, exposures, crf, noise, first.channel_names)
+        timings["excess_variance"] = time.perf_counter() - t1
+    estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first, crf, noise, excess)
+    weights = opts.weights if opts.weights != "auto" else default_weights(estimator, excess)
     variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf)
     if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
         log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
@@ -88,33 +100,41 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     bounds = parse_bounds(opts.bounds) if opts.bounds else None
     tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
                                                    estimator, luts, bounds,
-                                                   with_variance="variance" in opts.extra_channels and not n_irls)
+                                                   with_variance="variance" in opts.extra_channels and not n_irls,
+                                                   excess=excess)
     timings["tables"] = time.perf_counter() - t0
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
-                  table_channels, timings)
+                  table_channels, excess, timings)
 
 
-def default_estimator(frame: Frame, crf: CRF) -> str:
-    """``--estimator auto``: ``"ml"`` (the linear maximum-likelihood estimate, eq. (7) with
-    inverse-variance weights) for RAW frames and linear images, whose codes are sensor data
-    and whose noise model holds; ``"log"`` (the paper's log-domain (7)) for camera-processed
-    images, whose errors come from the response and the camera's processing more than from
-    noise.  Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
-    return "ml" if frame.kind == "raw" or crf.is_linear else "log"
+def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
+    """``--estimator auto``: the maximum-likelihood estimator of the errors the bracket
+    shows.  ``"ml"`` (the linear-domain estimate, eq. (7) with inverse-variance weights)
+    where the noise model (17) explains the codes: RAW frames and linear images, and a
+    camera-processed bracket whose exposure pairs show no variance beyond the model (the
+    test of :mod:`hdrmerge_cli.core.excess_variance`).  ``"log"`` (the paper's log-domain
+    (7)) where they do: that excess is the camera's processing (tone curves, local tone
+    mapping, noise reduction), relative errors that the log domain averages.  Evidence:
+    benchmarks/results/cli_defaults.md, real_loo.md."""
+    if frame.kind == "raw" or crf.is_linear:
+        return "ml"
+    return "ml" if noise and excess is not None and not excess.kept else "log"
 
 
-def default_weights(estimator: str) -> str:
-    """``--weights auto``: ``"uniform"`` for the ML estimator, whose inverse-variance weights
-    are already the noise-optimal ones; the classical ``"triangle"`` for the log estimator.
-    Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
-    return "uniform" if estimator == "ml" else "triangle"
+def default_weights(estimator: str, excess=None) -> str:
+    """``--weights auto``: ``"uniform"`` where the variance factor is the measured one (the
+    ML estimator, whose inverse-variance weights are already the noise-optimal ones, and
+    the log estimator with the bracket's excess variance); the classical ``"triangle"`` for
+    the log estimator without it.  Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
+    return "uniform" if estimator == "ml" or excess is not None else "triangle"
 
 
 def default_variance(noise, crf: CRF) -> str:
     """``--variance auto``: ``"model"`` when noise parameters are known (given, or measured
-    on a RAW bracket); otherwise ``"codes"`` for a non-linear response (the quantisation of
-    the codes through it plus :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`) and
-    ``"photon"`` for a linear one.  Evidence: benchmarks/results/real_loo.md."""
+    on the bracket); otherwise ``"codes"`` for a non-linear response (the quantisation of
+    the codes through it plus the variance beyond it, measured on the bracket or
+    :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`) and ``"photon"`` for a linear
+    one.  Evidence: benchmarks/results/real_loo.md."""
     if noise:
         return "model"
     return "photon" if crf.is_linear else "codes"
@@ -241,7 +261,7 @@ def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
 
 
 def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-                 luts=None, bounds=None, with_variance=False):
+                 luts=None, bounds=None, with_variance=False, excess=None):
     """Per-frame lookup tables (each frame with its own black and white levels), the
     periodic pattern of table rows (see :class:`LogMerge`; None when one row serves every
     channel) and the table rows' channel names.  ``with_variance``: the tables also hold
@@ -259,6 +279,6 @@ def build_tables(frames, exposures, crf, weights, noise=None, variance="none", p
     tables = [exposure_tables(f.n_codes if luts else table_size(f.white, f.n_codes),
                               f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
-                              bounds=bounds, with_variance=with_variance)
+                              bounds=bounds, with_variance=with_variance, excess=excess)
               for j, (f, h) in enumerate(zip(frames, exposures))]
     return tables, None if shared else sample_pattern(first), names

@@ -228,6 +228,8 @@ class Merged:
             profile["noise"] = {"used": m.noise_used(first)}
         if m.estimated:
             profile["noise"]["estimated_from_bracket"] = m.estimated
+        if m.excess is not None:
+            profile["excess_variance"] = m.excess.as_dict()
         return profile
 
     def header(self, profile_name: str, profile_text: str) -> dict:

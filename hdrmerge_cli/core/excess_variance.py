@@ -1,0 +1,128 @@
+"""Variance beyond the noise model, measured on exposure pairs.
+
+Two frames ``j`` and ``l`` of a still bracket see the same irradiance, so their terms of
+(7), ``x = g(z) - log h`` with ``g = log gamma^-1``, differ at a pixel by
+``d = x_l - x_j``, whose variance under the model is ``V_j + V_l``: ``V`` the variance of
+``g(z)`` from (17) carried through the response (the delta method: ``v(y) / y^2``) plus
+the quantisation of the codes (:func:`hdrmerge_cli.core.reconstruct.quantisation_variance`).
+What a camera's processing adds on top (tone curves that differ between frames, local tone
+mapping, noise reduction, sharpening, compression) shows as ``d^2`` above that sum.  It is
+modelled as a variance of ``log E`` per code level, shared by the frames,
+``e(v) >= 0`` on :data:`N_LEVELS` bins of the normalised code ``v``::
+
+    E[d^2] = V_j(z_j) + V_l(z_l) + e(v_j) + e(v_l)
+
+and fitted by non-negative weighted least squares of ``d^2``, each weighted by the inverse of
+its variance ``2 E[d^2]^2`` at the current fit (for Gaussian ``d``, ``d^2 / E[d^2]`` is
+chi-square with one degree of freedom): Fisher scoring for the variance components, the
+Gaussian maximum-likelihood fit.  No robust loss: it would cut the chi-square's long upper
+tail and bias the variance low; readings that disagree because something moved are error
+the merge has to weigh too.
+
+The term is kept only when the model alone fails the pairs: without excess the statistic
+``T = sum(d^2 / (V_j + V_l) - 1) / sqrt(2 n)`` is asymptotically standard normal, and the
+excess is kept when ``T`` exceeds its ``1 - P_FALSE_ALARM`` quantile.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: code-level bins of the excess term (uniform in the normalised code)
+N_LEVELS = 32
+#: false-alarm rate of the test that keeps the excess term (a bracket the model explains
+#: gets one with this probability)
+P_FALSE_ALARM = 1e-3
+#: fewest pair samples to fit the term from
+MIN_SAMPLES = 500
+
+
+@dataclass(frozen=True)
+class ExcessVariance:
+    """The measured excess (see the module docstring).
+
+    levels : (N_LEVELS,) float64, the excess variance of ``log E`` per code-level bin
+        (zeros when the term is not kept)
+    kept : whether the test kept the term
+    chi_model : mean ``d^2 / (V_j + V_l)`` of the model alone (1 when it explains the pairs)
+    chi_fit : the same with the excess term
+    statistic : the test statistic ``T``
+    samples : pair samples used
+    """
+
+    levels: np.ndarray
+    kept: bool
+    chi_model: float
+    chi_fit: float
+    statistic: float
+    samples: int
+
+    def at(self, v: np.ndarray) -> np.ndarray:
+        """The excess at normalised codes ``v`` (any shape; linear between bin centres,
+        constant beyond the outer ones), in variance of ``log E``."""
+        if not self.kept:
+            return np.zeros(np.shape(v))
+        centres = (np.arange(self.levels.size) + 0.5) / self.levels.size
+        return np.interp(np.clip(v, 0.0, 1.0), centres, self.levels)
+
+    def as_dict(self) -> dict:
+        return {"kept": self.kept, "levels_sd": [round(float(s), 4) for s in np.sqrt(self.levels)],
+                "chi_model": round(self.chi_model, 4), "chi_fit": round(self.chi_fit, 4),
+                "statistic": round(self.statistic, 2), "samples": self.samples}
+
+
+def level_of(v: np.ndarray, n_levels: int = N_LEVELS) -> np.ndarray:
+    """The bin index of normalised codes ``v`` (int64, same shape)."""
+    return np.minimum((np.clip(v, 0.0, 1.0) * n_levels).astype(np.int64), n_levels - 1)
+
+
+def fit_excess_variance(d: np.ndarray, base: np.ndarray, level_a: np.ndarray, level_b: np.ndarray,
+                        n_levels: int = N_LEVELS, p_false_alarm: float = P_FALSE_ALARM,
+                        iterations: int = 6) -> ExcessVariance:
+    """Fit ``e`` of ``E[d^2] = base + e[level_a] + e[level_b]`` (module docstring).
+
+    d : (n,) pair differences of ``log E`` (each pair's median removed by the caller: the
+        exposures' errors are the label check's business)
+    base : (n,) ``V_j + V_l`` of the model, > 0
+    level_a, level_b : (n,) int code-level bins of the two readings (:func:`level_of`)
+    Returns an :class:`ExcessVariance`.
+    """
+    from scipy.optimize import nnls
+    from scipy.special import ndtri
+
+    d2 = np.asarray(d, np.float64) ** 2
+    base = np.maximum(np.asarray(base, np.float64), 1e-300)
+    n = d2.size
+    if n < MIN_SAMPLES:
+        return ExcessVariance(np.zeros(n_levels), False, float("nan"), float("nan"), float("nan"), n)
+    ratio = d2 / base
+    chi_model = float(ratio.mean())
+    statistic = float((ratio - 1.0).sum() / np.sqrt(2.0 * n))
+    if statistic <= ndtri(1.0 - p_false_alarm):
+        return ExcessVariance(np.zeros(n_levels), False, chi_model, chi_model, statistic, n)
+    design = np.zeros((n, n_levels))
+    rows = np.arange(n)
+    np.add.at(design, (rows, level_a), 1.0)
+    np.add.at(design, (rows, level_b), 1.0)
+    used = design.any(axis=0)
+    a = design[:, used]
+    e = np.zeros(a.shape[1])
+    for _ in range(iterations):
+        pred = base + a @ e
+        w = 1.0 / (np.sqrt(2.0) * pred)
+        e = nnls(a * w[:, None], (d2 - base) * w)[0]
+    levels = np.zeros(n_levels)
+    levels[used] = e
+    levels = _fill_empty(levels, used)
+    chi_fit = float(np.mean(d2 / (base + a @ e)))
+    return ExcessVariance(levels, True, chi_model, chi_fit, statistic, n)
+
+
+def _fill_empty(levels: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Bins no pair sample reached take their nearest measured neighbour's value."""
+    if used.all() or not used.any():
+        return levels
+    idx = np.flatnonzero(used)
+    nearest = idx[np.abs(np.arange(levels.size)[:, None] - idx[None, :]).argmin(axis=1)]
+    return levels[nearest]

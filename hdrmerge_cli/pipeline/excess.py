@@ -1,0 +1,83 @@
+"""The excess variance of a camera-processed bracket
+(:mod:`hdrmerge_cli.core.excess_variance`) measured on the samples the exposure check drew."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.excess_variance import ExcessVariance, fit_excess_variance, level_of
+from hdrmerge_cli.core.noise import NoiseParams, code_variance
+from hdrmerge_cli.core.reconstruct import quantisation_variance
+from hdrmerge_cli.io.noisespec import per_channel
+
+log = logging.getLogger("hdrmerge_cli")
+
+#: pair samples in all (a seeded draw shared evenly by the frame pairs and channels): the
+#: term's few levels need no more
+MAX_SAMPLES = 1 << 17
+
+
+def _log_terms(v: np.ndarray, crf: CRF, c: int, codes_step: float, noise: NoiseParams | None):
+    """Per normalised code ``v`` of channel ``c``: ``g(z)`` and the model's variance of it
+    (noise (17) and quantisation through the response, over ``y^2``); NaN where ``g``
+    is undefined or the code is clipped."""
+    n = int(round(1.0 / codes_step)) + 1
+    grid = np.linspace(0.0, 1.0, n)
+    lin = crf.inverse(grid, c)
+    y_full = n - 1.0
+    y = lin * y_full
+    var = quantisation_variance(lin, y_full) + (code_variance(y, noise) if noise is not None else 0.0)
+    ok = (lin > 0) & (np.arange(n) > 0) & (np.arange(n) < n - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = np.where(ok, np.log(np.where(ok, lin, 1.0)), np.nan)
+        v_log = np.where(ok, var / np.where(ok, y, 1.0) ** 2, np.nan)
+    z = np.rint(np.clip(v, 0.0, 1.0) * (n - 1)).astype(np.int64)
+    return g[z], v_log[z]
+
+
+def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, NoiseParams] | None,
+                   channel_names: list[str], seed: int = 0) -> ExcessVariance:
+    """Fit the excess term on every pair of frames, each channel's readings where both
+    frames' codes are unclipped, off the constant borders.
+
+    samples : :class:`~hdrmerge_cli.pipeline.exposure_check.Samples` of an image bracket
+        (registered onto the reference where the bracket was aligned)
+    exposures : (K,) the frames' exposures in seconds, as the merge uses them
+    noise : per channel parameters of (17) in code units, or None (quantisation alone)
+    """
+    rng = np.random.default_rng(seed)
+    params = per_channel(noise, channel_names) if noise else [None] * len(channel_names)
+    terms = []
+    for k, v in enumerate(samples.v):
+        flat = v[samples.inside]
+        cols = [_log_terms(flat[:, c], crf, c, samples.codes_step, params[min(c, len(params) - 1)])
+                for c in range(flat.shape[1])]
+        terms.append((flat, np.log(exposures[k]), cols))
+    d_all, base_all, la, lb = [], [], [], []
+    per_pair = MAX_SAMPLES // max(1, len(terms) * (len(terms) - 1) // 2 * samples.v[0].shape[-1])
+    for j in range(len(terms)):
+        for m in range(j + 1, len(terms)):
+            (vj, hj, cj), (vm, hm, cm) = terms[j], terms[m]
+            for c in range(vj.shape[1]):
+                gj, bj = cj[c]
+                gm, bm = cm[c]
+                ok = np.flatnonzero(np.isfinite(gj) & np.isfinite(gm))
+                if ok.size < 2:
+                    continue
+                if ok.size > per_pair:
+                    ok = np.sort(rng.choice(ok, per_pair, replace=False))
+                d = (gm[ok] - hm) - (gj[ok] - hj)
+                d_all.append(d - np.median(d))
+                base_all.append(bj[ok] + bm[ok])
+                la.append(level_of(vj[ok, c]))
+                lb.append(level_of(vm[ok, c]))
+    if not d_all:
+        return fit_excess_variance(np.zeros(0), np.ones(0), np.zeros(0, int), np.zeros(0, int))
+    fit = fit_excess_variance(np.concatenate(d_all), np.concatenate(base_all), np.concatenate(la), np.concatenate(lb))
+    log.info("variance beyond the noise model on %d pair samples: model alone %.3g x the pairs' variance, "
+             "%s", fit.samples, 1.0 / fit.chi_model if fit.chi_model else float("nan"),
+             f"excess kept (test statistic {fit.statistic:.1f}), sd of log E per level up to "
+             f"{np.sqrt(fit.levels.max()):.3f}" if fit.kept else "no excess kept")
+    return fit
