@@ -224,3 +224,27 @@ def test_merge_fast_path_lies_within_its_standard_errors_of_the_truth(run, tmp_p
         assert abs(used[ch]["sigma_o2"] - truth["sigma_o2_total"]) < 4 * se["sigma_o2"]
         assert entries[ch]["achievable_stderr"]["alpha"] <= 1.2 * se["alpha"]  # the bound, and the fit near it
         assert entries[ch]["achievable_stderr"]["alpha"] >= 0.3 * se["alpha"]
+
+
+def test_merge_measures_the_other_channels_when_one_is_clipped_everywhere(run, tmp_path):
+    """An 8-bit bracket whose blue channel is clipped in every frame: red and green are
+    measured, blue takes their median with a warning, and the merge keeps its noise model
+    (not photon weights for every channel)."""
+    import OpenImageIO as oiio
+
+    meta = simulate(run, tmp_path / "b", "--format", "tif", "--out-bits", "8", "--crf", "gamma:2.5",
+                    "--size", "256x192", "--frames", "4")
+    paths = frames_of(tmp_path / "b", meta)
+    for p in paths:
+        buf = oiio.ImageBuf(str(p))
+        pixels = buf.get_pixels(oiio.UINT8)
+        pixels[..., 2] = 255
+        buf.set_pixels(buf.roi, pixels)
+        assert buf.write(str(p))
+    res = run("merge", *paths, "-o", tmp_path / "m.exr", "--json")
+    s = json.loads(res.stdout)
+    assert "channel B" in res.stderr and "median of channels R, G" in res.stderr
+    assert s["noise"]["B"]["alpha"] == pytest.approx(sorted([s["noise"]["R"]["alpha"], s["noise"]["G"]["alpha"]])[0]
+                                                     + abs(s["noise"]["R"]["alpha"] - s["noise"]["G"]["alpha"]) / 2)
+    profile = json.loads((tmp_path / "m.profile.json").read_text())
+    assert profile["noise"]["estimated_from_bracket"]["B"]["stand_in_from"] == ["R", "G"]

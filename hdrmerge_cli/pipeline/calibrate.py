@@ -475,20 +475,31 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
             try:
                 est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi)
             except HdrMergeError as exc:
-                raise HdrMergeError(f"{read[0][0].path} ({iso}, channel {name}): {exc}") from None
+                return name, None, f"{read[0][0].path} ({iso}, channel {name}): {exc}", None, None
             return name, est, ratios, fit_standard_errors(est, bool(ratios)), _achievable(read, k, est)
 
         fits = list(pool.map(fit, range(len(read[0][1]))))
+    measured = [f for f in fits if f[1] is not None]
+    if not measured:
+        raise HdrMergeError(fits[0][2])
     used, entries = {}, {}
     sites = min(c.drawn for c in draw.drawn[read[0][0].path])
-    for name, est, ratios, se, crb in fits:
+    for name, est, ratios, se, crb in measured:
         entries[name] = _fit_entry(est, ratios, 7) | {
             "subsample_sites": sites,
             "stderr": {"sigma_o2": _rounded(se[0]), "alpha": _rounded(se[1])},
             "achievable_stderr": ({"sigma_o2": _rounded(crb[0]), "alpha": _rounded(crb[1])}
                                   if np.isfinite(crb[0]) and np.isfinite(crb[1]) else None)}
         used[name] = {"sigma_o2": est.sigma_o2, "alpha": est.alpha, "beta": 0.0}
-    return used, entries
+    # a channel the bracket cannot measure (clipped or black nearly everywhere) takes the
+    # median of the measured channels': the same sensor, up to the white balance's gain
+    stand_in = {p: float(np.median([used[f[0]][p] for f in measured])) for p in ("sigma_o2", "alpha")}
+    for name, est, why, _, _ in fits:
+        if est is None:
+            log.warning("%s; its noise is taken as the median of channels %s", why, ", ".join(f[0] for f in measured))
+            used[name] = stand_in | {"beta": 0.0}
+            entries[name] = {"stand_in_from": [f[0] for f in measured], "reason": why}
+    return {name: used[name] for name, *_ in fits}, {name: entries[name] for name, *_ in fits}
 
 
 def _rounded(x: float) -> float | None:
