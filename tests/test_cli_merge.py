@@ -168,8 +168,9 @@ def test_merge_takes_noise_from_a_calibrated_profile(run, tmp_path, dng_bracket)
 
 def test_bounded_needs_no_noise_parameters(run, tmp_path, jpeg_bracket):
     folder, meta = jpeg_bracket
-    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--weights", "bounded")
-    assert s["variance"] == "codes" and s["noise"] is None and np.all(np.isfinite(read_exr(out)[0]))
+    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "srgb", "--weights", "bounded",
+                    "--estimator", "log", "--variance", "codes")
+    assert s["weights"] == "bounded" and s["variance"] == "codes" and np.all(np.isfinite(read_exr(out)[0]))
 
 
 @pytest.mark.parametrize("args,message", [
@@ -340,22 +341,34 @@ def test_default_weights_follow_the_estimator(run, tmp_path, dng_bracket, jpeg_b
     assert (s["weights"], s["estimator"]) == ("triangle", "log")
 
 
-def test_image_defaults_use_code_error_variances_and_measure_noise_only_when_asked(run, tmp_path, jpeg_bracket):
-    """Images: --variance auto is 'codes' (no noise model needed, none measured); asking
-    for the ML estimator or a noise-model weighting measures the noise on the bracket
-    instead of falling back to the conservative bounds."""
+def test_image_defaults_pick_the_estimator_by_the_variance_beyond_the_noise_model(run, tmp_path, jpeg_bracket,
+                                                                                   tiff_bracket):
+    """Images: the noise and the variance beyond it are measured on the bracket.  JPEG
+    frames (compression and 8-bit rounding the model does not hold) keep the excess: the
+    log estimator with triangle weights and code-error variances.  16-bit TIFFs of a
+    simulated sensor (a raw converter's output: nothing beyond the model) pass the test:
+    the ML estimator with the noise model.  Asking for the ML estimator or a noise-model
+    weighting uses the measured noise instead of the conservative bounds."""
     folder, meta = jpeg_bracket
     frames = frames_of(folder, meta)
-    _, s = _merge(run, tmp_path, frames, "--crf", "srgb")
-    assert s["variance"] == "codes" and s["noise"] is None and "noise_estimate" not in s["timing_seconds"]
+    out, s = _merge(run, tmp_path, frames, "--crf", "srgb")
+    assert s["noise_source"].startswith("measured on the bracket") and "excess_variance" in s["timing_seconds"]
+    excess = json.loads(out.with_suffix(".profile.json").read_text())["excess_variance"]
+    assert excess["tested"] and excess["kept"] and excess["chi_model"] > 2
+    assert (s["estimator"], s["weights"], s["variance"]) == ("log", "triangle", "codes")
     for args in (("--estimator", "ml"), ("--weights", "probabilistic"), ("--variance", "model"), ("--irls", "2")):
         proc = run("merge", *frames, "--crf", "srgb", "-o", tmp_path / "m.exr", "--json", "--overwrite", *args)
         s = json.loads(proc.stdout)
-        assert s["variance"] == "model" and s["noise_source"].startswith("measured on the bracket")
+        assert s["noise_source"].startswith("measured on the bracket")
         assert "bounded scheme" not in proc.stderr
     est, _ = read_exr(tmp_path / "m.exr")
     truth, _ = read_exr(folder / "truth.exr")
     assert np.isfinite(est).all() and log_rmse(est, truth) < 0.5
+    folder, meta = tiff_bracket
+    out, s = _merge(run, tmp_path, frames_of(folder, meta), "--crf", "gamma:2.2", name="tif.exr")
+    excess = json.loads(out.with_suffix(".profile.json").read_text())["excess_variance"]
+    assert excess["tested"] and not excess["kept"] and excess["levels_sd"] == [0.0] * len(excess["levels_sd"])
+    assert (s["estimator"], s["weights"], s["variance"]) == ("ml", "uniform", "model")
 
 
 def test_outputs_the_tool_cannot_write_faithfully_are_refused(run, tmp_path, jpeg_bracket):
@@ -384,3 +397,32 @@ def test_a_response_table_that_does_not_cover_the_codes_is_refused(run, tmp_path
     proc = run("merge", *frames_of(folder, meta), "--crf", csv, "-o", tmp_path / "x.exr", check=False)
     assert proc.returncode == 1 and "covers codes 0..100" in proc.stderr and "0..255 (8-bit)" in proc.stderr
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_a_frame_with_another_picture_style_keeps_the_excess(run, tmp_path, tiff_bracket):
+    """The 16-bit TIFF bracket the model explains, with one frame through another tone
+    curve (another picture style: codes v -> v^0.8): the pairs show the excess, the log
+    estimator merges, and the result stays finite and close to the truth."""
+    import shutil
+
+    import OpenImageIO as oiio
+
+    folder, meta = tiff_bracket
+    frames = []
+    for k, p in enumerate(frames_of(folder, meta)):
+        dst = tmp_path / p.name
+        shutil.copy(p, dst)
+        if k == 1:
+            buf = oiio.ImageBuf(str(dst))
+            v = buf.get_pixels(oiio.FLOAT)
+            v = np.clip(v, 0, 1) ** 0.8
+            buf.set_pixels(buf.roi, v)
+            assert buf.write(str(dst), "uint16")
+        frames.append(dst)
+    out, s = _merge(run, tmp_path, frames, "--crf", "gamma:2.2")
+    excess = json.loads(out.with_suffix(".profile.json").read_text())["excess_variance"]
+    assert excess["kept"] and max(excess["levels_sd"]) > 0.02, excess
+    assert s["estimator"] == "log"
+    est, _ = read_exr(out)
+    truth, _ = read_exr(folder / "truth.exr")
+    assert np.isfinite(est).all() and log_rmse(est, truth) < 0.5

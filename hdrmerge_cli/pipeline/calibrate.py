@@ -450,7 +450,7 @@ def _achievable(read: list[tuple[Frame, list]], k: int, fit: NoiseFit) -> tuple[
 
 
 def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: NoiseDraw | None = None,
-                           ) -> tuple[dict, dict]:
+                           pairs: bool = True) -> tuple[dict, dict]:
     """merge without noise parameters: (17) per channel from the bracket itself, by the
     calibrate-noise code on :data:`~hdrmerge_cli.pipeline.noise_draw.FAST_PATH_SITES`
     sites per channel and frame (:func:`~hdrmerge_cli.pipeline.noise_draw.noise_tiles`;
@@ -462,7 +462,10 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
     (None where they hold none).
 
     merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
-    :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used."""
+    :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used.  ``pairs=False``:
+    each frame's own local statistics alone, not the exposure pairs (a camera-processed
+    bracket, whose pairs also hold what the processing adds, measured apart:
+    :mod:`hdrmerge_cli.pipeline.excess`)."""
     iso = iso_key(frames[0].iso)
     draw = draw if draw is not None else NoiseDraw(frames)
     with ThreadPoolExecutor(2) as pool:  # SciPy's filters and NumPy's sorts release the GIL: both cores
@@ -473,7 +476,7 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
         def fit(k):
             name, _, lo, hi = read[0][1][k]
             try:
-                est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi)
+                est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi, pairs=pairs)
             except HdrMergeError as exc:
                 return name, None, f"{read[0][0].path} ({iso}, channel {name}): {exc}", None, None
             return name, est, ratios, fit_standard_errors(est, bool(ratios)), _achievable(read, k, est)

@@ -62,8 +62,12 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     else measured on the bracket, on the sites ``draw`` kept as the frames were decoded
     (:class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`) or through ``load``, where the
     options need them), the variance beyond the noise model of a camera-processed bracket
-    (measured on the exposure check's ``samples``, :mod:`hdrmerge_cli.pipeline.excess`),
-    variance mode and the per-frame tables, each option's ``auto`` resolved by the defaults below."""
+    (measured on the exposure check's ``samples``, :mod:`hdrmerge_cli.pipeline.excess`: it
+    picks the estimator, and the ML estimator's variance holds it), variance mode and the
+    per-frame tables, each option's ``auto`` resolved by the defaults below.  The log
+    estimator keeps the fixed :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: on the
+    real brackets' leave-one-out the measured excess in its place did not lower the error
+    (benchmarks/results/real_loo.md)."""
     first = frames[0]
     timings = {}
     estimated = None
@@ -86,8 +90,8 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
         excess = measure_excess(samples, exposures, crf, noise, first.channel_names)
         timings["excess_variance"] = time.perf_counter() - t1
     estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first, crf, noise, excess)
-    weights = opts.weights if opts.weights != "auto" else default_weights(estimator, excess)
-    variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf)
+    weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
+    variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf, estimator)
     if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
         log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
                     "conservative upper bounds", weights)
@@ -101,7 +105,7 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
                                                    estimator, luts, bounds,
                                                    with_variance="variance" in opts.extra_channels and not n_irls,
-                                                   excess=excess)
+                                                   excess=excess if estimator == "ml" else None)
     timings["tables"] = time.perf_counter() - t0
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
                   table_channels, excess, timings)
@@ -112,30 +116,30 @@ def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
     shows.  ``"ml"`` (the linear-domain estimate, eq. (7) with inverse-variance weights)
     where the noise model (17) explains the codes: RAW frames and linear images, and a
     camera-processed bracket whose exposure pairs show no variance beyond the model (the
-    test of :mod:`hdrmerge_cli.core.excess_variance`).  ``"log"`` (the paper's log-domain
+    test of :mod:`hdrmerge_cli.core.excess_variance`, on enough pairs to decide).  ``"log"`` (the paper's log-domain
     (7)) where they do: that excess is the camera's processing (tone curves, local tone
     mapping, noise reduction), relative errors that the log domain averages.  Evidence:
     benchmarks/results/cli_defaults.md, real_loo.md."""
     if frame.kind == "raw" or crf.is_linear:
         return "ml"
-    return "ml" if noise and excess is not None and not excess.kept else "log"
+    return "ml" if noise and excess is not None and excess.tested and not excess.kept else "log"
 
 
-def default_weights(estimator: str, excess=None) -> str:
-    """``--weights auto``: ``"uniform"`` where the variance factor is the measured one (the
-    ML estimator, whose inverse-variance weights are already the noise-optimal ones, and
-    the log estimator with the bracket's excess variance); the classical ``"triangle"`` for
-    the log estimator without it.  Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
-    return "uniform" if estimator == "ml" or excess is not None else "triangle"
+def default_weights(estimator: str) -> str:
+    """``--weights auto``: ``"uniform"`` for the ML estimator, whose inverse-variance weights
+    are already the noise-optimal ones; the classical ``"triangle"`` for the log estimator.
+    Evidence: benchmarks/results/cli_defaults.md, real_loo.md."""
+    return "uniform" if estimator == "ml" else "triangle"
 
 
-def default_variance(noise, crf: CRF) -> str:
+def default_variance(noise, crf: CRF, estimator: str = "ml") -> str:
     """``--variance auto``: ``"model"`` when noise parameters are known (given, or measured
-    on the bracket); otherwise ``"codes"`` for a non-linear response (the quantisation of
-    the codes through it plus the variance beyond it, measured on the bracket or
-    :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`) and ``"photon"`` for a linear
-    one.  Evidence: benchmarks/results/real_loo.md."""
-    if noise:
+    on the bracket) and the estimator is ML or the frames are sensor data; otherwise
+    ``"codes"`` for a non-linear response (the quantisation of the codes through it plus
+    :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: the log estimator of a
+    camera-processed bracket, whose errors the noise model does not hold) and ``"photon"``
+    for a linear one.  Evidence: benchmarks/results/real_loo.md."""
+    if noise and (estimator == "ml" or crf.is_linear):
         return "model"
     return "photon" if crf.is_linear else "codes"
 
@@ -153,9 +157,14 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
     return int(estimator == "ml" and bool(noise) and not lut)
 
 
+#: ``NoiseDraw`` sites that keep every site of a channel
+WHOLE_FRAME = 1 << 62
+
+
 def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, draw=None):
     """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
-    code, fast path; for images on the signal linearised by ``crf``); on failure fall back
+    code, fast path; for images on the signal linearised by ``crf``); where the drawn sites
+    cannot pin some channel, again on every site; on failure fall back
     to photon-noise weights (``draw``: see :func:`choose_models`).  With ``cache``, an
     earlier merge's measurement of the same camera and ISO is read from the per-camera
     cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there."""
@@ -173,12 +182,23 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
             "cached": cached}
 
     from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+    from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
 
+    # a camera-processed bracket's pairs hold what the processing adds: (17) from each
+    # frame's own statistics, the rest from the pairs (pipeline.excess)
+    pairs = frames[0].kind != "image" or crf.is_linear
     try:
-        used, entries = estimate_bracket_noise(frames, crf, load, draw)
+        used, entries = estimate_bracket_noise(frames, crf, load, draw, pairs)
+        failed = [ch for ch, e in entries.items() if "stand_in_from" in e]
     except HdrMergeError as exc:
-        log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
-        return None, None
+        failed = [str(exc)]
+    if failed:  # too few levels on the drawn tiles (a dark or flat bracket): every site, decoded again
+        log.info("the noise could not be measured on the drawn sites (%s); measuring on every site", failed[0])
+        try:
+            used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=WHOLE_FRAME), pairs)
+        except HdrMergeError as exc:
+            log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
+            return None, None
     log.info("noise measured on the bracket: %s",
              ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
     if key is not None and noisecache.store(key, used, entries, [f.path for f in frames]):
