@@ -284,9 +284,12 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
         ``"optimal"`` (29), ``"bounded"``, ``"mann"``, ``"deneve"``, ``"gaussian"``.
     estimator : {{"auto", "log", "ml"}}
         ``log``: the paper's log-domain (7); ``ml``: linear inverse-variance with clipped
-        readings censored.  auto: ml for mosaics and linear images, else log.
+        readings censored.  auto: ml for mosaics, linear images and images whose exposure
+        pairs the noise model explains (no variance beyond it, a test at a 1e-3 false-alarm
+        rate); log for images whose pairs show more (camera processing).
     variance_model : {{"auto", "model", "codes", "photon", "none"}}
-        The variance factor of (7); auto: model when noise parameters are known.
+        The variance factor of (7); auto: model for the ML estimator and for mosaics and
+        linear images when noise parameters are known, codes for the log estimator of images.
     irls : int, optional
         Re-weighting passes at the merged estimate (default: one for ML with a noise model).
     k : float

@@ -58,7 +58,7 @@ log = logging.getLogger("hdrmerge_cli")
 @click.option("--weights", type=click.Choice(["auto", *sorted(WEIGHTINGS)]), default="auto", show_default=True,
               help="Weighting function of (7): classical triangle, mann, deneve, gaussian, uniform; the paper's "
                    "probabilistic (32), direct (33), optimal (29), bounded (unknown noise parameters). auto: uniform "
-                   "with the ml estimator (RAW), triangle with log (images); the measured winners.")
+                   "with the ml estimator, triangle with log; the measured winners.")
 @click.option("--crf", metavar="CRF",
               help="Camera response of JPEG/TIFF/PNG input: linear, srgb, gamma:G, a CSV table (z, linear) "
                    "or a profile JSON [default: measured on the bracket, as estimate-crf does, or read from the "
@@ -93,15 +93,18 @@ log = logging.getLogger("hdrmerge_cli")
               help="Camera profile JSON (from calibrate-noise / estimate-crf): noise parameters and CRF.")
 @click.option("--variance", type=click.Choice(("auto",) + VARIANCE_FACTORS), default="auto", show_default=True,
               help="Variance factor sigma^-2 of (7): model (noise parameters, plus for images the codes' "
-                   "quantisation through the response and a 1% model tolerance), codes (those two alone), photon, "
-                   "none; auto = model when noise parameters are known, else codes for images with a non-linear "
-                   "response, photon otherwise.")
+                   "quantisation through the response and a 1% model tolerance, or with the ML estimator the "
+                   "variance beyond the model measured on the bracket), codes (quantisation and tolerance alone), "
+                   "photon, none; auto = model for the ML estimator and for RAW when noise parameters are known, "
+                   "codes for the log estimator of images with a non-linear response, photon otherwise.")
 @click.option("--estimator", type=click.Choice(ESTIMATORS), default="auto", show_default=True,
               help="log = the paper's (7); ml = linear-domain inverse-variance with saturation censored; "
-                   "auto = ml for RAW and linear images, log for camera-processed images (a non-linear response).")
+                   "auto = ml for RAW and linear images, and for camera-processed images whose exposure pairs the "
+                   "noise model explains (a test at a 1e-3 false-alarm rate); log for those whose pairs show more "
+                   "(JPEG processing).")
 @click.option("--irls", type=click.IntRange(0, 50), metavar="N",
               help="Re-weight sigma^-2 at the current estimate up to N times (stops when it stops changing). "
-                   "Default: 1 for the ML estimator with a noise model (RAW), else 0.")
+                   "Default: 1 for the ML estimator with a noise model, else 0.")
 @click.option("--k", "k", default=3.0, show_default=True, type=FiniteFloatRange(0.5, 10),
               help="Clipping margin of (47) in standard deviations (noise-model weights).")
 @click.option("--lut", type=click.Path(exists=True, dir_okay=False),
