@@ -52,9 +52,12 @@ def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
 
 # ---------------------------------------------------------------- our configurations
 def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | None = None, weights: str = "triangle",
-         estimator: str = "log", noise: str = "none", variance: str = "auto", irls: int = 0):
+         estimator: str = "log", noise: str = "none", variance: str = "auto", irls: int = 0, excess: bool = False):
     """Estimate the response of ``codes`` (our estimate-crf), merge them (our merge core).
-    Returns (E per second in units of the normalised linear signal, CRF)."""
+    ``excess``: the noise measured on each frame's local statistics and the variance beyond
+    it on the exposure pairs, as merge measures them on an image bracket
+    (:mod:`hdrmerge_cli.pipeline.excess`), the latter in the tables in place of the fixed
+    tolerance.  Returns (E per second in units of the normalised linear signal, CRF)."""
     from hdrmerge_cli.core.reconstruct import merge_frames
     from hdrmerge_cli.pipeline.crf import fit_crf
 
@@ -62,20 +65,35 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     opts = dict(crf_options or {})
     crf, _, _ = fit_crf(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts)
     params = None
-    if noise == "measured":
+    if noise == "measured" and excess:  # as merge measures an image bracket's noise (None where it cannot)
+        from hdrmerge_cli.pipeline.model_choice import measure_noise
+
+        lookup = {id(f): c for f, c in zip(frames, codes)}
+        found, _ = measure_noise(frames, crf, lambda f: lookup[id(f)], cache=False)
+        params = [found[ch] for ch in frames[0].channel_names] if found else None
+    elif noise == "measured":
         from hdrmerge_cli.core.noise import NoiseParams
         from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
 
         lookup = {id(f): c for f, c in zip(frames, codes)}
         used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])
         params = [NoiseParams(**used[ch]) for ch in frames[0].channel_names]
+    measured = None
+    if excess:
+        from hdrmerge_cli.pipeline.excess import measure_excess
+        from hdrmerge_cli.pipeline.exposure_check import Samples
+
+        samples = Samples([c.astype(np.float32) / 255.0 for c in codes], np.ones(codes[0].shape[:2], bool),
+                          (0, 0, 0, 0), 1, 1.0 / 255.0)
+        names = frames[0].channel_names
+        measured = measure_excess(samples, exposures, crf, dict(zip(names, params)) if params else None, names)
     from hdrmerge_cli.pipeline.model_choice import default_variance, prior_rate_of
 
     k = len(codes) // 2
     prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None
     e, _, _ = merge_frames(codes, exposures, crf, [0.0] * 3, [255.0] * 3, weights, params,
                            default_variance(params, crf) if variance == "auto" else variance, estimator, prior_rate=prior,
-                           pattern=np.arange(3)[None, :], irls_iterations=irls)
+                           pattern=np.arange(3)[None, :], irls_iterations=irls, excess=measured)
     return e.astype(np.float64), crf
 
 
@@ -116,6 +134,8 @@ CONFIGS = {
     "robertson CRF": {"crf": "robertson"},
     "probabilistic": {"weights": "probabilistic", "noise": "measured"},
     "uniform/ml": {"weights": "uniform", "estimator": "ml", "noise": "measured"},
+    "excess/log": {"noise": "measured", "variance": "codes", "excess": True},
+    "excess/ml": {"weights": "uniform", "estimator": "ml", "noise": "measured", "excess": True, "irls": 1},
 }
 #: what each configuration is (the Markdown legend)
 LEGEND = {
@@ -129,6 +149,10 @@ LEGEND = {
     "robertson CRF": "`estimate-crf --method robertson`, merge defaults",
     "probabilistic": "`merge --weights probabilistic` (noise measured on the bracket)",
     "uniform/ml": "`merge --estimator ml --weights uniform` (noise measured on the bracket, no IRLS)",
+    "excess/log": "defaults with the variance beyond the noise model measured on the exposure pairs "
+                  "([method](method.md#the-variance-beyond-the-noise-model)) in place of the 1 % tolerance",
+    "excess/ml": "`merge --estimator ml`: uniform weights, the noise measured on each frame's local statistics, "
+                 "the variance beyond it measured on the exposure pairs, one IRLS pass",
 }
 
 

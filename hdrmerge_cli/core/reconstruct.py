@@ -730,7 +730,7 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
                  noise: list[NoiseParams] | None = None, variance: str = "none", estimator: str = "log",
                  prior_rate: float | None = None, k: float = DEFAULT_K, pattern: np.ndarray | None = None,
                  scale: float = 1.0, irls_iterations: int = 0, with_variance: bool = False,
-                 variance_tables=None):
+                 variance_tables=None, excess=None):
     """The merge core on decoded frames in memory: (7) (or the ML estimator) with the
     tables of :func:`exposure_tables`, optionally re-weighted (:func:`irls`).
 
@@ -738,6 +738,8 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
         with ``LogMerge(variance=True)``, or from :func:`irls`), a fourth element;
         ``variance_tables`` optional per-frame ``(R * N,)`` tables to use instead of
         :func:`estimate_variance_table`'s defaults (e.g. with ``tolerance=0``)
+    excess : the variance beyond the noise model measured on the bracket, for the tables
+        (:func:`exposure_tables`)
 
     codes : P arrays ``(H, W)`` or ``(H, W, C)`` uint8/uint16 in increasing exposure order
     exposures : (P,) ``h_j`` in seconds
@@ -751,7 +753,8 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     n_codes = table_size(white, int(np.iinfo(codes[0].dtype).max) + 1)
     streamed_var = with_variance and not irls_iterations  # IRLS brings its own variance
     tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
-                              k, estimator=estimator, with_variance=streamed_var and variance_tables is None)
+                              k, estimator=estimator, with_variance=streamed_var and variance_tables is None,
+                              excess=excess)
               for h in exposures]
     if streamed_var:
         if variance_tables is not None:
