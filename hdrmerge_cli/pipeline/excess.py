@@ -89,8 +89,8 @@ def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, No
     if not fit.tested:
         log.info("variance beyond the noise model: %d pair samples, too few to test the model", fit.samples)
     else:
-        log.info("variance beyond the noise model on %d pair samples: the model alone holds %.3g of the pairs' "
-                 "variance, %s", fit.samples, 1.0 / fit.chi_model,
+        log.info("variance beyond the noise model on %d pair samples: the pairs' variance is %.3g x the "
+                 "model's, %s", fit.samples, fit.chi_model,
                  f"excess kept (test statistic {fit.statistic:.1f}), sd of log E per level up to "
                  f"{np.sqrt(fit.levels.max()):.3f}" if fit.kept else "no excess kept")
     return fit
