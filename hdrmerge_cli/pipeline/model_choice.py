@@ -116,9 +116,10 @@ def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
     shows.  ``"ml"`` (the linear-domain estimate, eq. (7) with inverse-variance weights)
     where the noise model (17) explains the codes: RAW frames and linear images, and a
     camera-processed bracket whose exposure pairs show no variance beyond the model (the
-    test of :mod:`hdrmerge_cli.core.excess_variance`, on enough pairs to decide).  ``"log"`` (the paper's log-domain
-    (7)) where they do: that excess is the camera's processing (tone curves, local tone
-    mapping, noise reduction), relative errors that the log domain averages.  Evidence:
+    test of :mod:`hdrmerge_cli.core.excess_variance`, on enough pairs to decide).
+    ``"log"`` (the paper's log-domain (7)) where they do, or where too few pairs could
+    test it: that excess is the camera's processing (tone curves, local tone mapping,
+    noise reduction), relative errors that the log domain averages.  Evidence:
     benchmarks/results/cli_defaults.md, real_loo.md."""
     if frame.kind == "raw" or crf.is_linear:
         return "ml"
