@@ -8,7 +8,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.excess_variance import ExcessVariance, fit_excess_variance, level_of
-from hdrmerge_cli.core.noise import NoiseParams, code_variance
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
 from hdrmerge_cli.core.reconstruct import quantisation_variance
 from hdrmerge_cli.io.noisespec import per_channel
 
@@ -29,14 +29,18 @@ def _log_terms(v: np.ndarray, crf: CRF, c: int, codes_step: float, noise: NoiseP
     """Per normalised code ``v`` of channel ``c``: ``g(z)`` less its bias and the model's
     variance of it, from the relative variance ``s^2 = v(y) / y^2`` of the noise (17) and
     the quantisation through the response to second order (``-s^2 / 2``, ``s^2 + 2.5 s^4``);
-    NaN where ``g`` is undefined or the code is clipped."""
+    NaN where ``g`` is undefined or the reading lies outside the clipping-safe range of (47)
+    (``k = 3`` standard deviations from black and full scale)."""
     n = int(round(1.0 / codes_step)) + 1
     grid = np.linspace(0.0, 1.0, n)
     lin = crf.inverse(grid, c)
     y_full = n - 1.0
     y = lin * y_full
     var = quantisation_variance(lin, y_full) + (code_variance(y, noise) if noise is not None else 0.0)
-    ok = (lin > 0) & (np.arange(n) > 0) & (np.arange(n) < n - 1)
+    # inside the clipping-safe range of (47): a reading within k standard deviations of
+    # black or full scale is a truncated one, whose pair difference the model misjudges
+    sd = DEFAULT_K * np.sqrt(var)
+    ok = (lin > 0) & (y - sd > 0) & (y + sd < y_full)
     with np.errstate(divide="ignore", invalid="ignore"):
         s2 = np.where(ok, var / np.where(ok, y, 1.0) ** 2, np.nan)
         g = np.where(ok, np.log(np.where(ok, lin, 1.0)) + s2 / 2.0, np.nan)

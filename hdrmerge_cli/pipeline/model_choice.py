@@ -116,14 +116,15 @@ def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
     shows.  ``"ml"`` (the linear-domain estimate, eq. (7) with inverse-variance weights)
     where the noise model (17) explains the codes: RAW frames and linear images, and a
     camera-processed bracket whose exposure pairs show no variance beyond the model (the
-    test of :mod:`hdrmerge_cli.core.excess_variance`, on enough pairs to decide).
-    ``"log"`` (the paper's log-domain (7)) where they do, or where too few pairs could
-    test it: that excess is the camera's processing (tone curves, local tone mapping,
-    noise reduction), relative errors that the log domain averages.  Evidence:
+    test of :mod:`hdrmerge_cli.core.excess_variance`), or too few readings to test it
+    (every reading's modelled deviation above 15 % or near clipping: noise dominates).
+    ``"log"`` (the paper's log-domain (7)) where they show more, or where the noise could
+    not be measured: that excess is the camera's processing (tone curves, local tone
+    mapping, noise reduction), relative errors that the log domain averages.  Evidence:
     benchmarks/results/cli_defaults.md, real_loo.md."""
     if frame.kind == "raw" or crf.is_linear:
         return "ml"
-    return "ml" if noise and excess is not None and excess.tested and not excess.kept else "log"
+    return "ml" if noise and excess is not None and not excess.kept else "log"
 
 
 def default_weights(estimator: str) -> str:
