@@ -242,7 +242,7 @@ def test_alpha_zero_pixels_carry_no_weight(sources, tmp_path):
     assert out.open(str(middle), spec) and out.write_image(px)
     out.close()
     rgb = _image_kind(sources, tmp_path / "rgb", 3, 8, (48, 64))
-    common = ["--crf", "srgb", "--noise", "sigma_o2=4,alpha=1,beta=0", "--reference", "shortest"]
+    common = ["--crf", "srgb", "--noise", "sigma_o2=4,alpha=1,beta=0", "--reference", "shortest", "--estimator", "log"]
     merged = {}
     for name, files in (("rgba", rgba), ("pair", [rgb[0], rgb[2]]), ("all", rgb)):
         code, stderr = _invoke(["merge", *files, "-o", tmp_path / f"{name}.exr", *common])

@@ -121,13 +121,14 @@ def _read_group(frames: list[Frame], crf, what: str, load=load_codes) -> list[tu
         return _usable_frames(frames, pool.map(read, frames))
 
 
-def _usable_frames(frames: list[Frame], results) -> list[tuple[Frame, list]]:
+def _usable_frames(frames: list[Frame], results, skipped: str = "skipped",
+                   level: int = logging.WARNING) -> list[tuple[Frame, list]]:
     """[(frame, planes)] of ``results`` (``(why the frame is unusable or None, its planes)``
-    per frame), each unusable frame skipped with a warning."""
+    per frame), each unusable frame left out with a message (``skipped``, at ``level``)."""
     out = []
     for f, (reason, planes) in zip(frames, results):
         if reason:
-            log.warning("%s: skipped, %s", f.path, reason)
+            log.log(level, "%s: %s, %s", f.path, skipped, reason)
         else:
             out.append((f, planes))
     return out
@@ -434,7 +435,8 @@ def _read_drawn(frames: list[Frame], crf, load, draw: NoiseDraw, pool) -> list[t
                          min(c.sites for c in channels))
         return reason, None if reason else [(c.name, *linear_plane(f, c.index, c.tiles, crf)) for c in channels]
 
-    return _usable_frames(frames, pool.map(read, frames))
+    # merge goes on with such a frame: not a warning
+    return _usable_frames(frames, pool.map(read, frames), "not used to measure the noise", logging.INFO)
 
 
 def _achievable(read: list[tuple[Frame, list]], k: int, fit: NoiseFit) -> tuple[float, float]:

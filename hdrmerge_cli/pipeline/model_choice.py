@@ -74,13 +74,14 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     processed = first.kind == "image" and not crf.is_linear and not opts.lut
     measure_excess_term = processed and samples is not None and len(frames) > 1
     needs_noise = (opts.variance == "model" or (opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded")
-                   or bool(opts.irls) or opts.estimator == "ml" or measure_excess_term
+                   or bool(opts.irls) or opts.estimator == "ml"
                    or (opts.estimator == "auto" and (first.kind == "raw" or crf.is_linear))
                    or (opts.variance == "auto" and first.kind in ("raw", "linear"))
                    or "variance" in opts.extra_channels)
-    if noise is None and needs_noise and not opts.lut:
+    if noise is None and (needs_noise or measure_excess_term) and not opts.lut:
         t1 = time.perf_counter()
-        noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache, draw=draw)
+        # measured only to test the excess: a failure leaves the log estimator, no warning
+        noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache, draw=draw, quiet=not needs_noise)
         timings["noise_estimate"] = time.perf_counter() - t1
     excess = None
     if measure_excess_term:
@@ -163,13 +164,16 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
 WHOLE_FRAME = 1 << 62
 
 
-def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, draw=None):
+def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, draw=None,
+                  quiet: bool = False):
     """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
     code, fast path; for images on the signal linearised by ``crf``); where the drawn sites
     cannot pin some channel, again on every site; on failure fall back
     to photon-noise weights (``draw``: see :func:`choose_models`).  With ``cache``, an
     earlier merge's measurement of the same camera and ISO is read from the per-camera
-    cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there."""
+    cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there.
+    ``quiet``: a failure is logged at info level, not as a warning (the noise was wanted only
+    to test an image bracket's excess variance)."""
     from hdrmerge_cli.io import noisecache
 
     key = noisecache.cache_key(frames[0], crf.describe()) if cache else None
@@ -199,7 +203,10 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
         try:
             used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=WHOLE_FRAME), pairs)
         except HdrMergeError as exc:
-            log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
+            if quiet:
+                log.info("could not measure the noise on the bracket (%s)", exc)
+            else:
+                log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
             return None, None
     log.info("noise measured on the bracket: %s",
              ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
