@@ -2,11 +2,12 @@
 against closed forms and Monte-Carlo simulations of the sensor model (seeded)."""
 import numpy as np
 import pytest
-from scipy import ndimage
+from scipy import ndimage, special
 
 from hdrmerge_cli.core.calibrate import (
-    IMMERKAER, PixelPairs, achievable_errors, binned_pairs, binned_variance, estimate_noise, fit_noise_model,
-    immerkaer_dof, pair_information, pair_statistics, texture_limit, variance_points, window_statistics,
+    IMMERKAER, PixelPairs, achievable_errors, binned_pairs, binned_variance, estimate_noise, exposure_ratio,
+    fit_noise_model, immerkaer_dof, pair_gradient_test, pair_information, pair_statistics, texture_limit,
+    variance_points, window_statistics,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import IMMERKAER_SUM_RHO2, photon_transfer, spatial_variance, temporal_variance
@@ -283,6 +284,91 @@ def test_frames_that_moved_fall_back_to_the_local_statistics(monkeypatch):
     fit, ratios = estimate_noise(moved, -50, 16000)
     assert ratios == []
     assert fit.alpha == pytest.approx(alpha, rel=0.1) and fit.sigma_o2 == pytest.approx(sigma_o2, rel=0.1)
-    monkeypatch.setattr(calibrate, "PAIR_EXCESS", np.inf)  # the pairs' own fit
+    monkeypatch.setattr(calibrate, "PAIR_EXCESS", np.inf)  # the pairs' own fit: neither check
+    monkeypatch.setattr(calibrate, "PAIR_MOTION_P", 0.0)
     pairs, ratios = estimate_noise(moved, -50, 16000)
     assert len(ratios) == 2 and pairs.alpha > 2 * alpha
+
+
+def wide_scene(rng, n=400):
+    """A scene of about 20 stops (smooth, as a real scene's illumination)."""
+    return 3000 * np.exp(ndimage.gaussian_filter(rng.normal(0, 1.0, (n + 16, n + 16)), 12) * 25)
+
+
+def test_exposure_ratio_of_raw_frames_far_apart():
+    """Frames 250 times apart share no pixel above 2 % of the range in the short frame and
+    below 70 % in the long one; RAW keeps the noise below black, so the dark pixels
+    measure the ratio (within 4 of its standard errors, sqrt(sum d^2) / sum y_short).  A
+    frame clipped at black does not, and neither does a short frame without signal
+    (effective number of pixels below 1000)."""
+    rng = np.random.default_rng(5)
+    e = wide_scene(rng)[8:-8, 8:-8]
+    s, g = (np.clip(expose(e, t, 9.0, 1.0, rng), -500, 16000) for t in (0.004, 1.0))
+    r = exposure_ratio(s, g, -500, 16000)
+    neighbours = np.ones((3, 3)) / 8
+    neighbours[1, 1] = 0
+    use = ndimage.correlate(g, neighbours) < 0.7 * 16000  # the pixels that measure it
+    se = np.sqrt(np.sum((g[use] - r * s[use]) ** 2)) / np.sum(s[use])
+    assert abs(r - 250) < 4 * se and se < 0.02 * 250
+    with pytest.raises(HdrMergeError):
+        exposure_ratio(s, g, -500, 16000, black_clipped=True)
+    with pytest.raises(HdrMergeError):
+        exposure_ratio(rng.normal(0, 3, g.shape), g, -500, 16000)
+
+
+@pytest.mark.parametrize("sigma_o2,alpha,seed", [(9.0, 0.25, 31), (16.0, 16.0, 32), (4.0, 1.0, 33)])
+def test_still_bracket_far_apart_uses_its_pairs(sigma_o2, alpha, seed):
+    """A still 3-frame bracket 8 stops apart (ratios 250): the exposure pairs give
+    sigma_o^2 and alpha, each within 4 Cramer-Rao standard errors of the truth (the bound
+    of the bracket's contrasts at the true ratios and parameters)."""
+    rng = np.random.default_rng(seed)
+    e = wide_scene(rng)[8:-8, 8:-8]
+    times = (0.0016, 0.4, 100.0)
+    frames = [np.clip(expose(e, t, sigma_o2, alpha, rng), -500, 16000) for t in times]
+    fit, ratios = estimate_noise(frames, -500, 16000)
+    assert len(ratios) >= 1 and all(r == pytest.approx(250, rel=0.03) for r in ratios)
+    se = achievable_errors(frames, -500, 16000, [250.0, 250.0], (sigma_o2, np.sqrt(alpha)))
+    assert abs(fit.sigma_o2 - sigma_o2) < 4 * se[0] and abs(fit.alpha - alpha) < 4 * se[1]
+
+
+def test_pair_gradient_test_keeps_its_false_alarm_rate_and_finds_a_one_pixel_shift():
+    """Still pairs, on a smooth and on a grainy scene at ratios 4 to 100: the block
+    chi-squares add up to a chi-square of their degrees of freedom (pooled over 24 pairs,
+    p > 1e-3), and at most 1 of the 24 pairs is below p = 0.01 (binomial: 2 or more
+    has probability 0.02).  The same pairs with the long frame shifted by one pixel: every
+    one below p = 1e-6."""
+    rng = np.random.default_rng(40)
+    n, coef = 256, None
+    total, dof, small, shifted = 0.0, 0, 0, []
+    for i in range(24):
+        e = wide_scene(rng, n) if i % 2 else textured_scene(rng, n + 16)
+        sigma_o2, alpha = [(9.0, 0.25), (16.0, 16.0), (64.0, 0.05)][i % 3]
+        r = [4.0, 16.0, 100.0][(i // 2) % 3]
+        coef = (sigma_o2, np.sqrt(alpha))
+        t = 4000 / (np.sqrt(alpha) * np.median(e) * r)  # the long frame's median at a quarter of the range
+        s = np.clip(expose(e[8:-8, 8:-8], t, sigma_o2, alpha, rng), -500, 16000)
+        for dy, out in ((0, None), (1, shifted)):
+            g = np.clip(expose(e[8 + dy:n + 8 + dy, 8:-8], r * t, sigma_o2, alpha, rng), -500, 16000)
+            c, k = pair_gradient_test(s, g, r, -500, 16000, coef)
+            if out is None:
+                total, dof, small = total + c, dof + k, small + (special.chdtrc(k, c) < 0.01)
+            else:
+                out.append(special.chdtrc(k, c))
+    assert special.chdtrc(dof, total) > 1e-3 and small <= 1
+    assert max(shifted) < 1e-6
+
+
+@pytest.mark.parametrize("sigma_o2,alpha", [(9.0, 0.25), (16.0, 16.0)])
+def test_hand_held_bracket_far_apart_falls_back_to_the_local_statistics(sigma_o2, alpha):
+    """The frames of a bracket 200 times apart shifted by a few pixels: the pairs'
+    differences follow the scene's gradient, so the local statistics give the fit (within
+    10 % of the truth; no pair ratios returned)."""
+    rng = np.random.default_rng(22)
+    n = 400
+    e = wide_scene(rng, n)
+    times, shifts = (0.002, 0.4, 80.0), [(0, 0), (3, 5), (-4, 2)]
+    moved = [np.clip(expose(e[8 + dy:8 + dy + n, 8 + dx:8 + dx + n], t, sigma_o2, alpha, rng), -50, 16000)
+             for t, (dy, dx) in zip(times, shifts)]
+    fit, ratios = estimate_noise(moved, -50, 16000)
+    assert ratios == []
+    assert fit.alpha == pytest.approx(alpha, rel=0.1) and fit.sigma_o2 == pytest.approx(sigma_o2, rel=0.1)

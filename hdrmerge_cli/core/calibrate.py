@@ -13,7 +13,9 @@ of measurement are rows of the same linear fit:
   y_short`` cancels the scene and the gain FPN, ``Var[d] = c0 (1 + r^2) + c1 mu (1 + r)``,
   rows ``[1 + r^2, mu (1 + r), 0]``, every unclipped pixel counting.
 
-The quadratic term is kept only when an F-test needs it.  A single bracket cannot tell
+Exposure pairs whose differences follow the scene's gradient saw frames that moved
+(:func:`pair_gradient_test`); the local statistics then give the fit.  The quadratic term
+is kept only when an F-test needs it.  A single bracket cannot tell
 gain FPN from static scene texture; only flat fields can (:mod:`photon_transfer`).
 :func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell.  Method:
 docs/method.md, "Calibrating the noise".
@@ -46,6 +48,15 @@ TEXTURE_SIGMAS = 5.5
 #: ones, whose dark pixels would have their noise cut
 BLACK_CLIPPED = 1e-3
 
+#: least effective number of pixels (:func:`exposure_ratio`) that measure an exposure ratio:
+#: its error then adds at most 1 / RATIO_PIXELS to the variances of the pairs it scales
+RATIO_PIXELS = 1000
+#: false-alarm rate of the test that tells frames that moved from a static bracket by the
+#: scene's gradient in their exposure pairs' differences (:func:`pair_gradient_test`):
+#: well below the usual, since on simulated brackets of real scenes a few channels show
+#: up to 1.8 times the chi-square's degrees of freedom without motion (a shift of one
+#: pixel gives p < 1e-80 on the test's own scenes)
+PAIR_MOTION_P = 1e-6
 #: exposure-pair pixels whose squared difference exceeds this many predicted standard
 #: deviations (of a first fit) are outliers (hot pixels, motion)
 OUTLIER_SIGMAS = 8.0
@@ -121,24 +132,46 @@ def window_statistics(plane: np.ndarray, lo: float, hi: float, window: int = 7) 
 _NEIGHBOURS = np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.0]]) / 8.0
 
 
-def exposure_ratio(short: np.ndarray, long: np.ndarray, lo: float, hi: float) -> float:
+def exposure_ratio(short: np.ndarray, long: np.ndarray, lo: float, hi: float,
+                   black_clipped: bool | None = None) -> float:
     """Exposure ratio ``r = E[y_long] / E[y_short]`` of two frames of one static scene,
     measured (not taken from EXIF, whose times are nominal): the ratio of sums over pixels
-    that are well exposed in both frames (short above 2 % and long below 70 % of the
-    range).  The choice is made on the mean of each pixel's 8 neighbours, whose noise is
+    well exposed in both frames, the short frame above 2 % and the long one below 70 % of
+    the range.  Frames too far apart to share enough such pixels (over about 35 times)
+    use every pixel whose long frame lies below 70 % of the range, unless the short frame
+    is clipped at black (``black_clipped``; by default when more than
+    :data:`BLACK_CLIPPED` of its pixels lie at or below ``lo``, as in a camera-processed
+    image), which would cut its noise: a RAW frame keeps its values below black, so by
+    (17) the sums over its dark pixels are unbiased too.
+
+    The choice is made on the mean of each pixel's 8 neighbours, whose noise is
     independent of the pixel's own: choosing on the pixel's own noisy values biases both
     sums (by 0.5 % at ratio 4 on a textured scene, which leaks texture into the pair
-    variances).  Raises :class:`HdrMergeError` when fewer than 1000 pixels qualify."""
+    variances).
+
+    Precision: with ``d = y_long - r y_short``, ``Var[r] = sum Var[d] / (sum y_short)^2``,
+    and the ratio's error adds ``Var[r] y_short^2`` to each pair's ``E[d^2]``: over the
+    pixels used, a share ``1 / n_eff`` of their own ``sum Var[d]``, with
+    ``n_eff = (sum y_short)^2 / sum y_short^2`` (Kish's effective number of pixels; the
+    count itself when all are equal).  A choice of pixels is used when its ``n_eff``
+    reaches :data:`RATIO_PIXELS`; raises :class:`HdrMergeError` when neither does (the
+    ratio's error would add more than 0.1 % to the pairs' variances, or the short frame
+    holds no signal there)."""
     s = np.asarray(short, np.float64)
     g = np.asarray(long, np.float64)
     base = max(lo, 0.0)
     ns = ndimage.correlate(s, _NEIGHBOURS, mode="reflect")
     ng = ndimage.correlate(g, _NEIGHBOURS, mode="reflect")
-    use = (ns > base + 0.02 * (hi - base)) & (ng < base + 0.7 * (hi - base)) & (s > lo) & (g < hi)
-    use[0], use[-1], use[:, 0], use[:, -1] = False, False, False, False
-    if np.count_nonzero(use) < 1000:
-        raise HdrMergeError("the frames share too few well-exposed pixels")
-    return float(np.sum(g[use]) / np.sum(s[use]))
+    unclipped = (ng < base + 0.7 * (hi - base)) & (s > lo) & (g < hi)
+    unclipped[0], unclipped[-1], unclipped[:, 0], unclipped[:, -1] = False, False, False, False
+    choices = [unclipped & (ns > base + 0.02 * (hi - base))]
+    if not (np.mean(s <= lo) >= BLACK_CLIPPED if black_clipped is None else black_clipped):
+        choices.append(unclipped)
+    for use in choices:
+        total = float(np.sum(s[use]))
+        if total > 0 and total * total >= RATIO_PIXELS * float(np.sum(s[use] ** 2)):
+            return float(np.sum(g[use]) / total)
+    raise HdrMergeError("the frames share too few well-exposed pixels")
 
 
 def pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo: float, hi: float,
@@ -261,6 +294,86 @@ def pixel_pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo:
     d = g[ok] - ratio * s[ok]
     return PixelPairs(g[ok], d * d, np.asarray(key, np.float64)[ok], float(ratio),
                       None if key_scale is None else np.asarray(key_scale, np.float64)[ok])
+
+
+def pair_gradient_test(short: np.ndarray, long: np.ndarray, ratio: float, lo: float, hi: float, coef,
+                       tile: int = 64, max_pixels: int = 1 << 20) -> tuple[float, int]:
+    """Whether the difference of two frames follows the scene's gradient: the test of
+    exposure pairs for frames that moved, as ``(chi-square statistic, degrees of
+    freedom)``.
+
+    For a static scene, by (17) ``d = y_long - r y_short`` is zero-mean noise at every
+    pixel (the exposure ratio's error and any offset aside: a term ``a + b mu``), so it is
+    uncorrelated with anything whose noise is independent of the pixel's own, such as the
+    signed central differences ``gx = y[i, j+1] - y[i, j-1]``, ``gy = y[i+1, j] -
+    y[i-1, j]`` of the longer frame.  Frames shifted by ``delta`` leave ``-r delta . grad
+    x`` in ``d``.  Per ``tile`` x ``tile`` block, ``d`` is regressed on ``[1, m, gx, gy]``
+    (``m`` the four neighbours' mean, for ``a + b mu``) by least squares weighted by the
+    inverse of the variance (17) under ``coef`` predicts for ``d`` at ``m``, and the
+    gradient coefficients are tested with their heteroscedasticity-consistent covariance
+    (no noise model is trusted; HC3 of MacKinnon and White 1985, each residual divided by
+    one minus its leverage, since the few pixels of a steep edge carry much of a block's
+    gradient and HC0 understates their variance): per block a chi-square of 2 degrees of
+    freedom for a static scene, their sum over blocks one of ``2 n`` (a rotation or a
+    local motion shifts each block its own way).  Pixels clipped in either frame or whose
+    neighbours' mean lies above 90 % of the range in the longer frame are left out (a
+    clipped neighbour is not: its value is as independent of the pixel's noise as any),
+    and blocks with fewer than 64
+    pixels; of a larger plane, an even grid of blocks holding about ``max_pixels``."""
+    s = np.asarray(short, np.float64)
+    g = np.asarray(long, np.float64)
+    ny, nx = (s.shape[0] - 2) // tile, (s.shape[1] - 2) // tile  # blocks inside the border
+    if ny < 1 or nx < 1:
+        return 0.0, 0
+    step = max(1, int(np.ceil(np.sqrt(ny * nx * tile * tile / max_pixels))))
+
+    def blocks(a, dy=0, dx=0):  # (by, tile, bx, tile) view of the chosen blocks, shifted by (dy, dx)
+        v = a[1 + dy:1 + dy + ny * tile, 1 + dx:1 + dx + nx * tile].reshape(ny, tile, nx, tile)
+        return v[::step, :, ::step, :]
+
+    top = max(lo, 0.0) + 0.9 * (hi - max(lo, 0.0))
+    sc, gc = blocks(s), blocks(g)
+    left, right, up, down = blocks(g, 0, -1), blocks(g, 0, 1), blocks(g, -1, 0), blocks(g, 1, 0)
+    m = 0.25 * (left + right + up + down)
+    # chosen on the neighbours' mean: a cut on the pixel's own value would bias d where it bites
+    ok = (sc > lo) & (sc < hi) & (gc > lo) & (gc < hi) & (m < top)
+    sd = np.sqrt(np.maximum(coef[0] * (1 + ratio**2) + coef[1] * (1 + ratio) * np.maximum(m, 0.0), 1e-12))
+    w = ok / sd  # square root of the weight; 0 for the pixels left out
+    scale = max(float(np.median(np.abs(m))), 1.0)
+    x = [w, w * (m / scale), w * (right - left) / sd, w * (down - up) / sd]
+    y = w * (gc - ratio * sc)
+
+    def total(a):
+        return a.sum(axis=(1, 3)).ravel()
+
+    count = total(ok)
+    xtx = np.empty((count.size, 4, 4))
+    xty = np.empty((count.size, 4))
+    for i in range(4):
+        xty[:, i] = total(x[i] * y)
+        for j in range(i, 4):
+            xtx[:, i, j] = xtx[:, j, i] = total(x[i] * x[j])
+    use = (count >= 64) & (np.linalg.cond(xtx) < 1e12)
+    if not np.any(use):
+        return 0.0, 0
+    beta = np.zeros((count.size, 4))
+    beta[use] = np.linalg.solve(xtx[use], xty[use][..., None])[..., 0]
+    by, bx = ok.shape[0], ok.shape[2]
+    inv = np.zeros((count.size, 4, 4))
+    inv[use] = np.linalg.inv(xtx[use])
+    coefs, inv_px = beta.reshape(by, 1, bx, 1, 4), inv.reshape(by, 1, bx, 1, 4, 4)
+    resid = y - sum(x[i] * coefs[..., i] for i in range(4))
+    leverage = sum(x[i] * x[j] * inv_px[..., i, j] for i in range(4) for j in range(4))
+    resid = resid / np.maximum(1.0 - leverage, 1e-3)  # HC3: a steep edge's few pixels weigh much
+    meat = np.empty((count.size, 4, 4))
+    for i in range(4):
+        for j in range(i, 4):
+            meat[:, i, j] = meat[:, j, i] = total(x[i] * x[j] * resid * resid)
+    inv = inv[use]
+    cov = inv @ meat[use] @ inv
+    b = beta[use][:, 2:]
+    chi2 = np.einsum("ni,ni->n", b, np.linalg.solve(cov[:, 2:, 2:], b[..., None])[..., 0])
+    return float(np.sum(chi2)), int(2 * np.count_nonzero(use))
 
 
 def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None) -> VariancePoints:
@@ -604,20 +717,23 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     when the frames are clipped at black, :data:`BLACK_CLIPPED`; refitted without the
     pixels that clipping or outliers affect) and beta, with its F-test, from the local
     statistics of every frame after rejecting windows beyond :data:`TEXTURE_SIGMAS`.
-    Without pairs, or where they predict more variance than the frames' own flat windows
-    (:func:`_pairs_moved`: the frames moved), the local statistics give everything.
+    Without pairs, where they do not show the gain (their fit finds none), where their
+    differences follow the scene's gradient (per pixel: :func:`pair_gradient_test` at the
+    false-alarm rate :data:`PAIR_MOTION_P`) or where they predict more variance than the
+    frames' own flat windows (:func:`_pairs_moved`), the frames moved or the pairs cannot
+    tell, and the local statistics give everything.
     """
     local = [window_statistics(p, lo, hi, window) for p in planes]
-    pair_points, ratios = [], []
+    pair_points, ratios, gradient_p = [], [], 1.0
     if pairs and len(planes) > 1:
+        per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
         measured = []
         for s, g in zip(planes[:-1], planes[1:]):
             try:
-                measured.append(exposure_ratio(s, g, lo, hi))
+                measured.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel))
             except HdrMergeError:
                 measured.append(None)
-        per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
-        pixel_pairs, first_points = [], []
+        pixel_pairs, first_points, used = [], [], []
         for k, r in enumerate(measured):
             if r is None or r <= 1.05:
                 continue
@@ -632,6 +748,7 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
                                        *selection_keys(planes, _chain_gains(measured, k), k, lo, hi))
             first = binned_pairs(pp, pair_bins)
             if first.mean.size >= 4:
+                used.append(k)
                 pixel_pairs.append(pp)
                 first_points.append(first)
                 ratios.append(r)
@@ -639,22 +756,35 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
             # a first fit, then without the pixels whose noise the clipping may cut (by the
             # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
             # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
-            coef = fit_noise_model(VariancePoints.concat(first_points), p_threshold).coef
+            try:
+                coef = fit_noise_model(VariancePoints.concat(first_points), p_threshold).coef
+            except HdrMergeError:  # the pairs do not show the gain (read noise swamps it)
+                pixel_pairs, ratios = [], []
             for pp in pixel_pairs:
                 mu = np.maximum(np.maximum(pp.key, pp.long), 0.0)
                 pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * mu
                 keep = pp.unclipped(coef, lo, hi) & (pp.dsq <= OUTLIER_SIGMAS**2 * pred)
                 pair_points.append(binned_pairs(pp.subset(keep), pair_bins, coef=coef))
+            chi2, dof = 0.0, 0
+            for k in used if pixel_pairs else []:
+                c, n = pair_gradient_test(planes[k], planes[k + 1], measured[k], lo, hi, coef)
+                chi2, dof = chi2 + c, dof + n
+            gradient_p = float(special.chdtrc(dof, chi2)) if dof else 1.0
     pooled = WindowStats.concat(local)
-    if not pair_points:
-        return _local_fit(pooled, bins, p_threshold), ratios
-    pair_data = VariancePoints.concat(pair_points)
-    fit = fit_noise_model(pair_data, p_threshold)
+    fit = None
+    if pair_points:
+        pair_data = VariancePoints.concat(pair_points)
+        try:
+            fit = fit_noise_model(pair_data, p_threshold)
+        except HdrMergeError:  # as above
+            fit = None
+    if fit is None:
+        return _local_fit(pooled, bins, p_threshold), []
     try:
         alone = _local_fit(pooled, bins, p_threshold)
     except HdrMergeError:
         alone = None
-    if alone is not None and _pairs_moved(fit, alone, pooled):
+    if alone is not None and (gradient_p < PAIR_MOTION_P or _pairs_moved(fit, alone, pooled)):
         return alone, []
     local_points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, fit.coef))
     if local_points.mean.size >= 4:  # beta from the flat windows, sigma_o^2 and alpha held

@@ -117,25 +117,32 @@ def fit_excess_variance(d: np.ndarray, base: np.ndarray, level_a: np.ndarray, le
     statistic = float((ratio - 1.0).sum() / np.sqrt(2.0 * n))
     if statistic <= ndtri(1.0 - p_false_alarm):
         return ExcessVariance(np.zeros(n_levels), False, chi_model, chi_model, statistic, n)
-    design = np.zeros((n, n_levels))
-    rows = np.arange(n)
-    np.add.at(design, (rows, level_a), 1.0)
-    np.add.at(design, (rows, level_b), 1.0)
-    used = design.any(axis=0)
-    a = design[:, used]
-    e = np.zeros(a.shape[1])
+    la, lb = np.asarray(level_a, np.int64), np.asarray(level_b, np.int64)
+    used = np.bincount(np.concatenate([la, lb]), minlength=n_levels) > 0
+    levels = np.zeros(n_levels)
     y = d2 / KAPPA
     for _ in range(iterations):
-        pred = base + a @ e
+        pred = base + levels[la] + levels[lb]
         w = 1.0 / (np.sqrt(2.0) * pred)
         r = w * (y - pred)
-        u = w / np.sqrt(np.sqrt(1.0 + (r / SOFT_L1_SCALE) ** 2))  # soft-L1 as re-weighted least squares
-        e = nnls(a * u[:, None], (y - base) * u)[0]
-    levels = np.zeros(n_levels)
-    levels[used] = e
+        u2 = (w / np.sqrt(np.sqrt(1.0 + (r / SOFT_L1_SCALE) ** 2))) ** 2  # soft-L1 as re-weighted least squares
+        levels[used] = _nnls_two_hot(la, lb, u2, y - base, n_levels, used, nnls)
     levels = _fill_empty(levels, used)
-    chi_fit = float(np.mean(d2 / (base + a @ e)))
+    chi_fit = float(np.mean(d2 / (base + levels[la] + levels[lb])))
     return ExcessVariance(levels, True, chi_model, chi_fit, statistic, n)
+
+
+def _nnls_two_hot(la, lb, u2, target, n_levels, used, nnls) -> np.ndarray:
+    """``argmin_{e >= 0} sum u2 (e[la] + e[lb] - target)^2`` over the ``used`` levels, each
+    row holding two ones (one 2 where ``la == lb``), by NNLS on the Cholesky factor of the
+    normal equations (``n_levels^2`` numbers instead of an ``n x n_levels`` design)."""
+    pair = np.bincount(la * n_levels + lb, u2, n_levels * n_levels).reshape(n_levels, n_levels)
+    gram = pair + pair.T
+    gram[np.diag_indices(n_levels)] += np.bincount(la, u2, n_levels) + np.bincount(lb, u2, n_levels)
+    rhs = np.bincount(la, u2 * target, n_levels) + np.bincount(lb, u2 * target, n_levels)
+    g, b = gram[np.ix_(used, used)], rhs[used]
+    chol = np.linalg.cholesky(g + np.eye(g.shape[0]) * 1e-12 * np.trace(g) / g.shape[0])
+    return nnls(chol.T, np.linalg.solve(chol, b))[0]
 
 
 def _fill_empty(levels: np.ndarray, used: np.ndarray) -> np.ndarray:

@@ -211,7 +211,8 @@ def _combine(image: dict | None, ptc: dict | None) -> dict:
         return image
     if image is None:
         return ptc
-    out = ptc | {"from_photographs": {k: image[k] for k in ("sigma_o2", "alpha", "beta", "model")}}
+    out = ptc | {"from_photographs": {k: image[k] for k in ("sigma_o2", "alpha", "beta", "model", "stderr",
+                                                            "achievable_stderr") if k in image}}
     if ptc["dark_offset"] is None:
         out["sigma_o2"] = image["sigma_o2"]
         out["method"] = ptc["method"] | {"sigma_o2": image["method"]["sigma_o2"]}
@@ -277,7 +278,9 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
             raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (all clipped or black)")
         fits: dict[str, dict] = {}
         for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
-            fits[name] = _fit_entry(fit, ratios, opts.window)
+            k = [c for c, *_ in read[0][1]].index(name)
+            fits[name] = _fit_entry(fit, ratios, opts.window) | _precision(
+                fit_standard_errors(fit, bool(ratios)), _achievable(read, k, fit))
             plot_data.setdefault(iso, {})[name] = {"fit": fit}
         ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f.iso) == iso],
                                 [f for f in flats if iso_key(f.iso) == iso], crf)
@@ -505,6 +508,15 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
             used[name] = stand_in | {"beta": 0.0}
             entries[name] = {"stand_in_from": [f[0] for f in measured], "reason": why}
     return {name: used[name] for name, *_ in fits}, {name: entries[name] for name, *_ in fits}
+
+
+def _precision(se: tuple[float, float], crb: tuple[float, float]) -> dict:
+    """A profile entry's ``stderr`` (the fit's standard errors of sigma_o2 and alpha) and
+    ``achievable_stderr`` (the Cramer-Rao bound of the bracket's exposure contrasts; None
+    where it holds none)."""
+    return {"stderr": {"sigma_o2": _rounded(se[0]), "alpha": _rounded(se[1])},
+            "achievable_stderr": ({"sigma_o2": _rounded(crb[0]), "alpha": _rounded(crb[1])}
+                                  if np.isfinite(crb[0]) and np.isfinite(crb[1]) else None)}
 
 
 def _rounded(x: float) -> float | None:
