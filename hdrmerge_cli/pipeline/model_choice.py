@@ -162,6 +162,9 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
 
 #: ``NoiseDraw`` sites that keep every site of a channel
 WHOLE_FRAME = 1 << 62
+#: sites per channel and frame of the second try of a noise measurement that only tests an
+#: image bracket's excess (4x the fast path's)
+QUIET_RETRY_SITES = 1 << 17
 
 
 def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, draw=None,
@@ -198,18 +201,19 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
         failed = [ch for ch, e in entries.items() if "stand_in_from" in e]
     except HdrMergeError as exc:
         used, failed = None, [str(exc)]
-    # too few levels on the drawn tiles (a dark or flat bracket): every site, decoded again;
-    # not for a measurement that only tests an image bracket's excess (a stand-in will do)
-    if failed and not quiet:
-        log.info("the noise could not be measured on the drawn sites (%s); measuring on every site", failed[0])
+    # too few levels on the drawn tiles (a dark or flat bracket): decoded again, on every site
+    # (on 4x the tiles where the noise only tests an image bracket's excess)
+    if failed:
+        sites = QUIET_RETRY_SITES if quiet else WHOLE_FRAME
+        log.info("the noise could not be measured on the drawn sites (%s); measuring on more", failed[0])
         try:
-            used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=WHOLE_FRAME), pairs)
+            used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=sites), pairs)
         except HdrMergeError as exc:
-            log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
+            if quiet:
+                log.info("could not measure the noise on the bracket (%s)", exc)
+            else:
+                log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
             return None, None
-    elif used is None:
-        log.info("could not measure the noise on the bracket (%s)", failed[0])
-        return None, None
     log.info("noise measured on the bracket: %s",
              ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
     if key is not None and noisecache.store(key, used, entries, [f.path for f in frames]):
