@@ -493,11 +493,7 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
     used, entries = {}, {}
     sites = min(c.drawn for c in draw.drawn[read[0][0].path])
     for name, est, ratios, se, crb in measured:
-        entries[name] = _fit_entry(est, ratios, 7) | {
-            "subsample_sites": sites,
-            "stderr": {"sigma_o2": _rounded(se[0]), "alpha": _rounded(se[1])},
-            "achievable_stderr": ({"sigma_o2": _rounded(crb[0]), "alpha": _rounded(crb[1])}
-                                  if np.isfinite(crb[0]) and np.isfinite(crb[1]) else None)}
+        entries[name] = _fit_entry(est, ratios, 7) | {"subsample_sites": sites} | _precision(se, crb)
         used[name] = {"sigma_o2": est.sigma_o2, "alpha": est.alpha, "beta": 0.0}
     # a channel the bracket cannot measure (clipped or black nearly everywhere) takes the
     # median of the measured channels': the same sensor, up to the white balance's gain
