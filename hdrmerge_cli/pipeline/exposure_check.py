@@ -383,7 +383,7 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     for j in sorted(set(pairs)):
         try:
             lo, hi = registration.common_range([exposures[j], exposures[j + 1]],
-                                        lo_code=registration.dark_floor(s.codes_step if s.raw else None))
+                                               lo_code=registration.dark_floor(s.codes_step if s.raw else None))
         except HdrMergeError:
             px[j] = None
             continue
@@ -560,12 +560,13 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     applies them and the pairs' motion is what it measured (:func:`alignment_motion`);
     without, the pairs in question are registered on the samples (:func:`moved_pairs`).
 
-    Returns (frames, exposures, the report for ``--json``).  A single frame has nothing to
-    compare: returned as it is, with no report."""
+    Returns (frames, exposures, the report for ``--json``, the samples as compared: brought
+    onto the reference where the alignment applies, in the returned frames' order).  A
+    single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:
         if use_estimates:
             log.warning("--times estimate: a single frame has nothing to compare; its label is used")
-        return frames, exposures, None
+        return frames, exposures, None, samples
     s = samples if samples is not None else sample_frames(frames, load)
     check_order(frames, s)
     if alignment is not None and alignment["applied"]:
@@ -597,7 +598,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     warn_mislabelled(frames, exposures, est, hint, motion=None if use_estimates else motion, crf=used)
     rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used, motion=motion)
     if not use_estimates:
-        return frames, exposures, rep
+        return frames, exposures, rep, s
     est_h = np.exp(est.log_h)
     for f, h, h_label in zip(frames, est_h, exposures):
         f.exposure_time = float(f.exposure_time * h / h_label)
@@ -605,7 +606,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     frames = [frames[i] for i in order]
     log.info("--times estimate: exposures %s (reference %s)",
              ", ".join(f"{f.name} {_fmt(f.exposure_time)}" for f in frames), rep["reference"])
-    return frames, est_h[order], rep
+    return frames, est_h[order], rep, replace(s, v=[s.v[i] for i in order])
 
 
 def _fmt(t: float) -> str:

@@ -21,7 +21,6 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -182,11 +181,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
         timings["align"] = time.perf_counter() - t1
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
-    sampled = frames
-    frames, exposures, exposure_report = resolve_exposures(frames, exposures, crf, load, opts.times == ESTIMATE,
-                                                           samples, alignment)
+    frames, exposures, exposure_report, samples = resolve_exposures(frames, exposures, crf, load,
+                                                                    opts.times == ESTIMATE, samples, alignment)
     timings["exposure_check"] = time.perf_counter() - t1
-    samples = _registered_samples(samples, alignment, [sampled.index(f) for f in frames])
     aligned = motion.loader(frames, alignment, load)
     load, groups, seen = _watch_repeats(aligned, frames, exposures)
     if opts.colorspace == "camera" and frames[0].kind == "image":
@@ -199,9 +196,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     models = choose_models(frames, exposures, crf, opts, unaligned, noise, draw, samples)
     del samples
     timings.update(models.timings)
-    timings["read_metadata"] = (time.perf_counter() - t0 - timings.get("noise_estimate", 0.0)
-                                - timings.get("align", 0.0) - timings.get("response", 0.0) - timings["tables"]
-                                - timings["exposure_check"])
+    timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
     ghosts = None
     if opts.deghost != "off":
         t0 = time.perf_counter()
@@ -221,16 +216,6 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     repeats = _check_repeats(groups, seen, frames, crf)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,
                   output_orientation(frames), alignment, ghosts, exposure_report, repeats, timings)
-
-
-def _registered_samples(samples, alignment: dict | None, order: list[int]):
-    """The exposure check's samples in the frames' merge order, brought onto the reference
-    where the alignment is applied (None stays None)."""
-    if samples is None:
-        return None
-    if alignment is not None and alignment["applied"]:
-        samples = samples.registered(alignment["warps"])
-    return replace(samples, v=[samples.v[k] for k in order])
 
 
 def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,
