@@ -251,9 +251,10 @@ def test_merge_fast_path_lies_within_its_standard_errors_of_the_truth(run, tmp_p
 
 
 def test_merge_measures_the_other_channels_when_one_is_clipped_everywhere(run, tmp_path):
-    """An 8-bit bracket whose blue channel is clipped in every frame: red and green are
-    measured, blue takes their median with a warning, and the merge keeps its noise model
-    (not photon weights for every channel)."""
+    """An 8-bit bracket whose blue channel is clipped in every frame, merged with the ML
+    estimator (which needs the noise): red and green are measured, blue takes their median
+    with a warning, and the merge keeps its noise model (not photon weights for every
+    channel)."""
     import OpenImageIO as oiio
 
     meta = simulate(run, tmp_path / "b", "--format", "tif", "--out-bits", "8", "--crf", "gamma:2.5",
@@ -265,7 +266,7 @@ def test_merge_measures_the_other_channels_when_one_is_clipped_everywhere(run, t
         pixels[..., 2] = 255
         buf.set_pixels(buf.roi, pixels)
         assert buf.write(str(p))
-    res = run("merge", *paths, "-o", tmp_path / "m.exr", "--json")
+    res = run("merge", *paths, "-o", tmp_path / "m.exr", "--json", "--estimator", "ml")
     s = json.loads(res.stdout)
     assert "channel B" in res.stderr and "median of channels R, G" in res.stderr
     assert s["noise"]["B"]["alpha"] == pytest.approx(sorted([s["noise"]["R"]["alpha"], s["noise"]["G"]["alpha"]])[0]

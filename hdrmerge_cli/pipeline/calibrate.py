@@ -496,11 +496,11 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
         entries[name] = _fit_entry(est, ratios, 7) | {"subsample_sites": sites} | _precision(se, crb)
         used[name] = {"sigma_o2": est.sigma_o2, "alpha": est.alpha, "beta": 0.0}
     # a channel the bracket cannot measure (clipped or black nearly everywhere) takes the
-    # median of the measured channels': the same sensor, up to the white balance's gain
+    # median of the measured channels': the same sensor, up to the white balance's gain (the
+    # entry says so; the caller tells the user)
     stand_in = {p: float(np.median([used[f[0]][p] for f in measured])) for p in ("sigma_o2", "alpha")}
     for name, est, why, _, _ in fits:
         if est is None:
-            log.warning("%s; its noise is taken as the median of channels %s", why, ", ".join(f[0] for f in measured))
             used[name] = stand_in | {"beta": 0.0}
             entries[name] = {"stand_in_from": [f[0] for f in measured], "reason": why}
     return {name: used[name] for name, *_ in fits}, {name: entries[name] for name, *_ in fits}

@@ -175,8 +175,8 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
     to photon-noise weights (``draw``: see :func:`choose_models`).  With ``cache``, an
     earlier merge's measurement of the same camera and ISO is read from the per-camera
     cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there.
-    ``quiet``: a failure is logged at info level, not as a warning (the noise was wanted only
-    to test an image bracket's excess variance)."""
+    ``quiet``: a failure, or a channel that takes the others' noise, is logged at info level,
+    not as a warning (the noise was wanted only to test an image bracket's excess variance)."""
     from hdrmerge_cli.io import noisecache
 
     key = noisecache.cache_key(frames[0], crf.describe()) if cache else None
@@ -200,7 +200,7 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
         used, entries = estimate_bracket_noise(frames, crf, load, draw, pairs)
         failed = [ch for ch, e in entries.items() if "stand_in_from" in e]
     except HdrMergeError as exc:
-        used, failed = None, [str(exc)]
+        failed = [str(exc)]
     # too few levels on the drawn tiles (a dark or flat bracket): decoded again, on every site
     # (on 4x the tiles where the noise only tests an image bracket's excess)
     if failed:
@@ -214,6 +214,10 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
             else:
                 log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
             return None, None
+    say = log.info if quiet else log.warning
+    for e in entries.values():
+        if "stand_in_from" in e:
+            say("%s; its noise is taken as the median of channels %s", e["reason"], ", ".join(e["stand_in_from"]))
     log.info("noise measured on the bracket: %s",
              ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
     if key is not None and noisecache.store(key, used, entries, [f.path for f in frames]):
