@@ -25,9 +25,9 @@ MAX_MODEL_SD = 0.15
 MAX_SAMPLES = 1 << 17
 
 
-def _log_terms(v: np.ndarray, crf: CRF, c: int, codes_step: float, noise: NoiseParams | None):
-    """Per normalised code ``v`` of channel ``c``: ``g(z)`` less its bias and the model's
-    variance of it, from the relative variance ``s^2 = v(y) / y^2`` of the noise (17) and
+def _log_tables(crf: CRF, c: int, codes_step: float, noise: NoiseParams | None):
+    """Per code value of channel ``c`` (``(N,)`` each, ``N = 1 / codes_step + 1``): ``g(z)``
+    less its bias and the model's variance of it, from the relative variance ``s^2 = v(y) / y^2`` of the noise (17) and
     the quantisation through the response to second order (``-s^2 / 2``, ``s^2 + 2.5 s^4``);
     NaN where ``g`` is undefined or the reading lies outside the clipping-safe range of (47)
     (``k = 3`` standard deviations from black and full scale)."""
@@ -45,8 +45,7 @@ def _log_terms(v: np.ndarray, crf: CRF, c: int, codes_step: float, noise: NoiseP
         s2 = np.where(ok, var / np.where(ok, y, 1.0) ** 2, np.nan)
         g = np.where(ok, np.log(np.where(ok, lin, 1.0)) + s2 / 2.0, np.nan)
         v_log = s2 + 2.5 * s2 * s2
-    z = np.rint(np.clip(v, 0.0, 1.0) * (n - 1)).astype(np.int64)
-    return g[z], v_log[z]
+    return g, v_log
 
 
 def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, NoiseParams] | None,
@@ -62,15 +61,16 @@ def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, No
     """
     rng = np.random.default_rng(seed)
     params = per_channel(noise, channel_names) if noise else [None] * len(channel_names)
+    channels = samples.v[0].shape[-1]
+    tables = [_log_tables(crf, c, samples.codes_step, params[min(c, len(params) - 1)]) for c in range(channels)]
     terms = []
     for k, v in enumerate(samples.v):
         flat = v[samples.inside]
-        cols = [_log_terms(flat[:, c], crf, c, samples.codes_step, params[min(c, len(params) - 1)])
-                for c in range(flat.shape[1])]
-        terms.append((flat, np.log(exposures[k]), cols))
+        z = np.rint(np.clip(flat, 0.0, 1.0) * (tables[0][0].size - 1)).astype(np.int64)
+        terms.append((flat, np.log(exposures[k]), [(g[z[:, c]], var[z[:, c]]) for c, (g, var) in enumerate(tables)]))
     d_all, base_all, la, lb = [], [], [], []
     limit = MAX_MODEL_SD ** 2 * (1.0 + 2.5 * MAX_MODEL_SD ** 2)  # v_log at s = MAX_MODEL_SD
-    per_pair = MAX_SAMPLES // max(1, len(terms) * (len(terms) - 1) // 2 * samples.v[0].shape[-1])
+    per_pair = MAX_SAMPLES // max(1, len(terms) * (len(terms) - 1) // 2 * channels)
     for j in range(len(terms)):
         for m in range(j + 1, len(terms)):
             (vj, hj, cj), (vm, hm, cm) = terms[j], terms[m]

@@ -143,8 +143,6 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     return out
 
 
-
-
 def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[float, float] | None:
     """The irradiance range two frames both expose well
     (:func:`~hdrmerge_cli.core.registration.common_range`; ``frame``: the first, whose code
