@@ -20,6 +20,7 @@ COMMANDS = {
     "weights-lut": "weights_lut",
     "info": "info",
     "simulate": "simulate",
+    "plan": "plan",
 }
 
 #: each command's one-line summary (the first paragraph of its docstring) for the group's
@@ -35,6 +36,8 @@ SUMMARIES = {
                    "table so batch runs skip rebuilding it.",
     "info": "Describe frames IMAGES and whether they cover the scene as a bracket.",
     "simulate": "Render a bracket from a scene through the paper's sensor model (16)-(18).",
+    "plan": "Plan the bracket to shoot: the exposure times and ISOs with the best worst-case SNR for the scene of "
+            "METERING_FRAMES.",
 }
 
 
@@ -46,6 +49,7 @@ OUT_OF_MEMORY = {
     "calibrate-noise": "give fewer or smaller frames",
     "weights-lut": "use fewer exposures or --bits",
     "info": "describe fewer or smaller frames",
+    "plan": "give fewer or smaller metering frames",
 }
 
 

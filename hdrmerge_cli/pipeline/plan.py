@@ -1,0 +1,398 @@
+"""plan: which bracket to shoot, from metering frames and the camera's noise per ISO.
+
+The metering frames are merged as ``merge`` does; their merged irradiance gives the
+scene's range per channel (:func:`scene_range`), the profile's calibrated ISOs (or the
+noise measured on the metering frames) the settings' noise, and
+:mod:`hdrmerge_cli.core.capture_hasinoff2010` the plan.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from hdrmerge_cli.core import capture_hasinoff2010 as capture
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
+from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
+from hdrmerge_cli.io.noisespec import iso_key, noise_from_profile, per_channel
+
+log = logging.getLogger("hdrmerge_cli")
+
+#: side of the box (same-colour photosites) that averages the metered irradiance before
+#: its percentiles are taken, so that the metering frames' own noise does not widen the range
+SMOOTH = 3
+#: 1-EV bins of the SNR-against-irradiance table
+TABLE_STEP_EV = 1.0
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """``time``: budget (s); ``min_snr``: the worst-case SNR to reach (dB); ``frames``: at
+    most this many; ``shutter_speeds``/``isos``: the settings allowed (None: the 1/3-stop
+    series, the profile's calibrated ISOs); ``percentile``: of the scene's photosites, the
+    dark end of the range the worst case is taken over; the rest: the metering frames'
+    inputs as in ``merge``."""
+
+    time: float | None = None
+    min_snr: float | None = None
+    frames: int = 10
+    shutter_speeds: tuple | None = None
+    isos: tuple | None = None
+    percentile: float = 1.0
+    profile: str | None = None
+    crf: str | None = None
+    times: list | None = None
+    noise_cache: bool = True
+    search_time: float = capture.TIME_LIMIT
+
+
+@dataclass
+class Metering:
+    """The metered scene: ``scene`` (:class:`~capture.SceneRange`), the channel names, the
+    reference ISO (the first metering frame's; None when the files state none), the full
+    scale (code values), the noise per ISO key, the metering frames' own settings
+    (``(time, iso)`` per frame) and the fraction of photosites clipped in every frame."""
+
+    scene: capture.SceneRange
+    channels: list[str]
+    reference_iso: float | None
+    y_full: float
+    noise: dict[str, tuple[NoiseParams, ...]]
+    own: list[tuple[float, float | None]]
+    clipped: float
+    camera: str
+    source: str
+
+
+def channel_planes(r: np.ndarray, flags: np.ndarray, cell: np.ndarray | None, n_channels: int) -> list[list]:
+    """Per channel, its photosites as 2-D planes ``(irradiance, flags)``: an image's
+    channel, or each position of a mosaic's 2 x 2 CFA ``cell`` (channel indices)."""
+    if cell is None:
+        return [[(r[..., c], flags[..., c])] for c in range(n_channels)]
+    out = [[] for _ in range(n_channels)]
+    for i in range(cell.shape[0]):
+        for j in range(cell.shape[1]):
+            out[cell[i, j]].append((r[i::cell.shape[0], j::cell.shape[1]], flags[i::cell.shape[0], j::cell.shape[1]]))
+    return out
+
+
+def scene_range(planes: list[list], percentile: float, names: list[str]) -> capture.SceneRange:
+    """Per channel, ``lo`` = the ``percentile`` of the photosites' irradiance and ``hi`` =
+    the brightest, after a :data:`SMOOTH` x :data:`SMOOTH` box over same-colour photosites
+    (a photosite dark in every frame counts as 0).
+
+    planes : :func:`channel_planes`, irradiance in code values per second at the
+        reference ISO
+    """
+    from scipy.ndimage import uniform_filter
+
+    lo, hi, hists = [], [], []
+    for c, chan in enumerate(planes):
+        v = np.concatenate([uniform_filter(np.where(f == FLAG_DARK, 0.0, p).astype(np.float64), SMOOTH,
+                                           mode="nearest").ravel() for p, f in chan])
+        low, top = float(np.percentile(v, percentile)), float(np.max(v))
+        if not low > 0:
+            raise HdrMergeError(f"the darkest {percentile:g} % of the {names[c]} photosites read no light in the "
+                                "metering frames; meter with a longer frame, or raise --percentile")
+        lo.append(low)
+        hi.append(top)
+        edges = np.arange(np.floor(np.log2(low)), np.ceil(np.log2(top)) + TABLE_STEP_EV, TABLE_STEP_EV)
+        hists.append((edges, np.histogram(np.log2(np.maximum(v, low)), edges)[0]))
+    return capture.SceneRange(tuple(lo), tuple(hi), tuple(hists))
+
+
+def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> dict[str, tuple]:
+    """ISO key -> per-channel noise: every ISO of the profile, else the merge's noise at
+    the metering frames' ISO (key ``measured``)."""
+    if profile_path:
+        from hdrmerge_cli.io.profile import load_profile
+
+        prof = load_profile(profile_path)
+        keys = [k for k in (prof.get("noise") or {}) if k.startswith("ISO")]
+        if keys:
+            out = {}
+            for key in keys:
+                iso = float(key[3:]) if key[3:].replace(".", "", 1).isdigit() else None
+                out[key] = tuple(per_channel(noise_from_profile(prof, iso, profile_path), channels))
+            return out
+        log.info("%s: the profile has no noise parameters; using the noise measured on the metering frames",
+                 profile_path)
+    if not measured:
+        raise HdrMergeError("no noise model: the metering frames' noise could not be measured; give a --profile "
+                            "from calibrate-noise")
+    return {"measured": tuple(per_channel(measured, channels))}
+
+
+def meter(paths: list[str], opts: PlanOptions) -> Metering:
+    """Merge the metering frames (``merge``'s defaults) and read the scene off the result."""
+    from hdrmerge_cli.pipeline.bracket import sample_pattern
+    from hdrmerge_cli.pipeline.merge import merge_bracket
+    from hdrmerge_cli.pipeline.options import MergeOptions
+
+    if not paths:
+        raise HdrMergeError("no metering frames (give one or more frames of the scene)")
+    merged = merge_bracket(list(paths), MergeOptions(profile=opts.profile, crf=opts.crf, times=opts.times,
+                                                     noise_cache=opts.noise_cache))
+    first = merged.first
+    names = list(first.channel_names)
+    y_full = float(np.min(first.white - first.black))
+    r = merged.result * np.float32(y_full / merged.h_ref)  # code values per second at the first frame's ISO
+    cell = None if r.ndim == 3 else sample_pattern(first)
+    scene = scene_range(channel_planes(r, merged.flag_samples, cell, len(names)), opts.percentile, names)
+    clipped = float(np.mean(merged.flag_samples == FLAG_SATURATED))
+    if clipped > 0:
+        log.warning("%.3g %% of the photosites are clipped in every metering frame: the plan takes them at the "
+                    "clipping level, a lower bound; add a shorter metering frame", 100 * clipped)
+    noise = _noise_per_iso(opts.profile, names, merged.models.noise)
+    camera = " ".join(x for x in (first.make, first.model) if x) or "unknown camera"
+    return Metering(scene, names, first.iso, y_full, noise,
+                    [(f.exposure_time, f.iso) for f in merged.frames], clipped, camera, str(first.path))
+
+
+def settings_for(metering: Metering, opts: PlanOptions) -> list[capture.Setting]:
+    """The (time, ISO) settings a plan may use: ``--shutter-speeds`` (or the 1/3-stop
+    series) at each ISO of ``--isos`` that the profile calibrates (or all of them)."""
+    times = tuple(sorted(opts.shutter_speeds or capture.SHUTTER_THIRD_STOPS))
+    known = {k: v for k, v in metering.noise.items()}
+    if "measured" in known:
+        iso = metering.reference_iso
+        if opts.isos and (len(opts.isos) > 1 or iso is None or float(opts.isos[0]) != float(iso)):
+            raise HdrMergeError(f"--isos: the noise is known only at the metering frames' ISO "
+                                f"({iso:g}); give a --profile that calibrates the others" if iso else
+                                "--isos: the metering frames state no ISO and the noise is known only for them; "
+                                "give a --profile from calibrate-noise")
+        noise_at = {iso or 1.0: known["measured"]}
+        reference = iso or 1.0
+    else:
+        if metering.reference_iso is None:
+            raise HdrMergeError(f"{metering.source}: states no ISO, so its irradiance cannot be related to the "
+                                "profile's ISOs")
+        noise_at = {float(k[3:]): v for k, v in known.items() if k[3:].replace(".", "", 1).isdigit()}
+        if opts.isos:
+            missing = [i for i in opts.isos if float(i) not in noise_at]
+            if missing:
+                raise HdrMergeError(f"--isos: the profile calibrates no {iso_key(float(missing[0]))} (it has "
+                                    f"{', '.join(iso_key(i) for i in sorted(noise_at))}); run calibrate-noise there")
+            noise_at = {float(i): noise_at[float(i)] for i in opts.isos}
+        reference = metering.reference_iso
+    return capture.make_settings(times, sorted(noise_at), noise_at, reference, metering.y_full, DEFAULT_K)
+
+
+def check_options(opts: PlanOptions) -> None:
+    """What can be refused before the metering frames are read."""
+    shortest = min(opts.shutter_speeds or capture.SHUTTER_THIRD_STOPS)
+    if opts.time is not None and opts.time < shortest:
+        raise HdrMergeError(f"--time {opts.time:g}: shorter than the shortest shutter time ({shortest:g} s)")
+
+
+def solve(metering: Metering, opts: PlanOptions) -> dict:
+    """The plan and its comparisons, as the JSON summary of ``plan``."""
+    check_options(opts)
+    settings = settings_for(metering, opts)
+    scene = measurable(metering.scene, settings, metering.channels)
+    if opts.min_snr is not None:
+        plan = capture.shortest_plan(settings, scene, opts.min_snr, opts.frames, opts.time, opts.search_time)
+        if plan is None:
+            budget = opts.time if opts.time is not None else opts.frames * max(s.time for s in settings)
+            reach = capture.best_plan(settings, scene, budget, opts.frames, opts.search_time)
+            within = f"in {opts.time:g} s" if opts.time is not None else "with the longest shutter time"
+            raise HdrMergeError(f"--min-snr {opts.min_snr:g}: impossible; {opts.frames} frames {within} reach at most "
+                                f"{reach.worst_snr_db:.1f} dB (allow more --frames or --time, or a lower --min-snr)")
+    else:
+        plan = capture.best_plan(settings, scene, opts.time, opts.frames, opts.search_time)
+    budget = opts.time if opts.time is not None else plan.total_time
+    base = min(s.iso for s in settings)
+    compare = {}
+    if len({s.iso for s in settings}) > 1:
+        fixed = (capture.shortest_plan([s for s in settings if s.iso == base], scene, opts.min_snr, opts.frames,
+                                       opts.time, opts.search_time) if opts.min_snr is not None else
+                 capture.best_plan([s for s in settings if s.iso == base], scene, budget, opts.frames,
+                                   opts.search_time))
+        compare[f"plan at ISO {base:g} only"] = fixed
+    for step in (1, 2):
+        compare[f"conventional {step}-EV bracket at ISO {base:g}"] = capture.best_conventional(
+            settings, scene, step, opts.frames, budget)
+        compare[f"conventional {step}-EV bracket at ISO {base:g}, same SNR"] = capture.best_conventional(
+            settings, scene, step, 64, None, plan.worst_snr_db - 1e-9)
+    return summary(metering, plan, compare, opts)
+
+
+def measurable(scene: capture.SceneRange, settings: list, names: list[str]) -> capture.SceneRange:
+    """``scene`` with each channel's brightest irradiance lowered to what the shortest,
+    least amplified setting still measures (with a warning): no plan measures more."""
+    top = [max(s.clipping_point(c) for s in settings) for c in range(scene.channels)]
+    over = [c for c in range(scene.channels) if scene.hi[c] > top[c]]
+    if not over:
+        return scene
+    c = over[0]
+    log.warning("channel %s: the scene's brightest photosites clip even in the shortest frame allowed (%.2f EV "
+                "over); the plan measures up to the brightest it can", names[c], np.log2(scene.hi[c] / top[c]))
+    return replace(scene, hi=tuple(min(h, t) for h, t in zip(scene.hi, top)),
+                   lo=tuple(min(lo, t) for lo, t in zip(scene.lo, top)))
+
+
+def _frames_json(plan: capture.Plan) -> list[dict]:
+    return [{"time": s.time, "iso": s.iso} for s, n in plan.frames for _ in range(n)]
+
+
+def snr_table(metering: Metering, plans: dict) -> list[dict]:
+    """Rows of the SNR against irradiance: per 1-EV bin of the scene's range (log2 of the
+    irradiance, code values per second at the reference ISO), the share of the scene's
+    photosites in it and each plan's SNR (dB) at the bin's centre, the lowest over the
+    channels."""
+    scene = metering.scene
+    lo, hi = np.log2(min(scene.lo)), np.log2(max(scene.hi))
+    edges = np.arange(np.floor(lo), np.ceil(hi) + TABLE_STEP_EV, TABLE_STEP_EV)
+    counts = np.zeros(len(edges) - 1)
+    for e, n in scene.histograms:
+        idx = np.searchsorted(edges, e[:-1])
+        np.add.at(counts, np.clip(idx, 0, len(counts) - 1), n)
+    share = counts / max(counts.sum(), 1)
+    rows = []
+    for k in range(len(edges) - 1):
+        r = 2.0 ** ((edges[k] + edges[k + 1]) / 2)
+        row = {"log2_irradiance": float((edges[k] + edges[k + 1]) / 2), "share": float(share[k])}
+        for name, plan in plans.items():
+            if plan is None:
+                continue
+            row[name] = float(min(capture.snr_db(np.array([r]), plan.frames, c)[0] for c in range(scene.channels)))
+        rows.append(row)
+    return rows
+
+
+def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOptions) -> dict:
+    out = {
+        "camera": metering.camera,
+        "metering_frames": [{"time": t, "iso": i} for t, i in metering.own],
+        "reference_iso": metering.reference_iso,
+        "worst_case": {"definition": "the lowest SNR (dB, power ratio of the irradiance to its variance after the "
+                                     "merge) over irradiances from the given percentile of each channel's "
+                                     "photosites to its brightest",
+                       "percentile": opts.percentile,
+                       "range": {c: [lo, hi] for c, lo, hi in zip(metering.channels, metering.scene.lo,
+                                                                 metering.scene.hi)}},
+        "frames": _frames_json(plan),
+        "total_time": plan.total_time,
+        "predicted_worst_snr_db": plan.worst_snr_db,
+        "solver": {"optimal": plan.optimal, "gap_db": float(-10 * np.log10(max(1 - plan.gap, 1e-12)))},
+        "compared": {name: None if p is None else {"frames": _frames_json(p), "total_time": p.total_time,
+                                                   "predicted_worst_snr_db": p.worst_snr_db}
+                     for name, p in compare.items()},
+        "snr_table": snr_table(metering, {"plan": plan} | {k: v for k, v in compare.items() if "same SNR" not in k}),
+        "clipped_in_metering": metering.clipped,
+    }
+    return out
+
+
+# ---------------------------------------------------------------- reports
+def shutter_label(t: float) -> str:
+    """A shutter time as cameras list it: ``1/250`` below 0.3 s, else ``0.3``, ``1.3``, ``30``."""
+    if t < 0.3 - 1e-9:
+        return f"1/{round(1 / t):d}"
+    return f"{t:.4g}"
+
+
+def _iso(v) -> str:
+    return "-" if v is None else f"{v:g}"
+
+
+def format_plan(s: dict) -> str:
+    """The plan as text tables (stdout of ``plan``)."""
+    wc = s["worst_case"]
+    lines = [f"plan for {s['camera']}: {len(s['frames'])} frames, {s['total_time']:.4g} s in all, predicted "
+             f"worst-case SNR {s['predicted_worst_snr_db']:.1f} dB",
+             f"(worst case: the lowest SNR from the {wc['percentile']:g} % darkest photosites to the brightest"
+             + ("" if s["solver"]["optimal"] else f"; the search stopped within {s['solver']['gap_db']:.2f} dB of "
+                                                    "the best plan") + ")",
+             "", f"{'frame':>5}  {'time':>8}  {'ISO':>6}"]
+    lines += [f"{k + 1:>5}  {shutter_label(f['time']):>8}  {_iso(f['iso']):>6}" for k, f in enumerate(s["frames"])]
+    lines += ["", f"{'compared with':<48} {'frames':>6} {'time':>9} {'worst-case SNR':>15}"]
+    for name, p in s["compared"].items():
+        if p is None:
+            lines.append(f"{name:<48} {'none':>6}")
+        else:
+            lines.append(f"{name:<48} {len(p['frames']):>6} {p['total_time']:>8.4g}s "
+                         f"{p['predicted_worst_snr_db']:>12.1f} dB")
+    cols = [k for k in s["snr_table"][0] if k not in ("log2_irradiance", "share")] if s["snr_table"] else []
+    lines += ["", "SNR (dB, lowest channel) against irradiance (log2 of code values per second at ISO "
+              f"{_iso(s['reference_iso'])}); share of the scene's photosites per 1-EV bin",
+              f"{'log2 r':>7} {'share':>7} " + " ".join(f"{_short(c):>12}" for c in cols)]
+    for row in s["snr_table"]:
+        lines.append(f"{row['log2_irradiance']:>7.1f} {100 * row['share']:>6.2f}% "
+                     + " ".join(f"{row.get(c, float('nan')):>12.1f}" for c in cols))
+    return "\n".join(lines)
+
+
+def _short(name: str) -> str:
+    if name == "plan":
+        return "plan"
+    if name.startswith("plan at ISO"):
+        return "ISO " + name.split()[3] + " only"
+    return name.split()[1] + " bracket"
+
+
+def gphoto2_script(s: dict) -> str:
+    """A POSIX shell script that shoots the plan with gphoto2 (tethered camera in manual
+    exposure mode), one file per frame, ``plan_01.<suffix>`` ..."""
+    lines = ["#!/bin/sh",
+             f"# The bracket planned by hdrmerge-cli for {s['camera']}: {len(s['frames'])} frames, "
+             f"{s['total_time']:.4g} s in all,",
+             f"# predicted worst-case SNR {s['predicted_worst_snr_db']:.1f} dB.  Needs gphoto2 (Debian package gphoto2) "
+             "and the camera",
+             "# in manual exposure mode (M), RAW, the focus and aperture of the metering frames.  The values must",
+             "# be in the camera's lists: gphoto2 --get-config shutterspeed; gphoto2 --get-config iso",
+             "set -e"]
+    for k, f in enumerate(s["frames"]):
+        iso = "" if f["iso"] is None else f" --set-config-value iso={f['iso']:g}"
+        lines.append(f"gphoto2{iso} --set-config-value shutterspeed={shutter_label(f['time'])} "
+                     f"--capture-image-and-download --filename \"plan_{k + 1:02d}.%C\"")
+    return "\n".join(lines) + "\n"
+
+
+def plot_snr(s: dict):
+    """The predicted SNR against irradiance of the plan and its comparisons, over the
+    scene's histogram."""
+    from hdrmerge_cli.io.plots import pyplot
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    rows = s["snr_table"]
+    x = [r["log2_irradiance"] for r in rows]
+    share = ax.twinx()
+    share.bar(x, [100 * r["share"] for r in rows], width=0.9, color="0.88", zorder=0)
+    share.set_ylabel("photosites (%)")
+    ax.set_zorder(share.get_zorder() + 1)
+    ax.patch.set_visible(False)
+    for name in [k for k in rows[0] if k not in ("log2_irradiance", "share")]:
+        ax.plot(x, [r[name] for r in rows], marker="o", ms=3, label=name, lw=2 if name == "plan" else 1)
+    ax.axhline(s["predicted_worst_snr_db"], color="k", ls=":", lw=1, label="plan's worst case")
+    ax.set_xlabel(f"log2 irradiance (code values per second at ISO {_iso(s['reference_iso'])})")
+    ax.set_ylabel("predicted SNR (dB)")
+    ax.set_title(f"{s['camera']}: {len(s['frames'])} frames, {s['total_time']:.3g} s")
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+def write_outputs(summary: dict | None, plot: Path | None, script: Path | None, overwrite: bool,
+                  check_only: bool = False) -> None:
+    """``--plot`` and ``--gphoto2``: checked before any work (``check_only``), then written,
+    each atomically."""
+    from hdrmerge_cli.io.atomic import atomic_paths, check_writable, write_text
+    from hdrmerge_cli.io.plots import check_figure_path, save_figure
+
+    if check_only:
+        if plot:
+            check_figure_path(plot, overwrite)
+        if script:
+            check_writable(script, overwrite)
+        return
+    if script:
+        with atomic_paths([script], overwrite) as (tmp,):
+            write_text(tmp, gphoto2_script(summary))
+            Path(tmp).chmod(0o755)
+    if plot:
+        save_figure(plot_snr(summary), plot, overwrite)
