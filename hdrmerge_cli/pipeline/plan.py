@@ -238,32 +238,56 @@ def _frames_json(plan: capture.Plan) -> list[dict]:
     return [{"time": s.time, "iso": s.iso} for s, n in plan.frames for _ in range(n)]
 
 
+#: points per EV at which the SNR curves are evaluated (the table's bins take their minimum)
+CURVE_POINTS_PER_EV = 24
+
+
+def snr_curve(plan: capture.Plan, scene: capture.SceneRange, log2_r: np.ndarray) -> np.ndarray:
+    """The plan's SNR (dB) at irradiances ``2 ** log2_r``, the lowest over the channels
+    (each channel only inside its own range; -inf where nothing measures it)."""
+    r = 2.0 ** np.asarray(log2_r, dtype=np.float64)
+    out = np.full(r.shape, np.inf)
+    for c in range(scene.channels):
+        inside = (r >= scene.lo[c]) & (r <= scene.hi[c])
+        out = np.where(inside, np.minimum(out, capture.snr_db(r, plan.frames, c)), out)
+    return out
+
+
 def snr_table(metering: Metering, plans: dict) -> list[dict]:
     """Rows of the SNR against irradiance: per 1-EV bin of the scene's range (log2 of the
     irradiance, code values per second at the reference ISO), the share of the scene's
-    photosites in it and each plan's SNR (dB) at the bin's centre, the lowest over the
-    channels."""
+    photosites in it and each plan's lowest SNR (dB) in the bin, over the channels."""
     scene = metering.scene
-    lo, hi = np.log2(min(scene.lo)), np.log2(max(scene.hi))
-    edges = np.arange(np.floor(lo), np.ceil(hi) + TABLE_STEP_EV, TABLE_STEP_EV)
+    edges = np.arange(np.floor(np.log2(min(scene.lo))), np.ceil(np.log2(max(scene.hi))) + TABLE_STEP_EV,
+                      TABLE_STEP_EV)
     counts = np.zeros(len(edges) - 1)
     for e, n in scene.histograms:
-        idx = np.searchsorted(edges, e[:-1])
-        np.add.at(counts, np.clip(idx, 0, len(counts) - 1), n)
+        np.add.at(counts, np.clip(np.searchsorted(edges, e[:-1]), 0, len(counts) - 1), n)
     share = counts / max(counts.sum(), 1)
+    fine = np.linspace(edges[0], edges[-1], int(round((edges[-1] - edges[0]) * CURVE_POINTS_PER_EV)) + 1)
+    bins = np.clip(np.searchsorted(edges, fine, side="right") - 1, 0, len(counts) - 1)
+    curves = {name: snr_curve(p, scene, fine) for name, p in plans.items() if p is not None}
     rows = []
-    for k in range(len(edges) - 1):
-        r = 2.0 ** ((edges[k] + edges[k + 1]) / 2)
+    for k in range(len(counts)):
         row = {"log2_irradiance": float((edges[k] + edges[k + 1]) / 2), "share": float(share[k])}
-        for name, plan in plans.items():
-            if plan is None:
-                continue
-            row[name] = float(min(capture.snr_db(np.array([r]), plan.frames, c)[0] for c in range(scene.channels)))
+        for name, curve in curves.items():
+            v = curve[bins == k]
+            row[name] = float(v.min()) if v.size and np.isfinite(v.min()) else None
         rows.append(row)
     return rows
 
 
+def snr_curves(scene: capture.SceneRange, plans: dict) -> dict:
+    """Each plan's :func:`snr_curve` on a grid of :data:`CURVE_POINTS_PER_EV` points per EV
+    over the scene's range: ``{name: [log2 r, SNR dB or None]}``."""
+    lo, hi = np.log2(min(scene.lo)), np.log2(max(scene.hi))
+    x = np.linspace(lo, hi, max(2, int(round((hi - lo) * CURVE_POINTS_PER_EV)) + 1))
+    return {name: [[float(a), float(b) if np.isfinite(b) else None] for a, b in zip(x, snr_curve(p, scene, x))]
+            for name, p in plans.items() if p is not None}
+
+
 def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOptions) -> dict:
+    shown = {"plan": plan} | {k: v for k, v in compare.items() if "same SNR" not in k}
     out = {
         "camera": metering.camera,
         "metering_frames": [{"time": t, "iso": i} for t, i in metering.own],
@@ -281,7 +305,8 @@ def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOpt
         "compared": {name: None if p is None else {"frames": _frames_json(p), "total_time": p.total_time,
                                                    "predicted_worst_snr_db": p.worst_snr_db}
                      for name, p in compare.items()},
-        "snr_table": snr_table(metering, {"plan": plan} | {k: v for k, v in compare.items() if "same SNR" not in k}),
+        "snr_table": snr_table(metering, shown),
+        "snr_curves": snr_curves(metering.scene, shown),
         "clipped_in_metering": metering.clipped,
     }
     return out
@@ -360,14 +385,14 @@ def plot_snr(s: dict):
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 4.5))
     rows = s["snr_table"]
-    x = [r["log2_irradiance"] for r in rows]
     share = ax.twinx()
-    share.bar(x, [100 * r["share"] for r in rows], width=0.9, color="0.88", zorder=0)
+    share.bar([r["log2_irradiance"] for r in rows], [100 * r["share"] for r in rows], width=0.9, color="0.88", zorder=0)
     share.set_ylabel("photosites (%)")
     ax.set_zorder(share.get_zorder() + 1)
     ax.patch.set_visible(False)
-    for name in [k for k in rows[0] if k not in ("log2_irradiance", "share")]:
-        ax.plot(x, [r[name] for r in rows], marker="o", ms=3, label=name, lw=2 if name == "plan" else 1)
+    for name, curve in s["snr_curves"].items():
+        ax.plot([a for a, _ in curve], [np.nan if b is None else b for _, b in curve], label=name,
+                lw=2 if name == "plan" else 1)
     ax.axhline(s["predicted_worst_snr_db"], color="k", ls=":", lw=1, label="plan's worst case")
     ax.set_xlabel(f"log2 irradiance (code values per second at ISO {_iso(s['reference_iso'])})")
     ax.set_ylabel("predicted SNR (dB)")
