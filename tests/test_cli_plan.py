@@ -1,0 +1,81 @@
+"""hdrmerge-cli plan: end to end on simulated metering frames, outputs and bad input."""
+import json
+
+import pytest
+
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.io.profile import new_profile
+
+
+@pytest.fixture(scope="module")
+def metering(tmp_path_factory, run):
+    """Three DNG metering frames of the built-in scene and a profile with three ISOs."""
+    folder = tmp_path_factory.mktemp("meter")
+    run("simulate", "-o", folder, "-q", "--size", "256x192", "--frames", "3", "--seed", "2")
+    frames = sorted(folder.glob("frame_*.dng"))
+    profile = folder / "camera.json"
+    entries = {}
+    for iso in (100, 400, 1600):
+        g = iso / 100
+        a = 0.25 * g * g
+        entries[f"ISO{iso}"] = {ch: {"sigma_o2": 4 * a + 25.0, "alpha": a, "beta": 0.0} for ch in ("R", "G", "B")}
+    prof = new_profile({"make": "hdrmerge-cli", "model": "simulated sensor"}, 14, CRF("linear"), [], "test")
+    profile.write_text(json.dumps(prof | {"noise": entries}))
+    return frames, profile
+
+
+def test_plan_with_a_time_budget_prints_frames_and_json(run, metering):
+    frames, profile = metering
+    out = json.loads(run("plan", *frames, "--profile", profile, "--time", "0.25", "--json").stdout)
+    assert out["frames"] and all(set(f) == {"time", "iso"} for f in out["frames"])
+    assert sum(f["time"] for f in out["frames"]) <= 0.25 + 1e-9
+    assert {f["iso"] for f in out["frames"]} <= {100.0, 400.0, 1600.0}
+    compared = out["compared"]
+    for name, other in compared.items():
+        if other is not None and "same SNR" not in name:
+            assert out["predicted_worst_snr_db"] >= other["predicted_worst_snr_db"] - 1e-6, name
+    text = run("plan", *frames, "--profile", profile, "--time", "0.25").stdout
+    assert "predicted worst-case SNR" in text and "conventional 1-EV bracket" in text
+
+
+def test_min_snr_gives_the_shortest_plan_and_impossible_snr_is_one_line(run, metering):
+    frames, profile = metering
+    out = json.loads(run("plan", *frames, "--profile", profile, "--min-snr", "20", "--json").stdout)
+    assert out["predicted_worst_snr_db"] >= 20 - 1e-6
+    bad = run("plan", *frames, "--profile", profile, "--min-snr", "110", check=False)
+    assert bad.returncode == 1 and "impossible" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_without_a_profile_plans_times_at_the_metering_iso(run, metering):
+    frames, _ = metering
+    out = json.loads(run("plan", *frames, "--time", "0.25", "--json").stdout)
+    assert {f["iso"] for f in out["frames"]} == {100.0}
+    bad = run("plan", *frames, "--time", "0.25", "--isos", "100,400", check=False)
+    assert bad.returncode == 1 and "--isos" in bad.stderr
+
+
+def test_gphoto2_script_and_plot(run, metering, tmp_path):
+    frames, profile = metering
+    script, plot = tmp_path / "shoot.sh", tmp_path / "snr.png"
+    out = json.loads(run("plan", *frames, "--profile", profile, "--time", "0.1", "--gphoto2", script, "--plot", plot,
+                         "--json").stdout)
+    lines = [ln for ln in script.read_text().splitlines() if ln.startswith("gphoto2")]
+    assert len(lines) == len(out["frames"])
+    assert all("--capture-image-and-download" in ln and "shutterspeed=" in ln for ln in lines)
+    assert plot.stat().st_size > 0
+    again = run("plan", *frames, "--profile", profile, "--time", "0.1", "--gphoto2", script, check=False)
+    assert again.returncode == 1 and "--overwrite" in again.stderr
+
+
+def test_bad_input_is_refused_in_one_line(run, metering, tmp_path):
+    frames, profile = metering
+    short = run("plan", *frames, "--time", "0.00001", check=False)
+    assert short.returncode == 1 and "shortest shutter time" in short.stderr
+    assert run("plan", "--time", "1", check=False).returncode == 1
+    assert run("plan", *frames, check=False).returncode == 2  # no objective
+    missing = run("plan", *frames, "--profile", profile, "--time", "1", "--isos", "100,3200", check=False)
+    assert missing.returncode == 1 and "ISO3200" in missing.stderr
+    config = tmp_path / "plan.toml"
+    config.write_text('[plan]\ntime = 0.1\nframes = 3\n')
+    out = json.loads(run("plan", *frames, "--config", config, "--json").stdout)
+    assert len(out["frames"]) <= 3 and out["total_time"] <= 0.1
