@@ -38,7 +38,10 @@ def command(images, output, darks, flats, crf, profile, plot, window, bins, over
     moved, whose differences exceed twice the flat windows' variance, fall back to the
     windows alone); beta is kept only when an F-test needs it.  From --darks/--flats:
     photon transfer (EMVA 1288), the reference when available.  The profile says which method gave each number; per frame
-    the summary says whether it is photon- or offset-noise limited.
+    the summary says whether it is photon- or offset-noise limited.  With two or more
+    ISOs the profile also holds, per channel, the read noise split into its parts before
+    the ISO amplifier (electrons^2) and after it (code values^2): sigma_o^2(ISO) =
+    pre alpha(ISO) + post (Hasinoff et al. 2010).
     """
     summary = calibrate_noise(images, CalibrateOptions(output, darks, flats, crf, profile, plot, window, bins,
                                                        overwrite))

@@ -19,6 +19,22 @@ MAX_SIDE = 65500
 SCALE_RANGE = (1e-12, 1e12)
 
 
+#: ISOs a 16-bit EXIF field holds
+ISO_RANGE = (1, 65535)
+
+
+def _isos(ctx, param, value):
+    """``--iso``: one ISO, or a comma list (one per --times entry)."""
+    try:
+        isos = [int(v) for v in str(value).split(",")]
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: give an ISO or a comma list of ISOs, e.g. 100,400,1600") from None
+    if not all(ISO_RANGE[0] <= i <= ISO_RANGE[1] for i in isos):
+        raise click.BadParameter(f"{value}: each ISO must lie between {ISO_RANGE[0]} and {ISO_RANGE[1]} (a 16-bit "
+                                 "EXIF field)")
+    return isos[0] if len(isos) == 1 else isos
+
+
 def _size(ctx, param, value):
     try:
         w, h = (int(v) for v in str(value).lower().split("x"))
@@ -46,39 +62,61 @@ def _size(ctx, param, value):
               help="Number of exposures when --times is not given (chosen to cover the scene; for 'flat', "
                    "2 % to 90 % of saturation).")
 @click.option("--repeat", default=1, show_default=True, type=click.IntRange(1, 64),
-              help="Frames per exposure time (independent noise, the same fixed pattern), e.g. 2 for "
-                   "photon-transfer pairs.")
+              help="Frames per exposure time (and its ISO; independent noise, the same fixed pattern), e.g. 2 "
+                   "for photon-transfer pairs.")
 @click.option("--times", callback=times_option_callback, metavar="T1,T2,...", help="Exposure times in seconds.")
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default="dng", show_default=True,
               help="DNG (Bayer RAW) or camera-processed JPEG/TIFF/PNG with EXIF.")
 @click.option("--bits", type=click.IntRange(8, 16), help="Bits of the linear A/D converter [default: 14 for DNG, 12 otherwise].")
 @click.option("--black", type=click.IntRange(min=0), help="Black level [default: 2^(bits-5) for DNG, 0 otherwise].")
 @click.option("--alpha", default=0.25, show_default=True, type=FiniteFloatRange(*NOISE_RANGES["alpha"]),
-              help="Squared gain alpha of (17), code values^2 per electron.")
+              help="Squared gain alpha of (17) at --base-iso, code values^2 per electron.")
 @click.option("--sigma-o2", default=9.0, show_default=True, type=FiniteFloatRange(*NOISE_RANGES["sigma_o2"]),
-              help="Read-noise variance sigma_o^2 of (17), code values^2 (quantisation adds 1/12).")
+              help="Read-noise variance sigma_o^2 of (17) at --base-iso, code values^2 (quantisation adds 1/12).")
 @click.option("--beta", default=0.0, show_default=True, type=FiniteFloatRange(*NOISE_RANGES["beta"]),
-              help="Gain fixed-pattern noise beta of (17).")
+              help="Gain fixed-pattern noise beta of (17) at --base-iso.")
+@click.option("--sigma-post2", default=0.0, show_default=True, type=FiniteFloatRange(*NOISE_RANGES["sigma_o2"]),
+              help="The part of --sigma-o2 added after the ISO amplifier (code values^2, at most --sigma-o2): "
+                   "at ISO i, with g = i / base ISO, alpha and beta scale by g^2 and sigma_o^2 becomes "
+                   "(sigma_o^2 - sigma_post^2) g^2 + sigma_post^2 (Hasinoff et al. 2010).")
+@click.option("--base-iso", default=100.0, show_default=True, type=FiniteFloatRange(*ISO_RANGE),
+              help="The ISO at which --alpha, --sigma-o2 and --beta hold.")
 @click.option("--crf", default="srgb", show_default=True, help="Camera response for JPEG/TIFF/PNG (as in merge).")
 @click.option("--out-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
               help="Bits per sample of TIFF/PNG output (JPEG is 8).")
-@click.option("--iso", default=100, show_default=True, type=click.IntRange(1, 65535),
-              help="ISO written to the metadata (a 16-bit EXIF field).")
+@click.option("--iso", default="100", show_default=True, callback=_isos, metavar="ISO[,ISO...]",
+              help="ISO of the frames: the sensor's gain (see --sigma-post2) and the metadata.  One ISO for every "
+                   "frame, or a comma list pairing entry by entry with --times (the same length; each time at its "
+                   "ISO, --repeat times).  The automatic times (no --times) are for a single ISO.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Random seed (scene texture and noise).")
 @output_options
 @common_options
-def command(output_dir, scene, size, downscale, scale, frames, repeat, times, fmt, bits, black, alpha, sigma_o2, beta, crf,
-            out_bits, iso, seed, overwrite, as_json):
+def command(output_dir, scene, size, downscale, scale, frames, repeat, times, fmt, bits, black, alpha, sigma_o2, beta,
+            sigma_post2, base_iso, crf, out_bits, iso, seed, overwrite, as_json):
     """Render a bracket from a scene through the paper's sensor model (16)-(18).
 
     Poisson photon noise, gain sqrt(alpha) with gain fixed-pattern noise beta, read
     noise sigma_o^2, quantisation to BITS and clipping; DNG frames are Bayer RGGB
-    mosaics with a black level, JPEG/TIFF/PNG frames go through --crf.  Also writes the
-    ground truth truth.exr (in the units of 'merge') and simulation.json.  Seeded.
+    mosaics with a black level, JPEG/TIFF/PNG frames go through --crf.  Each frame is
+    rendered at its --iso: the gain amplifies the photo-electrons and the read noise
+    before the amplifier, then the read noise after it (--sigma-post2) is added.  Also
+    writes the ground truth truth.exr (in the units of 'merge') and simulation.json
+    (with the sensor's parameters at each ISO).  Seeded.
     """
     bits = bits or (14 if fmt == "dng" else 12)
     black = black if black is not None else (2 ** (bits - 5) if fmt == "dng" else 0)
-    sensor = SensorModel(alpha=alpha, sigma_o2=sigma_o2, beta=beta, bits=bits, black=black)
+    if sigma_post2 > sigma_o2:
+        raise click.BadParameter(f"{sigma_post2:g} exceeds --sigma-o2 {sigma_o2:g} (it is the part of the read noise "
+                                 "after the amplifier)", param_hint="--sigma-post2")
+    if isinstance(iso, list):
+        if not times:
+            raise click.BadParameter(f"a list of {len(iso)} ISOs pairs with --times, one ISO per exposure time; give "
+                                     "--times, or a single ISO", param_hint="--iso")
+        if len(iso) != len(times):
+            raise click.BadParameter(f"{len(iso)} ISOs for {len(times)} exposure times (--times); give one ISO per "
+                                     "exposure time, or a single ISO", param_hint="--iso")
+    sensor = SensorModel(alpha=alpha, sigma_o2=sigma_o2, beta=beta, bits=bits, black=black, sigma_post2=sigma_post2,
+                         base_iso=base_iso)
     opts = SimulateOptions(
         output_dir=output_dir, scene=scene, width=size[0], height=size[1], downscale=downscale, scale=scale,
         frames=frames, times=times, repeat=repeat, sensor=sensor, fmt=fmt, crf=crf, out_bits=int(out_bits), iso=iso, seed=seed,

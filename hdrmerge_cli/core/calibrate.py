@@ -793,3 +793,60 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     rel = (data.var - data.design @ fit.coef) / np.maximum(data.design @ fit.coef, 1e-12)
     fit.data, fit.points, fit.residual_rms = data, int(data.mean.size), float(np.sqrt(np.mean(rel**2)))
     return fit, ratios
+
+
+@dataclass
+class ReadNoiseSplit:
+    """:func:`read_noise_split`'s result: ``pre`` electrons^2, ``post`` code values^2, their
+    standard errors (nan where the points cannot tell them) and ``weighted``: whether
+    the points' standard errors weighted the fit."""
+
+    pre: float
+    post: float
+    pre_stderr: float
+    post_stderr: float
+    weighted: bool
+
+
+def read_noise_split(alpha, sigma_o2, alpha_stderr=None, sigma_o2_stderr=None) -> ReadNoiseSplit:
+    """The read noise before and after the ISO amplifier from fits of (17) at several ISOs
+    (Hasinoff, Durand and Freeman, CVPR 2010): with gain ``g`` the pre-amplifier read
+    noise (``pre`` electrons^2) is amplified like the photo-electrons and the
+    post-amplifier read noise (``post`` code values^2) is not, so
+
+        sigma_o^2(ISO) = pre alpha(ISO) + post,
+
+    a straight line through the points ``(alpha, sigma_o^2)``, fitted by least squares.
+    With the points' standard errors (both or neither) each point weighs
+    ``1 / (se(sigma_o^2)^2 + pre^2 se(alpha)^2)`` (the effective variance of a line with
+    errors in both coordinates; ``pre`` from the previous pass, three passes) and the
+    standard errors are those of the weighted fit; without, the fit is unweighted and
+    its standard errors come from the residuals (nan with two points).  Quantisation's
+    1/12 code value^2 is read noise after the amplifier, so a fit of measured
+    ``sigma_o^2`` puts it into ``post``.  Not constrained to be positive."""
+    a = np.asarray(alpha, np.float64)
+    s = np.asarray(sigma_o2, np.float64)
+    if a.size < 2 or a.shape != s.shape:
+        raise HdrMergeError("the read-noise split needs sigma_o^2 and alpha at two or more ISOs")
+    if np.ptp(a) <= 1e-9 * np.max(np.abs(a)):
+        raise HdrMergeError("the read-noise split needs two or more different gains (alpha)")
+    design = np.stack([a, np.ones_like(a)], axis=1)
+    weighted = alpha_stderr is not None and sigma_o2_stderr is not None
+    if weighted:
+        se_a, se_s = np.asarray(alpha_stderr, np.float64), np.asarray(sigma_o2_stderr, np.float64)
+        if not (np.all(np.isfinite(se_a)) and np.all(np.isfinite(se_s)) and np.all(se_s > 0)):
+            raise HdrMergeError("the read-noise split's standard errors must be finite and positive")
+    coef = np.linalg.lstsq(design, s, rcond=None)[0]
+    if weighted:
+        for _ in range(3):
+            w = 1.0 / (se_s**2 + (coef[0] * se_a) ** 2)
+            info = design.T @ (design * w[:, None])
+            coef = np.linalg.solve(info, design.T @ (w * s))
+        cov = np.linalg.inv(info)
+    elif a.size > 2:
+        resid = s - design @ coef
+        cov = float(resid @ resid) / (a.size - 2) * np.linalg.inv(design.T @ design)
+    else:
+        cov = np.full((2, 2), np.nan)
+    return ReadNoiseSplit(float(coef[0]), float(coef[1]), float(np.sqrt(cov[0, 0])), float(np.sqrt(cov[1, 1])),
+                          weighted)

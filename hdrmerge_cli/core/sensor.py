@@ -12,10 +12,24 @@ times alpha: each pixel's gain is ``sqrt(alpha) (1 + d_i)``, ``d_i ~ N(0, beta /
 drawn once and shared by every frame, which gives the ``beta x^2`` term of (17)).
 Quantisation adds its own 1/12 code value^2 to the offset variance, which the paper
 lumps into ``sigma_o^2``; :attr:`SensorModel.sigma_o2_total` includes it.
+
+ISO (Hasinoff, Durand and Freeman, "Noise-optimal capture for high dynamic range
+photography", CVPR 2010, Sec. 3): the ISO setting is an analogue gain ``g = ISO / ISO_base``
+applied to the photo-electrons and to the read noise that arises before the amplifier;
+the read noise after the amplifier (variance ``sigma_post^2``) is added unamplified, then
+the signal is clipped and quantised.  In the code values of (17), with the parameters
+given at the base ISO:
+
+    alpha(ISO)    = alpha g^2
+    beta(ISO)     = beta g^2
+    sigma_o^2(ISO) = (sigma_o^2 - sigma_post^2) g^2 + sigma_post^2
+
+so ``(sigma_o^2 - sigma_post^2) / alpha`` is the pre-amplifier read noise in electrons^2,
+the same at every ISO (:meth:`SensorModel.at_iso`).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -31,19 +45,29 @@ MAX_ELECTRONS = 1e15
 
 @dataclass(frozen=True)
 class SensorModel:
-    """Parameters of (17) plus the A/D converter: ``bits`` and the ``black`` level."""
+    """Parameters of (17) at ISO ``base_iso`` plus the A/D converter: ``bits`` and the
+    ``black`` level.  ``sigma_post2`` (code values^2, ``0 <= sigma_post2 <= sigma_o2``) is
+    the part of ``sigma_o2`` added after the ISO amplifier (Hasinoff et al. 2010; see the
+    module docstring and :meth:`at_iso`)."""
 
     alpha: float = 0.25
     sigma_o2: float = 9.0
     beta: float = 0.0
     bits: int = 14
     black: int = 512
+    sigma_post2: float = 0.0
+    base_iso: float = 100.0
 
     def __post_init__(self):
         if not (self.alpha > 0 and np.isfinite(self.alpha)):
             raise HdrMergeError("alpha (squared gain) must be a positive number")
-        if self.sigma_o2 < 0 or self.beta < 0:
+        if not (np.isfinite(self.sigma_o2) and np.isfinite(self.beta)) or self.sigma_o2 < 0 or self.beta < 0:
             raise HdrMergeError("sigma_o2 and beta must not be negative")
+        if not (np.isfinite(self.sigma_post2) and 0 <= self.sigma_post2 <= self.sigma_o2):
+            raise HdrMergeError(f"sigma_post2 ({self.sigma_post2:g}) must lie between 0 and sigma_o2 "
+                                f"({self.sigma_o2:g}): it is the part of the read noise after the amplifier")
+        if not (self.base_iso > 0 and np.isfinite(self.base_iso)):
+            raise HdrMergeError("the base ISO must be a positive number")
         if not 2 <= self.bits <= 16:
             raise HdrMergeError("bits must be between 2 and 16")
         if not 0 <= self.black < 2**self.bits - 1:
@@ -66,6 +90,23 @@ class SensorModel:
     def saturation_electrons(self) -> float:
         return self.full_scale / np.sqrt(self.alpha)
 
+    @property
+    def pre_amp_electrons2(self) -> float:
+        """Read-noise variance before the amplifier, in electrons^2:
+        ``(sigma_o^2 - sigma_post^2) / alpha``, the same at every ISO."""
+        return (self.sigma_o2 - self.sigma_post2) / self.alpha
+
+    def at_iso(self, iso: float) -> "SensorModel":
+        """The parameters at ISO ``iso`` (Hasinoff et al. 2010), with ``g = iso / base_iso``:
+        ``alpha g^2``, ``beta g^2``, ``(sigma_o^2 - sigma_post^2) g^2 + sigma_post^2``;
+        ``sigma_post2``, ``bits`` and ``black`` unchanged, ``base_iso = iso`` (so that
+        ``at_iso(a).at_iso(b) == at_iso(b)`` up to rounding)."""
+        if not (iso > 0 and np.isfinite(iso)):
+            raise HdrMergeError(f"ISO {iso}: must be a positive number")
+        g2 = (float(iso) / self.base_iso) ** 2
+        return replace(self, alpha=self.alpha * g2, beta=self.beta * g2,
+                       sigma_o2=(self.sigma_o2 - self.sigma_post2) * g2 + self.sigma_post2, base_iso=float(iso))
+
     def as_dict(self) -> dict:
         return asdict(self) | {"white": self.white, "sigma_o2_total": self.sigma_o2_total}
 
@@ -81,7 +122,13 @@ def expose(
     irradiance: np.ndarray, time: float, sensor: SensorModel, rng: np.random.Generator, pattern: np.ndarray
 ) -> np.ndarray:
     """Linear signal ``y`` (code values above black, unclipped, float64) of one exposure:
-    Poisson photon counts (16), gain with fixed pattern and Gaussian read noise (17)."""
+    Poisson photon counts (16), gain with fixed pattern and Gaussian read noise (17).
+
+    At ISO ``k`` pass ``sensor.at_iso(k)``: one Gaussian of variance ``sigma_o^2(ISO)``
+    has the distribution of the pre-amplifier read noise amplified by ``g`` plus the
+    post-amplifier read noise (Hasinoff et al. 2010), except that the gain fixed pattern
+    ``(1 + d_i)`` multiplies the photo-electrons only, not the pre-amplifier read noise
+    (a difference of order ``beta / alpha`` in the read noise's variance)."""
     electrons = rng.poisson(np.minimum(np.asarray(irradiance, dtype=np.float64) * time, MAX_ELECTRONS))
     y = np.sqrt(sensor.alpha) * electrons * (1.0 + pattern)
     if sensor.sigma_o2 > 0:

@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.calibrate import NoiseFit, achievable_errors, estimate_noise, fit_standard_errors
+from hdrmerge_cli.core.calibrate import (
+    NoiseFit, achievable_errors, estimate_noise, fit_standard_errors, read_noise_split,
+)
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable
@@ -309,11 +311,64 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
                               [f.path for f in everything], "calibrate-noise")
         profile["noise"] = noise
     profile["noise_units"] = NOISE_UNITS
+    split = read_noise_split_entry(profile["noise"])
+    if split:
+        profile["read_noise_split"] = split
+    else:
+        profile.pop("read_noise_split", None)
     if opts.plot:
         plot_noise(opts.plot, noise, plot_data, opts.overwrite)
     save_profile(output, profile, opts.overwrite or updating)
-    return {"output": str(output), "noise": noise, "frames": reports, "plot": str(opts.plot) if opts.plot else None,
-            "seconds": round(time.perf_counter() - t0, 4)}
+    return {"output": str(output), "noise": noise, "read_noise_split": split or None, "frames": reports,
+            "plot": str(opts.plot) if opts.plot else None, "seconds": round(time.perf_counter() - t0, 4)}
+
+
+def _iso_of_key(key: str) -> float | None:
+    """The ISO of a profile's noise key (``ISO400`` -> 400), None for ``ISO_unknown``."""
+    try:
+        iso = float(key[3:]) if key.startswith("ISO") else None
+    except ValueError:
+        return None
+    return iso if iso is not None and np.isfinite(iso) and iso > 0 else None
+
+
+def read_noise_split_entry(noise: dict) -> dict:
+    """Per channel calibrated at two or more ISOs (of different gains), the read noise
+    split into its parts before and after the ISO amplifier
+    (:func:`~hdrmerge_cli.core.calibrate.read_noise_split`: ``sigma_o2 = pre alpha + post``
+    across ISOs): ``{channel: {"pre_amp_electrons2", "post_amp_codes2", "stderr",
+    "weighted", "isos"}}``, weighted by the entries' ``stderr`` when every entry states
+    them; empty when no channel has two ISOs."""
+    points: dict[str, list] = {}
+    for key, entries in noise.items():
+        iso = _iso_of_key(key)
+        if iso is None or not isinstance(entries, dict):
+            continue
+        for name, e in entries.items():
+            if isinstance(e, dict) and all(isinstance(e.get(k), (int, float)) for k in ("alpha", "sigma_o2")):
+                points.setdefault(name, []).append((iso, e))
+    out = {}
+    for name, items in sorted(points.items()):
+        items.sort(key=lambda item: item[0])
+        alpha = [e["alpha"] for _, e in items]
+        if len(items) < 2 or max(alpha) <= min(alpha) * (1 + 1e-9):
+            continue
+        se = [e.get("stderr") or {} for _, e in items]
+        weighted = all(isinstance(s.get(k), (int, float)) and s[k] > 0 for s in se for k in ("alpha", "sigma_o2"))
+        try:
+            fit = read_noise_split(alpha, [e["sigma_o2"] for _, e in items],
+                                   [s["alpha"] for s in se] if weighted else None,
+                                   [s["sigma_o2"] for s in se] if weighted else None)
+        except HdrMergeError as exc:
+            log.warning("channel %s: no read-noise split (%s)", name, exc)
+            continue
+        out[name] = {"pre_amp_electrons2": _rounded(fit.pre), "post_amp_codes2": _rounded(fit.post),
+                     "stderr": {"pre_amp_electrons2": _rounded(fit.pre_stderr),
+                                "post_amp_codes2": _rounded(fit.post_stderr)},
+                     "weighted": fit.weighted, "isos": [int(iso) if iso.is_integer() else iso for iso, _ in items]}
+        log.info("channel %s: read noise %.4g electrons^2 before the ISO amplifier, %.4g code values^2 after it "
+                 "(ISO %s)", name, fit.pre, fit.post, ", ".join(f"{iso:g}" for iso, _ in items))
+    return out
 
 
 def _choose_crf(first: Frame, opts: CalibrateOptions, base: dict | None):

@@ -1,4 +1,11 @@
-"""simulate: render a bracket from a scene through the sensor model (16)-(18)."""
+"""simulate: render a bracket from a scene through the sensor model (16)-(18).
+
+Each frame is rendered with the sensor at its ISO (:meth:`SensorModel.at_iso`,
+Hasinoff et al. 2010).  The ground truth is in the units of ``merge``: merge divides
+frame ``j`` by ``h_j = t_j ISO_j / ISO_ref`` (``ISO_ref`` the ISO of its first frame, the
+shortest ``h``) and scales to ``h_ref``, the geometric mean of the ``h_j``, so
+``truth = sqrt(alpha(ISO_ref)) h_ref E / y_max`` (1.0 = the full-scale signal of an
+exposure of ``h_ref`` seconds at ``ISO_ref``)."""
 from __future__ import annotations
 
 import json
@@ -20,6 +27,7 @@ from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import read_frame
 from hdrmerge_cli.io.images import read_exr, read_header, write_exr, write_ldr
 from hdrmerge_cli.io.malloc import available_memory
+from hdrmerge_cli.io.noisespec import iso_key
 from hdrmerge_cli.io.dng_integer import write_dng
 from hdrmerge_cli.io.times import MIN_SECONDS
 
@@ -52,7 +60,9 @@ class SimulateOptions:
     fmt: str = "dng"
     crf: str = "srgb"
     out_bits: int = 8
-    iso: int = 100
+    #: one ISO for every frame, or one per entry of ``times`` (each (time, ISO) pair
+    #: rendered ``repeat`` times); ``sensor`` holds the parameters at ``sensor.base_iso``
+    iso: int | list[int] = 100
     aperture: float = 8.0
     seed: int = 0
     overwrite: bool = False
@@ -149,10 +159,12 @@ def load_scene(opts: SimulateOptions) -> tuple[np.ndarray, str]:
 MAX_TIME = 1e6
 
 
-def check_times(times: np.ndarray, signal: np.ndarray, scene_name: str, opts: SimulateOptions) -> None:
+def check_times(times: np.ndarray, signal: np.ndarray, scene_name: str, opts: SimulateOptions,
+                sensor: SensorModel) -> None:
     """Refuse exposure times the format cannot store, saying why they came out so: too
     many --frames for the scene (one stop apart or more, the longer ones all clipped), a
-    scene too dark or too bright for the sensor at this --scale, or the --times given."""
+    scene too dark or too bright for ``sensor`` (at the frames' ISO) at this --scale, or
+    the --times given."""
     shortest, fmt = SHORTEST.get(opts.fmt, MIN_SECONDS), opts.fmt.upper()
     if shortest <= times[0] and times[-1] <= MAX_TIME:
         return
@@ -160,7 +172,7 @@ def check_times(times: np.ndarray, signal: np.ndarray, scene_name: str, opts: Si
     if opts.times:
         raise HdrMergeError(f"--times: {times[0]:g} s is too short ({span})")
     if scene_name not in ("flat", "dark"):
-        t_min, t_max = auto_exposure_times(signal, opts.sensor, 2)
+        t_min, t_max = auto_exposure_times(signal, sensor, 2)
         stops = float(np.log2(t_max / t_min))
         scene_fits = shortest <= t_min and t_max <= MAX_TIME
         if opts.frames - 1 > stops and (scene_fits or opts.frames - 1 > np.log2(MAX_TIME / shortest)):
@@ -175,10 +187,29 @@ def check_times(times: np.ndarray, signal: np.ndarray, scene_name: str, opts: Si
                         "scene is too bright for the sensor; lower --scale or give --times")
 
 
+def frame_isos(opts: SimulateOptions) -> list[int]:
+    """The ISO of each entry of ``opts.times`` (or the single ISO of the automatic
+    times): one ISO for all, or a list as long as ``opts.times``."""
+    isos = [opts.iso] if isinstance(opts.iso, (int, np.integer)) else [int(i) for i in opts.iso]
+    if not isos or not all(1 <= i <= 65535 for i in isos):
+        raise HdrMergeError("--iso: give ISOs from 1 to 65535 (a 16-bit EXIF field)")
+    if len(isos) == 1:
+        return isos * (len(opts.times) if opts.times else 1)
+    if not opts.times:
+        raise HdrMergeError(f"--iso: a list of {len(isos)} ISOs pairs with --times, one ISO per exposure time; "
+                            "give --times, or a single ISO")
+    if len(isos) != len(opts.times):
+        raise HdrMergeError(f"--iso: {len(isos)} ISOs for {len(opts.times)} exposure times (--times); give one ISO "
+                            "per exposure time, or a single ISO")
+    return isos
+
+
 def simulate(opts: SimulateOptions) -> dict:
     if opts.fmt not in FORMATS:
         raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
     sensor = opts.sensor
+    isos = frame_isos(opts)
+    at_iso = {iso: sensor.at_iso(iso) for iso in sorted(set(isos))}
     crf = CRF("linear") if opts.fmt == "dng" else resolve_crf(opts.crf)
     out_bits = 8 if opts.fmt == "jpg" else opts.out_bits
     irradiance, scene_name = load_scene(opts)
@@ -188,17 +219,23 @@ def simulate(opts: SimulateOptions) -> dict:
                                else "use less --downscale or a larger scene"))
     rng = np.random.default_rng(opts.seed)
     signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
+    auto = at_iso[isos[0]]  # the automatic times: at the single ISO given
     if opts.times:
         times = np.asarray(opts.times, float)
     elif scene_name == "dark":
         times = np.full(opts.frames, 1.0 / 100)
     elif scene_name == "flat":  # a photon-transfer series: 2 % to 90 % of saturation
-        times = np.geomspace(0.02, 0.9, opts.frames) * sensor.saturation_electrons / (signal.max())
+        times = np.geomspace(0.02, 0.9, opts.frames) * auto.saturation_electrons / (signal.max())
     else:
-        times = auto_exposure_times(signal, sensor, opts.frames)
-    times = np.sort(np.repeat([photographic_time(t) for t in times], opts.repeat))
-    check_times(times, signal, scene_name, opts)
-    pattern = gain_pattern(signal.shape, sensor, rng)
+        times = auto_exposure_times(signal, auto, opts.frames)
+    if not opts.times:
+        isos = isos * len(times)
+    times = np.repeat([photographic_time(t) for t in times], opts.repeat)
+    isos = np.repeat(isos, opts.repeat)
+    order = np.argsort(times * isos, kind="stable")  # merge's order: exposure h = t ISO, shortest first
+    times, isos = times[order], [int(i) for i in isos[order]]
+    check_times(np.sort(times), signal, scene_name, opts, auto)
+    pattern = gain_pattern(signal.shape, sensor, rng)  # d_i ~ N(0, beta / alpha): the same at every ISO
 
     out = Path(opts.output_dir)
     if out.exists() and not out.is_dir():
@@ -209,9 +246,11 @@ def simulate(opts: SimulateOptions) -> dict:
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
         hint = "give longer --times" if opts.times else "lower --scale or give --times"
         times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
-        t_ref = float(np.exp(np.mean(np.log(times))))
+        iso_ref = isos[0]  # merge's h_j = t_j ISO_j / ISO of its first frame (pipeline.bracket.exposure_values)
+        h = times * np.asarray(isos, float) / iso_ref
+        t_ref = float(np.exp(np.mean(np.log(h))))
 
-        truth = (np.sqrt(sensor.alpha) * t_ref / sensor.full_scale) * irradiance
+        truth = (np.sqrt(at_iso[iso_ref].alpha) * t_ref / sensor.full_scale) * irradiance
         if float(truth.max()) > np.finfo(np.float32).max:
             raise HdrMergeError(f"{scene_name}: its brightest values times --scale {opts.scale:g} exceed what a float "
                                 "EXR holds (truth.exr); lower --scale")
@@ -223,36 +262,41 @@ def simulate(opts: SimulateOptions) -> dict:
             "exposure_times": [float(t) for t in times],
             "reference_exposure": t_ref,
             "sensor": sensor.as_dict(),
+            "sensor_at_iso": {iso_key(iso): s.as_dict() for iso, s in at_iso.items()},
             "crf": crf.describe(),
             "out_bits": out_bits if opts.fmt != "dng" else sensor.bits,
             "cfa_pattern": CFA_PATTERN if opts.fmt == "dng" else None,
-            "iso": opts.iso,
+            "iso": isos[0] if len(set(isos)) == 1 else None,
+            "isos": isos,
+            "reference_iso": iso_ref,
             "seed": opts.seed,
             "truth": "truth.exr",
-            "truth_units": "1.0 = full-scale signal at reference_exposure seconds (the units of 'merge')",
+            "truth_units": "1.0 = full-scale signal at reference_exposure seconds at reference_iso (the units of "
+                           "'merge')",
             "width": int(irradiance.shape[1]),
             "height": int(irradiance.shape[0]),
         }
         saturated = []
         with atomic_paths(paths, opts.overwrite) as tmps:
             for k, t in enumerate(times):
-                y = expose(signal, t, sensor, rng, pattern)
+                y = expose(signal, t, at_iso[isos[k]], rng, pattern)
                 saturated.append(float(np.mean(y >= sensor.full_scale)))
                 if opts.fmt == "dng":
                     write_dng(
                         tmps[k], quantise_raw(y, sensor), pattern=CFA_PATTERN, black=sensor.black,
-                        white=sensor.white, exposure_time=requested[k], iso=opts.iso, aperture=opts.aperture,
+                        white=sensor.white, exposure_time=requested[k], iso=isos[k], aperture=opts.aperture,
                     )
                 else:
                     write_ldr(tmps[k], quantise_crf(y, sensor, crf, out_bits), {
                         "ExposureTime": float(requested[k]), "FNumber": float(opts.aperture),
-                        "Exif:PhotographicSensitivity": int(opts.iso), "Exif:ISOSpeedRatings": int(opts.iso),
+                        "Exif:PhotographicSensitivity": isos[k], "Exif:ISOSpeedRatings": isos[k],
                         "Make": "hdrmerge-cli", "Model": "simulated sensor",
                     })
                 stored = read_frame(tmps[k]).exposure_time
                 if stored is None or abs(stored - t) > 1e-5 * t:
                     raise HdrMergeError(f"{names[k]}: the file stores exposure time {stored}, not {t} (internal error)")
-                log.info("rendered %s (t = %.6g s, %.1f %% saturated)", names[k], t, 100 * saturated[-1])
+                log.info("rendered %s (t = %.6g s, ISO %d, %.1f %% saturated)", names[k], t, isos[k],
+                         100 * saturated[-1])
             write_exr(tmps[-2], truth.astype(np.float32), ["R", "G", "B"], {
                 "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
                 "hdrmerge:units": meta["truth_units"], "chromaticities": list(REC709_CHROMATICITIES),
