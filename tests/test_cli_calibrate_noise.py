@@ -93,7 +93,7 @@ def test_profile_merges_new_iso_and_keeps_the_rest(run, tmp_path, calibration_se
     prof = tmp_path / "p.json"
     run("calibrate-noise", *frames_of(root / "bracket", meta), "-o", prof)
     other = simulate(run, tmp_path / "iso400", "--size", "256x192", "--frames", "3", "--iso", "400",
-                     "--base-iso", "400", "--alpha", "2", "--sigma-o2", "30")
+                     "--alpha", "2", "--sigma-o2", "30")
     run("calibrate-noise", *frames_of(tmp_path / "iso400", other), "--profile", prof)  # in place
     noise = json.loads(prof.read_text())["noise"]
     assert set(noise) == {"ISO100", "ISO400"}

@@ -124,12 +124,13 @@ def test_jpeg_frames_carry_their_iso(run, tmp_path):
 
 
 def test_automatic_times_are_for_the_single_iso(run, tmp_path):
-    """--iso 1600 without --times: the sensor saturates 16 times sooner, the automatic
+    """--iso 1600 (the sensor given at ISO 100) without --times: the sensor saturates 16 times sooner, the automatic
     times are 16 times shorter (to the rounding of photographic times to 1/n s, up to
     1 / (2 n): 5 % at 1/10 s) and the
     shortest frame keeps its highlights as at ISO 100."""
     base = simulate(run, tmp_path / "a", "--size", "128x96", "--frames", "3")
-    high = simulate(run, tmp_path / "b", "--size", "128x96", "--frames", "3", "--iso", "1600")
+    high = simulate(run, tmp_path / "b", "--size", "128x96", "--frames", "3", "--iso", "1600",
+                    "--base-iso", "100")
     np.testing.assert_allclose(np.array(base["exposure_times"]) / high["exposure_times"], 16, rtol=0.05)
     assert high["saturated_fraction"][0] < 0.01 and high["isos"] == [1600] * 3
 
@@ -157,3 +158,8 @@ def test_the_api_refuses_a_list_without_times(tmp_path):
     with pytest.raises(HdrMergeError, match="--iso: 2 ISOs for 3 exposure times"):
         simulate_api(SimulateOptions(output_dir=tmp_path / "s", width=64, height=64, iso=[100, 400],
                                      times=[0.01, 0.02, 0.04]))
+
+
+def test_without_base_iso_the_parameters_hold_at_the_lowest_iso(run, tmp_path):
+    meta = simulate(run, tmp_path / "c", "--size", "64x64", "--frames", "2", "--iso", "400", "--alpha", "2")
+    assert meta["sensor_at_iso"]["ISO400"]["alpha"] == pytest.approx(2.0)

@@ -79,8 +79,8 @@ def _size(ctx, param, value):
               help="The part of --sigma-o2 added after the ISO amplifier (code values^2, at most --sigma-o2): "
                    "at ISO i, with g = i / base ISO, alpha and beta scale by g^2 and sigma_o^2 becomes "
                    "(sigma_o^2 - sigma_post^2) g^2 + sigma_post^2 (Hasinoff et al. 2010).")
-@click.option("--base-iso", default=100.0, show_default=True, type=FiniteFloatRange(*ISO_RANGE),
-              help="The ISO at which --alpha, --sigma-o2 and --beta hold.")
+@click.option("--base-iso", type=FiniteFloatRange(*ISO_RANGE),
+              help="The ISO at which --alpha, --sigma-o2 and --beta hold [default: the lowest --iso].")
 @click.option("--crf", default="srgb", show_default=True, help="Camera response for JPEG/TIFF/PNG (as in merge).")
 @click.option("--out-bits", type=click.Choice(["8", "16"]), default="8", show_default=True,
               help="Bits per sample of TIFF/PNG output (JPEG is 8).")
@@ -115,6 +115,8 @@ def command(output_dir, scene, size, downscale, scale, frames, repeat, times, fm
         if len(iso) != len(times):
             raise click.BadParameter(f"{len(iso)} ISOs for {len(times)} exposure times (--times); give one ISO per "
                                      "exposure time, or a single ISO", param_hint="--iso")
+    if base_iso is None:
+        base_iso = float(min(iso) if isinstance(iso, list) else iso)
     sensor = SensorModel(alpha=alpha, sigma_o2=sigma_o2, beta=beta, bits=bits, black=black, sigma_post2=sigma_post2,
                          base_iso=base_iso)
     opts = SimulateOptions(
