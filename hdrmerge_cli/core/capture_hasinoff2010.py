@@ -20,10 +20,12 @@ clipping-safe upper bound ``y'_max`` of (47) (a reading closer to white than k s
 deviations is clipped often enough to be left to the other frames).
 
 Worst case.  The worst-case SNR of a bracket over a scene is the minimum of SNR(r) over
-the scene's range of irradiance ``[r_lo, r_hi]`` (Hasinoff's objective), ``r_lo`` a low
-percentile of the scene's photosites and ``r_hi`` the brightest.  Between the clipping
-points of the frames SNR(r) grows with r (each term ``r^2 / (a + b r + c r^2)`` does), so
-the minimum lies at ``r_lo`` or just above some frame's clipping point:
+the scene's irradiances (Hasinoff's objective over the range ``[r_lo, r_hi]``), ``r_lo``
+a low percentile of the scene's photosites, ``r_hi`` the brightest, and of that range
+only the intervals the scene's photosites hold (:class:`SceneRange`; an irradiance no
+photosite has is not part of the picture).  Between the clipping points of the frames
+SNR(r) grows with r (each term ``r^2 / (a + b r + c r^2)`` does), so the minimum lies at
+the start of an interval or just above some frame's clipping point inside one:
 :func:`critical_irradiances` lists those, and the worst case over them is exact.
 
 Plans.  SNR(r)^2 is linear in the number of frames ``n_s`` shot with each setting s, so
@@ -111,11 +113,21 @@ def make_settings(times, isos, noise_at_iso: dict, reference_iso: float, y_full:
 class SceneRange:
     """The irradiances a plan must measure, per channel: ``lo`` (the low percentile of the
     scene's photosites) and ``hi`` (its brightest), code values per second at the
-    reference ISO; ``histograms``: per channel ``(edges, counts)`` of log2 r (for reports)."""
+    reference ISO; ``occupied``: per channel, the ``(start, end)`` intervals of that range
+    the scene's photosites hold (empty: all of it); ``histograms``: per channel
+    ``(edges, counts)`` of log2 r (for reports)."""
 
     lo: tuple[float, ...]
     hi: tuple[float, ...]
+    occupied: tuple = ()
     histograms: tuple = field(default=(), compare=False)
+
+    def intervals(self, channel: int) -> list[tuple[float, float]]:
+        if not self.occupied or not len(self.occupied[channel]):
+            return [(self.lo[channel], self.hi[channel])]
+        lo, hi = self.lo[channel], self.hi[channel]
+        spans = [(max(a, lo), min(b, hi)) for a, b in self.occupied[channel] if b >= lo and a <= hi]
+        return spans or [(lo, hi)]
 
     @property
     def channels(self) -> int:
@@ -123,12 +135,13 @@ class SceneRange:
 
 
 def critical_irradiances(settings: list[Setting], scene: SceneRange, channel: int) -> np.ndarray:
-    """Where a worst case over ``[lo, hi]`` can lie for any plan built from ``settings``:
-    ``lo`` and just above each setting's clipping point inside the range (see the module
-    notes).  Sorted, code values per second."""
-    lo, hi = scene.lo[channel], scene.hi[channel]
+    """Where a worst case over the scene's irradiances (its occupied intervals of
+    ``[lo, hi]``) can lie for any plan built from ``settings``: the start of each interval
+    and just above each setting's clipping point inside one (see the module notes).
+    Sorted, code values per second."""
+    spans = scene.intervals(channel)
     points = [s.clipping_point(channel) * ABOVE for s in settings]
-    return np.unique(np.array([lo] + [p for p in points if lo < p <= hi]))
+    return np.unique(np.array([a for a, _ in spans] + [p for p in points if any(a < p <= b for a, b in spans)]))
 
 
 def snr_power(r, plan: list[tuple[Setting, int]], channel: int) -> np.ndarray:

@@ -26,6 +26,10 @@ log = logging.getLogger("hdrmerge_cli")
 SMOOTH = 3
 #: 1-EV bins of the SNR-against-irradiance table
 TABLE_STEP_EV = 1.0
+#: bins (EV) of the histogram that finds the irradiances the scene holds, and the share of a
+#: channel's photosites a bin must hold to count (the worst case ignores rarer irradiances,
+#: as it ignores the darkest --percentile)
+OCCUPIED_BIN_EV, OCCUPIED_SHARE = 1 / 12, 1e-3
 
 
 @dataclass(frozen=True)
@@ -89,7 +93,7 @@ def scene_range(planes: list[list], percentile: float, names: list[str]) -> capt
     """
     from scipy.ndimage import uniform_filter
 
-    lo, hi, hists = [], [], []
+    lo, hi, occupied, hists = [], [], [], []
     for c, chan in enumerate(planes):
         v = np.concatenate([uniform_filter(np.where(f == FLAG_DARK, 0.0, p).astype(np.float64), SMOOTH,
                                            mode="nearest").ravel() for p, f in chan])
@@ -99,9 +103,27 @@ def scene_range(planes: list[list], percentile: float, names: list[str]) -> capt
                                 "metering frames; meter with a longer frame, or raise --percentile")
         lo.append(low)
         hi.append(top)
+        logs = np.log2(v[v >= low])
+        occupied.append(_occupied(logs, np.log2(low), np.log2(top), v.size))
         edges = np.arange(np.floor(np.log2(low)), np.ceil(np.log2(top)) + TABLE_STEP_EV, TABLE_STEP_EV)
-        hists.append((edges, np.histogram(np.log2(np.maximum(v, low)), edges)[0]))
-    return capture.SceneRange(tuple(lo), tuple(hi), tuple(hists))
+        hists.append((edges, np.histogram(logs, edges)[0]))
+    return capture.SceneRange(tuple(lo), tuple(hi), tuple(occupied), tuple(hists))
+
+
+def _occupied(logs: np.ndarray, lo: float, hi: float, n: int) -> list[tuple[float, float]]:
+    """The intervals (irradiance) of :data:`OCCUPIED_BIN_EV` bins from ``lo`` to ``hi``
+    (log2) holding at least :data:`OCCUPIED_SHARE` of the ``n`` photosites, runs merged."""
+    edges = lo + OCCUPIED_BIN_EV * np.arange(int(np.ceil((hi - lo) / OCCUPIED_BIN_EV)) + 1)
+    edges[-1] = max(edges[-1], hi)
+    counts = np.histogram(logs, edges)[0]
+    out = []
+    for k in np.flatnonzero(counts >= OCCUPIED_SHARE * n):
+        a, b = 2.0 ** edges[k], 2.0 ** edges[k + 1]
+        if out and out[-1][1] >= a:
+            out[-1] = (out[-1][0], b)
+        else:
+            out.append((a, b))
+    return out
 
 
 def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> dict[str, tuple]:

@@ -1,0 +1,252 @@
+"""``python -m benchmarks plan``: capture plans (``hdrmerge-cli plan``) on real HDR scenes
+rendered by the simulator, against conventional brackets, predicted and measured.
+
+Protocol.  Each scene of ../shared/data/hdr (downscaled 2x) is scaled so that its
+99.99th-percentile photosite saturates at 1/500 s at ISO 100, then seen by two simulated
+14-bit cameras (alpha 0.25 code values^2 per electron at ISO 100):
+
+- ``post-amp``: read noise mostly after the ISO amplifier (sigma_o^2 = 36 code values^2 at
+  ISO 100, 32 of them after it: a camera whose high ISOs lower the read noise, as in
+  Hasinoff et al. 2010);
+- ``ISO-invariant``: all read noise before the amplifier (sigma_o^2 = 4, none after it).
+
+The metering bracket is 3 DNG frames at ISO 100 (1/500, 1/60, 1/8 s).  The profile holds
+the noise (17) at each whole-stop ISO from 100 to 6400 (the simulator's own, so that the
+plan, not the calibration, is measured).  For each total time, ``plan --time T`` gives
+the plan with the ISO free and with ISO 100 only, and its comparisons the best
+conventional 1- and 2-EV brackets at ISO 100 within the same time.  Each bracket is then
+simulated (fresh noise) and merged (``merge --profile --cfa``, defaults).
+
+Measured worst-case SNR: per channel, the photosites whose true irradiance lies in the
+range the plan targets (from the 1st percentile of the metered photosites to the
+brightest), binned by true irradiance (1/12 EV, and a bin starting at each frame's clipping point);
+per bin the SNR
+``-10 log10 mean((E_merged / E_true - 1)^2)``; the lowest bin holding at least 0.1 % of the channel's photosites (as
+``plan`` counts the irradiances a scene holds) and 30 of them.
+The same bins give the model's prediction at the true irradiance (``predicted at
+truth``); ``plan's prediction`` is what ``plan`` printed from the metering frames (the
+exact minimum, at a clipping point).  Time saved: the total time of the shortest
+conventional bracket that reaches the plan's predicted worst case, over the plan's.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).parent / "results"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "hdr"
+SCENES = ("ScanLines_Desk.exr", "ScanLines_MtTamWest.exr", "ScanLines_StillLife.exr")
+CAMERAS = {"post-amp": {"sigma_o2": 36.0, "sigma_post2": 32.0},
+           "ISO-invariant": {"sigma_o2": 4.0, "sigma_post2": 0.0}}
+ALPHA, BITS, BLACK = 0.25, 14, 512
+ISOS = (100, 200, 400, 800, 1600, 3200, 6400)
+METERING = (1 / 500, 1 / 60, 1 / 8)
+BUDGETS = (1 / 8, 1.0)
+SATURATE_AT = 1 / 500
+BIN_EV, MIN_BIN, OCCUPIED = 1 / 12, 30, 1e-3
+
+
+def _cli(*args) -> subprocess.CompletedProcess:
+    cmd = [str(Path(sys.executable).parent / "hdrmerge-cli"), *map(str, args)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=os.environ | {"PYTHONWARNINGS": "ignore"})
+    if proc.returncode:
+        raise RuntimeError(f"{' '.join(cmd[1:4])}...: {proc.stderr.strip()[-300:]}")
+    return proc
+
+
+def _camera_flags(camera: dict) -> list[str]:
+    return ["--alpha", ALPHA, "--sigma-o2", camera["sigma_o2"], "--sigma-post2", camera["sigma_post2"],
+            "--bits", BITS, "--black", BLACK, "--base-iso", 100]
+
+
+def _profile(path: Path, camera: dict) -> None:
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.core.sensor import SensorModel
+    from hdrmerge_cli.io.profile import new_profile
+
+    sensor = SensorModel(alpha=ALPHA, sigma_o2=camera["sigma_o2"], sigma_post2=camera["sigma_post2"], bits=BITS,
+                         black=BLACK, base_iso=100)
+    noise = {}
+    for iso in ISOS:
+        s = sensor.at_iso(iso)
+        noise[f"ISO{iso}"] = {ch: {"sigma_o2": s.sigma_o2_total, "alpha": s.alpha, "beta": s.beta}
+                              for ch in ("R", "G", "B")}
+    prof = new_profile({"make": "hdrmerge-cli", "model": "simulated sensor"}, BITS, CRF("linear"), [], "benchmark")
+    path.write_text(json.dumps(prof | {"noise": noise}))
+
+
+def _scene(name: str, work: Path) -> tuple[Path, float, np.ndarray]:
+    """The scene downscaled 2x (written as EXR), the --scale that saturates its
+    99.99th percentile at SATURATE_AT, and its RGGB mosaic of electrons per second."""
+    from hdrmerge_cli.core.cfa import mosaic
+    from hdrmerge_cli.io.images import read_exr, write_exr
+
+    pixels, _ = read_exr(str(SHARED / name))
+    rgb = np.clip(pixels[..., :3].astype(np.float64), 0, None)
+    h, w = rgb.shape[0] // 4 * 4, rgb.shape[1] // 4 * 4
+    rgb = rgb[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean(axis=(1, 3))
+    path = work / name
+    write_exr(str(path), rgb.astype(np.float32), ["R", "G", "B"], {})
+    electrons = (2 ** BITS - 1 - BLACK) / np.sqrt(ALPHA) / SATURATE_AT
+    scale = electrons / float(np.percentile(rgb, 99.99))
+    return path, scale, mosaic(rgb * scale, "RGGB")
+
+
+def _measure(folder: Path, merged: Path, electrons: np.ndarray, frames: list[dict], camera: dict,
+             ranges: dict) -> dict:
+    """Measured and predicted-at-truth worst-case SNR (dB) of one merged bracket, over
+    the irradiance ``ranges`` per channel name (code values per second at ISO 100) that
+    the plan targeted."""
+    from hdrmerge_cli.core import capture_hasinoff2010 as cap
+    from hdrmerge_cli.core.cfa import mosaic
+    from hdrmerge_cli.core.noise import NoiseParams
+    from hdrmerge_cli.core.sensor import SensorModel
+    from hdrmerge_cli.io.images import read_exr
+
+    truth = mosaic(read_exr(str(folder / "truth.exr"))[0][..., :3].astype(np.float64), "RGGB")
+    est = read_exr(str(merged))[0][..., 0].astype(np.float64)
+    rel2 = (est / np.maximum(truth, 1e-30) - 1.0) ** 2
+    sensor = SensorModel(alpha=ALPHA, sigma_o2=camera["sigma_o2"], sigma_post2=camera["sigma_post2"], bits=BITS,
+                         black=BLACK, base_iso=100)
+    y_full = float(2 ** BITS - 1 - BLACK)
+    plan = []
+    for f in frames:
+        s = sensor.at_iso(f["iso"])
+        p = NoiseParams(s.sigma_o2_total, s.alpha, s.beta)
+        plan.append((cap.make_settings([f["time"]], [f["iso"]], {f["iso"]: (p,)}, 100.0, y_full)[0], 1))
+    r = electrons * np.sqrt(ALPHA)  # code values per second at ISO 100
+    measured, predicted = np.inf, np.inf
+    for (i, j), name in zip(((0, 0), (0, 1), (1, 0), (1, 1)), ("R", "G", "G2", "B")):
+        rc, e2 = r[i::2, j::2].ravel(), rel2[i::2, j::2].ravel()
+        lo, hi = ranges[name]
+        keep = (rc >= lo) & (rc <= hi)
+        rc, e2 = rc[keep], e2[keep]
+        # bins of BIN_EV that also start at each frame's clipping point (the SNR drops there)
+        clips = [s.clipping_point(0) * cap.ABOVE for s, _ in plan]
+        edges = np.unique(np.r_[lo * 2.0 ** np.arange(0, np.log2(hi / lo) + BIN_EV, BIN_EV),
+                                [c for c in clips if lo < c < hi]])
+        bins = np.searchsorted(edges, rc, side="right")
+        inv = 1.0 / np.maximum(cap.snr_power(rc, plan, 0), 1e-300)
+        for b in np.unique(bins):
+            sel = bins == b
+            if sel.sum() >= max(MIN_BIN, OCCUPIED * keep.sum()):
+                measured = min(measured, -10 * np.log10(np.mean(e2[sel])))
+                predicted = min(predicted, -10 * np.log10(np.mean(inv[sel])))
+    return {"measured": float(measured), "predicted_at_truth": float(predicted)}
+
+
+def _shoot(work: Path, tag: str, scene: Path, scale: float, camera: dict, frames: list[dict], profile: Path,
+           seed: int) -> Path:
+    """Simulate the bracket ``frames`` of the scene and merge it (defaults, --cfa)."""
+    folder = work / tag
+    times = ",".join(repr(f["time"]) for f in frames)
+    isos = ",".join(str(int(f["iso"])) for f in frames)
+    _cli("simulate", "-o", folder, "-q", "--scene", scene, "--scale", scale, "--times", times, "--iso", isos,
+         "--seed", seed, *_camera_flags(camera))
+    _cli("merge", *sorted(folder.glob("frame_*.dng")), "--profile", profile, "--cfa", "-o", folder / "m.exr", "-q")
+    return folder
+
+
+def run_case(work: Path, scene_name: str, camera_name: str, budget: float, seed: int) -> list[dict]:
+    camera = CAMERAS[camera_name]
+    scene, scale, electrons = _scene(scene_name, work)
+    profile = work / f"{camera_name}.json"
+    _profile(profile, camera)
+    meter = work / f"meter-{camera_name}"
+    if not meter.exists():
+        _cli("simulate", "-o", meter, "-q", "--scene", scene, "--scale", scale, "--times",
+             ",".join(map(repr, METERING)), "--seed", seed, *_camera_flags(camera))
+    dngs = sorted(meter.glob("frame_*.dng"))
+    t0 = time.perf_counter()
+    free = json.loads(_cli("plan", *dngs, "--profile", profile, "--time", budget, "--json").stdout)
+    plan_seconds = time.perf_counter() - t0
+    fixed = json.loads(_cli("plan", *dngs, "--profile", profile, "--time", budget, "--isos", 100, "--json").stdout)
+    brackets = {"plan, ISO free": free, "plan, ISO 100": fixed}
+    for step in (1, 2):
+        conv = free["compared"].get(f"conventional {step}-EV bracket at ISO 100")
+        if conv is not None:
+            brackets[f"conventional {step}-EV"] = conv
+    same = [free["compared"].get(f"conventional {s}-EV bracket at ISO 100, same SNR") for s in (1, 2)]
+    same_time = min((c["total_time"] for c in same if c), default=None)
+    rows = []
+    for k, (name, b) in enumerate(brackets.items()):
+        folder = _shoot(work, f"{camera_name}-{budget:g}-{k}", scene, scale, camera, b["frames"], profile, seed + k + 1)
+        m = _measure(folder, folder / "m.exr", electrons, b["frames"], camera, free["worst_case"]["range"])
+        rows.append({"scene": scene_name.removeprefix("ScanLines_").removesuffix(".exr"), "camera": camera_name,
+                     "budget": budget, "bracket": name, "frames": len(b["frames"]), "time": b["total_time"],
+                     "isos": sorted({int(f["iso"]) for f in b["frames"]}),
+                     "predicted": b["predicted_worst_snr_db"], **m,
+                     "time_saved": (same_time / free["total_time"]) if (same_time and k == 0) else None,
+                     "plan_seconds": plan_seconds if k == 0 else None})
+    return rows
+
+
+def _table(rows: list[dict]) -> str:
+    head = ("| scene | camera | budget (s) | bracket | frames | time (s) | ISOs | plan's prediction (dB) | "
+            "predicted at truth (dB) | measured (dB) | measured - predicted at truth | time saved at equal SNR |")
+    out = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        saved = f"{r['time_saved']:.1f}x" if r["time_saved"] else ""
+        out.append(f"| {r['scene']} | {r['camera']} | {r['budget']:g} | {r['bracket']} | {r['frames']} | "
+                   f"{r['time']:.3g} | {','.join(map(str, r['isos']))} | {r['predicted']:.1f} | "
+                   f"{r['predicted_at_truth']:.1f} | {r['measured']:.1f} | "
+                   f"{r['measured'] - r['predicted_at_truth']:+.2f} | {saved} |")
+    return "\n".join(out)
+
+
+def _summary(rows: list[dict]) -> str:
+    lines = []
+    for camera in CAMERAS:
+        mine = [r for r in rows if r["camera"] == camera]
+        free = [r for r in mine if r["bracket"] == "plan, ISO free"]
+        gains_conv, gains_iso = [], []
+        for f in free:
+            same = [r for r in mine if r["scene"] == f["scene"] and r["budget"] == f["budget"]]
+            conv = [r["measured"] for r in same if r["bracket"].startswith("conventional")]
+            fixed = [r["measured"] for r in same if r["bracket"] == "plan, ISO 100"]
+            if conv:
+                gains_conv.append(f["measured"] - max(conv))
+            if fixed:
+                gains_iso.append(f["measured"] - fixed[0])
+        err = [abs(r["measured"] - r["predicted_at_truth"]) for r in mine]
+        err_plan = [abs(r["measured"] - r["predicted"]) for r in mine]
+        saved = [r["time_saved"] for r in free if r["time_saved"]]
+        lines.append(f"- **{camera}**: the plan (ISO free) over the best conventional bracket of the same time, "
+                     f"measured: {min(gains_conv):+.1f} to {max(gains_conv):+.1f} dB; over the plan at ISO 100: "
+                     f"{min(gains_iso):+.1f} to {max(gains_iso):+.1f} dB; |measured - predicted at truth| at most "
+                     f"{max(err):.2f} dB, |measured - plan's prediction| at most {max(err_plan):.2f} dB; time saved "
+                     f"at equal SNR (predicted) {min(saved):.1f}x to {max(saved):.1f}x." if gains_conv and saved else
+                     f"- **{camera}**: incomplete")
+    return "\n".join(lines)
+
+
+def main(quick: bool = False) -> str:
+    if not SHARED.is_dir():
+        return f"plan: skipped, no HDR scenes at {SHARED}"
+    scenes = SCENES[:1] if quick else SCENES
+    budgets = BUDGETS[:1] if quick else BUDGETS
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-plan-") as tmp:
+        for s, scene in enumerate(scenes):
+            for camera in CAMERAS:
+                for budget in budgets:
+                    work = Path(tmp) / f"{s}"
+                    work.mkdir(exist_ok=True)
+                    rows += run_case(work, scene, camera, budget, 10 * s + 1)
+    seconds = [r["plan_seconds"] for r in rows if r["plan_seconds"]]
+    text = "\n".join([
+        "# Capture plans against conventional brackets" + (" (quick)" if quick else ""), "",
+        (__doc__ or "").split("\n\n", 1)[1].split("\n\n")[0].replace("\n", " "), "",
+        _summary(rows), "",
+        f"`plan` took {min(seconds):.1f} to {max(seconds):.1f} s per run (metering merge and the programs).", "",
+        _table(rows), ""])
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / ("plan_quick.md" if quick else "plan.md")).write_text(text)
+    return text
