@@ -166,7 +166,7 @@ def test_irls_variance_is_certainty_weighted_information(linear):
     log0, _, _ = merge_frames(frames, times, CRF("linear"), 0.0, full, weights, [p], "model",
                               "ml" if linear else "log")
     log0 = np.log(log0)
-    out = irls(frames.__getitem__, tables, None, log0.copy(), times, [full] * 2, noise_rows([p]), linear, 1,
+    out = irls(frames.__getitem__, tables, None, log0.copy(), times, [full] * 2, [noise_rows([p])] * 2, linear, 1,
                tol=0.0, variance=True)
     log_e, flags, den, _, _, var = out
     maps = [m[0] for m in noise_rows([p])]

@@ -88,9 +88,10 @@ log = logging.getLogger("hdrmerge_cli")
               help=f"Extra EXR channels, comma-separated: {', '.join(EXTRA_CHANNELS)}.")
 @click.option("--noise", metavar="PARAMS", callback=noise_option_callback,
               help="Noise parameters of (17): sigma_o2=4,alpha=1,beta=0, or per channel 'R:... G:... B:...' "
-                   "(code values of the linear signal; electrons for x).")
+                   "(code values of the linear signal; electrons for x), for every frame whatever its ISO.")
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False),
-              help="Camera profile JSON (from calibrate-noise / estimate-crf): noise parameters and CRF.")
+              help="Camera profile JSON (from calibrate-noise / estimate-crf): noise parameters and CRF; frames "
+                   "of different ISOs each take their ISO's noise entry.")
 @click.option("--variance", type=click.Choice(("auto",) + VARIANCE_FACTORS), default="auto", show_default=True,
               help="Variance factor sigma^-2 of (7): model (noise parameters, plus for images the codes' "
                    "quantisation through the response and a 1% model tolerance, or with the ML estimator the "

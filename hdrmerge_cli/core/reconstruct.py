@@ -630,6 +630,9 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
     With the previous pass's ``prev_den`` (which samples some frame measures) the terms go
     straight into ``acc``; without it they are held apart in ``cen = (num, den)``, made on
     first use, until every frame is in.  Returns ``cen`` (None when the terms go direct).
+
+    rows : this frame's :func:`noise_rows`; max_rows : the largest value of each of its
+        three arrays (the noise at full scale of the noisiest table row)
     """
     shape2 = log_e2.shape
     sd_full2 = max_rows[0] + max_rows[1] * y_full + max_rows[2] * y_full ** 2
@@ -657,7 +660,9 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
 
     codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
     y_full : per frame, the full-scale code value ``white - black``
-    rows : :func:`noise_rows`
+    rows : per frame, the :func:`noise_rows` of its noise (P tuples of three ``(R,)``
+        float32 arrays, code values of that frame); frames that share one noise pass the
+        same tuple (``[noise_rows(params)] * P``)
     adjust : optional ``(k, codes, w, own) -> (w', factor)``: frame k's weights ``w``
         (``(rows, cols)``) as the merge uses them (e.g. a resampling variance added) and a
         ghost / coverage ``factor`` in [0, 1] (or None), also applied to the frame's
@@ -687,7 +692,9 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     # variance, the censored terms of a first pass without ``den``); else fused into the sums
     fused = adjust is None and not variance and (prev_den is not None or not linear)
     weight = np.empty(shape2, np.float32) if not fused else np.zeros((1, 1), np.float32)
-    max_rows = [float(np.max(m)) for m in rows]
+    if len(rows) != len(tables):
+        raise ValueError(f"irls: {len(rows)} noise rows for {len(tables)} frames (one noise_rows tuple per frame)")
+    max_rows = [[float(np.max(m)) for m in r] for r in rows]  # per frame, the largest of each parameter
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern, variance=variance)
         cen = None  # ML: the clipped readings as censored observations (censored_terms), when held apart
@@ -696,17 +703,17 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
             codes = codes_of(k)
             factor = None
             if fused:
-                acc.add_irls(codes, tab, k == len(tables) - 1, log_e2, np.float32(h * y_full[k]), rows, linear)
+                acc.add_irls(codes, tab, k == len(tables) - 1, log_e2, np.float32(h * y_full[k]), rows[k], linear)
             else:
                 _irls_weights_rows(_read_only(codes.reshape(shape2)), pat, tab.certainty.reshape(-1, tab.n_codes),
-                                   log_e2, np.float32(h * y_full[k]), *rows, linear, weight)
+                                   log_e2, np.float32(h * y_full[k]), *rows[k], linear, weight)
                 # the censored terms of a pass without the previous den read the weights after
                 w, factor = (weight, None) if adjust is None else adjust(k, codes, weight, prev_den is not None)
                 acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True,
                         factor=factor)
             if linear and tab.saturated is not None:
-                cen = _censored_frame(acc, codes, tab, pat, log_e2, h, y_full[k], max_rows, rows, weight, prev_den,
-                                      factor, cen, variance)
+                cen = _censored_frame(acc, codes, tab, pat, log_e2, h, y_full[k], max_rows[k], rows[k], weight,
+                                      prev_den, factor, cen, variance)
         # the previous pass's weights and the last frame's codes are not needed any more:
         # freed before the new sums are finished (the peak memory of the pass)
         codes = den = prev_den = None
@@ -730,7 +737,7 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
                  noise: list[NoiseParams] | None = None, variance: str = "none", estimator: str = "log",
                  prior_rate: float | None = None, k: float = DEFAULT_K, pattern: np.ndarray | None = None,
                  scale: float = 1.0, irls_iterations: int = 0, with_variance: bool = False,
-                 variance_tables=None, excess=None):
+                 variance_tables=None, excess=None, frame_noise: list[list[NoiseParams]] | None = None):
     """The merge core on decoded frames in memory: (7) (or the ML estimator) with the
     tables of :func:`exposure_tables`, optionally re-weighted (:func:`irls`).
 
@@ -746,16 +753,22 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     black, white : (R,) levels per table row (R = 1, or one per row of ``pattern``)
     noise : R noise parameter sets (code units), needed by the noise-model weights'
         exact form, ``variance='model'``, ``estimator='ml'`` and IRLS
+    frame_noise : P lists of R noise parameter sets, frame j's own (frames that differ in
+        ISO: code units of that frame, whose gain ``h_j`` already counts); it replaces
+        ``noise`` in the tables and the IRLS passes
     Returns ``(E * scale, flags, summed weights)``, float32/int8/float32.
     """
     black = np.atleast_1d(np.asarray(black, np.float64))
     white = np.broadcast_to(np.asarray(white, np.float64), black.shape)
     n_codes = table_size(white, int(np.iinfo(codes[0].dtype).max) + 1)
     streamed_var = with_variance and not irls_iterations  # IRLS brings its own variance
-    tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise, variance, prior_rate, tuple(exposures),
-                              k, estimator=estimator, with_variance=streamed_var and variance_tables is None,
-                              excess=excess)
-              for h in exposures]
+    if frame_noise is not None and len(frame_noise) != len(exposures):
+        raise ValueError(f"frame_noise: {len(frame_noise)} sets for {len(exposures)} frames")
+    noise_of = [noise] * len(exposures) if frame_noise is None else list(frame_noise)
+    tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise_of[j], variance, prior_rate,
+                              tuple(exposures), k, estimator=estimator,
+                              with_variance=streamed_var and variance_tables is None, excess=excess)
+              for j, h in enumerate(exposures)]
     if streamed_var:
         if variance_tables is not None:
             tables = [replace(t, variance=np.asarray(q, np.float32)) for t, q in zip(tables, variance_tables)]
@@ -768,9 +781,9 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
         return merge_in_memory(codes, tables, pattern, estimator == "ml", scale)
     log_e, flags, den = merge_in_memory(codes, tables, pattern, estimator == "ml")
     y_full = [float(white[0] - black[0])] * len(codes)
-    log_e, flags, den, *_, var = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full,
-                                      noise_rows(noise), estimator == "ml", irls_iterations, variance=with_variance,
-                                      den=den)
+    rows = [noise_rows(noise)] * len(codes) if frame_noise is None else [noise_rows(p) for p in frame_noise]
+    log_e, flags, den, *_, var = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, rows,
+                                      estimator == "ml", irls_iterations, variance=with_variance, den=den)
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)
     if not with_variance:

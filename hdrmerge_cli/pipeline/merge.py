@@ -42,7 +42,7 @@ from hdrmerge_cli.pipeline.bracket import (
 )
 from hdrmerge_cli.pipeline.crf import measure_response
 from hdrmerge_cli.pipeline.exposure_check import check_order, resolve_exposures, sample_frames
-from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise
+from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
@@ -159,7 +159,8 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     if len(frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
     exposures = exposure_values(frames)
-    noise = noise if noise is not None else resolve_noise(opts, frames)  # per channel NoiseParams, or None
+    # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
+    noise, noise_by_iso = (noise, None) if noise is not None else resolve_noise_by_iso(opts, frames)
     alignment = None
     if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
         load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
@@ -193,7 +194,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
     # the noise is measured on the frames as decoded: resampling smooths it, and frames that
     # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    models = choose_models(frames, exposures, crf, opts, unaligned, noise, draw, samples)
+    models = choose_models(frames, exposures, crf, opts, unaligned, noise, draw, samples, noise_by_iso)
     del samples
     timings.update(models.timings)
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
@@ -236,7 +237,10 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
         if not models.n_irls:
             return (*out, 0)
         t0 = time.perf_counter()
-        maps = noise_rows(per_channel(models.noise, models.table_channels))
+        if models.frame_noise is None:
+            maps = [noise_rows(per_channel(models.noise, models.table_channels))] * len(frames)
+        else:
+            maps = [noise_rows(per_channel(n, models.table_channels)) for n in models.frame_noise]
         y_full = [float(f.white[0] - f.black[0]) for f in frames]
         result = out[0]
         # IRLS makes its own flags, and frees the stream's weights once it no longer needs

@@ -15,7 +15,7 @@ from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import exposure_tables, table_size
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
-from hdrmerge_cli.io.noisespec import noise_from_profile, parse_bounds, parse_noise, per_channel
+from hdrmerge_cli.io.noisespec import iso_key, noise_from_profile, parse_bounds, parse_noise, per_channel
 from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.pipeline.bracket import sample_pattern
 from hdrmerge_cli.pipeline.options import MergeOptions
@@ -30,7 +30,11 @@ class Models:
     tables : per frame, the :class:`~hdrmerge_cli.core.reconstruct.ExposureTables` of (7)
     pattern : the periodic table row of each sample (None: one row serves all)
     table_channels : the tables' row names (``R``, ``G``, ``B``, ``G2`` ...)
-    noise : per channel :class:`NoiseParams` in code units, or None
+    noise : per channel :class:`NoiseParams` in code units, or None; where the frames'
+        noise differs (ISOs), that of the reference (first) frame
+    frame_noise : per frame (in the order of ``tables``) its own per channel noise, where
+        the frames' noise differs (a bracket of several ISOs and a profile with each); None
+        when every frame has ``noise``
     estimated : how the noise was measured (bracket or cache), for the profile
     excess : the variance beyond the noise model measured on an image bracket, or None
     """
@@ -48,17 +52,31 @@ class Models:
     table_channels: list[str]
     excess: object = None  # core.excess_variance.ExcessVariance of a camera-processed bracket, or None
     timings: dict[str, float] = field(default_factory=dict)
+    frame_noise: list[dict[str, NoiseParams]] | None = None
 
-    def noise_used(self, frame: Frame) -> dict | None:
-        """The noise parameters per channel name, as the profile and ``--json`` give them."""
-        if not self.noise:
+    def noise_used(self, frame: Frame, noise: dict[str, NoiseParams] | None = None) -> dict | None:
+        """The noise parameters per channel name, as the profile and ``--json`` give them
+        (``noise``, default :attr:`noise`)."""
+        noise = self.noise if noise is None else noise
+        if not noise:
             return None
-        return {ch: vars(p) for ch, p in zip(frame.channel_names, per_channel(self.noise, frame.channel_names))}
+        return {ch: vars(p) for ch, p in zip(frame.channel_names, per_channel(noise, frame.channel_names))}
+
+    def noise_per_iso(self, frames: list[Frame]) -> dict | None:
+        """Where the frames' noise differs: ``{"ISO100": {channel: {sigma_o2, alpha,
+        beta}}, ...}``, the noise each ISO of ``frames`` (the merged frames, in the order of
+        :attr:`frame_noise`) was merged with; else None."""
+        if not self.frame_noise:
+            return None
+        return {iso_key(f.iso): self.noise_used(f, n) for f, n in zip(frames, self.frame_noise)}
 
 
 def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: MergeOptions, load=load_codes,
-                  noise: dict[str, NoiseParams] | None = None, draw=None, samples=None) -> Models:
+                  noise: dict[str, NoiseParams] | None = None, draw=None, samples=None,
+                  noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None) -> Models:
     """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
+    with ``noise_by_iso`` (:func:`resolve_noise_by_iso`: frames of several ISOs, a profile
+    with each) every frame takes its own ISO's entry ``noise_by_iso[iso_key(frame.iso)]``;
     else measured on the bracket, on the sites ``draw`` kept as the frames were decoded
     (:class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`) or through ``load``, where the
     options need them), the variance beyond the noise model of a camera-processed bracket
@@ -71,6 +89,12 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     first = frames[0]
     timings = {}
     estimated = None
+    frame_noise = None
+    if noise_by_iso:
+        frame_noise = [noise_by_iso[iso_key(f.iso)] for f in frames]
+        noise = frame_noise[0]
+        if all(n == noise for n in frame_noise):
+            frame_noise = None
     processed = first.kind == "image" and not crf.is_linear and not opts.lut
     measure_excess_term = processed and samples is not None and len(frames) > 1
     needs_noise = (opts.variance == "model" or (opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded")
@@ -83,6 +107,11 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
         # measured only to test the excess: a failure leaves the log estimator, no warning
         noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache, draw=draw, quiet=not needs_noise)
         timings["noise_estimate"] = time.perf_counter() - t1
+        isos = sorted({f.iso for f in frames if f.iso})
+        if noise and needs_noise and len(isos) > 1:
+            log.warning("the frames differ in ISO (%s): the noise measured on the bracket is one model for all of "
+                        "them; a profile with every ISO (calibrate-noise, then --profile) gives each frame its own "
+                        "noise", ", ".join(f"{i:g}" for i in isos))
     excess = None
     if measure_excess_term:
         from hdrmerge_cli.pipeline.excess import measure_excess
@@ -106,10 +135,11 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
     tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
                                                    estimator, luts, bounds,
                                                    with_variance="variance" in opts.extra_channels and not n_irls,
-                                                   excess=excess if estimator == "ml" else None)
+                                                   excess=excess if estimator == "ml" else None,
+                                                   frame_noise=frame_noise)
     timings["tables"] = time.perf_counter() - t0
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
-                  table_channels, excess, timings)
+                  table_channels, excess, timings, frame_noise)
 
 
 def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
@@ -226,21 +256,46 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
 
 
 def resolve_noise(opts, frames: list[Frame]) -> dict[str, NoiseParams] | None:
+    """The noise of :func:`resolve_noise_by_iso` for the first frame's ISO (every
+    frame's, where it is one; a warning where the frames' ISOs differ), or None."""
+    noise, by_iso = resolve_noise_by_iso(opts, frames)
+    if by_iso:
+        log.warning("the frames differ in ISO (%s): the noise of %s is used for all of them", ", ".join(by_iso),
+                    iso_key(frames[0].iso))
+    return noise
+
+
+def resolve_noise_by_iso(opts, frames: list[Frame]) -> tuple[dict[str, NoiseParams] | None,
+                                                              dict[str, dict[str, NoiseParams]] | None]:
     """``opts``: anything with ``noise``, ``profile`` and ``crf`` (the options' strings).
-    Noise parameters from ``--noise``, else from the profile (``--profile``, or a
-    profile given as ``--crf``), else None (a CRF-only profile from estimate-crf included:
-    the noise is then measured on a RAW bracket, as without a profile)."""
+    Noise parameters from ``--noise`` (for every frame, whatever its ISO), else from the
+    profile (``--profile``, or a profile given as ``--crf``), else None (a CRF-only
+    profile from estimate-crf included: the noise is then measured on a RAW bracket, as
+    without a profile).
+
+    Returns ``(noise, by_iso)``: ``noise`` {channel: NoiseParams} of the first frame's ISO;
+    ``by_iso`` {``ISO100``: {channel: NoiseParams}} for every ISO of ``frames`` where they
+    differ (each frame is merged with its own), else None.  Frames of several ISOs and a
+    profile that lacks one of them (a profile of one entry too) is an error: ``--noise``
+    gives one noise for all."""
     if opts.noise:
-        return parse_noise(opts.noise)
+        return parse_noise(opts.noise), None
     source = opts.profile or (opts.crf if opts.crf and opts.crf.lower().endswith(".json") else None)
     if source:
         prof = load_profile(source)
         if prof.get("noise") and any(k.startswith("ISO") for k in prof["noise"]):
-            isos = {f.iso for f in frames}
-            return noise_from_profile(prof, isos.pop() if len(isos) == 1 else None, source)
+            isos = list(dict.fromkeys(f.iso for f in frames))
+            if len(isos) <= 1:  # one ISO: its entry, or the profile's only entry
+                return noise_from_profile(prof, isos[0] if isos else None, source), None
+            missing = [iso_key(i) for i in isos if iso_key(i) not in prof["noise"]]
+            if missing:
+                raise HdrMergeError(f"{source}: no noise entry for {', '.join(missing)} (the frames' ISOs differ; "
+                                    f"the profile has {', '.join(repr(k[:20]) for k in prof['noise'])})")
+            by_iso = {iso_key(i): noise_from_profile(prof, i, source) for i in isos}
+            return by_iso[iso_key(isos[0])], by_iso
         log.info("%s: the profile has no noise parameters; %s", source,
                  "measuring them on the bracket" if frames[0].kind == "raw" else "using the weights' defaults")
-    return None
+    return None, None
 
 
 def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes) -> float:
@@ -300,23 +355,26 @@ def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
 
 
 def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-                 luts=None, bounds=None, with_variance=False, excess=None):
+                 luts=None, bounds=None, with_variance=False, excess=None, frame_noise=None):
     """Per-frame lookup tables (each frame with its own black and white levels), the
     periodic pattern of table rows (see :class:`LogMerge`; None when one row serves every
     channel) and the table rows' channel names.  ``with_variance``: the tables also hold
-    each frame's per-code variance (``--extra-channels variance``, streamed by :class:`LogMerge`)."""
+    each frame's per-code variance (``--extra-channels variance``, streamed by :class:`LogMerge`).
+    ``frame_noise``: per frame its own {channel: NoiseParams} (frames of several ISOs),
+    instead of ``noise`` for all."""
     first = frames[0]
     names = first.channel_names
-    chan_noise = per_channel(noise, names) if noise else None
+    chan_noise = [per_channel(n, names) for n in frame_noise] if frame_noise else (
+        [per_channel(noise, names)] * len(frames) if noise else None)
     shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
     shared &= crf.table is None or crf.table.shape[0] == 1
-    shared &= chan_noise is None or all(p == chan_noise[0] for p in chan_noise)
+    shared &= chan_noise is None or all(p == c[0] for c in chan_noise for p in c)
     shared &= luts is None or luts[0].shape[0] == 1
     rows = 1 if shared else len(first.black)
     names = names[:rows]
-    row_noise = chan_noise[:rows] if chan_noise else None
     tables = [exposure_tables(f.n_codes if luts else table_size(f.white, f.n_codes),
-                              f.black[:rows], f.white[:rows], crf, weights, h, row_noise, variance, prior,
+                              f.black[:rows], f.white[:rows], crf, weights, h,
+                              chan_noise[j][:rows] if chan_noise else None, variance, prior,
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
                               bounds=bounds, with_variance=with_variance, excess=excess)
               for j, (f, h) in enumerate(zip(frames, exposures))]

@@ -226,6 +226,8 @@ class Merged:
         profile["weights"] = f"lut:{Path(self.options.lut).name}" if self.options.lut else m.weights
         if m.noise:
             profile["noise"] = {"used": m.noise_used(first)}
+            if m.frame_noise:  # the frames' ISOs differ: "used" is the reference frame's
+                profile["noise"]["noise_per_iso"] = m.noise_per_iso(self.frames)
         if m.estimated:
             profile["noise"]["estimated_from_bracket"] = m.estimated
         if m.excess is not None:
@@ -355,6 +357,7 @@ class Merged:
             "variance": m.variance,
             "irls_iterations": self.iterations,
             "noise": m.noise_used(first),
+            **({"noise_per_iso": m.noise_per_iso(self.frames)} if m.frame_noise else {}),
             "noise_source": (f"measured earlier on the same camera and ISO (cache {estimated['cached']['file']})"
                              if estimated and "cached" in estimated
                              else "measured on the bracket (calibrate-noise fast path)" if estimated
