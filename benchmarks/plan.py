@@ -48,7 +48,7 @@ CAMERAS = {"post-amp": {"sigma_o2": 36.0, "sigma_post2": 32.0},
 ALPHA, BITS, BLACK = 0.25, 14, 512
 ISOS = (100, 200, 400, 800, 1600, 3200, 6400)
 METERING = (1 / 500, 1 / 60, 1 / 8)
-BUDGETS = (1 / 8, 1.0)
+BUDGETS = (1 / 4, 2.0)
 SATURATE_AT = 1 / 500
 BIN_EV, MIN_BIN, OCCUPIED = 1 / 12, 30, 1e-3
 

@@ -79,3 +79,14 @@ def test_bad_input_is_refused_in_one_line(run, metering, tmp_path):
     config.write_text('[plan]\ntime = 0.1\nframes = 3\n')
     out = json.loads(run("plan", *frames, "--config", config, "--json").stdout)
     assert len(out["frames"]) <= 3 and out["total_time"] <= 0.1
+
+
+def test_info_reports_the_bracket_snr_and_a_plan_of_the_same_time(run, metering):
+    frames, profile = metering
+    out = json.loads(run("info", *frames, "--snr", "--profile", profile, "--json").stdout)["snr"]
+    own_time = out["total_time"]
+    plan = out["plan_of_the_same_time"]
+    assert sum(f["time"] for f in plan["frames"]) <= own_time * (1 + 1e-9)
+    assert plan["predicted_worst_snr_db"] >= out["worst_case_snr_db"] - 1e-6
+    text = run("info", *frames, "--snr").stdout
+    assert "predicted worst-case SNR" in text

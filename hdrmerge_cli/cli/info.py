@@ -18,8 +18,13 @@ from hdrmerge_cli.pipeline.info import bracket_info, format_info
 @click.option("--crf", metavar="CRF",
               help="Camera response of JPEG/TIFF/PNG input for the exposure estimates (as in merge); without it "
                    "a response is fitted on the bracket.")
+@click.option("--snr", is_flag=True,
+              help="Also predict the bracket's worst-case SNR after 'merge' and what a plan of the same total time "
+                   "reaches ('plan'); merges the bracket, so it takes as long as a merge.")
+@click.option("--profile", type=click.Path(exists=True, dir_okay=False),
+              help="With --snr: the camera's noise at each ISO (calibrate-noise) [default: measured on the bracket].")
 @common_options
-def command(images, as_json, times, times_file, crf):
+def command(images, as_json, times, times_file, crf, snr, profile):
     """Describe frames IMAGES and whether they cover the scene as a bracket.
 
     Per frame: camera, exposure time, ISO, bit depth, black and white levels, and the
@@ -30,8 +35,15 @@ def command(images, as_json, times, times_file, crf):
     The exposures are also measured on the frames (neighbour ratios of the pixels both
     expose well, chained from the frame whose label agrees best): the 'estimate' column;
     a label more than 1/3 EV from its estimate is a warning.
+
+    With --snr, the bracket's predicted worst-case SNR (as 'plan' defines it) and what
+    the best plan of the same total time reaches.
     """
     if times is not None and times_file:
         raise click.UsageError("give either --times or --times-file, not both")
     summary = bracket_info(images, times, times_file, crf)
+    if snr:
+        from hdrmerge_cli.pipeline.plan import PlanOptions, bracket_snr
+
+        summary["snr"] = bracket_snr(list(images), PlanOptions(profile=profile, crf=crf, times=times))
     click.echo(json.dumps(summary, indent=1) if as_json else format_info(summary))

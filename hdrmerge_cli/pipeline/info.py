@@ -120,4 +120,10 @@ def format_info(summary: dict) -> str:
     span = f", {b['exposure_range_ev']:.1f} EV" if "exposure_range_ev" in b else ""
     verdict = {True: "covers the scene", False: "does not cover the scene", None: "coverage unknown"}[b["covers_scene"]]
     text.append(f"bracket: {b['frames']} frame{'s' if b['frames'] != 1 else ''}{span}; {verdict} ({b['advice']})")
+    if "snr" in summary:
+        s = summary["snr"]
+        p = s["plan_of_the_same_time"]
+        text.append(f"predicted worst-case SNR: {s['worst_case_snr_db']:.1f} dB (from the {s['percentile']:g} % darkest "
+                    f"photosites to the brightest); a plan of the same {s['total_time']:.4g} s reaches "
+                    f"{p['predicted_worst_snr_db']:.1f} dB with {len(p['frames'])} frames ('hdrmerge-cli plan')")
     return "\n".join(text)

@@ -443,3 +443,25 @@ def write_outputs(summary: dict | None, plot: Path | None, script: Path | None, 
             Path(tmp).chmod(0o755)
     if plot:
         save_figure(plot_snr(summary), plot, overwrite)
+
+
+# ---------------------------------------------------------------- a bracket's own SNR (info --snr)
+def bracket_snr(paths: list[str], opts: PlanOptions) -> dict:
+    """A bracket's predicted worst-case SNR (its frames as shot, merged) and what the best
+    plan of the same total time and at most as many frames (or ``opts.frames``) reaches."""
+    metering = meter(paths, opts)
+    settings = settings_for(metering, opts)
+    scene = measurable(metering.scene, settings, metering.channels)
+    by_iso = {s.iso: s for s in settings}
+    own = []
+    for t, iso in metering.own:
+        s = by_iso.get(float(iso) if iso and "measured" not in metering.noise else min(by_iso))
+        if s is None:
+            raise HdrMergeError(f"ISO {iso:g}: not in the profile's noise; the bracket's SNR needs every frame's ISO")
+        own.append((replace(s, time=float(t)), 1))
+    budget = sum(s.time for s, _ in own)
+    worst = capture.worst_case_snr_db(own, scene)
+    frames = max(opts.frames, len(own))
+    best = capture.best_plan([s for s in settings if s.time <= budget], scene, budget, frames, opts.search_time)
+    return {"worst_case_snr_db": worst, "total_time": budget, "percentile": opts.percentile,
+            "plan_of_the_same_time": {"frames": _frames_json(best), "predicted_worst_snr_db": best.worst_snr_db}}
