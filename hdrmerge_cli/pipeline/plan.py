@@ -57,14 +57,15 @@ class PlanOptions:
 class Metering:
     """The metered scene: ``scene`` (:class:`~capture.SceneRange`), the channel names, the
     reference ISO (the first metering frame's; None when the files state none), the full
-    scale (code values), the noise per ISO key, the metering frames' own settings
+    scale (code values), the noise per ISO (key None: measured on the metering frames, at
+    their ISO), the metering frames' own settings
     (``(time, iso)`` per frame) and the fraction of photosites clipped in every frame."""
 
     scene: capture.SceneRange
     channels: list[str]
     reference_iso: float | None
     y_full: float
-    noise: dict[str, tuple[NoiseParams, ...]]
+    noise: dict[float | None, tuple[NoiseParams, ...]]
     own: list[tuple[float, float | None]]
     clipped: float
     camera: str
@@ -126,26 +127,23 @@ def _occupied(logs: np.ndarray, lo: float, hi: float, n: int) -> list[tuple[floa
     return out
 
 
-def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> dict[str, tuple]:
-    """ISO key -> per-channel noise: every ISO of the profile, else the merge's noise at
-    the metering frames' ISO (key ``measured``)."""
+def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> dict:
+    """ISO -> per-channel noise: every ISO of the profile, else the merge's noise at the
+    metering frames' ISO (key None)."""
     if profile_path:
         from hdrmerge_cli.io.profile import load_profile
 
         prof = load_profile(profile_path)
-        keys = [k for k in (prof.get("noise") or {}) if k.startswith("ISO")]
-        if keys:
-            out = {}
-            for key in keys:
-                iso = float(key[3:]) if key[3:].replace(".", "", 1).isdigit() else None
-                out[key] = tuple(per_channel(noise_from_profile(prof, iso, profile_path), channels))
-            return out
-        log.info("%s: the profile has no noise parameters; using the noise measured on the metering frames",
+        isos = [float(k[3:]) for k in (prof.get("noise") or {})
+                if k.startswith("ISO") and k[3:].replace(".", "", 1).isdigit()]
+        if isos:
+            return {iso: tuple(per_channel(noise_from_profile(prof, iso, profile_path), channels)) for iso in isos}
+        log.info("%s: the profile has no noise parameters per ISO; using the noise measured on the metering frames",
                  profile_path)
     if not measured:
         raise HdrMergeError("no noise model: the metering frames' noise could not be measured; give a --profile "
                             "from calibrate-noise")
-    return {"measured": tuple(per_channel(measured, channels))}
+    return {None: tuple(per_channel(measured, channels))}
 
 
 def meter(paths: list[str], opts: PlanOptions) -> Metering:
@@ -178,21 +176,20 @@ def settings_for(metering: Metering, opts: PlanOptions) -> list[capture.Setting]
     """The (time, ISO) settings a plan may use: ``--shutter-speeds`` (or the 1/3-stop
     series) at each ISO of ``--isos`` that the profile calibrates (or all of them)."""
     times = tuple(sorted(opts.shutter_speeds or capture.SHUTTER_THIRD_STOPS))
-    known = {k: v for k, v in metering.noise.items()}
-    if "measured" in known:
+    noise_at = metering.noise
+    if None in noise_at:  # measured on the metering frames: their ISO only
         iso = metering.reference_iso
         if opts.isos and (len(opts.isos) > 1 or iso is None or float(opts.isos[0]) != float(iso)):
             raise HdrMergeError(f"--isos: the noise is known only at the metering frames' ISO "
                                 f"({iso:g}); give a --profile that calibrates the others" if iso else
                                 "--isos: the metering frames state no ISO and the noise is known only for them; "
                                 "give a --profile from calibrate-noise")
-        noise_at = {iso or 1.0: known["measured"]}
         reference = iso or 1.0
+        noise_at = {reference: noise_at[None]}
     else:
         if metering.reference_iso is None:
             raise HdrMergeError(f"{metering.source}: states no ISO, so its irradiance cannot be related to the "
                                 "profile's ISOs")
-        noise_at = {float(k[3:]): v for k, v in known.items() if k[3:].replace(".", "", 1).isdigit()}
         if opts.isos:
             missing = [i for i in opts.isos if float(i) not in noise_at]
             if missing:
@@ -455,7 +452,7 @@ def bracket_snr(paths: list[str], opts: PlanOptions) -> dict:
     by_iso = {s.iso: s for s in settings}
     own = []
     for t, iso in metering.own:
-        s = by_iso.get(float(iso) if iso and "measured" not in metering.noise else min(by_iso))
+        s = by_iso.get(float(iso) if iso and None not in metering.noise else min(by_iso))
         if s is None:
             raise HdrMergeError(f"ISO {iso:g}: not in the profile's noise; the bracket's SNR needs every frame's ISO")
         own.append((replace(s, time=float(t)), 1))
