@@ -123,3 +123,11 @@ def test_iso_gains_only_where_read_noise_follows_the_amplifier():
 def test_a_budget_shorter_than_every_shutter_is_refused():
     with pytest.raises(HdrMergeError, match="shorter than the shortest shutter"):
         cap.best_plan(settings(), SCENE, 1e-5, 4)
+
+
+def test_the_brightest_photosite_is_measured_even_when_rare():
+    """Occupied intervals that stop short of the brightest photosite (a small highlight):
+    the plan still keeps it unclipped."""
+    scene = cap.SceneRange((20.0,), (20.0 * 2 ** 16,), occupied=(((20.0, 20.0 * 2 ** 8),),))
+    plan = cap.best_plan(settings(), scene, 0.5, 4)
+    assert any(s.clipping_point(0) >= scene.hi[0] for s, _ in plan.frames)

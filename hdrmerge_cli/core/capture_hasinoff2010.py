@@ -137,11 +137,13 @@ class SceneRange:
 def critical_irradiances(settings: list[Setting], scene: SceneRange, channel: int) -> np.ndarray:
     """Where a worst case over the scene's irradiances (its occupied intervals of
     ``[lo, hi]``) can lie for any plan built from ``settings``: the start of each interval
-    and just above each setting's clipping point inside one (see the module notes).
-    Sorted, code values per second."""
+    and just above each setting's clipping point inside one (see the module notes), and
+    ``hi``, however few photosites are that bright.  Sorted, code values per second."""
     spans = scene.intervals(channel)
     points = [s.clipping_point(channel) * ABOVE for s in settings]
-    return np.unique(np.array([a for a, _ in spans] + [p for p in points if any(a < p <= b for a, b in spans)]))
+    # the brightest photosite always counts: a plan never clips the scene's highlights
+    return np.unique(np.array([a for a, _ in spans] + [scene.hi[channel]]
+                              + [p for p in points if any(a < p <= b for a, b in spans)]))
 
 
 def snr_power(r, plan: list[tuple[Setting, int]], channel: int) -> np.ndarray:
