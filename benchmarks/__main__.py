@@ -6,7 +6,7 @@ brackets against the bound and the peers (cli_defaults), accuracy (every method
 against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), speed
 (merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
 on the DoRF curves, noise calibration, alignment and deghosting, and what each program does
-with each kind of frame (input_kinds).  Those that need
+with each kind of frame (input_kinds), and capture plans against conventional brackets (plan).  Those that need
 ../shared/data skip with a note without it; peers that are not installed are skipped with a note.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ import importlib
 import time
 
 BENCHMARKS = ("real_loo", "align_loo", "cli_defaults", "accuracy", "speed", "crf_dorf", "noise_calibration", "motion",
-              "input_kinds")
+              "input_kinds", "plan")
 
 
 def main() -> None:
