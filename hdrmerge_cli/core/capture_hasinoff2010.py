@@ -197,12 +197,15 @@ def _program(settings, scene):
     return np.vstack(rows)
 
 
-def _solve(c, constraints, n_settings, max_frames, time_limit):
+def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float = 0.0):
+    """HiGHS on counts (integers, the first ``n_settings`` variables) and any continuous
+    variables after them (``tau``, bounded below by ``at_least``)."""
     from scipy.optimize import Bounds, milp
 
     integrality = np.r_[np.ones(n_settings), np.zeros(len(c) - n_settings)]
     upper = np.r_[np.full(n_settings, float(max_frames)), np.full(len(c) - n_settings, np.inf)]
-    res = milp(c, constraints=constraints, integrality=integrality, bounds=Bounds(0.0, upper),
+    lower = np.r_[np.zeros(n_settings), np.full(len(c) - n_settings, at_least)]
+    res = milp(c, constraints=constraints, integrality=integrality, bounds=Bounds(lower, upper),
                options={"time_limit": time_limit, "mip_rel_gap": 1e-3})
     if res.x is None:
         return None, False, np.inf
@@ -220,26 +223,38 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
               time_limit: float = TIME_LIMIT) -> Plan:
     """The plan of at most ``max_frames`` frames and ``budget`` seconds in all with the
     best worst-case SNR (the program of the module notes), then among plans within
-    0.01 dB of it the shortest.  Raises if no setting fits the budget."""
+    0.01 dB of it the shortest.  Raises if no setting fits the budget.
+
+    With several ISOs, the plan at the lowest ISO alone (a program of fewer variables) is
+    solved first and bounds the search from below: the search's plan is never worse than
+    it, even when the time limit stops the search."""
     from scipy.optimize import LinearConstraint
 
     settings = [s for s in settings if s.time <= budget]
     if not settings:
         raise HdrMergeError(f"a budget of {budget:g} s is shorter than the shortest shutter time")
+    start = None
+    base = min(s.iso for s in settings)
+    if any(s.iso != base for s in settings):
+        start = best_plan([s for s in settings if s.iso == base], scene, budget, max_frames, time_limit)
     a = _program(settings, scene)
     times = np.array([s.time for s in settings])
     n = len(settings)
     within = [LinearConstraint(times[None], -np.inf, budget), LinearConstraint(np.ones((1, n)), 1.0, max_frames)]
     tau = [LinearConstraint(np.hstack([a, -np.ones((a.shape[0], 1))]), 0.0, np.inf)] + [
         LinearConstraint(np.hstack([c.A, np.zeros((1, 1))]), c.lb, c.ub) for c in within]
-    counts, optimal, gap = _solve(np.r_[np.zeros(n), -1.0], tau, n, max_frames, time_limit)
+    floor = 0.0 if start is None or not np.isfinite(start.worst_snr_db) else 10 ** (start.worst_snr_db / 10)
+    counts, optimal, gap = _solve(np.r_[np.zeros(n), -1.0], tau, n, max_frames, time_limit, floor)
     if counts is None:
+        if start is not None:
+            return start
         raise HdrMergeError("no plan measures the whole scene within the budget")
     # the shortest plan within 0.01 dB of the best (a frame more never lowers the SNR, so
     # the first solution may hold frames that add time but nothing to the worst case)
-    floor = LinearConstraint(a, float(np.min(a @ counts)) * 10 ** -0.001, np.inf)
-    short, _, _ = _solve(times, [floor] + within, n, max_frames, time_limit)
-    return _plan(settings, counts if short is None else short, scene, optimal, gap)
+    best = LinearConstraint(a, float(np.min(a @ counts)) * 10 ** -0.001, np.inf)
+    short, _, _ = _solve(times, [best] + within, n, max_frames, time_limit)
+    plan = _plan(settings, counts if short is None else short, scene, optimal, gap)
+    return start if start is not None and start.worst_snr_db > plan.worst_snr_db else plan
 
 
 def shortest_plan(settings: list[Setting], scene: SceneRange, min_snr_db: float, max_frames: int,
