@@ -90,3 +90,11 @@ def test_info_reports_the_bracket_snr_and_a_plan_of_the_same_time(run, metering)
     assert plan["predicted_worst_snr_db"] >= out["worst_case_snr_db"] - 1e-6
     text = run("info", *frames, "--snr").stdout
     assert "predicted worst-case SNR" in text
+
+
+def test_one_shutter_speed_and_one_frame_still_give_a_table(run, metering):
+    """A camera with one shutter time that cannot reach the brightest photosites: a
+    warning, and the bands no frame measures print as '-'."""
+    frames, _ = metering
+    proc = run("plan", *frames, "--time", "1", "--frames", "1", "--shutter-speeds", "0.01")
+    assert "1 frames" in proc.stdout and "clip even in the shortest frame" in proc.stderr

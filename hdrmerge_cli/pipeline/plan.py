@@ -224,17 +224,18 @@ def solve(metering: Metering, opts: PlanOptions) -> dict:
         plan = capture.best_plan(settings, scene, opts.time, opts.frames, opts.search_time)
     budget = opts.time if opts.time is not None else plan.total_time
     base = min(s.iso for s in settings)
+    at = f"at ISO {base:g}" if metering.reference_iso else "at the metering frames' ISO"
     compare = {}
     if len({s.iso for s in settings}) > 1:
         fixed = (capture.shortest_plan([s for s in settings if s.iso == base], scene, opts.min_snr, opts.frames,
                                        opts.time, opts.search_time) if opts.min_snr is not None else
                  capture.best_plan([s for s in settings if s.iso == base], scene, budget, opts.frames,
                                    opts.search_time))
-        compare[f"plan at ISO {base:g} only"] = fixed
+        compare[f"plan {at} only"] = fixed
     for step in (1, 2):
-        compare[f"conventional {step}-EV bracket at ISO {base:g}"] = capture.best_conventional(
+        compare[f"conventional {step}-EV bracket {at}"] = capture.best_conventional(
             settings, scene, step, opts.frames, budget)
-        compare[f"conventional {step}-EV bracket at ISO {base:g}, same SNR"] = capture.best_conventional(
+        compare[f"conventional {step}-EV bracket {at}, same SNR"] = capture.best_conventional(
             settings, scene, step, 64, None, plan.worst_snr_db - 1e-9)
     return summary(metering, plan, compare, opts)
 
@@ -253,8 +254,10 @@ def measurable(scene: capture.SceneRange, settings: list, names: list[str]) -> c
                    lo=tuple(min(lo, t) for lo, t in zip(scene.lo, top)))
 
 
-def _frames_json(plan: capture.Plan) -> list[dict]:
-    return [{"time": s.time, "iso": s.iso} for s, n in plan.frames for _ in range(n)]
+def _frames_json(plan: capture.Plan, iso_known: bool = True) -> list[dict]:
+    """The plan's frames, one entry per frame shot; ``iso`` None where the metering frames
+    state none (the plan then keeps theirs)."""
+    return [{"time": s.time, "iso": s.iso if iso_known else None} for s, n in plan.frames for _ in range(n)]
 
 
 #: points per EV at which the SNR curves are evaluated (the table's bins take their minimum)
@@ -307,6 +310,7 @@ def snr_curves(scene: capture.SceneRange, plans: dict) -> dict:
 
 def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOptions) -> dict:
     shown = {"plan": plan} | {k: v for k, v in compare.items() if "same SNR" not in k}
+    known = metering.reference_iso is not None
     out = {
         "camera": metering.camera,
         "metering_frames": [{"time": t, "iso": i} for t, i in metering.own],
@@ -317,11 +321,11 @@ def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOpt
                        "percentile": opts.percentile,
                        "range": {c: [lo, hi] for c, lo, hi in zip(metering.channels, metering.scene.lo,
                                                                  metering.scene.hi)}},
-        "frames": _frames_json(plan),
+        "frames": _frames_json(plan, known),
         "total_time": plan.total_time,
         "predicted_worst_snr_db": plan.worst_snr_db,
         "solver": {"optimal": plan.optimal, "gap_db": float(-10 * np.log10(max(1 - plan.gap, 1e-12)))},
-        "compared": {name: None if p is None else {"frames": _frames_json(p), "total_time": p.total_time,
+        "compared": {name: None if p is None else {"frames": _frames_json(p, known), "total_time": p.total_time,
                                                    "predicted_worst_snr_db": p.worst_snr_db}
                      for name, p in compare.items()},
         "snr_table": snr_table(metering, shown),
@@ -353,12 +357,13 @@ def format_plan(s: dict) -> str:
                                                     "the best plan") + ")",
              "", f"{'frame':>5}  {'time':>8}  {'ISO':>6}"]
     lines += [f"{k + 1:>5}  {shutter_label(f['time']):>8}  {_iso(f['iso']):>6}" for k, f in enumerate(s["frames"])]
-    lines += ["", f"{'compared with':<48} {'frames':>6} {'time':>9} {'worst-case SNR':>15}"]
+    width = max([len("compared with")] + [len(name) for name in s["compared"]])
+    lines += ["", f"{'compared with':<{width}} {'frames':>6} {'time':>9} {'worst-case SNR':>15}"]
     for name, p in s["compared"].items():
         if p is None:
-            lines.append(f"{name:<48} {'none':>6}")
+            lines.append(f"{name:<{width}} {'none':>6}")
         else:
-            lines.append(f"{name:<48} {len(p['frames']):>6} {p['total_time']:>8.4g}s "
+            lines.append(f"{name:<{width}} {len(p['frames']):>6} {p['total_time']:>8.4g}s "
                          f"{p['predicted_worst_snr_db']:>12.1f} dB")
     cols = [k for k in s["snr_table"][0] if k not in ("log2_irradiance", "share")] if s["snr_table"] else []
     lines += ["", "SNR (dB, lowest channel) against irradiance (log2 of code values per second at ISO "
@@ -366,7 +371,7 @@ def format_plan(s: dict) -> str:
               f"{'log2 r':>7} {'share':>7} " + " ".join(f"{_short(c):>12}" for c in cols)]
     for row in s["snr_table"]:
         lines.append(f"{row['log2_irradiance']:>7.1f} {100 * row['share']:>6.2f}% "
-                     + " ".join(f"{row.get(c, float('nan')):>12.1f}" for c in cols))
+                     + " ".join(f"{row[c]:>12.1f}" if row.get(c) is not None else f"{'-':>12}" for c in cols))
     return "\n".join(lines)
 
 
@@ -375,6 +380,8 @@ def _short(name: str) -> str:
         return "plan"
     if name.startswith("plan at ISO"):
         return "ISO " + name.split()[3] + " only"
+    if name.startswith("plan at"):
+        return "ISO fixed"
     return name.split()[1] + " bracket"
 
 
@@ -461,4 +468,5 @@ def bracket_snr(paths: list[str], opts: PlanOptions) -> dict:
     frames = max(opts.frames, len(own))
     best = capture.best_plan([s for s in settings if s.time <= budget], scene, budget, frames, opts.search_time)
     return {"worst_case_snr_db": worst, "total_time": budget, "percentile": opts.percentile,
-            "plan_of_the_same_time": {"frames": _frames_json(best), "predicted_worst_snr_db": best.worst_snr_db}}
+            "plan_of_the_same_time": {"frames": _frames_json(best, metering.reference_iso is not None),
+                                      "predicted_worst_snr_db": best.worst_snr_db}}
