@@ -1,6 +1,7 @@
 """hdrmerge-cli plan: end to end on simulated metering frames, outputs and bad input."""
 import json
 
+import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
@@ -90,6 +91,7 @@ def test_info_reports_the_bracket_snr_and_a_plan_of_the_same_time(run, metering)
     assert plan["predicted_worst_snr_db"] >= out["worst_case_snr_db"] - 1e-6
     text = run("info", *frames, "--snr").stdout
     assert "predicted worst-case SNR" in text
+    assert run("info", *frames, "--profile", profile, check=False).returncode == 2  # --profile serves --snr
 
 
 def test_one_shutter_speed_and_one_frame_still_give_a_table(run, metering):
@@ -97,4 +99,7 @@ def test_one_shutter_speed_and_one_frame_still_give_a_table(run, metering):
     warning, and the bands no frame measures print as '-'."""
     frames, _ = metering
     proc = run("plan", *frames, "--time", "1", "--frames", "1", "--shutter-speeds", "0.01")
-    assert "1 frames" in proc.stdout and "clip even in the shortest frame" in proc.stderr
+    assert "1 frame," in proc.stdout and "clip even in the shortest frame" in proc.stderr
+    out = json.loads(run("plan", *frames, "--time", "1", "--frames", "1", "--shutter-speeds", "0.01",
+                         "--json").stdout)
+    assert np.isfinite(out["predicted_worst_snr_db"]) and out["frames"] == [{"time": 0.01, "iso": 100.0}]

@@ -42,8 +42,11 @@ def command(images, as_json, times, times_file, crf, snr, profile):
     if times is not None and times_file:
         raise click.UsageError("give either --times or --times-file, not both")
     summary = bracket_info(images, times, times_file, crf)
+    if profile and not snr:
+        raise click.UsageError("--profile serves --snr; give both")
     if snr:
         from hdrmerge_cli.pipeline.plan import PlanOptions, bracket_snr
 
-        summary["snr"] = bracket_snr(list(images), PlanOptions(profile=profile, crf=crf, times=times))
+        summary["snr"] = bracket_snr(list(images), PlanOptions(profile=profile, crf=crf, times=times,
+                                                                times_file=times_file, noise_cache=False))
     click.echo(json.dumps(summary, indent=1) if as_json else format_info(summary))

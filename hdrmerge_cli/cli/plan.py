@@ -9,20 +9,20 @@ import click
 from hdrmerge_cli.cli.options import FiniteFloatRange, common_options, times_option_callback
 
 
-def _list(kind):
-    def callback(ctx, param, value):
-        if value is None:
-            return None
-        if kind == "times":
-            return tuple(times_option_callback(ctx, param, value))
-        try:
-            values = tuple(float(v) for v in str(value).replace(" ", "").split(",") if v)
-        except ValueError:
-            raise click.BadParameter(f"{value!r}: give ISO speeds separated by commas, e.g. 100,400,1600") from None
-        if not values or any(not (1 <= v <= 1e6) for v in values):
-            raise click.BadParameter(f"{value!r}: ISO speeds are numbers from 1 to 1000000")
-        return values
-    return callback
+def _shutter_speeds(ctx, param, value):
+    return None if value is None else tuple(times_option_callback(ctx, param, value))
+
+
+def _isos(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        values = tuple(float(v) for v in str(value).replace(" ", "").split(",") if v)
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: give ISO speeds separated by commas, e.g. 100,400,1600") from None
+    if not values or any(not (1 <= v <= 1e6) for v in values):
+        raise click.BadParameter(f"{value!r}: ISO speeds are numbers from 1 to 1000000")
+    return values
 
 
 @click.command("plan")
@@ -32,9 +32,9 @@ def _list(kind):
 @click.option("--min-snr", type=FiniteFloatRange(-60, 120), metavar="DB",
               help="The shortest plan whose worst-case SNR reaches DB (with --time: within that time too).")
 @click.option("--frames", default=10, show_default=True, type=click.IntRange(1, 64), help="At most N frames.")
-@click.option("--shutter-speeds", callback=_list("times"), metavar="T1,T2,...",
+@click.option("--shutter-speeds", callback=_shutter_speeds, metavar="T1,T2,...",
               help="The camera's shutter times in seconds [default: the 1/3-stop series, 1/8000 to 30 s].")
-@click.option("--isos", callback=_list("isos"), metavar="ISO1,ISO2,...",
+@click.option("--isos", callback=_isos, metavar="ISO1,ISO2,...",
               help="The ISOs the plan may use, each calibrated in --profile [default: every ISO the profile "
                    "calibrates; without a profile, the metering frames' ISO only].")
 @click.option("--percentile", default=1.0, show_default=True, type=FiniteFloatRange(0.0, 50.0),
@@ -71,11 +71,8 @@ def command(metering_frames, budget, min_snr, frames, shutter_speeds, isos, perc
     photosites to the brightest.  Prints the frames, the plan compared with a plan at the
     lowest ISO and with conventional 1- and 2-EV brackets, and the SNR against irradiance.
     """
-    from hdrmerge_cli.core.errors import HdrMergeError
     from hdrmerge_cli.pipeline.plan import PlanOptions, check_options, format_plan, meter, solve, write_outputs
 
-    if not metering_frames:
-        raise HdrMergeError("no metering frames (give one or more frames of the scene)")
     if budget is None and min_snr is None:
         raise click.UsageError("give --time SECONDS, --min-snr DB or both")
     opts = PlanOptions(budget, min_snr, frames, shutter_speeds, isos, percentile, profile, crf, times,

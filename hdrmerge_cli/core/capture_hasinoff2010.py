@@ -28,17 +28,17 @@ SNR(r) grows with r (each term ``r^2 / (a + b r + c r^2)`` does), so the minimum
 the start of an interval or just above some frame's clipping point inside one:
 :func:`critical_irradiances` lists those, and the worst case over them is exact.
 
-Plans.  SNR(r)^2 is linear in the number of frames ``n_s`` shot with each setting s, so
+Plans.  SNR(r) is linear in the number of frames ``n_s`` shot with each setting s, so
 the best plan is a mixed-integer linear program over the counts (Hasinoff, Sec. 4):
 maximise ``tau`` subject to ``sum_s n_s r_i^2 I_s(r_i) >= tau`` at every critical
 irradiance ``r_i``, ``sum_s n_s t_s <= T`` and ``sum_s n_s <= N`` (:func:`best_plan`); or
 minimise the total time subject to ``tau >= tau_min`` (:func:`shortest_plan`).  Both are
-solved by HiGHS (``scipy.optimize.milp``), exactly unless its time limit stops the
-branch and bound first (then the best plan found, with its optimality gap).
+solved by HiGHS (``scipy.optimize.milp``) to a relative gap of 1e-3 (0.004 dB) unless
+its time limit stops the branch and bound first (then the best plan found, with its gap).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -53,12 +53,8 @@ SHUTTER_THIRD_STOPS = (
     0.8, 1.0, 1.3, 1.6, 2.0, 2.5, 3.2, 4.0, 5.0, 6.0, 8.0, 10.0, 13.0, 15.0, 20.0, 25.0, 30.0,
 )
 
-#: ISO speeds of the 1/3-stop series
-ISO_THIRD_STOPS = (50, 64, 80, 100, 125, 160, 200, 250, 320, 400, 500, 640, 800, 1000, 1250, 1600, 2000, 2500,
-                   3200, 4000, 5000, 6400, 8000, 10000, 12800, 16000, 20000, 25600)
-
 #: relative step above a clipping point at which the SNR is evaluated (the frame is lost there)
-ABOVE = 1.0 + 1e-9
+ABOVE = 1.0 + 1e-6
 
 #: seconds HiGHS may search one program before it returns the best plan found
 TIME_LIMIT = 4.0
@@ -87,23 +83,26 @@ class Setting:
         r = np.asarray(r, dtype=np.float64)
         mu = r * self.scale
         info = self.scale ** 2 / code_variance(mu, self.noise[channel])
-        return np.where(mu <= self.y_hi[channel], info, 0.0)
+        return np.where(mu <= self.y_hi[channel] * (1 + 1e-12), info, 0.0)  # y_hi / scale * scale rounds
 
     def clipping_point(self, channel: int) -> float:
         """The irradiance at which the frame's mean reaches ``y_hi``."""
         return self.y_hi[channel] / self.scale
 
 
-def make_settings(times, isos, noise_at_iso: dict, reference_iso: float, y_full: float,
+def make_settings(times, isos, noise_at_iso: dict, reference_iso: float, y_full,
                   k: float = DEFAULT_K) -> list[Setting]:
     """Every (time, ISO) pair as a :class:`Setting`.  ``noise_at_iso``: ISO -> per-channel
-    tuple of :class:`NoiseParams`; ``y_full``: full scale (white minus black, code values);
-    ``k``: standard deviations of (47) between a measured mean and white."""
+    tuple of :class:`NoiseParams`; ``y_full``: full scale (white minus black, code values),
+    one for every channel or one per channel; ``k``: standard deviations of (47) between a
+    measured mean and white."""
     out = []
     for iso in isos:
         noise = tuple(noise_at_iso[iso])
-        y_hi = tuple(clipping_safe_range_exact(p, 0.5, y_full, k)[1] for p in noise)
-        if any(h <= 0 for h in y_hi):
+        y_full = np.broadcast_to(np.asarray(y_full, dtype=np.float64), (len(noise),))
+        ranges = [clipping_safe_range_exact(p, 0.5, full, k) for p, full in zip(noise, y_full)]
+        y_hi = tuple(hi for _, hi in ranges)
+        if any(lo >= hi for lo, hi in ranges):
             raise HdrMergeError(f"ISO {iso:g}: the noise model leaves no clipping-safe range below white")
         out += [Setting(float(t), float(iso), float(iso) / reference_iso, noise, y_hi) for t in times]
     return out
@@ -161,8 +160,9 @@ def snr_db(r, plan: list[tuple[Setting, int]], channel: int) -> np.ndarray:
 
 
 def worst_case_snr_db(plan: list[tuple[Setting, int]], scene: SceneRange) -> float:
-    """The minimum of SNR(r) over every channel's ``[lo, hi]`` (dB): exact, at the
-    critical irradiances of the plan's own settings."""
+    """The minimum of SNR(r) over every channel's irradiances (:meth:`SceneRange.intervals`
+    and ``hi``), in dB: exact, at the critical irradiances of the plan's own settings;
+    ``-inf`` where some irradiance is measured by no frame."""
     settings = [s for s, n in plan if n]
     if not settings:
         return float("-inf")
@@ -174,13 +174,15 @@ def worst_case_snr_db(plan: list[tuple[Setting, int]], scene: SceneRange) -> flo
 class Plan:
     """A solved plan: ``frames`` as ``(setting, count)`` pairs in increasing exposure, its
     worst-case SNR (dB), total time (s), and how the solver ended (``optimal``, or the
-    relative gap of the best plan found when the time limit stopped it)."""
+    relative gap of the best plan found when the time limit stopped it); ``lowest_iso``:
+    the best plan at the lowest ISO alone, where the search solved it first."""
 
     frames: list
     worst_snr_db: float
     total_time: float
     optimal: bool = True
     gap: float = 0.0
+    lowest_iso: "Plan | None" = None  # the best plan at the lowest ISO alone, where it was solved
 
     @property
     def count(self) -> int:
@@ -245,22 +247,26 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
         LinearConstraint(np.hstack([c.A, np.zeros((1, 1))]), c.lb, c.ub) for c in within]
     floor = 0.0 if start is None or not np.isfinite(start.worst_snr_db) else 10 ** (start.worst_snr_db / 10)
     counts, optimal, gap = _solve(np.r_[np.zeros(n), -1.0], tau, n, max_frames, time_limit, floor)
-    if counts is None:
-        if start is not None:
-            return start
-        raise HdrMergeError("no plan measures the whole scene within the budget")
+    if counts is None or not np.min(a @ counts) > 0:
+        if start is not None and np.isfinite(start.worst_snr_db):
+            return replace(start, lowest_iso=start)
+        raise HdrMergeError("no plan within the budget measures every irradiance of the scene (its brightest "
+                            "photosites clip in every frame allowed, or its darkest read no light)")
     # the shortest plan within 0.01 dB of the best (a frame more never lowers the SNR, so
     # the first solution may hold frames that add time but nothing to the worst case)
     best = LinearConstraint(a, float(np.min(a @ counts)) * 10 ** -0.001, np.inf)
     short, _, _ = _solve(times, [best] + within, n, max_frames, time_limit)
-    plan = _plan(settings, counts if short is None else short, scene, optimal, gap)
-    return start if start is not None and start.worst_snr_db > plan.worst_snr_db else plan
+    plan = replace(_plan(settings, counts if short is None else short, scene, optimal, gap), lowest_iso=start)
+    # the lowest-ISO plan where the search, stopped by its time limit, found no better one
+    return replace(start, lowest_iso=start) if start is not None and start.worst_snr_db > plan.worst_snr_db + 0.01 \
+        else plan
 
 
 def shortest_plan(settings: list[Setting], scene: SceneRange, min_snr_db: float, max_frames: int,
                   budget: float | None = None, time_limit: float = TIME_LIMIT) -> Plan | None:
     """The plan of least total time whose worst-case SNR reaches ``min_snr_db`` with at
-    most ``max_frames`` frames (and ``budget`` seconds), or None when none does."""
+    most ``max_frames`` frames (and ``budget`` seconds), then among plans within 0.01 %
+    of that time the one of fewest frames; None when none reaches the SNR."""
     from scipy.optimize import LinearConstraint
 
     settings = [s for s in settings if budget is None or s.time <= budget]
@@ -268,16 +274,16 @@ def shortest_plan(settings: list[Setting], scene: SceneRange, min_snr_db: float,
         return None
     a = _program(settings, scene)
     times = np.array([s.time for s in settings])
-    cons = [LinearConstraint(a, 10 ** (min_snr_db / 10), np.inf),
-            LinearConstraint(np.ones((1, len(settings))), 1.0, max_frames)]
+    n = len(settings)
+    cons = [LinearConstraint(a, 10 ** (min_snr_db / 10), np.inf), LinearConstraint(np.ones((1, n)), 1.0, max_frames)]
     if budget is not None:
         cons.append(LinearConstraint(times[None], -np.inf, budget))
-    # ties in time go to the plan of fewer frames
-    counts, optimal, gap = _solve(times * (1 + 1e-6) + 1e-9 * times.min(), cons, len(settings), max_frames,
-                                  time_limit)
+    counts, optimal, gap = _solve(times, cons, n, max_frames, time_limit)
     if counts is None:
         return None
-    return _plan(settings, counts, scene, optimal, gap)
+    fewest, _, _ = _solve(np.ones(n), cons + [LinearConstraint(times[None], -np.inf, float(times @ counts) * 1.0001)],
+                          n, max_frames, time_limit)
+    return _plan(settings, counts if fewest is None else fewest, scene, optimal, gap)
 
 
 def conventional_brackets(settings: list[Setting], scene: SceneRange, step_ev: float, max_frames: int):

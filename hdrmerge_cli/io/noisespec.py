@@ -76,6 +76,15 @@ def iso_key(iso: float | None) -> str:
     return f"ISO{iso:g}" if iso else "ISO_unknown"
 
 
+def iso_of_key(key: str) -> float | None:
+    """The ISO of a profile's noise key (``ISO400`` -> 400), None for ``ISO_unknown``."""
+    try:
+        iso = float(key[3:]) if key.startswith("ISO") else None
+    except ValueError:
+        return None
+    return iso if iso is not None and iso == iso and 0 < iso < float("inf") else None
+
+
 def noise_from_profile(profile: dict, iso: float | None, path: str) -> dict[str, NoiseParams]:
     """The profile's noise entry for ``iso`` (or its only entry): {channel: NoiseParams},
     each channel's numbers checked by :func:`noise_params`."""

@@ -18,7 +18,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable
 from hdrmerge_cli.io.frames import Frame, cfa_corner, list_frames, load_codes, read_frame
-from hdrmerge_cli.io.noisespec import iso_key
+from hdrmerge_cli.io.noisespec import iso_key, iso_of_key
 from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
 from hdrmerge_cli.pipeline.bracket import choose_crf
@@ -323,15 +323,6 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
             "plot": str(opts.plot) if opts.plot else None, "seconds": round(time.perf_counter() - t0, 4)}
 
 
-def _iso_of_key(key: str) -> float | None:
-    """The ISO of a profile's noise key (``ISO400`` -> 400), None for ``ISO_unknown``."""
-    try:
-        iso = float(key[3:]) if key.startswith("ISO") else None
-    except ValueError:
-        return None
-    return iso if iso is not None and np.isfinite(iso) and iso > 0 else None
-
-
 def read_noise_split_entry(noise: dict) -> dict:
     """Per channel calibrated at two or more ISOs (of different gains), the read noise
     split into its parts before and after the ISO amplifier
@@ -341,7 +332,7 @@ def read_noise_split_entry(noise: dict) -> dict:
     them; empty when no channel has two ISOs."""
     points: dict[str, list] = {}
     for key, entries in noise.items():
-        iso = _iso_of_key(key)
+        iso = iso_of_key(key)
         if iso is None or not isinstance(entries, dict):
             continue
         for name, e in entries.items():

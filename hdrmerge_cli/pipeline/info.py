@@ -123,7 +123,9 @@ def format_info(summary: dict) -> str:
     if "snr" in summary:
         s = summary["snr"]
         p = s["plan_of_the_same_time"]
-        text.append(f"predicted worst-case SNR: {s['worst_case_snr_db']:.1f} dB (from the {s['percentile']:g} % darkest "
-                    f"photosites to the brightest); a plan of the same {s['total_time']:.4g} s reaches "
+        own = ("its frames leave some of the scene unmeasured (clipped in the shortest)"
+               if s["worst_case_snr_db"] is None else f"{s['worst_case_snr_db']:.1f} dB")
+        text.append(f"predicted worst-case SNR: {own} (from the {s['percentile']:g} % darkest photosites to the "
+                    f"brightest); a plan of the same {s['total_time']:.4g} s reaches "
                     f"{p['predicted_worst_snr_db']:.1f} dB with {len(p['frames'])} frames ('hdrmerge-cli plan')")
     return "\n".join(text)

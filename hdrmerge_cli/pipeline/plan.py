@@ -17,7 +17,7 @@ from hdrmerge_cli.core import capture_hasinoff2010 as capture
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
-from hdrmerge_cli.io.noisespec import iso_key, noise_from_profile, per_channel
+from hdrmerge_cli.io.noisespec import iso_key, iso_of_key, noise_from_profile, per_channel
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -49,6 +49,7 @@ class PlanOptions:
     profile: str | None = None
     crf: str | None = None
     times: list | None = None
+    times_file: str | None = None
     noise_cache: bool = True
     search_time: float = capture.TIME_LIMIT
 
@@ -56,15 +57,16 @@ class PlanOptions:
 @dataclass
 class Metering:
     """The metered scene: ``scene`` (:class:`~capture.SceneRange`), the channel names, the
-    reference ISO (the first metering frame's; None when the files state none), the full
-    scale (code values), the noise per ISO (key None: measured on the metering frames, at
-    their ISO), the metering frames' own settings
-    (``(time, iso)`` per frame) and the fraction of photosites clipped in every frame."""
+    reference ISO (that of the metering frame of shortest exposure, which the merge's
+    units refer to; None when the files state none), the full scale per channel (code
+    values), the noise per ISO (key None: measured on the metering frames, at their ISO),
+    the metering frames' own settings (``(time, iso)`` per frame) and the fraction of
+    photosites clipped in every frame."""
 
     scene: capture.SceneRange
     channels: list[str]
     reference_iso: float | None
-    y_full: float
+    y_full: tuple[float, ...]
     noise: dict[float | None, tuple[NoiseParams, ...]]
     own: list[tuple[float, float | None]]
     clipped: float
@@ -85,9 +87,11 @@ def channel_planes(r: np.ndarray, flags: np.ndarray, cell: np.ndarray | None, n_
 
 
 def scene_range(planes: list[list], percentile: float, names: list[str]) -> capture.SceneRange:
-    """Per channel, ``lo`` = the ``percentile`` of the photosites' irradiance and ``hi`` =
-    the brightest, after a :data:`SMOOTH` x :data:`SMOOTH` box over same-colour photosites
-    (a photosite dark in every frame counts as 0).
+    """Per channel, ``lo`` = the ``percentile`` of the photosites' irradiance after a
+    :data:`SMOOTH` x :data:`SMOOTH` box over same-colour photosites (a photosite dark in
+    every frame counts as 0; the box keeps the metering frames' own noise out of the dark
+    end), ``hi`` = the brightest photosite as metered (a small highlight is not averaged
+    away), and the intervals of ``[lo, hi]`` the photosites hold (:func:`_occupied`).
 
     planes : :func:`channel_planes`, irradiance in code values per second at the
         reference ISO
@@ -98,13 +102,14 @@ def scene_range(planes: list[list], percentile: float, names: list[str]) -> capt
     for c, chan in enumerate(planes):
         v = np.concatenate([uniform_filter(np.where(f == FLAG_DARK, 0.0, p).astype(np.float64), SMOOTH,
                                            mode="nearest").ravel() for p, f in chan])
-        low, top = float(np.percentile(v, percentile)), float(np.max(v))
+        low = float(np.percentile(v, percentile))
+        top = max(float(np.max(p)) for p, _ in chan)
         if not low > 0:
             raise HdrMergeError(f"the darkest {percentile:g} % of the {names[c]} photosites read no light in the "
                                 "metering frames; meter with a longer frame, or raise --percentile")
         lo.append(low)
         hi.append(top)
-        logs = np.log2(v[v >= low])
+        logs = np.log2(np.minimum(v[v >= low], top))
         occupied.append(_occupied(logs, np.log2(low), np.log2(top), v.size))
         edges = np.arange(np.floor(np.log2(low)), np.ceil(np.log2(top)) + TABLE_STEP_EV, TABLE_STEP_EV)
         hists.append((edges, np.histogram(logs, edges)[0]))
@@ -134,8 +139,7 @@ def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> d
         from hdrmerge_cli.io.profile import load_profile
 
         prof = load_profile(profile_path)
-        isos = [float(k[3:]) for k in (prof.get("noise") or {})
-                if k.startswith("ISO") and k[3:].replace(".", "", 1).isdigit()]
+        isos = [iso for iso in map(iso_of_key, prof.get("noise") or {}) if iso is not None]
         if isos:
             return {iso: tuple(per_channel(noise_from_profile(prof, iso, profile_path), channels)) for iso in isos}
         log.info("%s: the profile has no noise parameters per ISO; using the noise measured on the metering frames",
@@ -155,13 +159,15 @@ def meter(paths: list[str], opts: PlanOptions) -> Metering:
     if not paths:
         raise HdrMergeError("no metering frames (give one or more frames of the scene)")
     merged = merge_bracket(list(paths), MergeOptions(profile=opts.profile, crf=opts.crf, times=opts.times,
-                                                     noise_cache=opts.noise_cache))
+                                                     times_file=opts.times_file, noise_cache=opts.noise_cache))
     first = merged.first
     names = list(first.channel_names)
-    y_full = float(np.min(first.white - first.black))
-    r = merged.result * np.float32(y_full / merged.h_ref)  # code values per second at the first frame's ISO
-    cell = None if r.ndim == 3 else sample_pattern(first)
-    scene = scene_range(channel_planes(r, merged.flag_samples, cell, len(names)), opts.percentile, names)
+    # each channel's 1.0 is its own full scale at h_ref: code values per second at the reference ISO
+    y_full = tuple(float(v) for v in np.broadcast_to(first.white - first.black, (len(names),)))
+    cell = None if merged.result.ndim == 3 else sample_pattern(first)
+    planes = [[(p * np.float32(y_full[c] / merged.h_ref), f) for p, f in chan]
+              for c, chan in enumerate(channel_planes(merged.result, merged.flag_samples, cell, len(names)))]
+    scene = scene_range(planes, opts.percentile, names)
     clipped = float(np.mean(merged.flag_samples == FLAG_SATURATED))
     if clipped > 0:
         log.warning("%.3g %% of the photosites are clipped in every metering frame: the plan takes them at the "
@@ -209,9 +215,9 @@ def check_options(opts: PlanOptions) -> None:
 
 def solve(metering: Metering, opts: PlanOptions) -> dict:
     """The plan and its comparisons, as the JSON summary of ``plan``."""
-    check_options(opts)
     settings = settings_for(metering, opts)
-    scene = measurable(metering.scene, settings, metering.channels)
+    metering = replace(metering, scene=measurable(metering.scene, settings, metering.channels))
+    scene = metering.scene
     if opts.min_snr is not None:
         plan = capture.shortest_plan(settings, scene, opts.min_snr, opts.frames, opts.time, opts.search_time)
         if plan is None:
@@ -229,8 +235,8 @@ def solve(metering: Metering, opts: PlanOptions) -> dict:
     if len({s.iso for s in settings}) > 1:
         fixed = (capture.shortest_plan([s for s in settings if s.iso == base], scene, opts.min_snr, opts.frames,
                                        opts.time, opts.search_time) if opts.min_snr is not None else
-                 capture.best_plan([s for s in settings if s.iso == base], scene, budget, opts.frames,
-                                   opts.search_time))
+                 plan.lowest_iso or capture.best_plan([s for s in settings if s.iso == base], scene, budget,
+                                                      opts.frames, opts.search_time))
         compare[f"plan {at} only"] = fixed
     for step in (1, 2):
         compare[f"conventional {step}-EV bracket {at}"] = capture.best_conventional(
@@ -266,11 +272,14 @@ CURVE_POINTS_PER_EV = 24
 
 def snr_curve(plan: capture.Plan, scene: capture.SceneRange, log2_r: np.ndarray) -> np.ndarray:
     """The plan's SNR (dB) at irradiances ``2 ** log2_r``, the lowest over the channels
-    (each channel only inside its own range; -inf where nothing measures it)."""
+    (each channel only at the irradiances its photosites hold, :meth:`SceneRange.intervals`;
+    inf where none does, -inf where no frame measures it)."""
     r = 2.0 ** np.asarray(log2_r, dtype=np.float64)
     out = np.full(r.shape, np.inf)
     for c in range(scene.channels):
-        inside = (r >= scene.lo[c]) & (r <= scene.hi[c])
+        inside = np.zeros(r.shape, bool)
+        for a, b in scene.intervals(c):
+            inside |= (r >= a) & (r <= b)
         out = np.where(inside, np.minimum(out, capture.snr_db(r, plan.frames, c)), out)
     return out
 
@@ -308,6 +317,11 @@ def snr_curves(scene: capture.SceneRange, plans: dict) -> dict:
             for name, p in plans.items() if p is not None}
 
 
+def _finite(v: float) -> float | None:
+    """``v``, or None where no frame measures some irradiance (JSON has no infinity)."""
+    return float(v) if np.isfinite(v) else None
+
+
 def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOptions) -> dict:
     shown = {"plan": plan} | {k: v for k, v in compare.items() if "same SNR" not in k}
     known = metering.reference_iso is not None
@@ -315,18 +329,19 @@ def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOpt
         "camera": metering.camera,
         "metering_frames": [{"time": t, "iso": i} for t, i in metering.own],
         "reference_iso": metering.reference_iso,
-        "worst_case": {"definition": "the lowest SNR (dB, power ratio of the irradiance to its variance after the "
-                                     "merge) over irradiances from the given percentile of each channel's "
-                                     "photosites to its brightest",
+        "worst_case": {"definition": "the lowest SNR (dB, the squared irradiance over its variance after the "
+                                     "merge) over the irradiances each channel's photosites hold, from the given "
+                                     "percentile to the brightest (1/12-EV bins with at least 0.1 % of them, and "
+                                     "the brightest)",
                        "percentile": opts.percentile,
                        "range": {c: [lo, hi] for c, lo, hi in zip(metering.channels, metering.scene.lo,
                                                                  metering.scene.hi)}},
         "frames": _frames_json(plan, known),
         "total_time": plan.total_time,
-        "predicted_worst_snr_db": plan.worst_snr_db,
+        "predicted_worst_snr_db": _finite(plan.worst_snr_db),
         "solver": {"optimal": plan.optimal, "gap_db": float(-10 * np.log10(max(1 - plan.gap, 1e-12)))},
         "compared": {name: None if p is None else {"frames": _frames_json(p, known), "total_time": p.total_time,
-                                                   "predicted_worst_snr_db": p.worst_snr_db}
+                                                   "predicted_worst_snr_db": _finite(p.worst_snr_db)}
                      for name, p in compare.items()},
         "snr_table": snr_table(metering, shown),
         "snr_curves": snr_curves(metering.scene, shown),
@@ -337,10 +352,14 @@ def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOpt
 
 # ---------------------------------------------------------------- reports
 def shutter_label(t: float) -> str:
-    """A shutter time as cameras list it: ``1/250`` below 0.3 s, else ``0.3``, ``1.3``, ``30``."""
-    if t < 0.3 - 1e-9:
-        return f"1/{round(1 / t):d}"
-    return f"{t:.4g}"
+    """A shutter time as cameras list it: ``1/250`` under 1 s where 1/t is within 2 % of
+    a whole number (tenths such as ``0.3`` or ``0.5`` stay decimal), else ``0.4``,
+    ``1.3``, ``30``."""
+    n = round(1 / t)
+    tenth = t >= 0.3 - 1e-9 and abs(t - round(t, 1)) < 1e-9
+    if t < 1 and n >= 2 and abs(1 / t - n) <= 0.02 * n and not tenth:
+        return f"1/{n}"
+    return f"{t:.2g}" if t < 1 else f"{t:.4g}"
 
 
 def _iso(v) -> str:
@@ -350,9 +369,11 @@ def _iso(v) -> str:
 def format_plan(s: dict) -> str:
     """The plan as text tables (stdout of ``plan``)."""
     wc = s["worst_case"]
-    lines = [f"plan for {s['camera']}: {len(s['frames'])} frames, {s['total_time']:.4g} s in all, predicted "
-             f"worst-case SNR {s['predicted_worst_snr_db']:.1f} dB",
-             f"(worst case: the lowest SNR from the {wc['percentile']:g} % darkest photosites to the brightest"
+    n = len(s["frames"])
+    lines = [f"plan for {s['camera']}: {n} frame{'s' if n != 1 else ''}, {s['total_time']:.4g} s in all, "
+             f"predicted worst-case SNR {_db(s['predicted_worst_snr_db'])}",
+             f"(worst case: the lowest SNR over the irradiances the scene holds, from its {wc['percentile']:g} % "
+             "darkest photosites to the brightest"
              + ("" if s["solver"]["optimal"] else f"; the search stopped within {s['solver']['gap_db']:.2f} dB of "
                                                     "the best plan") + ")",
              "", f"{'frame':>5}  {'time':>8}  {'ISO':>6}"]
@@ -364,7 +385,7 @@ def format_plan(s: dict) -> str:
             lines.append(f"{name:<{width}} {'none':>6}")
         else:
             lines.append(f"{name:<{width}} {len(p['frames']):>6} {p['total_time']:>8.4g}s "
-                         f"{p['predicted_worst_snr_db']:>12.1f} dB")
+                         f"{_db(p['predicted_worst_snr_db']):>15}")
     cols = [k for k in s["snr_table"][0] if k not in ("log2_irradiance", "share")] if s["snr_table"] else []
     lines += ["", "SNR (dB, lowest channel) against irradiance (log2 of code values per second at ISO "
               f"{_iso(s['reference_iso'])}); share of the scene's photosites per 1-EV bin",
@@ -373,6 +394,10 @@ def format_plan(s: dict) -> str:
         lines.append(f"{row['log2_irradiance']:>7.1f} {100 * row['share']:>6.2f}% "
                      + " ".join(f"{row[c]:>12.1f}" if row.get(c) is not None else f"{'-':>12}" for c in cols))
     return "\n".join(lines)
+
+
+def _db(v: float | None) -> str:
+    return "no measure" if v is None else f"{v:.1f} dB"
 
 
 def _short(name: str) -> str:
@@ -391,9 +416,9 @@ def gphoto2_script(s: dict) -> str:
     lines = ["#!/bin/sh",
              f"# The bracket planned by hdrmerge-cli for {s['camera']}: {len(s['frames'])} frames, "
              f"{s['total_time']:.4g} s in all,",
-             f"# predicted worst-case SNR {s['predicted_worst_snr_db']:.1f} dB.  Needs gphoto2 (Debian package gphoto2) "
+             f"# predicted worst-case SNR {_db(s['predicted_worst_snr_db'])}.  Needs gphoto2 (Debian package gphoto2) "
              "and the camera",
-             "# in manual exposure mode (M), RAW, the focus and aperture of the metering frames.  The values must",
+             "# in manual exposure mode (M), RAW, the focus and aperture of the metering frames (all alike).  The values must",
              "# be in the camera's lists: gphoto2 --get-config shutterspeed; gphoto2 --get-config iso",
              "set -e"]
     for k, f in enumerate(s["frames"]):
@@ -419,7 +444,8 @@ def plot_snr(s: dict):
     for name, curve in s["snr_curves"].items():
         ax.plot([a for a, _ in curve], [np.nan if b is None else b for _, b in curve], label=name,
                 lw=2 if name == "plan" else 1)
-    ax.axhline(s["predicted_worst_snr_db"], color="k", ls=":", lw=1, label="plan's worst case")
+    if s["predicted_worst_snr_db"] is not None:
+        ax.axhline(s["predicted_worst_snr_db"], color="k", ls=":", lw=1, label="plan's worst case")
     ax.set_xlabel(f"log2 irradiance (code values per second at ISO {_iso(s['reference_iso'])})")
     ax.set_ylabel("predicted SNR (dB)")
     ax.set_title(f"{s['camera']}: {len(s['frames'])} frames, {s['total_time']:.3g} s")
@@ -451,22 +477,29 @@ def write_outputs(summary: dict | None, plot: Path | None, script: Path | None, 
 
 # ---------------------------------------------------------------- a bracket's own SNR (info --snr)
 def bracket_snr(paths: list[str], opts: PlanOptions) -> dict:
-    """A bracket's predicted worst-case SNR (its frames as shot, merged) and what the best
-    plan of the same total time and at most as many frames (or ``opts.frames``) reaches."""
+    """A bracket's predicted worst-case SNR (its frames as shot, merged; None where its
+    frames leave some irradiance of the scene unmeasured, e.g. its brightest photosites
+    clipped) and what the best plan of the same total time reaches with
+    ``max(opts.frames, frames in the bracket)`` frames."""
     metering = meter(paths, opts)
     settings = settings_for(metering, opts)
-    scene = measurable(metering.scene, settings, metering.channels)
     by_iso = {s.iso: s for s in settings}
+    measured = None in metering.noise
+    isos = {iso for _, iso in metering.own}
+    if measured and len(isos) > 1:
+        raise HdrMergeError(f"{metering.source}: the frames differ in ISO; their SNR needs the noise at each ISO "
+                            "(give a --profile from calibrate-noise)")
     own = []
     for t, iso in metering.own:
-        s = by_iso.get(float(iso) if iso and None not in metering.noise else min(by_iso))
+        s = by_iso[min(by_iso)] if measured else by_iso.get(iso)
         if s is None:
-            raise HdrMergeError(f"ISO {iso:g}: not in the profile's noise; the bracket's SNR needs every frame's ISO")
+            raise HdrMergeError(f"{metering.source}: no noise for a frame of ISO {_iso(iso)} in the profile; the "
+                                "bracket's SNR needs every frame's ISO")
         own.append((replace(s, time=float(t)), 1))
+    scene = measurable(metering.scene, settings, metering.channels)
     budget = sum(s.time for s, _ in own)
-    worst = capture.worst_case_snr_db(own, scene)
-    frames = max(opts.frames, len(own))
-    best = capture.best_plan([s for s in settings if s.time <= budget], scene, budget, frames, opts.search_time)
-    return {"worst_case_snr_db": worst, "total_time": budget, "percentile": opts.percentile,
+    best = capture.best_plan(settings, scene, budget, max(opts.frames, len(own)), opts.search_time)
+    return {"worst_case_snr_db": _finite(capture.worst_case_snr_db(own, scene)), "total_time": budget,
+            "percentile": opts.percentile,
             "plan_of_the_same_time": {"frames": _frames_json(best, metering.reference_iso is not None),
-                                      "predicted_worst_snr_db": best.worst_snr_db}}
+                                      "predicted_worst_snr_db": _finite(best.worst_snr_db)}}
