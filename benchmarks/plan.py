@@ -20,7 +20,7 @@ simulated (fresh noise) and merged (``merge --profile --cfa``, defaults).
 Measured worst-case SNR: per channel, the photosites whose true irradiance lies in the
 range the plan targets (from the 1st percentile of the metered photosites to the
 brightest), binned by true irradiance (1/12 EV, and a bin starting at each frame's
-clipping point); per bin the SNR ``-10 log10 mean((E_merged / E_true - 1)^2)`` over
+SNR dip); per bin the SNR ``-10 log10 mean((E_merged / E_true - 1)^2)`` over
 bins holding at least 0.1 % of the channel's photosites (as ``plan`` counts the
 irradiances a scene holds) and 100 of them.  ``predicted at truth``: the model's SNR
 of the worst bin (``-10 log10`` of the mean of ``1 / SNR(r)`` over its photosites);
@@ -132,8 +132,8 @@ def _measure(folder: Path, merged: Path, electrons: np.ndarray, frames: list[dic
         n = rc.size
         keep = (rc >= lo) & (rc <= hi)
         rc, e2 = rc[keep], e2[keep]
-        # bins of BIN_EV that also start at each frame's clipping point (the SNR drops there)
-        clips = [s.clipping_point(0) * cap.ABOVE for s, _ in plan]
+        # bins of BIN_EV that also start at each frame's SNR dip
+        clips = [s.clipping_point(0) for s, _ in plan]
         edges = np.unique(np.r_[lo * 2.0 ** np.arange(0, np.log2(hi / lo) + BIN_EV, BIN_EV),
                                 [c for c in clips if lo < c < hi]])
         index = np.searchsorted(edges, rc, side="right")

@@ -27,35 +27,45 @@ SCENE = cap.SceneRange((20.0,), (20.0 * 2 ** 14,))
 
 def test_information_is_the_inverse_variance_of_the_ml_merge():
     """Monte Carlo: the inverse-variance average of the frames' estimates y / (t g), with
-    the true variances, has variance 1 / sum_j I_j (12); seeded, 3 % tolerance."""
+    the true variances, has variance 1 / sum_j I_j (12), frames far below white; seeded,
+    3 % tolerance."""
     rng = np.random.default_rng(5)
-    st = [s for s in settings() if s.time in (1 / 500, 1 / 60, 1 / 8)]
+    st = [s for s in settings() if s.time in (1 / 500, 1 / 60, 1 / 8) and s.iso == 100]
     r = 3000.0
     ests, ws = [], []
     for s in st:
         mu = r * s.scale
-        if mu > s.y_hi[0]:
-            continue
         v = s.noise[0].sigma_o2 + np.sqrt(s.noise[0].alpha) * mu
         ests.append(rng.normal(mu, np.sqrt(v), 200_000) / s.scale)
         ws.append(s.scale ** 2 / v)
     merged = sum(w * e for w, e in zip(ws, ests)) / sum(ws)
     predicted = 1 / cap.snr_power(np.array([r]), [(s, 1) for s in st], 0)[0] * r * r
     assert merged.var() == pytest.approx(predicted, rel=0.03)
-    # a clipped frame adds nothing
-    assert st[-1].information(np.array([1e9]), 0)[0] == 0.0
+    # a frame far past white adds (almost) nothing
+    assert st[-1].information(np.array([1e9]), 0)[0] < 1e-12 * st[-1].information(np.array([1.0]), 0)[0]
 
 
-def test_worst_case_at_the_critical_irradiances_is_the_minimum_over_a_dense_grid():
+def test_censored_factor_is_the_information_of_a_censored_normal():
+    """T(z) against numerical integration of the censored normal's score: the Fisher
+    information about the mean of y ~ N(mu, 1) observed as min(y, c), z = c - mu."""
+    from scipy import integrate
+    from scipy.stats import norm
+
+    for z in (-3.0, -1.0, 0.0, 0.7, 2.0, 4.0):
+        inside = integrate.quad(lambda y: (y ** 2) * norm.pdf(y), -np.inf, z)[0]
+        censored = norm.pdf(z) ** 2 / norm.sf(z)  # score phi/(1-Phi) at the censoring point
+        assert cap.censored_factor(z) == pytest.approx(inside + censored, rel=1e-6)
+
+
+def test_worst_case_at_the_critical_irradiances_is_within_0_1_db_of_a_dense_grid():
     st = settings()
     rng = np.random.default_rng(0)
     for _ in range(5):
         plan = [(st[j], 1) for j in rng.choice(len(st), 4, replace=False)]
         dense = np.geomspace(SCENE.lo[0], SCENE.hi[0], 200_001)
         grid_min = float(np.min(cap.snr_db(dense, plan, 0)))
-        exact = cap.worst_case_snr_db(plan, SCENE)
-        assert exact <= grid_min + 1e-9
-        assert exact == pytest.approx(grid_min, abs=0.01) or not np.isfinite(grid_min)
+        at_points = cap.worst_case_snr_db(plan, SCENE)
+        assert at_points == pytest.approx(grid_min, abs=0.1)
 
 
 def _brute_force(st, budget, max_frames):

@@ -15,7 +15,7 @@ import numpy as np
 
 from hdrmerge_cli.core import capture_hasinoff2010 as capture
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
+from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
 from hdrmerge_cli.io.noisespec import iso_key, iso_of_key, noise_from_profile, per_channel
 
@@ -203,7 +203,7 @@ def settings_for(metering: Metering, opts: PlanOptions) -> list[capture.Setting]
                                     f"{', '.join(iso_key(i) for i in sorted(noise_at))}); run calibrate-noise there")
             noise_at = {float(i): noise_at[float(i)] for i in opts.isos}
         reference = metering.reference_iso
-    return capture.make_settings(times, sorted(noise_at), noise_at, reference, metering.y_full, DEFAULT_K)
+    return capture.make_settings(times, sorted(noise_at), noise_at, reference, metering.y_full)
 
 
 def check_options(opts: PlanOptions) -> None:
