@@ -41,6 +41,7 @@ SECTIONS = (
     ("speed", "Speed and memory: the merge core, end to end, other commands"),
     ("speed_whole", "Speed: whole commands against HDRMerge, Luminance HDR and OpenCV"),
     ("input_kinds", "What each program does with each kind of frame"),
+    ("plan", "Capture plans against conventional brackets, predicted and measured"),
 )
 
 #: the command that writes a result file, where it is not ``python -m benchmarks NAME``
