@@ -263,8 +263,9 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
     0.01 dB of it the shortest.  Raises if no setting fits the budget.
 
     With several ISOs, the plan at the lowest ISO alone (a program of fewer variables) is
-    solved first and bounds the search from below: the search's plan is never worse than
-    it, even when the time limit stops the search."""
+    solved first and bounds the search from below; it is returned unless the other ISOs
+    gain more than 0.01 dB, so a plan is never worse than it, even when the time limit
+    stops the search."""
     from scipy.optimize import LinearConstraint
 
     settings = [s for s in settings if s.time <= budget]
@@ -292,8 +293,9 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
     best = LinearConstraint(a, float(np.min(a @ counts)) * 10 ** -0.001, np.inf)
     short, _, _ = _solve(times, [best] + within, n, max_frames, time_limit)
     plan = replace(_plan(settings, counts if short is None else short, scene, optimal, gap), lowest_iso=start)
-    # the lowest-ISO plan where the search, stopped by its time limit, found no better one
-    return replace(start, lowest_iso=start) if start is not None and start.worst_snr_db > plan.worst_snr_db + 0.01 \
+    # the lowest-ISO plan unless other ISOs gain more than 0.01 dB (on a sensor without
+    # read noise after the amplifier they gain nothing, and a higher ISO only clips sooner)
+    return replace(start, lowest_iso=start) if start is not None and plan.worst_snr_db <= start.worst_snr_db + 0.01 \
         else plan
 
 
