@@ -778,3 +778,32 @@ def test_frames_that_moved_are_registered_at_full_resolution_as_before(monkeypat
     for est, old in zip(out["warps"], before["warps"]):
         assert np.array_equal(est, old)
     assert abs(out["warps"][2][0, 2] + 5.0) < 0.1
+
+
+@needs_shared
+def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path):
+    """A still RAW bracket whose shortest frame is moved by one CFA period: the
+    alignment is applied, and the frames the coarse test finds still keep their
+    neighbour's warp exactly: none is resampled for a sub-tolerance estimate."""
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.io.dng_integer import write_dng
+    from hdrmerge_cli.io.frames import load_codes
+    from hdrmerge_cli.pipeline.bracket import exposure_values
+    from hdrmerge_cli.pipeline.merge import read_bracket
+    from hdrmerge_cli.pipeline.motion import estimate_alignment
+
+    run("simulate", "-o", tmp_path, "-q", "--scene", SHARED / "hdr" / "ScanLines_Desk.exr", "--downscale", "2",
+        "--scale", "80000", "--frames", "4", "--seed", "4")
+    paths = sorted(str(p) for p in tmp_path.glob("frame_*.dng"))
+    frames = read_bracket(paths, None)
+    moved = frames[0]
+    write_dng(moved.path, np.roll(load_codes(moved), 2, axis=1), pattern="RGGB", black=int(moved.black[0]),
+              white=int(moved.white[0]), exposure_time=moved.exposure_time, iso=int(moved.iso or 100), aperture=8.0)
+    frames = read_bracket(paths, None)
+    out = estimate_alignment(frames, exposure_values(frames), CRF("linear"), "auto")
+    assert out["applied"], {k: out[k] for k in ("shift_px", "still", "unaligned")}
+    assert out["still"], "no frame was found still"
+    for j, f in enumerate(frames):
+        if f.path in out["still"]:
+            neighbour = j - 1 if j > frames.index(next(g for g in frames if g.path == out["reference"])) else j + 1
+            np.testing.assert_array_equal(out["warps"][j], out["warps"][neighbour])

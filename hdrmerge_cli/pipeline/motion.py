@@ -93,8 +93,9 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     texture test measures at): a pair without texture there is left unaligned, one
     found still (:func:`~hdrmerge_cli.core.registration.still_test`, at
     :data:`AUTO_ALIGN_PX` divided by the frame's steps from the reference, so the chained
-    warp stays within it) keeps the coarse translation estimate and is not registered at
-    full resolution.  Returns ``{"mode", "reference",
+    warp stays within it) is not registered at full resolution: an image keeps the coarse
+    translation estimate, a RAW frame its neighbour's warp (no correction below the
+    tolerance is worth resampling a mosaic colour by colour).  Returns ``{"mode", "reference",
     "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
     "unaligned": [...], "still": [...]}`` with warps in the frames' own sample coordinates,
     confidence the registration's correlation coefficient to its neighbour (1 for the
@@ -223,7 +224,11 @@ def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: 
         judged_still.append(b)
         if rho < MIN_CONFIDENCE:
             return identity, f"its still test correlates only {rho:.2f} with its neighbour"
-        return w, None
+        # RAW: within the tolerance at the test's confidence the frame stays where its
+        # neighbour is: resampling a mosaic colour by colour for an estimate of a few
+        # hundredths of a pixel costs more than it corrects (a colour's 2-px pitch, the taps'
+        # spread in the weights, clipped taps near white)
+        return (identity if raw else w), None
 
     def chain(indices: list[int]) -> dict:
         """The steps of one side of the reference, outwards: under ``auto`` a step found still at
