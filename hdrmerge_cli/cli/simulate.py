@@ -8,9 +8,10 @@ import click
 from hdrmerge_cli.cli.options import (
     SEED, FiniteFloatRange, common_options, emit, output_options, times_option_callback,
 )
+from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.sensor import SensorModel
 from hdrmerge_cli.io.noisespec import NOISE_RANGES
-from hdrmerge_cli.pipeline.simulate import FORMATS, SimulateOptions, simulate
+from hdrmerge_cli.pipeline.simulate import FORMATS, SimulateOptions, frame_isos, simulate
 
 
 #: largest side of a simulated frame (JPEG's limit)
@@ -108,13 +109,10 @@ def command(output_dir, scene, size, downscale, scale, frames, repeat, times, fm
     if sigma_post2 > sigma_o2:
         raise click.BadParameter(f"{sigma_post2:g} exceeds --sigma-o2 {sigma_o2:g} (it is the part of the read noise "
                                  "after the amplifier)", param_hint="--sigma-post2")
-    if isinstance(iso, list):
-        if not times:
-            raise click.BadParameter(f"a list of {len(iso)} ISOs pairs with --times, one ISO per exposure time; give "
-                                     "--times, or a single ISO", param_hint="--iso")
-        if len(iso) != len(times):
-            raise click.BadParameter(f"{len(iso)} ISOs for {len(times)} exposure times (--times); give one ISO per "
-                                     "exposure time, or a single ISO", param_hint="--iso")
+    try:
+        frame_isos(iso, times)
+    except HdrMergeError as exc:  # a usage error here (exit 2), before any work
+        raise click.BadParameter(str(exc).removeprefix("--iso: "), param_hint="--iso") from None
     if base_iso is None:
         base_iso = float(min(iso) if isinstance(iso, list) else iso)
     sensor = SensorModel(alpha=alpha, sigma_o2=sigma_o2, beta=beta, bits=bits, black=black, sigma_post2=sigma_post2,

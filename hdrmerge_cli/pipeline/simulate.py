@@ -187,19 +187,19 @@ def check_times(times: np.ndarray, signal: np.ndarray, scene_name: str, opts: Si
                         "scene is too bright for the sensor; lower --scale or give --times")
 
 
-def frame_isos(opts: SimulateOptions) -> list[int]:
-    """The ISO of each entry of ``opts.times`` (or the single ISO of the automatic
-    times): one ISO for all, or a list as long as ``opts.times``."""
-    isos = [opts.iso] if isinstance(opts.iso, (int, np.integer)) else [int(i) for i in opts.iso]
+def frame_isos(iso, times) -> list[int]:
+    """The ISO of each entry of ``times`` (or the single ISO of the automatic times, for
+    ``times`` None): ``iso`` is one ISO for all, or a list as long as ``times``."""
+    isos = [iso] if isinstance(iso, (int, np.integer)) else [int(i) for i in iso]
     if not isos or not all(1 <= i <= 65535 for i in isos):
         raise HdrMergeError("--iso: give ISOs from 1 to 65535 (a 16-bit EXIF field)")
     if len(isos) == 1:
-        return isos * (len(opts.times) if opts.times else 1)
-    if not opts.times:
+        return isos * (len(times) if times else 1)
+    if not times:
         raise HdrMergeError(f"--iso: a list of {len(isos)} ISOs pairs with --times, one ISO per exposure time; "
                             "give --times, or a single ISO")
-    if len(isos) != len(opts.times):
-        raise HdrMergeError(f"--iso: {len(isos)} ISOs for {len(opts.times)} exposure times (--times); give one ISO "
+    if len(isos) != len(times):
+        raise HdrMergeError(f"--iso: {len(isos)} ISOs for {len(times)} exposure times (--times); give one ISO "
                             "per exposure time, or a single ISO")
     return isos
 
@@ -208,7 +208,7 @@ def simulate(opts: SimulateOptions) -> dict:
     if opts.fmt not in FORMATS:
         raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
     sensor = opts.sensor
-    isos = frame_isos(opts)
+    isos = frame_isos(opts.iso, opts.times)
     at_iso = {iso: sensor.at_iso(iso) for iso in sorted(set(isos))}
     crf = CRF("linear") if opts.fmt == "dng" else resolve_crf(opts.crf)
     out_bits = 8 if opts.fmt == "jpg" else opts.out_bits
