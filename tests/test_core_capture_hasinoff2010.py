@@ -141,3 +141,15 @@ def test_the_brightest_photosite_is_measured_even_when_rare():
     scene = cap.SceneRange((20.0,), (20.0 * 2 ** 16,), occupied=(((20.0, 20.0 * 2 ** 8),),))
     plan = cap.best_plan(settings(), scene, 0.5, 4)
     assert any(s.clipping_point(0) >= scene.hi[0] for s, _ in plan.frames)
+
+
+def test_dip_mean_solves_its_equation_and_meets_the_clipping_safe_bound_of_47():
+    from hdrmerge_cli.core.noise import clipping_safe_range_exact, code_variance
+
+    p = NoiseParams(36.0, 16.0, 0.001)
+    white = Y_FULL
+    for sds in (-3.0, -1.0, 0.5, 2.0, 4.0):
+        mu = cap.dip_mean(p, white, sds)
+        assert mu - white == pytest.approx(sds * np.sqrt(code_variance(mu, p)), rel=1e-9)
+    # sds = -k: the upper clipping-safe bound of (47), solved there independently
+    assert cap.dip_mean(p, white, -3.0) == pytest.approx(clipping_safe_range_exact(p, 0.5, white, 3.0)[1], rel=1e-9)

@@ -217,11 +217,7 @@ class Plan:
     total_time: float
     optimal: bool = True
     gap: float = 0.0
-    lowest_iso: "Plan | None" = None  # the best plan at the lowest ISO alone, where it was solved
-
-    @property
-    def count(self) -> int:
-        return int(sum(n for _, n in self.frames))
+    lowest_iso: "Plan | None" = None
 
 
 def _program(settings, scene):
@@ -283,14 +279,15 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
         LinearConstraint(np.hstack([c.A, np.zeros((1, 1))]), c.lb, c.ub) for c in within]
     floor = 0.0 if start is None or not np.isfinite(start.worst_snr_db) else 10 ** (start.worst_snr_db / 10)
     counts, optimal, gap = _solve(np.r_[np.zeros(n), -1.0], tau, n, max_frames, time_limit, floor)
-    if counts is None or not np.min(a @ counts) > 0:
+    reached = None if counts is None else float(np.min(a @ counts))
+    if reached is None or not reached > 0:
         if start is not None and np.isfinite(start.worst_snr_db):
             return replace(start, lowest_iso=start)
         raise HdrMergeError("no plan within the budget measures every irradiance of the scene (its brightest "
                             "photosites clip in every frame allowed, or its darkest read no light)")
     # the shortest plan within 0.01 dB of the best (a frame more never lowers the SNR, so
     # the first solution may hold frames that add time but nothing to the worst case)
-    best = LinearConstraint(a, float(np.min(a @ counts)) * 10 ** -0.001, np.inf)
+    best = LinearConstraint(a, reached * 10 ** -0.001, np.inf)
     short, _, _ = _solve(times, [best] + within, n, max_frames, time_limit)
     plan = replace(_plan(settings, counts if short is None else short, scene, optimal, gap), lowest_iso=start)
     # the lowest-ISO plan unless other ISOs gain more than 0.01 dB (on a sensor without
