@@ -173,9 +173,8 @@ def meter(paths: list[str], opts: PlanOptions) -> Metering:
         log.warning("%.3g %% of the photosites are clipped in every metering frame: the plan takes them at the "
                     "clipping level, a lower bound; add a shorter metering frame", 100 * clipped)
     noise = _noise_per_iso(opts.profile, names, merged.models.noise)
-    camera = " ".join(x for x in (first.make, first.model) if x) or "unknown camera"
-    return Metering(scene, names, first.iso, y_full, noise,
-                    [(f.exposure_time, f.iso) for f in merged.frames], clipped, camera, str(first.path))
+    return Metering(scene, names, first.iso, y_full, noise, [(f.exposure_time, f.iso) for f in merged.frames],
+                    clipped, first.camera or "unknown camera", str(first.path))
 
 
 def settings_for(metering: Metering, opts: PlanOptions) -> list[capture.Setting]:
