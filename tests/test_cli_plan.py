@@ -103,3 +103,11 @@ def test_one_shutter_speed_and_one_frame_still_give_a_table(run, metering):
     out = json.loads(run("plan", *frames, "--time", "1", "--frames", "1", "--shutter-speeds", "0.01",
                          "--json").stdout)
     assert np.isfinite(out["predicted_worst_snr_db"]) and out["frames"] == [{"time": 0.01, "iso": 100.0}]
+
+
+def test_a_plot_it_cannot_draw_is_refused_before_anything_is_written(run, metering, tmp_path):
+    frames, profile = metering
+    script = tmp_path / "shoot.sh"
+    bad = run("plan", *frames, "--time", "0.1", "--gphoto2", script, "--plot", tmp_path / "snr.xyz", check=False)
+    assert bad.returncode == 1 and "snr.xyz" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert not script.exists() and not list(tmp_path.iterdir())
