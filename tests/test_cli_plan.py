@@ -111,3 +111,12 @@ def test_a_plot_it_cannot_draw_is_refused_before_anything_is_written(run, meteri
     bad = run("plan", *frames, "--time", "0.1", "--gphoto2", script, "--plot", tmp_path / "snr.xyz", check=False)
     assert bad.returncode == 1 and "snr.xyz" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     assert not script.exists() and not list(tmp_path.iterdir())
+
+
+def test_the_raw_camera_sample_config_plans(run, metering):
+    from pathlib import Path
+
+    frames, profile = metering
+    config = Path(__file__).resolve().parents[1] / "sample_configs" / "raw-camera.toml"
+    out = json.loads(run("plan", *frames, "--config", config, "--profile", profile, "--time", "0.1", "--json").stdout)
+    assert out["frames"] and out["worst_case"]["percentile"] == 1.0
