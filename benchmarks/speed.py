@@ -237,9 +237,9 @@ def libraw_decode_sum(paths) -> float:
     return total
 
 
-def simulate_dng(folder: Path, width: int, height: int, frames: int) -> list[Path]:
-    cli_args = ["simulate", "-o", str(folder), "--size", f"{width}x{height}", "--frames", str(frames), "--overwrite"]
-    cli(cli_args)
+def simulate_dng(folder: Path, width: int, height: int, frames: int, times: str | None = None) -> list[Path]:
+    cli_args = ["simulate", "-o", str(folder), "--size", f"{width}x{height}", "--overwrite"]
+    cli(cli_args + (["--times", times] if times else ["--frames", str(frames)]))
     return sorted(folder.glob("frame_*.dng"))
 
 
@@ -415,6 +415,18 @@ def _whole_tiff(tmp: Path, quick: bool, luminance: str | None, row) -> None:
     row(case, "OpenCV imread + MergeDebevec (known sRGB response) + EXR write", ocv, ref,
         "python + cv2 start-up included; EXR by OpenImageIO (uncompressed) where cv2 has no OpenEXR")
     row(case, "luminance-hdr-cli -s out.exr", lum_tif, ref, "" if luminance else "not installed")
+    # memory: 9 frames against 3 (the 3 copied three times, the response given as above)
+    nine = tmp / "tif_nine"
+    nine.mkdir()
+    copies = []
+    for k in range(9):
+        copies.append(nine / f"frame_{k:02d}.tif")
+        shutil.copyfile(tifs[k % 3], copies[-1])
+    ours_nine = first_merge(ours() + ["merge", *map(str, copies), "-o", str(tmp / "tif9.exr"), "--overwrite", "--json",
+                                      "--crf", "srgb"], tmp, 1)
+    ratio = ours_nine["peak"] / ours_srgb["peak"] if ours_nine and ours_srgb and ours_srgb["peak"] else None
+    row(f"9 x {tw * th / 1e6:.0f} MP 8-bit TIFF", "hdrmerge-cli merge --crf srgb", ours_nine, None,
+        f"peak 9 / 3 frames = {ratio:.2f}" if ratio else "")
 
 
 def _whole_lines(rows: list[str], startup: dict, splits: list, t_load) -> list[str]:
@@ -539,9 +551,22 @@ def whole_commands(tmp: Path, quick: bool) -> list[str]:
         links.append(dst)
     ours_nine = timed(ours() + ["merge", *map(str, links), "-o", str(tmp / "nine.exr"), "--overwrite", "--json"],
                       cache)
+    hm_nine = hdrmerge_run(links, tmp / "nine_hm.dng", 1)
     mem_ratio = (ours_nine["peak"] / ours_big["peak"]) if ours_nine and ours_big and ours_big["peak"] else None
-    row(f"{mp:.0f} MP x 9 DNG", "hdrmerge-cli merge: cached", ours_nine, None,
-        f"peak 9 / 3 frames = {mem_ratio:.2f}" if mem_ratio else "")
+    case = f"{mp:.0f} MP x 9 DNG"
+    ref = hm_nine["wall"] if hm_nine else None
+    row(case, "hdrmerge-cli merge: cached", ours_nine, ref, f"peak 9 / 3 frames = {mem_ratio:.2f}" if mem_ratio else "")
+    row(case, "HDRMerge -b 32 (float DNG)", hm_nine, ref, "" if hdrmerge else "not installed")
+
+    # the commonest camera bracket: 3 frames 2 EV apart (the simulated default spans about 8 EV)
+    two = as_camera(simulate_dng(tmp / "two_ev_sim", w, h, 3, times="1/400,1/100,1/25"), tmp / "two_ev")
+    hm_two = hdrmerge_run(two, tmp / "two_hm.dng")
+    ours_two = first_merge(ours() + ["merge", *map(str, two), "-o", str(tmp / "two.exr"), "--overwrite", "--json"],
+                           tmp)
+    case = f"{mp:.0f} MP x 3 DNG, 2 EV apart"
+    ref = hm_two["wall"] if hm_two else None
+    row(case, "hdrmerge-cli merge: first merge (default options, empty cache)", ours_two, ref, split="first")
+    row(case, "HDRMerge -b 32 (float DNG)", hm_two, ref, "" if hdrmerge else "not installed")
 
     # hand-held RAW bracket: alignment needed (HDRMerge aligns by default too)
     moving = handheld_dng(tmp, w, h)

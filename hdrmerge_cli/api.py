@@ -676,14 +676,14 @@ def merge_files(paths: Sequence[str | Path], **options) -> Merged:
     crf = options.pop("crf") if isinstance(options.get("crf"), CRF) else None
     opts = _options(options)
     noise = _noise(noise)
-    frames, response = open_bracket([str(p) for p in paths], opts)
+    frames, response, held = open_bracket([str(p) for p in paths], opts)
     if crf is not None and frames[0].kind == "image":
         n = frames[0].n_codes
         if crf.table is not None and crf.table.shape[1] != n:
             raise HdrMergeError(f"crf: the inverse table has {crf.table.shape[1]} entries per channel, but "
                                 f"{frames[0].path} has {n} code values")
         response = crf
-    return merge_frames(frames, response, opts, t_start=t0, noise=noise)
+    return merge_frames(frames, response, opts, load=held, t_start=t0, noise=noise)
 
 
 def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",

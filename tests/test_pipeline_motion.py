@@ -553,7 +553,8 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     def given(frames, exposures, crf, mode, load=None):
         return {"mode": mode, "motion": "translation", "resampling": "per-colour", "reference": frames[1].path,
                 "applied": True, "shift_px": [], "largest_displacement_px": [], "confidence": [], "unaligned": [],
-                "warps": true}
+                "frames": [f.path for f in frames], "warps": true,
+                "warp_of": {id(f): w for f, w in zip(frames, true)}}
 
     def run(name, bracket):
         out = tmp_path / f"{name}.exr"
@@ -677,16 +678,16 @@ def test_static_raw_bracket_deghosting_rejects_nothing_wherever_the_camera_puts_
     assert max(summary["deghost"]["rejected_fraction"]) <= 0.002
 
 
-def test_decoded_once_decodes_each_frame_once_until_released():
-    """The motion passes' loader: frames asked for again (and by two threads at once, as
+def test_held_codes_decode_each_frame_once_by_identity():
+    """The bracket's loader: frames asked for again (and by two threads at once, as
     alignment's two sides ask for the reference) are decoded once and handed out
-    read-only; a released frame is decoded again, and after ``release()`` every call
-    decodes and nothing is kept."""
+    read-only; frames are told apart by identity (two frames of one path are two frames);
+    a dropped frame is decoded again; codes handed over with ``hold`` are never decoded."""
     import threading
     import time
     from types import SimpleNamespace
 
-    from hdrmerge_cli.pipeline.motion import DecodedOnce
+    from hdrmerge_cli.io.frames import HeldCodes
 
     calls = []
 
@@ -695,26 +696,21 @@ def test_decoded_once_decodes_each_frame_once_until_released():
         time.sleep(0.05)  # long enough for the other thread to ask meanwhile
         return np.full((4, 5), len(calls), np.uint16)
 
-    a, b = SimpleNamespace(path="a.tif"), SimpleNamespace(path="b.tif")
-    once = DecodedOnce(load)
+    a, b, same_path = SimpleNamespace(path="a.tif"), SimpleNamespace(path="b.tif"), SimpleNamespace(path="a.tif")
+    held = HeldCodes(load)
     got = []
-    threads = [threading.Thread(target=lambda: got.append(once(a))) for _ in range(2)]
+    threads = [threading.Thread(target=lambda: got.append(held(a))) for _ in range(2)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
     assert calls == ["a.tif"] and got[0] is got[1] and not got[0].flags.writeable
-    assert once(a) is got[0] and once(b)[0, 0] == 2 and calls == ["a.tif", "b.tif"]
-    once.release("a.tif")
-    assert once(a)[0, 0] == 3 and once(b)[0, 0] == 2
-    once.release()
-    assert once(b)[0, 0] == 4 and once(b)[0, 0] == 5 and once.kept is None
-    # max_frames: the oldest dropped beyond that many (alignment alone keeps its working set)
-    calls.clear()
-    few = DecodedOnce(load, max_frames=2)
-    c = SimpleNamespace(path="c.tif")
-    few(a), few(b), few(c)
-    assert list(few.kept) == ["b.tif", "c.tif"] and few(b)[0, 0] == 2 and few(a)[0, 0] == 4
+    assert held(a) is got[0] and held(b)[0, 0] == 2 and held(same_path)[0, 0] == 3
+    held.drop(a)
+    assert held(a)[0, 0] == 4 and held(b)[0, 0] == 2 and len(calls) == 4
+    given = SimpleNamespace(path="c.tif")
+    held.hold(given, np.zeros((4, 5), np.uint16))
+    assert held(given)[0, 0] == 0 and not held(given).flags.writeable and len(calls) == 4
 
 
 def _raw_stack(shifts, seed=1, h=384, w=512):

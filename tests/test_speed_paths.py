@@ -343,10 +343,10 @@ def test_raw_metadata_carries_the_cfa_cell_and_reads_in_parallel(dng_frames, mon
     threads = set()
     real = bracket.read_frame
 
-    def spy(path):
+    def spy(path, held=None):
         import threading
         threads.add(threading.current_thread().name)
-        return real(path)
+        return real(path, held)
 
     monkeypatch.setattr(bracket, "read_frame", spy)
     read = bracket.read_bracket(paths[::-1])

@@ -198,8 +198,10 @@ def list_frames(folder: str | os.PathLike) -> list[str]:
             if p.is_file() and not p.name.startswith(".") and p.suffix.lower() not in NOT_FRAMES]
 
 
-def read_frame(path: str | os.PathLike) -> Frame:
-    """Metadata of one frame (RAW or image), validated; raises HdrMergeError."""
+def read_frame(path: str | os.PathLike, held: "HeldCodes | None" = None) -> Frame:
+    """Metadata of one frame (RAW or image), validated; raises HdrMergeError.  ``held``:
+    the codes of a RAW frame, which LibRaw unpacks to tell its colour filter and levels,
+    are handed to it from the same open (a RAW frame is then decoded once)."""
     path = str(path)
     try:
         path.encode("utf-8")
@@ -214,7 +216,7 @@ def read_frame(path: str | os.PathLike) -> Frame:
     if Path(path).suffix.lower() in NOT_FRAMES:
         raise HdrMergeError(f"{path}: {NOT_FRAMES[Path(path).suffix.lower()]} is not an input frame "
                             "(frames are RAW files or 8/16-bit JPEG/TIFF/PNG)")
-    return _read_raw(path) if is_raw_path(path) else _read_image(path)
+    return _read_raw(path, held) if is_raw_path(path) else _read_image(path)
 
 
 def check_distinct_frames(paths) -> None:
@@ -247,13 +249,15 @@ def _oiio_meta(path: str) -> dict:
 LIBRAW_FLIP_TO_EXIF = {0: 1, 1: 2, 2: 4, 3: 3, 4: 5, 5: 8, 6: 6, 7: 7}
 
 
-def _read_raw(path: str) -> Frame:
+def _read_raw(path: str, held: "HeldCodes | None" = None) -> Frame:
     """A RAW file's metadata.  Bayer mosaics are kind "raw"; linear RGB data (LinearRaw
     DNGs, and other already demosaiced data LibRaw hands over as 3 colours per pixel) kind
-    "linear"; what cannot be merged (X-Trans, 4-colour sensors) is refused with what it is."""
+    "linear"; what cannot be merged (X-Trans, 4-colour sensors) is refused with what it is.
+    ``held``: the unpacked codes are handed to it (:func:`read_frame`)."""
     import rawpy
 
     raw = rawpy.RawPy()
+    stored = None
     try:
         with quiet_c_stderr():
             raw.open_file(path)
@@ -273,10 +277,13 @@ def _read_raw(path: str) -> Frame:
             daylight = np.asarray(raw.daylight_whitebalance, dtype=np.float64)
             matrix = np.asarray(raw.color_matrix, dtype=np.float64)[:, :3]
             other = raw.other
+            if held is not None:
+                stored = _visible(raw)
     except rawpy.LibRawError as exc:
         raise HdrMergeError(f"{path}: not a readable RAW file ({_libraw_reason(exc, path)})") from None
     finally:
-        raw.close()
+        if stored is None:  # else the codes may be LibRaw's buffer itself, freed with them (_visible)
+            raw.close()
     pattern = None if pattern is None else np.asarray(pattern)
     if raw_type == rawpy.RawType.Stack or (num_colors == 1 and (pattern is None or pattern.size == 1)):
         kind, channels = "linear", 3 if raw_type == rawpy.RawType.Stack else 1
@@ -306,13 +313,27 @@ def _read_raw(path: str) -> Frame:
         orientation=LIBRAW_FLIP_TO_EXIF.get(int(sizes.flip), 1),
     )
     if kind == "linear":  # decoded as codes (black 0, white 65535): see load_codes
-        return Frame(**common, black=np.zeros(channels), white=np.full(channels, 65535.0), channels=channels,
-                     channel_colors="RGB" if channels == 3 else "Y", file_levels=(black[:channels], white))
+        frame = Frame(**common, black=np.zeros(channels), white=np.full(channels, 65535.0), channels=channels,
+                      channel_colors="RGB" if channels == 3 else "Y", file_levels=(black[:channels], white))
+        if stored is not None:
+            held.hold(frame, linear_codes(stored, frame))
+        return frame
     cfa = "".join(colors[i] for i in pattern.ravel())
     cell = window[:2, :2]
     periodic = np.array_equal(window, np.tile(cell, (CFA_WINDOW // 2, CFA_WINDOW // 2)))
-    return Frame(**common, black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors,
-                 cfa_cell=cell.astype(np.intp) if periodic else None)  # else sample_pattern reports it
+    frame = Frame(**common, black=black, white=np.full(4, white), channels=4, cfa_pattern=cfa, channel_colors=colors,
+                  cfa_cell=cell.astype(np.intp) if periodic else None)  # else sample_pattern reports it
+    if stored is not None:
+        held.hold(frame, stored)
+    return frame
+
+
+def _visible(raw) -> np.ndarray:
+    """The visible area of an unpacked ``rawpy.RawPy``: LibRaw's buffer itself when it has
+    no margins (the view keeps its RawPy, and so the buffer, alive, and it is freed with the
+    view: the RawPy must not be closed under it), a copy otherwise (compiled kernels take
+    contiguous arrays)."""
+    return np.ascontiguousarray(raw.raw_image_visible)
 
 
 def _libraw_reason(exc, path: str | None = None) -> str:
@@ -411,12 +432,7 @@ def load_codes(frame: Frame) -> np.ndarray:
 
         try:
             with quiet_c_stderr():
-                raw = rawpy.imread(frame.path)
-                # LibRaw's buffer itself when it has no margins: the view keeps its RawPy (and
-                # so the buffer) alive, and it is freed with the view (never closed under it);
-                # a copy of the visible area otherwise (compiled kernels take contiguous arrays)
-                codes = np.ascontiguousarray(raw.raw_image_visible)
-                del raw
+                codes = _visible(rawpy.imread(frame.path))
         except rawpy.LibRawError as exc:
             raise HdrMergeError(f"{frame.path}: not a readable RAW file ({_libraw_reason(exc, frame.path)})") from None
         if frame.kind == "linear":
@@ -429,6 +445,48 @@ def load_codes(frame: Frame) -> np.ndarray:
         colour[pixels[..., alpha] == 0] = 0
         return colour
     return pixels
+
+
+class HeldCodes:
+    """``frame -> codes``: each frame of a bracket decoded once (``load``) and held,
+    read-only, for every later pass (the samples, registration, noise, ghosts, the merge and
+    its re-weighting); keyed by the frame object itself, not its path or position.  Safe to
+    call from several threads: two threads asking for one frame share one decode.  A RAW
+    frame's codes can be handed over by :func:`read_frame`, from the open that read its
+    metadata (:meth:`hold`)."""
+
+    def __init__(self, load=load_codes):
+        self.load = load
+        self._codes: dict[int, np.ndarray] = {}
+        self._lock = threading.Lock()
+        self._decoding: dict[int, threading.Lock] = {}
+
+    def hold(self, frame: Frame, codes: np.ndarray) -> None:
+        """Keep ``codes`` as ``frame``'s (read-only from now on)."""
+        codes.flags.writeable = False
+        with self._lock:
+            self._codes[id(frame)] = codes
+
+    def drop(self, frame: Frame) -> None:
+        """Forget ``frame``'s codes (a caller that keeps what it made of them instead); a later
+        call decodes again."""
+        with self._lock:
+            self._codes.pop(id(frame), None)
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        key = id(frame)
+        with self._lock:
+            codes = self._codes.get(key)
+            if codes is not None:
+                return codes
+            one = self._decoding.setdefault(key, threading.Lock())
+        with one:
+            with self._lock:
+                codes = self._codes.get(key)
+            if codes is None:
+                codes = self.load(frame)
+                self.hold(frame, codes)
+            return codes
 
 
 def load_validity(frame: Frame) -> np.ndarray | None:

@@ -13,7 +13,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import channel_index
 from hdrmerge_cli.io.crfspec import resolve_crf
-from hdrmerge_cli.io.frames import Frame, check_distinct_frames, raw_channel_window, read_frame
+from hdrmerge_cli.io.frames import Frame, HeldCodes, check_distinct_frames, raw_channel_window, read_frame
 from hdrmerge_cli.io.profile import crf_from_json, load_profile
 from hdrmerge_cli.io.times import apply_times
 
@@ -24,17 +24,18 @@ EQUAL_EXPOSURE_RTOL = 1e-3
 
 
 def read_bracket(paths: list[str], times: list[float] | None = None, times_file: str | None = None,
-                 equal_ok: bool = False) -> list[Frame]:
+                 equal_ok: bool = False, held: HeldCodes | None = None) -> list[Frame]:
     """Read and check the frames' metadata; apply user exposure times; sort by exposure.
     Frames of equal exposure are refused unless ``equal_ok`` (merge averages them; a
-    response or weight table needs distinct exposures)."""
+    response or weight table needs distinct exposures).  ``held``: takes the RAW frames'
+    codes from the opens that read their metadata (:func:`~hdrmerge_cli.io.frames.read_frame`)."""
     if not paths:
         raise HdrMergeError("no input frames given")
     if len(paths) > 1:  # LibRaw unpacks each RAW to report its CFA layout, releasing the GIL: both cores
-        with ThreadPoolExecutor(2) as pool:
-            frames = list(pool.map(read_frame, paths))  # the first bad file in order is reported
+        with ThreadPoolExecutor(2) as pool:  # the first bad file in order is reported
+            frames = list(pool.map(lambda p: read_frame(p, held), paths))
     else:
-        frames = [read_frame(p) for p in paths]
+        frames = [read_frame(p, held) for p in paths]
     check_distinct_frames(paths)
     apply_times(frames, times, times_file)  # "estimate": labels here, estimates after decoding
     first = frames[0]

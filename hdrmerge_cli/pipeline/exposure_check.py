@@ -167,9 +167,17 @@ def check_order(frames: list[Frame], s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
     of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels neither clips, off the
     constant borders (frames at the noise floor and equal exposures pass; only a pair
-    darker on most changed pixels fails), with a one-line error naming both frames."""
+    darker on most changed pixels fails), with a one-line error naming both frames.  Frames
+    whose labels tie (:data:`~hdrmerge_cli.pipeline.bracket.EQUAL_EXPOSURE_RTOL`) are not
+    ordered by them: the merge compares them as repeats, and ``--times estimate`` orders
+    them by their estimates."""
+    from hdrmerge_cli.pipeline.bracket import EQUAL_EXPOSURE_RTOL, exposure_values
+
     margin = max(1.5 * s.codes_step, 0.004)
+    h = exposure_values(frames)
     for k in range(1, len(frames)):
+        if h[k] <= h[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
+            continue
         a, b = s.v[k - 1], s.v[k]
         usable = (a < 1 - 0.5 * s.codes_step) & (b < 1 - 0.5 * s.codes_step) & s.inside[..., None]
         t = order_test(a, b, usable, margin)

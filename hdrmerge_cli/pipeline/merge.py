@@ -30,9 +30,8 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, LogMerge, irls, noise_rows
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
-from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes
 from hdrmerge_cli.io.images import exr_compression
-from hdrmerge_cli.io.malloc import return_free_memory
 from hdrmerge_cli.io.noisespec import per_channel
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import motion
@@ -59,11 +58,12 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     inputs = check_outputs(paths, opts)
     t0 = time.perf_counter()
     start_preparing_kernels()
-    frames, crf = open_bracket(paths, opts)
+    frames, crf, codes = open_bracket(paths, opts)
     if Path(opts.output).suffix.lower() == ".dng" and frames[0].kind != "raw":
         raise HdrMergeError(f"{opts.output}: a DNG output holds a CFA mosaic, but {frames[0].path} is not a Bayer "
                             "RAW frame; name the output *.exr")
-    merged = merge_frames(frames, crf, opts, t_start=t0)
+    merged = merge_frames(frames, crf, opts, load=codes, t_start=t0)
+    del codes  # the frames' codes are not needed for colour and writing: freed before their peak
     t0 = time.perf_counter()
     written = merged.write(inputs=inputs)
     merged.timings["color_and_write"] = time.perf_counter() - t0
@@ -140,14 +140,16 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
 def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
     """Stages 1-6 on files: :func:`open_bracket`, then :func:`merge_frames`."""
     t0 = time.perf_counter()
-    frames, crf = open_bracket(paths, opts)
-    return merge_frames(frames, crf, opts, t_start=t0)
+    frames, crf, codes = open_bracket(paths, opts)
+    return merge_frames(frames, crf, opts, load=codes, t_start=t0)
 
 
-def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF]:
-    """Stage 1: the frames' metadata, checked and sorted by exposure, and the response."""
-    frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True)
-    return frames, choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf, warn=False)
+def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF, HeldCodes]:
+    """Stage 1: the frames' metadata, checked and sorted by exposure, the response, and
+    the frames' codes as each is decoded (a RAW frame's with its metadata, from one open)."""
+    codes = HeldCodes()
+    frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True, held=codes)
+    return frames, choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf, warn=False), codes
 
 
 def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_codes,
@@ -162,8 +164,8 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
     noise, noise_by_iso = (noise, None) if noise is not None else resolve_noise_by_iso(opts, frames)
     alignment = None
-    if opts.align != "off" or opts.deghost != "off":  # frames read again and again until the merge
-        load = motion.DecodedOnce(load, None if opts.deghost != "off" else 4)
+    if not isinstance(load, HeldCodes):  # every pass below reads the frames: each decoded once
+        load = HeldCodes(load)
     unaligned = load
     samples = None
     # the noise's sites drawn as the exposure check decodes the frames, should the bracket's
@@ -204,9 +206,6 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         ghosts = motion.find_ghosts(frames, exposures, crf, motion.require_noise(models.noise, frames, crf, load),
                                     load, opts.deghost)
         timings["deghost"] = time.perf_counter() - t0
-    if isinstance(unaligned, motion.DecodedOnce):
-        unaligned.release()
-        return_free_memory()  # what the motion passes freed, before the merge's own peak
     h_ref = reference_exposure(opts.reference, exposures)
     result, flags, den, variance, iterations = reconstruct(
         frames, exposures, h_ref, models, load,

@@ -13,7 +13,7 @@ from hdrmerge_cli.core import deghost, registration, resample
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.io.frames import Frame, load_codes, load_validity
+from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes, load_validity
 from hdrmerge_cli.pipeline.options import ALIGN_MODES, DEGHOST_MODES  # noqa: F401  (read as motion.*)
 
 log = logging.getLogger("hdrmerge_cli")
@@ -96,8 +96,9 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     warp stays within it) is not registered at full resolution: an image keeps the coarse
     translation estimate, a RAW frame its neighbour's warp (no correction below the
     tolerance is worth resampling a mosaic colour by colour).  Returns ``{"mode", "reference",
-    "applied", "motion", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
-    "unaligned": [...], "still": [...]}`` with warps in the frames' own sample coordinates,
+    "applied", "motion", "frames", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
+    "unaligned": [...], "still": [...], "warp_of": {id(frame): warp}}``, the lists in the order
+    of ``frames`` (paths), ``warp_of`` by frame, warps in the frames' own sample coordinates,
     confidence the registration's correlation coefficient to its neighbour (1 for the
     reference) and ``still`` the frames found still at coarse resolution."""
     ref = reference_index(frames)
@@ -131,6 +132,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     # RAW: moved by whole CFA periods, or resampled colour by colour (core.resample.resample_mosaic)
     resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
     out = {"mode": mode, "motion": motion, "resampling": resampling, "reference": frames[ref].path,
+           "frames": [f.path for f in frames],  # the order of the lists below
            "applied": bool(applied),
            "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
            "largest_displacement_px": [round(s, 3) for s in sizes], "confidence": confidence,
@@ -139,6 +141,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in warps]
         out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in warps]
     out["warps"] = warps
+    out["warp_of"] = {id(f): w for f, w in zip(frames, warps)}  # by frame: --times estimate may re-sort them
     log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
              "applied" if applied else "not needed")
     return out
@@ -184,7 +187,7 @@ def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: 
         return (registration.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
 
     def image(k: int) -> np.ndarray:  # made again for each pair rather than held: the codes are
-        # decoded once (DecodedOnce)
+        # decoded once (HeldCodes)
         return _linear(frames[k], load(frames[k]), crf)
 
     scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if raw else 1)
@@ -263,78 +266,27 @@ def loader(frames: list[Frame], alignment: dict | None, load=load_codes):
     return AlignedLoader(frames, alignment, load)
 
 
-class DecodedOnce:
-    """``frame -> codes`` (``load``), each frame decoded once while the motion passes read
-    the frames again and again (alignment decodes the reference on both of its threads,
-    deghosting reads every frame twice, the noise measurement once), as long as all the
-    kept codes take at most :data:`BUDGET_BYTES` (the oldest dropped first); :meth:`release`
-    drops them and passes every later call through (the merge streams the frames).  The
-    codes are handed out read-only.  ``max_frames``: keep at most that many too (alignment
-    alone reads each frame with its neighbours: its two threads need 4)."""
-
-    BUDGET_BYTES = 512 << 20
-
-    def __init__(self, load=load_codes, max_frames: int | None = None):
-        self.load = load
-        self.max_frames = max_frames
-        self.kept: dict[str, np.ndarray] | None = {}  # insertion order = age
-        self._lock = threading.Lock()
-        self._decoding: dict[str, threading.Lock] = {}
-
-    def __call__(self, frame: Frame) -> np.ndarray:
-        with self._lock:
-            if self.kept is None:
-                return self.load(frame)
-            one = self._decoding.setdefault(frame.path, threading.Lock())
-        with one:  # two threads asking for the same frame: one decode
-            with self._lock:
-                codes = None if self.kept is None else self.kept.get(frame.path)
-            if codes is not None:
-                return codes
-            codes = self.load(frame)
-            codes.flags.writeable = False
-            with self._lock:
-                if self.kept is not None:
-                    self.kept[frame.path] = codes
-                    while len(self.kept) > 1 and (sum(a.nbytes for a in self.kept.values()) > self.BUDGET_BYTES
-                                                  or (self.max_frames is not None and len(self.kept) > self.max_frames)):
-                        self.kept.pop(next(iter(self.kept)))
-            return codes
-
-    def release(self, path: str | None = None) -> None:
-        """Drop the kept codes (of the frame at ``path``, or of all frames): later calls
-        decode (all frames: keep nothing any more)."""
-        with self._lock:
-            if path is None:
-                self.kept = None
-            elif self.kept is not None:
-                self.kept.pop(path, None)
-
-
 class AlignedLoader:
     """``frame -> codes`` brought onto the reference.  A RAW frame resampled per CFA
     colour also leaves the spread of the samples each value was interpolated from
-    (:func:`~hdrmerge_cli.core.resample.resample_mosaic`'s spread) for :class:`SampleWeights`.  The
-    resampled codes (and spreads) of the latest decodes are kept for the next pass over the
-    frames (deghosting reads every frame twice, the merge and its re-weighting once each):
-    the :data:`KEEP` latest always (the merge holds two frames), older ones while all of
-    them take at most :data:`CACHE_BYTES`."""
-
-    KEEP = 3
-    CACHE_BYTES = 512 << 20
+    (:func:`~hdrmerge_cli.core.resample.resample_mosaic`'s spread) for :class:`SampleWeights`.
+    Each frame is resampled once: its resampled codes (and spread) are kept for every later
+    pass (deghosting reads every frame twice, the merge and its re-weighting once each), in
+    place of its decoded codes where ``load`` holds them (:class:`~hdrmerge_cli.io.frames.HeldCodes`)."""
 
     def __init__(self, frames: list[Frame], alignment: dict, load=load_codes):
         self.load = load
-        self.warps = {f.path: w for f, w in zip(frames, alignment["warps"])}
+        self.warps = {id(f): alignment["warp_of"][id(f)] for f in frames}
         self.periods = alignment["resampling"] == "cfa-periods"
-        self.kept: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}  # insertion order = age
+        self.kept: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+        self._lock = threading.Lock()
 
     def __call__(self, frame: Frame) -> np.ndarray:
-        if frame.path in self.kept:
-            self.kept[frame.path] = self.kept.pop(frame.path)  # the latest again
-            return self.kept[frame.path][0]
+        with self._lock:
+            if id(frame) in self.kept:
+                return self.kept[id(frame)][0]
         codes = self.load(frame)
-        w = self.warps[frame.path]
+        w = self.warps[id(frame)]
         if is_identity(w):  # the reference: nothing to resample
             return codes
         clip = int(np.max(frame.white))
@@ -353,18 +305,16 @@ class AlignedLoader:
                 out, spread = resample.resample_mosaic(codes, w, clip, frame.cfa_pattern, np.asarray(frame.black)[cell],
                                                     spread=True)
         out.flags.writeable = False  # handed out again: read-only
-        if isinstance(self.load, DecodedOnce):  # the resampled codes are kept instead
-            self.load.release(frame.path)
-        self.kept[frame.path] = (out, spread)
-        while len(self.kept) > self.KEEP and sum(a.nbytes + (0 if b is None else b.nbytes)
-                                                 for a, b in self.kept.values()) > self.CACHE_BYTES:
-            self.kept.pop(next(iter(self.kept)))
+        with self._lock:
+            self.kept[id(frame)] = (out, spread)
+        if isinstance(self.load, HeldCodes):  # the resampled codes are kept instead
+            self.load.drop(frame)
         return out
 
     def spread(self, frame: Frame) -> np.ndarray | None:
-        """The tap variance of the frame's latest decode (coded,
+        """The tap variance of the frame's resampled codes (coded,
         :func:`~hdrmerge_cli.core.resample.spread_code`), or None."""
-        return self.kept[frame.path][1] if frame.path in self.kept else None
+        return self.kept[id(frame)][1] if id(frame) in self.kept else None
 
 
 def is_identity(warp: np.ndarray) -> bool:
@@ -531,7 +481,7 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, al
     ``load``: the merge's :class:`AlignedLoader` (for the resampling spreads)."""
     ghosts = ghosts if ghosts and ghosts["applied"] else None
     alignment = alignment if alignment and alignment["applied"] else None
-    validity = [valid_pixels(f, alignment["warps"][k] if alignment else None) for k, f in enumerate(frames)]
+    validity = [valid_pixels(f, alignment["warp_of"][id(f)] if alignment else None) for f in frames]
     if ghosts is None and alignment is None and all(v is None for v in validity):
         return None
     return SampleWeights(tables, pattern, frames, ghosts, alignment, load if isinstance(load, AlignedLoader) else None,
@@ -578,7 +528,7 @@ class SampleWeights:
             np.subtract(np.float32(1.0), out, out=out)
         masks = [self.validity[k]]
         if alignment is not None:
-            masks.append(covered(frame, alignment["warps"][k], alignment["resampling"] == "cfa-periods"))
+            masks.append(covered(frame, alignment["warp_of"][id(frame)], alignment["resampling"] == "cfa-periods"))
         for inside in masks:
             if inside is not None:
                 out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
@@ -592,7 +542,7 @@ class SampleWeights:
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
             w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread),
-                                      self.alignment["warps"][k], out=w if own else None,
+                                      self.alignment["warp_of"][id(self.frames[k])], out=w if own else None,
                                       cfa=self.frames[k].cfa_pattern), True
         f = self.factor(k)
         if f is None:

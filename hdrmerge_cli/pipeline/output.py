@@ -370,7 +370,7 @@ class Merged:
             "channels": self.channel_names,
             "saturated_fraction": float(np.count_nonzero(flags == FLAG_SATURATED) / n),
             "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
-            **({"alignment": {k: v for k, v in alignment.items() if k != "warps"}
+            **({"alignment": {k: v for k, v in alignment.items() if k not in ("warps", "warp_of")}
                 | {"warps": [np.round(w, 6).tolist() for w in alignment["warps"]]}} if alignment else {}),
             **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
             "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},

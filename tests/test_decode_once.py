@@ -1,0 +1,128 @@
+"""Each input file is decoded once per merge (default options), whatever the passes that
+read it (samples, response, registration, labels, noise, ghosts, the merge and its
+re-weighting), and a frame's stage results follow the frame, not its position."""
+from __future__ import annotations
+
+import collections
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.conftest import frames_of
+
+
+@pytest.fixture
+def decodes(monkeypatch):
+    """Counts per path: LibRaw opens (each followed by an unpack) and OpenImageIO pixel
+    reads, however the code reaches them."""
+    import rawpy
+
+    import hdrmerge_cli.io.frames as frames_module
+
+    counts: collections.Counter = collections.Counter()
+    lock = threading.Lock()
+
+    class Counting(rawpy.RawPy):
+        def open_file(self, path):
+            with lock:
+                counts[str(path)] += 1
+            return super().open_file(path)
+
+    read_channels = frames_module._read_channels
+
+    def counting_read(frame, begin, end):
+        with lock:
+            counts[frame.path] += 1
+        return read_channels(frame, begin, end)
+
+    monkeypatch.setattr(rawpy, "RawPy", Counting)
+    monkeypatch.setattr(frames_module, "_read_channels", counting_read)
+    return counts
+
+
+def _shifted_dngs(folder, shifts, times=(0.5, 1.0, 2.0), labels=None, seed=1, h=256, w=320):
+    """14-bit RGGB DNGs of one textured scene, frame k seeing it ``shifts[k]`` px further right
+    (photon and read noise); ``labels``: the exposure times written in the files (default
+    ``times``)."""
+    from hdrmerge_cli.io.dng_integer import write_dng
+
+    rng = np.random.default_rng(seed)
+    e = np.exp(cv2.GaussianBlur(rng.standard_normal((h, w)), (0, 0), 2.0) * 6.0) * np.linspace(0.3, 1.0, w)[None]
+    e /= np.percentile(e, 99)
+    paths = []
+    for k, (t, dx) in enumerate(zip(times, shifts)):
+        m = np.float32([[1, 0, dx], [0, 1, 0]])
+        s = cv2.warpAffine(e.astype(np.float32), m, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REFLECT) if dx else e
+        y = rng.poisson(np.maximum(s * t, 0) * 4000.0) + rng.normal(0, 3, s.shape) + 512
+        path = folder / f"f{k}.dng"
+        write_dng(str(path), np.clip(np.rint(y), 0, 16383).astype(np.uint16), pattern="RGGB", black=512,
+                  white=16383, exposure_time=(labels or times)[k], iso=100, aperture=8.0)
+        paths.append(str(path))
+    return paths
+
+
+def _merge(paths, **options):
+    from hdrmerge_cli.api import merge_files
+
+    return merge_files(paths, **options)
+
+
+def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes):
+    folder, meta = dng_bracket
+    paths = [str(p) for p in frames_of(folder, meta)]
+    _merge(paths)
+    assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+
+
+def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes):
+    paths = _shifted_dngs(tmp_path, (3.0, 0.0, -5.0))
+    merged = _merge(paths)
+    assert merged.alignment["applied"]
+    assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+
+
+@pytest.mark.parametrize("fixture", ["tiff_bracket", "jpeg_bracket"])
+def test_image_brackets_are_decoded_once(request, fixture, decodes):
+    """16-bit TIFF (response given by nothing: measured) and JPEG (response measured)."""
+    folder, meta = request.getfixturevalue(fixture)
+    paths = [str(p) for p in frames_of(folder, meta)]
+    _merge(paths)
+    assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+
+
+def test_an_8bit_tiff_bracket_is_decoded_once_with_and_without_a_response(run, tmp_path, decodes):
+    run("simulate", "-o", tmp_path, "-q", "--format", "tif", "--size", "192x128", "--frames", "3", "--seed", "2")
+    paths = sorted(str(p) for p in tmp_path.glob("frame_*.tif"))
+    for crf in (None, "srgb"):
+        decodes.clear()
+        _merge(paths, crf=crf)
+        assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}, crf
+
+
+def test_times_estimate_resorting_a_handheld_bracket_keeps_each_warp_on_its_frame(tmp_path):
+    """The two shortest frames (0.15 EV apart) labelled alike come in the files' order
+    longer, shorter: the labels sort them so, the estimates re-sort them after registration
+    (the reference, the third, stays); every warp must still move its own frame, so the
+    merge matches the one with the true labels."""
+    true_times, shifts = (0.45, 0.5, 1.0, 2.0), (4.0, -3.0, 0.0, -6.0)
+    paths = _shifted_dngs(tmp_path, shifts, true_times, labels=(0.5, 0.5, 1.0, 2.0))
+    given = [paths[1], paths[0], paths[2], paths[3]]  # equal labels keep this order until the estimates
+    (tmp_path / "true.txt").write_text("".join(f"{p} {t!r}\n" for p, t in zip(paths, true_times)))
+    truth = _merge(given, times_file=str(tmp_path / "true.txt"))
+    est = _merge(given, times="estimate")
+    assert est.summary()["exposure_check"]["used"] == "estimates"
+    assert [f.path for f in est.frames] == paths  # re-sorted
+    for merged in (truth, est):
+        assert merged.alignment["applied"] and merged.alignment["reference"] == paths[2]
+        by_path = dict(zip(merged.alignment["frames"], merged.alignment["shift_px"]))
+        for p, dx in zip(paths, shifts):  # the scene moved right by dx: the warp's shift is -dx
+            assert by_path[p][0] == pytest.approx(-dx, abs=0.25), (p, by_path)
+    a, b = truth.image.astype(np.float64), est.image.astype(np.float64)
+    inner = (slice(16, -16), slice(16, -16))
+    ok = (a[inner] > 1e-3) & (b[inner] > 1e-3)
+    d = np.log(b[inner][ok]) - np.log(a[inner][ok])
+    # the same frames moved by the same warps: equal up to the estimated exposures' error
+    assert np.sqrt(np.mean((d - np.median(d)) ** 2)) < 0.02
