@@ -358,6 +358,45 @@ def test_ml_irls_treats_clipped_readings_as_censored():
             assert new < 0.93 * old  # measured 0.0357 vs 0.0388 (E = 1000), 0.0490 vs 0.0628 (1100)
 
 
+@pytest.mark.parametrize("estimator", ["ml", "log"])
+@pytest.mark.parametrize("layout", ["mosaic", "rgb"])
+@pytest.mark.parametrize("with_den", [True, False])
+def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layout, with_den):
+    """irls re-weights strips of rows each on its own: a sample's weights read only its own
+    estimate, so one pass equals the whole-frame pass (same float32 arithmetic, to 1e-6),
+    and iterated passes agree within the tolerance each strip converges to; flags equal."""
+    from hdrmerge_cli.core.reconstruct import irls, merge_in_memory, noise_rows
+
+    rng = np.random.default_rng(11)
+    full, p = 4095, NoiseParams(sigma_o2=30.0, alpha=4.0)
+    times = [1.0, 4.0, 16.0]
+    shape = (50, 36) if layout == "mosaic" else (50, 12, 3)
+    pattern = np.array([[0, 1], [2, 3]]) if layout == "mosaic" else np.array([[0, 1, 2]])
+    rows = 4 if layout == "mosaic" else 3
+    e = np.exp(rng.uniform(np.log(5.0), np.log(3000.0), shape))
+    codes = [np.clip(np.rint(t * e + rng.normal(0, np.sqrt(p.sigma_o2 + 2 * t * e))), 0, full).astype(np.uint16)
+             for t in times]
+    tables = [exposure_tables(full + 1, np.zeros(rows), np.full(rows, float(full)), CRF("linear"), "uniform", t,
+                              [p] * rows, "model", None, tuple(times), estimator=estimator) for t in times]
+    linear = estimator == "ml"
+    maps = [noise_rows([p] * rows)] * 3
+    for passes in (1, 4):
+        out = {}
+        for strip in (8, 1000):  # strips of 8 rows (the last one 2), and one piece
+            monkeypatch.setattr(reconstruct, "IRLS_STRIP_ROWS", strip)
+            log_e, flags, den = merge_in_memory(codes, tables, pattern, linear)
+            out[strip] = irls(codes.__getitem__, tables, pattern, log_e, times, [float(full)] * 3, maps, linear,
+                              passes, variance=True, den=den if with_den else None)
+        (a, fa, da, na, _, va), (b, fb, db, nb, _, vb) = out[8], out[1000]
+        np.testing.assert_array_equal(fa, fb)
+        ok = fa == FLAG_OK
+        tol = 1e-6 if passes == 1 else 2 * reconstruct.IRLS_TOLERANCE
+        np.testing.assert_allclose(a[ok], b[ok], atol=tol)
+        np.testing.assert_allclose(da[ok], db[ok], rtol=10 * tol)
+        np.testing.assert_allclose(va[ok], vb[ok], rtol=10 * tol)
+        assert na <= passes and nb <= passes
+
+
 @pytest.mark.parametrize("linear", [True, False])
 @pytest.mark.parametrize("shape, pattern", [((6, 8), np.array([[0, 1], [2, 3]])), ((5, 7, 3), np.array([[0, 1, 2]]))])
 def test_fused_irls_weights_match_the_reference(shape, pattern, linear):

@@ -119,36 +119,6 @@ def test_previews_import_no_colour_science(tmp_path, dng_frames, output):
     assert not mods & set(HEAVY), sorted(mods & set(HEAVY))
 
 
-def test_irls_reads_the_next_frame_ahead_one_decode_at_a_time():
-    """pipeline.merge._read_ahead: the frames in order, each decoded once, the next one on the
-    worker while this one is used; out of order still right; never two decodes at once."""
-    import threading
-    import time
-    from concurrent.futures import ThreadPoolExecutor
-
-    from hdrmerge_cli.pipeline.merge import _read_ahead
-
-    active, most, calls = [0], [0], []
-    lock = threading.Lock()
-
-    def load(frame):
-        with lock:
-            active[0] += 1
-            most[0] = max(most[0], active[0])
-            calls.append(frame)
-        time.sleep(0.01)
-        with lock:
-            active[0] -= 1
-        return np.full(3, frame)
-
-    frames = [10, 11, 12, 13]
-    with ThreadPoolExecutor(1) as pool:
-        codes_of = _read_ahead(load, frames, pool)
-        got = [int(codes_of(k)[0]) for k in (0, 1, 2, 3)] + [int(codes_of(k)[0]) for k in (1, 0, 3)]
-    assert got == [10, 11, 12, 13, 11, 10, 13]
-    assert calls[:4] == [10, 11, 12, 13] and most[0] == 1
-
-
 def test_summaries_match_the_commands():
     import click
 

@@ -651,6 +651,10 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
     return cen
 
 
+#: rows of a strip of :func:`irls` (even: whole CFA periods): its sums stay strip-sized
+IRLS_STRIP_ROWS = 128
+
+
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
          den: np.ndarray | None = None):
@@ -658,7 +662,13 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
 
-    codes_of : ``k -> codes`` of frame k (decoded on demand, so at most one is held)
+    Without ``adjust`` the image is re-weighted in strips of :data:`IRLS_STRIP_ROWS` rows,
+    each iterated to its own convergence, the new estimate and ``den`` written over
+    ``log_e`` and ``den`` (a sample's weights depend on its own estimate only, so a strip
+    is the same computation at a strip's memory); with ``adjust`` (per-frame weights of the
+    whole frame) in one piece.
+
+    codes_of : ``k -> codes`` of frame k, ``(H, W)`` or ``(H, W, C)``
     y_full : per frame, the full-scale code value ``white - black``
     rows : per frame, the :func:`noise_rows` of its noise (P tuples of three ``(R,)``
         float32 arrays, code values of that frame); frames that share one noise pass the
@@ -683,6 +693,30 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     unmeasured samples: :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a
     non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
+    height = log_e.shape[0]
+    if adjust is not None or height <= IRLS_STRIP_ROWS:
+        return _irls_piece(codes_of, tables, pattern, log_e, exposures, y_full, rows, linear, iterations, tol,
+                           variance, adjust, den)
+    flags = np.empty(log_e.shape, np.int8)
+    given = den is not None
+    den = den if given else np.empty(log_e.shape, np.float32)
+    var = np.empty(log_e.shape, np.float32) if variance else None
+    passes, change = 0, 0.0
+    for r0 in range(0, height, IRLS_STRIP_ROWS):
+        part = slice(r0, min(height, r0 + IRLS_STRIP_ROWS))
+        le, fl, dn, it, ch, *v = _irls_piece(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures,
+                                             y_full, rows, linear, iterations, tol, variance, None,
+                                             den[part] if given else None)
+        log_e[part], flags[part], den[part] = le, fl, dn
+        if variance:
+            var[part] = v[0]
+        passes, change = max(passes, it), max(change, ch)
+    return (log_e, flags, den, passes, change) + ((var,) if variance else ())
+
+
+def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
+                linear: bool, iterations: int, tol: float, variance: bool, adjust, den: np.ndarray | None):
+    """:func:`irls` on whole frames (or one strip of rows of every frame): new arrays."""
     flags = None
     prev_den = den if linear else None
     change = np.inf

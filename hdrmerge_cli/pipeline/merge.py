@@ -220,36 +220,31 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
 
 def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,
                 timings: dict, with_variance: bool = False) -> tuple:
-    """Stream the frames through (7) (:func:`_stream`), then ``models.n_irls`` passes of
-    re-weighting at the merged estimate (:func:`~hdrmerge_cli.core.reconstruct.irls`).
-    Returns ``(E * h_ref, flags, summed weights, variance, IRLS passes)``; the variance
-    of ``E * h_ref`` under the noise model (float32, like the result) with
-    ``with_variance``, else None."""
+    """The frames through (7) (:func:`_stream`), then ``models.n_irls`` passes of
+    re-weighting at the merged estimate (:func:`~hdrmerge_cli.core.reconstruct.irls`), both
+    reading the frames' held codes (``load``).  Returns ``(E * h_ref, flags, summed
+    weights, variance, IRLS passes)``; the variance of ``E * h_ref`` under the noise model
+    (float32, like the result) with ``with_variance``, else None."""
     ml = models.estimator == "ml"
-    first = []  # IRLS's first decode, started while the stream finishes (handed over, not held)
-    with ThreadPoolExecutor(1) as pool:
-        # without IRLS the stream's last pass returns the linear image directly
-        out = list(_stream(frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref, load,
-                           weights_of, with_variance and not models.n_irls,
-                           then=(lambda: first.append(pool.submit(load, frames[0]))) if models.n_irls else None))
-        timings.update(out.pop())  # out: result, flags, den, variance
-        if not models.n_irls:
-            return (*out, 0)
-        t0 = time.perf_counter()
-        if models.frame_noise is None:
-            maps = [noise_rows(per_channel(models.noise, models.table_channels))] * len(frames)
-        else:
-            maps = [noise_rows(per_channel(n, models.table_channels)) for n in models.frame_noise]
-        y_full = [float(f.white[0] - f.black[0]) for f in frames]
-        result = out[0]
-        # IRLS makes its own flags, and frees the stream's weights once it no longer needs
-        # them: nothing here holds either (24 MP x 3: peak 808 -> 784 MB)
-        out[1] = None
-        log_e, flags, den, iterations, change, *var = irls(_read_ahead(load, frames, pool, first.pop()), models.tables,
-                                                           models.pattern, result, exposures, y_full, maps, ml,
-                                                           models.n_irls, variance=with_variance,
-                                                           adjust=None if weights_of is None else weights_of.adjust,
-                                                           den=out.pop(2))
+    # without IRLS the stream's last pass returns the linear image directly
+    result, flags, den, variance, stream_timings = _stream(
+        frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref, load, weights_of,
+        with_variance and not models.n_irls)
+    timings.update(stream_timings)
+    if not models.n_irls:
+        return result, flags, den, variance, 0
+    t0 = time.perf_counter()
+    if models.frame_noise is None:
+        maps = [noise_rows(per_channel(models.noise, models.table_channels))] * len(frames)
+    else:
+        maps = [noise_rows(per_channel(n, models.table_channels)) for n in models.frame_noise]
+    y_full = [float(f.white[0] - f.black[0]) for f in frames]
+    del flags  # IRLS makes its own; it writes over the stream's estimate and weights
+    log_e, flags, den, iterations, change, *var = irls(lambda k: load(frames[k]), models.tables, models.pattern,
+                                                       result, exposures, y_full, maps, ml, models.n_irls,
+                                                       variance=with_variance,
+                                                       adjust=None if weights_of is None else weights_of.adjust,
+                                                       den=den)
     log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
     result = np.exp(log_e, out=log_e)
     result *= np.float32(h_ref)
@@ -259,26 +254,6 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
         variance *= result * result
     timings["irls"] = time.perf_counter() - t0
     return result, flags, den, variance, iterations
-
-
-def _read_ahead(load, frames: list[Frame], pool: ThreadPoolExecutor, first=None):
-    """``k -> load(frames[k])`` for a reader that asks for the frames in order (IRLS): frame
-    ``k + 1`` is decoded on ``pool`` while frame ``k`` is used (one decode at a time, so the
-    loader needs no locking; one frame more in memory).  ``first``: frame 0's decode,
-    already submitted to ``pool``."""
-    pending = {} if first is None else {0: first}
-
-    def codes_of(k: int) -> np.ndarray:
-        ahead = pending.pop(k, None)
-        for other in pending.values():  # asked out of order: the guess is dropped, never two decodes at once
-            other.cancel() or other.result()
-        pending.clear()
-        codes = ahead.result() if ahead is not None else load(frames[k])
-        if k + 1 < len(frames):
-            pending[k + 1] = pool.submit(load, frames[k + 1])
-        return codes
-
-    return codes_of
 
 
 # ---------------------------------------------------------------- checks after the merge
@@ -392,14 +367,11 @@ def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) 
 
 
 # ---------------------------------------------------------------- streaming
-def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False,
-            then=None):
-    """Decode frame k+1 in a worker thread while frame k is merged; keeps at most two
-    decoded frames in memory.  Returns ``log E``, or ``E * scale`` when ``scale`` is given
-    (see :meth:`LogMerge.finish`), the flags, the summed weights and, with ``variance``,
-    the result's variance (:attr:`LogMerge.variance`; else None).  ``then``: called once
-    the last frame's decode is in hand (IRLS starts decoding its first frame there, while
-    this pass finishes)."""
+def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
+    """Frame k+1 loaded (held codes; resampled on first use) in a worker thread while frame
+    k is merged.  Returns ``log E``, or ``E * scale`` when ``scale`` is given (see
+    :meth:`LogMerge.finish`), the flags, the summed weights, with ``variance`` the result's
+    variance (:attr:`LogMerge.variance`; else None), and the timings."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
     acc = LogMerge(shape, pattern, variance=variance)
     decode_time = 0.0
@@ -420,8 +392,6 @@ def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, 
             decode_time += dt
             if k + 1 < len(frames):
                 pending = pool.submit(decode, frames[k + 1])
-            elif then is not None:
-                then()
             t = time.perf_counter()
             weight, factor = (None, None) if weights_of is None else weights_of(k, codes)
             acc.add(codes, tables[k], last=k == len(frames) - 1, weight=weight, factor=factor)
