@@ -122,6 +122,8 @@ ones (every other bracket: false rejections, cost).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import argparse
 import json
 import os
@@ -251,8 +253,9 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
 
     def true_alignment(*args, **kwargs):
         found = estimate(*args, **kwargs)
-        return dict(found, warps=[np.asarray(w, np.float64) for w in warps], applied=True, motion="similarity",
-                    resampling="per-colour" if found["resampling"] != "none" else "none")
+        return dataclasses.replace(found, warps=[np.asarray(w, np.float64) for w in warps], applied=True,
+                                   motion="similarity",
+                                   resampling="per-colour" if found.resampling != "none" else "none")
 
     opts = {"align": "auto", "deghost": "auto", "overwrite": True}
     it = iter(extra)

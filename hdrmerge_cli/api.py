@@ -547,9 +547,9 @@ def register(stack, times, *, response=None, motion: str = "auto", cfa: str | No
     st = _stack(stack, times, cfa, black, white, bits)
     crf = _response(response, st)
     alignment = estimate_alignment(st.frames, st.exposures, crf, motion, st.load)
-    warps = np.array(st.to_input_order([np.asarray(w, np.float64) for w in alignment["warps"]]))
-    confidence = np.array(st.to_input_order(list(alignment["confidence"])), np.float64)
-    return Registration(warps, bool(alignment["applied"]), int(st.order[reference_index(st.frames)]), confidence)
+    warps = np.array(st.to_input_order([np.asarray(w, np.float64) for w in alignment.warps]))
+    confidence = np.array(st.to_input_order(list(alignment.confidence)), np.float64)
+    return Registration(warps, alignment.applied, int(st.order[reference_index(st.frames)]), confidence)
 
 
 def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", align: str = "off",
@@ -611,14 +611,14 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
 
         params, _ = measure_noise(st.frames, crf, st.load, cache=False)
     alignment = motion.estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
-    load = motion.loader(st.frames, alignment, st.load)
+    load = motion.loader(alignment, st.load)
     ghosts = motion.find_ghosts(st.frames, st.exposures, crf, motion.require_noise(params, st.frames, crf),
                                 load, mode)
     h, w = st.frames[0].height, st.frames[0].width
     masks = np.zeros((len(st.frames), h, w), np.float32)
-    if ghosts["applied"]:
-        for k in range(len(st.frames)):
-            masks[st.order[k]] = motion.ghost_weight(ghosts, k, h, w)
+    if ghosts.applied:
+        for k, frame in enumerate(st.frames):
+            masks[st.order[k]] = motion.ghost_weight(ghosts, frame, h, w)
     return masks
 
 

@@ -80,7 +80,7 @@ def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes):
 def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes):
     paths = _shifted_dngs(tmp_path, (3.0, 0.0, -5.0))
     merged = _merge(paths)
-    assert merged.alignment["applied"]
+    assert merged.alignment.applied
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
 
 
@@ -116,10 +116,10 @@ def test_times_estimate_resorting_a_handheld_bracket_keeps_each_warp_on_its_fram
     assert est.summary()["exposure_check"]["used"] == "estimates"
     assert [f.path for f in est.frames] == paths  # re-sorted
     for merged in (truth, est):
-        assert merged.alignment["applied"] and merged.alignment["reference"] == paths[2]
-        by_path = dict(zip(merged.alignment["frames"], merged.alignment["shift_px"]))
-        for p, dx in zip(paths, shifts):  # the scene moved right by dx: the warp's shift is -dx
-            assert by_path[p][0] == pytest.approx(-dx, abs=0.25), (p, by_path)
+        assert merged.alignment.applied and merged.alignment.reference == paths[2]
+        for frame in merged.frames:  # the scene moved right by dx: the warp's shift is -dx
+            dx = shifts[paths.index(frame.path)]
+            assert merged.alignment.warp_of(frame)[0, 2] == pytest.approx(-dx, abs=0.25), merged.alignment.summary()
     a, b = truth.image.astype(np.float64), est.image.astype(np.float64)
     inner = (slice(16, -16), slice(16, -16))
     ok = (a[inner] > 1e-3) & (b[inner] > 1e-3)

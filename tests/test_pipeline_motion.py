@@ -142,7 +142,7 @@ def _worst_rejected(seed: int, params) -> float:
     times = [0.25, 1.0, 4.0]
     codes = _jpeg_frames(rng, _jpeg_scene(rng), times)
     frames = [_image_frame(f"f{k}", t, *codes[k].shape[:2]) for k, t in enumerate(times)]
-    return max(_ghosts_of(frames, codes, times, "auto", CRF("srgb"), params)["rejected_fraction"])
+    return max(_ghosts_of(frames, codes, times, "auto", CRF("srgb"), params).rejected_fraction)
 
 
 def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, seed: int) -> dict:
@@ -174,7 +174,7 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
             write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
             paths.append(str(p))
         merged = pm.merge_bracket(paths, pm.MergeOptions(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
-        masks[kind] = ghost_weight(merged.ghosts, masked, h, w)
+        masks[kind] = ghost_weight(merged.ghosts, merged.ghosts.frames[masked], h, w)
     return masks
 
 
@@ -195,8 +195,8 @@ def test_alignment_engages_on_a_dark_short_frame(tmp_path, mode, rotation):
     short = cv2.imread(str(frames[0].path))
     assert np.mean(short > 60) < 0.3  # mostly dark
     out = estimate_alignment(frames, np.array(times), CRF("gamma", 2.2), mode)
-    assert out["applied"] and not out["unaligned"] and min(out["confidence"]) > 0.5
-    for est, true in zip(out["warps"], truth):
+    assert out.applied and not out.unaligned and min(out.confidence) > 0.5
+    for est, true in zip(out.warps, truth):
         assert registration.corner_distance(est, true, 300, 400) < (0.6 if rotation else 0.2)
         assert abs(np.degrees(np.arctan2(est[1, 0], est[0, 0]) - np.arctan2(true[1, 0], true[0, 0]))) < 0.1
 
@@ -226,7 +226,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
     finally:
         logger.removeHandler(handler)
         logger.setLevel(old_level)
-    assert len(out["unaligned"]) == 2 and out["applied"] == (mode != "auto")
+    assert len(out.unaligned) == 2 and out.applied == (mode != "auto")
     named = [r for r in records if "f0.png" in r.getMessage()]
     assert named and all(r.levelno == level for r in named)
     assert any("textured pixels" in r.getMessage() or "no irradiance range" in r.getMessage() for r in named)
@@ -303,7 +303,7 @@ def test_deghost_with_irls_keeps_the_ghost_out():
     moving, _ = _ghost_mosaics(3, True)
     a = merge_arrays(static, [1.0, 4.0, 16.0], **kw)
     b = merge_arrays(moving, [1.0, 4.0, 16.0], deghost="on", **kw)
-    assert a.iterations == 1 and b.iterations == 1 and b.ghosts["applied"]
+    assert a.iterations == 1 and b.iterations == 1 and b.ghosts.applied
     patch = (slice(40, 64), slice(20, 44))
     ratio = b.image[patch][..., 0] / a.image[patch][..., 0]
     # without the longest frame the patch is noisier, not biased (a leak would be ~100x)
@@ -362,19 +362,19 @@ def test_ghost_in_a_non_reference_frame_over_a_dark_reference_region():
     rng = np.random.default_rng(2)
     frames, codes, times = _gamma_bracket(rng)
     static = _ghosts_of(frames, codes, times, "auto")
-    assert max(static["rejected_fraction"]) <= 0.002 and not static["applied"]
+    assert max(static.rejected_fraction) <= 0.002 and not static.applied
     dark = (slice(60, 100), slice(20, 60))  # the left: dark in the reference
     assert codes[1][dark].mean() < 60 and codes[0][dark].mean() < 30
     mid = (slice(60, 110), slice(110, 160))
     frames, codes, times = _gamma_bracket(np.random.default_rng(2), paint={0: (dark, 160), 2: (mid, 128)})
     g = _ghosts_of(frames, codes, times, "auto")
-    assert g["applied"]
+    assert g.applied
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
-    m0 = ghost_weight(g, 0, 160, 200)
-    m2 = ghost_weight(g, 2, 160, 200)
+    m0 = ghost_weight(g, g.frames[0], 160, 200)
+    m2 = ghost_weight(g, g.frames[2], 160, 200)
     assert m0[dark].min() > 0.95 and m2[mid].min() > 0.95
-    assert ghost_weight(g, 1, 160, 200).max() == 0  # the reference is the anchor: never dropped
+    assert ghost_weight(g, g.frames[1], 160, 200).max() == 0  # the reference is the anchor: never dropped
     assert m0[:, 120:].max() < 0.05  # far from the object the short frame stays
 
 
@@ -389,7 +389,7 @@ def test_clipped_reference_bounds_a_dark_reading_in_another_frame():
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
     g = _ghosts_of(frames, codes, times)
-    assert ghost_weight(g, 0, 160, 200)[45:85, 180:196].min() > 0.95
+    assert ghost_weight(g, g.frames[0], 160, 200)[45:85, 180:196].min() > 0.95
 
 
 def test_object_clipped_in_the_long_frame_over_a_dark_reference_region():
@@ -406,9 +406,9 @@ def test_object_clipped_in_the_long_frame_over_a_dark_reference_region():
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
     g = _ghosts_of(frames, codes, times, "auto")
-    assert g["applied"]
-    assert ghost_weight(g, 2, 160, 200)[obj].min() > 0.95
-    assert ghost_weight(g, 2, 160, 200)[:, 130:].max() < 0.05
+    assert g.applied
+    assert ghost_weight(g, g.frames[2], 160, 200)[obj].min() > 0.95
+    assert ghost_weight(g, g.frames[2], 160, 200)[:, 130:].max() < 0.05
 
 
 def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excused():
@@ -425,7 +425,7 @@ def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excuse
     g = _ghosts_of(frames, codes, times, "on")
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
-    assert ghost_weight(g, 2, 160, 200)[halo].max() < 0.05
+    assert ghost_weight(g, g.frames[2], 160, 200)[halo].max() < 0.05
 
 
 def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare():
@@ -445,9 +445,9 @@ def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare(
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
     g = _ghosts_of(frames, codes, times, "auto")
-    assert g["applied"]
-    assert ghost_weight(g, 2, 180, 600)[inner].min() > 0.95
-    assert ghost_weight(g, 2, 180, 600)[:, :150].max() < 0.05
+    assert g.applied
+    assert ghost_weight(g, g.frames[2], 180, 600)[inner].min() > 0.95
+    assert ghost_weight(g, g.frames[2], 180, 600)[:, :150].max() < 0.05
 
 
 def test_a_night_frame_with_sparse_lamps_is_not_black():
@@ -480,7 +480,7 @@ def test_an_image_rolling_off_towards_white_bounds_the_light_from_below(seed, fr
     frames, codes, times = _gamma_bracket(np.random.default_rng(seed), curve={frame: shoulder})
     near_white = (codes[frame].min(axis=-1) >= 0.9 * 255) & (codes[frame].max(axis=-1) < 255)
     assert near_white.mean() > 0.1 and (codes[frame] == 255).all(axis=-1).mean() > 0.02
-    assert max(_ghosts_of(frames, codes, times)["rejected_fraction"]) <= deghost.IMAGE_PARAMS.auto_fraction
+    assert max(_ghosts_of(frames, codes, times).rejected_fraction) <= deghost.IMAGE_PARAMS.auto_fraction
     cols = slice(150, 170) if frame == 1 else slice(112, 128)
     row_ok = near_white[:, cols].all(axis=1)
     top = next(r for r in range(row_ok.size - 11) if row_ok[r:r + 12].all())
@@ -488,7 +488,7 @@ def test_an_image_rolling_off_towards_white_bounds_the_light_from_below(seed, fr
     painted = 0 if frame == 1 else 2  # the short frame over the reference's highlights, or the frame itself
     frames, codes, times = _gamma_bracket(np.random.default_rng(seed), curve={frame: shoulder},
                                           paint={painted: (where, 5)})
-    assert _ghosts_of(frames, codes, times)["masks"][painted][where].min() > 0.9 * 255
+    assert _ghosts_of(frames, codes, times).masks[painted][where].min() > 0.9 * 255
 
 
 def test_resampled_weight_adds_the_interpolation_variance():
@@ -551,10 +551,8 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     true = [np.float64([[1, 0, shift if k != 1 else 0.0], [0, 1, 0]]) for k in range(3)]
 
     def given(frames, exposures, crf, mode, load=None):
-        return {"mode": mode, "motion": "translation", "resampling": "per-colour", "reference": frames[1].path,
-                "applied": True, "shift_px": [], "largest_displacement_px": [], "confidence": [], "unaligned": [],
-                "frames": [f.path for f in frames], "warps": true,
-                "warp_of": {id(f): w for f, w in zip(frames, true)}}
+        return motion.Alignment(mode, "translation", "per-colour", frames[1].path, True, list(frames), true,
+                                [1.0] * 3, [], [])
 
     def run(name, bracket):
         out = tmp_path / f"{name}.exr"
@@ -598,8 +596,8 @@ def test_static_jpeg_bracket_is_not_deghosted(seed):
     times = [0.25, 1.0, 4.0]
     frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
     m = merge_arrays(frames, times, crf="srgb", deghost="auto")
-    assert max(m.ghosts["rejected_fraction"]) <= deghost.IMAGE_PARAMS.auto_fraction
-    assert not m.ghosts["applied"]
+    assert max(m.ghosts.rejected_fraction) <= deghost.IMAGE_PARAMS.auto_fraction
+    assert not m.ghosts.applied
 
 
 @pytest.mark.parametrize("frame", [0, 2])
@@ -618,8 +616,8 @@ def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
     frames = _jpeg_frames(rng, scene, times, ghost=(frame, patch, value))
     m = merge_arrays(frames, times, crf="srgb", deghost="auto")
     g = m.ghosts
-    assert g["applied"]
-    soft = motion.ghost_weight(g, frame, *frames[0].shape[:2])
+    assert g.applied
+    soft = motion.ghost_weight(g, g.frames[frame], *frames[0].shape[:2])
     inner = soft[90:130, 130:180]
     assert np.mean(inner > 0.5) >= 0.95
 
@@ -759,9 +757,9 @@ def test_a_still_bracket_is_found_still_without_a_full_registration(monkeypatch)
     found still by the coarse test and keep a translation within a hundredth of a pixel;
     nothing is registered at full resolution or applied."""
     out, registered = _alignment_counting(_raw_stack((0.0, 0.0)), monkeypatch)
-    assert registered == 0 and not out["applied"] and not out["unaligned"] and len(out["still"]) == 2
-    assert max(out["largest_displacement_px"]) < 0.01 and min(out["confidence"]) > 0.9
-    assert all(np.allclose(w[:, :2], np.eye(2)) for w in out["warps"])
+    assert registered == 0 and not out.applied and not out.unaligned and len(out.still) == 2
+    assert max(out.sizes) < 0.01 and min(out.confidence) > 0.9
+    assert all(np.allclose(w[:, :2], np.eye(2)) for w in out.warps)
 
 
 def test_frames_that_moved_are_registered_at_full_resolution_as_before(monkeypatch):
@@ -770,10 +768,10 @@ def test_frames_that_moved_are_registered_at_full_resolution_as_before(monkeypat
     stack = _raw_stack((0.5, 5.0))
     out, registered = _alignment_counting(stack, monkeypatch)
     before, _ = _alignment_counting(stack, monkeypatch, coarse=False)
-    assert registered == 2 and out["still"] == [] and out["applied"]
-    for est, old in zip(out["warps"], before["warps"]):
+    assert registered == 2 and out.still == [] and out.applied
+    for est, old in zip(out.warps, before.warps):
         assert np.array_equal(est, old)
-    assert abs(out["warps"][2][0, 2] + 5.0) < 0.1
+    assert abs(out.warps[2][0, 2] + 5.0) < 0.1
 
 
 @needs_shared
@@ -797,9 +795,9 @@ def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path)
               white=int(moved.white[0]), exposure_time=moved.exposure_time, iso=int(moved.iso or 100), aperture=8.0)
     frames = read_bracket(paths, None)
     out = estimate_alignment(frames, exposure_values(frames), CRF("linear"), "auto")
-    assert out["applied"], {k: out[k] for k in ("shift_px", "still", "unaligned")}
-    assert out["still"], "no frame was found still"
+    assert out.applied, out.summary()
+    assert out.still, "no frame was found still"
     for j, f in enumerate(frames):
-        if f.path in out["still"]:
-            neighbour = j - 1 if j > frames.index(next(g for g in frames if g.path == out["reference"])) else j + 1
-            np.testing.assert_array_equal(out["warps"][j], out["warps"][neighbour])
+        if f.path in out.still:
+            neighbour = j - 1 if j > frames.index(next(g for g in frames if g.path == out.reference)) else j + 1
+            np.testing.assert_array_equal(out.warps[j], out.warps[neighbour])

@@ -405,7 +405,7 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
     return Motion(px, moved_threshold_px(s.pitch))
 
 
-def alignment_motion(frames: list[Frame], alignment: dict, s: Samples) -> Motion:
+def alignment_motion(frames: list[Frame], alignment, s: Samples) -> Motion:
     """The neighbour pairs' displacement as the merge's registration measured it
     (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`), for samples brought onto the
     reference with its warps when it applies them (:meth:`Samples.registered`): 0 left
@@ -413,14 +413,14 @@ def alignment_motion(frames: list[Frame], alignment: dict, s: Samples) -> Motion
     otherwise the largest distance between where the two frames' warps take a corner."""
     from hdrmerge_cli.core.registration import corner_distance
 
-    warps, unaligned = alignment["warps"], set(alignment["unaligned"])
+    warps, unaligned = [alignment.warp_of(f) for f in frames], set(alignment.unaligned)
     px: dict[int, float | None] = {}
     for j in range(len(frames) - 1):
         if {frames[j].path, frames[j + 1].path} & unaligned:
             px[j] = None
         else:
-            px[j] = 0.0 if alignment["applied"] else corner_distance(warps[j], warps[j + 1], frames[j].height,
-                                                                      frames[j].width)
+            px[j] = 0.0 if alignment.applied else corner_distance(warps[j], warps[j + 1], frames[j].height,
+                                                                   frames[j].width)
     return Motion(px, moved_threshold_px(s.pitch))
 
 
@@ -560,7 +560,7 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
 
 
 def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
-                      samples: Samples | None = None, alignment: dict | None = None):
+                      samples: Samples | None = None, alignment=None):
     """merge: check the frames' order, measure their exposures and warn about labels more
     than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
     instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
@@ -577,8 +577,8 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         return frames, exposures, None, samples
     s = samples if samples is not None else sample_frames(frames, load)
     check_order(frames, s)
-    if alignment is not None and alignment["applied"]:
-        s = s.registered(alignment["warps"])
+    if alignment is not None and alignment.applied:
+        s = s.registered([alignment.warp_of(f) for f in frames])
     est, used = estimate_with_response(frames, exposures, s, crf, rounds=2 if use_estimates else 1)
     if alignment is not None:
         motion = alignment_motion(frames, alignment, s)

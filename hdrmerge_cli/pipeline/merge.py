@@ -187,7 +187,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     frames, exposures, exposure_report, samples = resolve_exposures(frames, exposures, crf, load,
                                                                     opts.times == ESTIMATE, samples, alignment)
     timings["exposure_check"] = time.perf_counter() - t1
-    aligned = motion.loader(frames, alignment, load)
+    aligned = motion.loader(alignment, load)
     load, groups, seen = _watch_repeats(aligned, frames, exposures)
     if opts.colorspace == "camera" and frames[0].kind == "image":
         log.warning("--colorspace camera: %s carries no camera matrix (camera-processed image); the output is "

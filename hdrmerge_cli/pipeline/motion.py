@@ -29,6 +29,55 @@ def reference_index(frames: list[Frame]) -> int:
     return len(frames) // 2
 
 
+@dataclasses.dataclass
+class Alignment:
+    """What :func:`estimate_alignment` found: per frame (the lists in the order of
+    ``frames``) its warp onto the reference, ``(2, 3)`` float64 in the frame's own sample
+    coordinates; :meth:`warp_of` finds a frame's by identity, whatever order the frames are
+    in later (``--times estimate`` may re-sort them).
+
+    mode : the ``--align`` mode; motion : ``translation`` or ``similarity`` as found
+    resampling : RAW ``cfa-periods`` or ``per-colour``; images ``none``
+    reference : the reference frame's path; applied : whether the merge moves the frames
+    confidence : each registration's correlation to its neighbour (1 for the reference)
+    unaligned, still : paths of the frames left unaligned, and found still at coarse resolution
+    """
+
+    mode: str
+    motion: str
+    resampling: str
+    reference: str
+    applied: bool
+    frames: list[Frame]
+    warps: list[np.ndarray]
+    confidence: list[float]
+    unaligned: list[str]
+    still: list[str]
+
+    def warp_of(self, frame: Frame) -> np.ndarray:
+        for f, w in zip(self.frames, self.warps):
+            if f is frame:
+                return w
+        raise KeyError(frame.path)
+
+    @property
+    def sizes(self) -> list[float]:
+        """Each frame's largest displacement at a corner (pixels)."""
+        return [registration.warp_size(w, f.height, f.width) for w, f in zip(self.warps, self.frames)]
+
+    def summary(self) -> dict:
+        """``merge --json``'s ``alignment``."""
+        out = {"mode": self.mode, "motion": self.motion, "resampling": self.resampling, "reference": self.reference,
+               "frames": [f.path for f in self.frames], "applied": self.applied,
+               "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in self.warps],
+               "largest_displacement_px": [round(s, 3) for s in self.sizes], "confidence": self.confidence,
+               "unaligned": self.unaligned, "still": self.still}
+        if self.motion == "similarity":
+            out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in self.warps]
+            out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in self.warps]
+        return out | {"warps": [np.round(w, 6).tolist() for w in self.warps]}
+
+
 def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     """The registration image of a frame, full scale 1: RAW the mean of each 2 x 2 CFA cell
     (black subtracted; half resolution), images the mean of the linearised channels."""
@@ -80,7 +129,7 @@ def _coarse_linear(frame: Frame, codes: np.ndarray, crf: CRF, f: int) -> np.ndar
     return out
 
 
-def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> dict:
+def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> Alignment:
     """Warps bringing every frame onto the reference (``core.registration``).  ``auto`` registers
     with rotation too and keeps a frame's rotation only where it beats translation, and
     applies the warps only when some frame is displaced by more than
@@ -95,12 +144,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     :data:`AUTO_ALIGN_PX` divided by the frame's steps from the reference, so the chained
     warp stays within it) is not registered at full resolution: an image keeps the coarse
     translation estimate, a RAW frame its neighbour's warp (no correction below the
-    tolerance is worth resampling a mosaic colour by colour).  Returns ``{"mode", "reference",
-    "applied", "motion", "frames", "warps": [(2, 3) ...], "shift_px": [...], "confidence": [...],
-    "unaligned": [...], "still": [...], "warp_of": {id(frame): warp}}``, the lists in the order
-    of ``frames`` (paths), ``warp_of`` by frame, warps in the frames' own sample coordinates,
-    confidence the registration's correlation coefficient to its neighbour (1 for the
-    reference) and ``still`` the frames found still at coarse resolution."""
+    tolerance is worth resampling a mosaic colour by colour).  Returns an :class:`Alignment`."""
     ref = reference_index(frames)
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
@@ -131,20 +175,10 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
     # RAW: moved by whole CFA periods, or resampled colour by colour (core.resample.resample_mosaic)
     resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
-    out = {"mode": mode, "motion": motion, "resampling": resampling, "reference": frames[ref].path,
-           "frames": [f.path for f in frames],  # the order of the lists below
-           "applied": bool(applied),
-           "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in warps],
-           "largest_displacement_px": [round(s, 3) for s in sizes], "confidence": confidence,
-           "unaligned": unaligned, "still": [frames[j].path for j in sorted(judged_still)]}
-    if motion == "similarity":
-        out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in warps]
-        out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in warps]
-    out["warps"] = warps
-    out["warp_of"] = {id(f): w for f, w in zip(frames, warps)}  # by frame: --times estimate may re-sort them
     log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
              "applied" if applied else "not needed")
-    return out
+    return Alignment(mode, motion, resampling, frames[ref].path, bool(applied), list(frames), warps, confidence,
+                     unaligned, [frames[j].path for j in sorted(judged_still)])
 
 
 def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[float, float] | None:
@@ -258,12 +292,12 @@ def whole_periods_suffice(warps) -> bool:
     return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
 
 
-def loader(frames: list[Frame], alignment: dict | None, load=load_codes):
+def loader(alignment: Alignment | None, load=load_codes):
     """``frame -> codes`` (``load``), brought onto the reference when the alignment is
     applied (an :class:`AlignedLoader`)."""
-    if not alignment or not alignment["applied"]:
+    if alignment is None or not alignment.applied:
         return load
-    return AlignedLoader(frames, alignment, load)
+    return AlignedLoader(alignment, load)
 
 
 class AlignedLoader:
@@ -274,10 +308,10 @@ class AlignedLoader:
     pass (deghosting reads every frame twice, the merge and its re-weighting once each), in
     place of its decoded codes where ``load`` holds them (:class:`~hdrmerge_cli.io.frames.HeldCodes`)."""
 
-    def __init__(self, frames: list[Frame], alignment: dict, load=load_codes):
+    def __init__(self, alignment: Alignment, load=load_codes):
         self.load = load
-        self.warps = {id(f): alignment["warp_of"][id(f)] for f in frames}
-        self.periods = alignment["resampling"] == "cfa-periods"
+        self.alignment = alignment
+        self.periods = alignment.resampling == "cfa-periods"
         self.kept: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self._lock = threading.Lock()
 
@@ -286,7 +320,7 @@ class AlignedLoader:
             if id(frame) in self.kept:
                 return self.kept[id(frame)][0]
         codes = self.load(frame)
-        w = self.warps[id(frame)]
+        w = self.alignment.warp_of(frame)
         if is_identity(w):  # the reference: nothing to resample
             return codes
         clip = int(np.max(frame.white))
@@ -388,16 +422,13 @@ def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoisePara
 
 
 def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
-                mode: str, p_fa: float | None = None, params: deghost.DeghostParams | None = None) -> dict:
+                mode: str, p_fa: float | None = None, params: deghost.DeghostParams | None = None) -> Ghosts:
     """Per frame, the blocks inconsistent with the anchor (:func:`~hdrmerge_cli.core.deghost.ghost_masks`),
     cleaned and feathered.  ``noise``: one parameter set per channel (code units), or None
     (the codes' quantisation; :func:`~hdrmerge_cli.core.deghost.level_scale` measures the
     rest); ``params``: :data:`~hdrmerge_cli.core.deghost.RAW_PARAMS` or ``IMAGE_PARAMS`` by
     the frames' kind unless given, ``p_fa`` overriding its false-alarm rate.  Each frame is
-    decoded twice (anchor, test), so memory is flat in the frame count.  Returns ``{"mode",
-    "applied", "p_false_alarm", "rejected_fraction": [...], "masks": [(h, w) uint8 soft
-    masks, 255 = dropped], "block", "covered"}``, masks over blocks of ``block`` x ``block``
-    pixels (RAW: CFA periods) covering the first ``covered`` = (rows, cols) samples."""
+    read twice (anchor, test).  Returns :class:`Ghosts`."""
     from hdrmerge_cli.pipeline.bracket import sample_pattern
 
     first = frames[0]
@@ -429,19 +460,46 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     log.info("deghosting (blocks of %d px): up to %.2f %% of a frame's blocks move; %s", b * per_px,
              100 * max(fractions), "applied" if applied else "not needed")
     hb, wb = masks[0].shape
-    return {"mode": mode, "applied": bool(applied), "p_false_alarm": params.p_fa, "block": b,
-            "covered": [hb * b * per_px, wb * b * per_px],
-            "rejected_fraction": [round(f, 6) for f in fractions], "masks": masks}
+    return Ghosts(mode, bool(applied), params.p_fa, b, (hb * b * per_px, wb * b * per_px),
+                  [round(f, 6) for f in fractions], list(frames), masks)
 
 
-def ghost_weight(ghosts: dict, k: int, height: int, width: int) -> np.ndarray:
-    """Frame ``k``'s soft rejection ``m`` in [0, 1] per pixel ``(height, width)`` float32:
+@dataclasses.dataclass
+class Ghosts:
+    """What :func:`find_ghosts` found: per frame (in the order of ``frames``) a soft mask
+    ``(h, w)`` uint8 over blocks of ``block`` x ``block`` pixels (RAW: CFA periods), 255 =
+    dropped, covering the first ``covered`` = (rows, cols) samples; :meth:`mask_of` finds a
+    frame's by identity.  ``applied``: whether the merge drops them."""
+
+    mode: str
+    applied: bool
+    p_false_alarm: float
+    block: int
+    covered: tuple[int, int]
+    rejected_fraction: list[float]
+    frames: list[Frame]
+    masks: list[np.ndarray]
+
+    def mask_of(self, frame: Frame) -> np.ndarray:
+        for f, m in zip(self.frames, self.masks):
+            if f is frame:
+                return m
+        raise KeyError(frame.path)
+
+    def summary(self) -> dict:
+        """``merge --json``'s ``deghost``."""
+        return {"mode": self.mode, "applied": self.applied, "p_false_alarm": self.p_false_alarm, "block": self.block,
+                "covered": list(self.covered), "rejected_fraction": self.rejected_fraction}
+
+
+def ghost_weight(ghosts: Ghosts, frame: Frame, height: int, width: int) -> np.ndarray:
+    """The frame's soft rejection ``m`` in [0, 1] per pixel ``(height, width)`` float32:
     its block mask interpolated bilinearly (rows and columns beyond the blocks repeat the
     last ones)."""
     import cv2
 
-    m = ghosts["masks"][k]
-    ch, cw = ghosts["covered"]
+    m = ghosts.mask_of(frame)
+    ch, cw = ghosts.covered
     hb, wb = m.shape
     # pixel centre (x + 1/2) lands on block coordinate (x + 1/2) wb / cw - 1/2, as a resize
     # to the covered pixels reads it; beyond them the border repeats (one pass)
@@ -451,13 +509,13 @@ def ghost_weight(ghosts: dict, k: int, height: int, width: int) -> np.ndarray:
                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
-def ghost_image(ghosts: dict | None, height: int, width: int) -> np.ndarray:
+def ghost_image(ghosts: Ghosts | None, height: int, width: int) -> np.ndarray:
     """The 'ghost' extra channel: per pixel, the sum over frames of how much each is
     dropped (0 = none)."""
     out = np.zeros((height, width), np.float32)
-    if ghosts and ghosts["applied"]:
-        for k in range(len(ghosts["masks"])):
-            out += ghost_weight(ghosts, k, height, width)
+    if ghosts is not None and ghosts.applied:
+        for frame in ghosts.frames:
+            out += ghost_weight(ghosts, frame, height, width)
     return out
 
 
@@ -474,14 +532,14 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
     return resample.covered_mask(warp, h, w)
 
 
-def sample_weights(tables, pattern, frames: list[Frame], ghosts: dict | None, alignment: dict | None,
+def sample_weights(tables, pattern, frames: list[Frame], ghosts: Ghosts | None, alignment: Alignment | None,
                    load=None):
     """The per-sample weights of the merge (a :class:`SampleWeights`), or None when no
     frame has transparent pixels and neither the deghosting nor the alignment is applied.
     ``load``: the merge's :class:`AlignedLoader` (for the resampling spreads)."""
-    ghosts = ghosts if ghosts and ghosts["applied"] else None
-    alignment = alignment if alignment and alignment["applied"] else None
-    validity = [valid_pixels(f, alignment["warp_of"][id(f)] if alignment else None) for f in frames]
+    ghosts = ghosts if ghosts is not None and ghosts.applied else None
+    alignment = alignment if alignment is not None and alignment.applied else None
+    validity = [valid_pixels(f, alignment.warp_of(f) if alignment else None) for f in frames]
     if ghosts is None and alignment is None and all(v is None for v in validity):
         return None
     return SampleWeights(tables, pattern, frames, ghosts, alignment, load if isinstance(load, AlignedLoader) else None,
@@ -523,12 +581,12 @@ class SampleWeights:
         transparent, ``1 - m`` in its rejected ghost cells (feathered ``m``, so no seam)."""
         frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
         out = None
-        if ghosts is not None and ghosts["masks"][k].any():
-            out = ghost_weight(ghosts, k, frame.height, frame.width)
+        if ghosts is not None and ghosts.mask_of(frame).any():
+            out = ghost_weight(ghosts, frame, frame.height, frame.width)
             np.subtract(np.float32(1.0), out, out=out)
         masks = [self.validity[k]]
         if alignment is not None:
-            masks.append(covered(frame, alignment["warp_of"][id(frame)], alignment["resampling"] == "cfa-periods"))
+            masks.append(covered(frame, alignment.warp_of(frame), alignment.resampling == "cfa-periods"))
         for inside in masks:
             if inside is not None:
                 out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
@@ -542,7 +600,7 @@ class SampleWeights:
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
             w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread),
-                                      self.alignment["warp_of"][id(self.frames[k])], out=w if own else None,
+                                      self.alignment.warp_of(self.frames[k]), out=w if own else None,
                                       cfa=self.frames[k].cfa_pattern), True
         f = self.factor(k)
         if f is None:

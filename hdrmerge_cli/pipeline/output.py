@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +23,9 @@ from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.pipeline.bracket import upright
 from hdrmerge_cli.pipeline.model_choice import Models
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
+
+if TYPE_CHECKING:
+    from hdrmerge_cli.pipeline.motion import Alignment, Ghosts
 
 #: file types ``--preview`` writes (by suffix)
 PREVIEW_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -61,8 +65,8 @@ class Merged:
     variance_samples: np.ndarray | None = None
     iterations: int = 0
     orientation: int = 1
-    alignment: dict | None = None
-    ghosts: dict | None = None
+    alignment: Alignment | None = None
+    ghosts: Ghosts | None = None
     exposure_check: dict | None = None
     repeats: list = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
@@ -370,9 +374,8 @@ class Merged:
             "channels": self.channel_names,
             "saturated_fraction": float(np.count_nonzero(flags == FLAG_SATURATED) / n),
             "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
-            **({"alignment": {k: v for k, v in alignment.items() if k not in ("warps", "warp_of")}
-                | {"warps": [np.round(w, 6).tolist() for w in alignment["warps"]]}} if alignment else {}),
-            **({"deghost": {k: v for k, v in ghosts.items() if k != "masks"}} if ghosts else {}),
+            **({"alignment": alignment.summary()} if alignment else {}),
+            **({"deghost": ghosts.summary()} if ghosts else {}),
             "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
         }
 
