@@ -60,7 +60,7 @@ def run_config(gain: float, sigma_o: float, folder: Path, downscale: int, scale:
     out = {"coverage": (float(ok.sum() / pos.sum()), 0.0)}
     for est in ("log", "ml"):
         for w in WEIGHTS:
-            s = merge(frames, MergeOptions(output=folder / "m.exr", overwrite=True, weights=w, crf=f"gamma:{GAMMA}",
+            s = merge(frames, MergeOptions.from_fields(output=folder / "m.exr", overwrite=True, weights=w, crf=f"gamma:{GAMMA}",
                                            noise=noise, estimator=est, reference=str(meta["reference_exposure"])))
             est_img, _ = read_exr(folder / "m.exr")
             mse = np.mean((np.log(np.maximum(est_img[ok], 1e-30)) - log_t) ** 2)

@@ -119,7 +119,7 @@ def run_config(scene: str, scale: float, gain: float, sigma_o: float, beta_on: b
     common = dict(output=tmp / "m.exr", overwrite=True, cfa=True, reference=str(meta["reference_exposure"]))
     for label, extra in (("true", {"noise": f"sigma_o2={truth['sigma_o2']:.9g},alpha={alpha:.9g},beta={sensor.beta:.9g}"}),
                          ("measured", {}), ("photon", {"variance": "photon"})):
-        merge(frames, MergeOptions(**common, **extra))
+        merge(frames, MergeOptions.from_fields(**common, **extra))
         out[f"psnr_{label}"] = log_psnr(read_exr(tmp / "m.exr")[0][..., 0], t_mosaic)
     out["truth"] = truth
     out["config"] = {"sqrt_alpha": gain, "sigma_o": sigma_o, "beta": beta_on}

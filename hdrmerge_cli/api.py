@@ -726,7 +726,7 @@ def _options(options: dict) -> MergeOptions:
         except (HdrMergeError, TypeError) as exc:
             raise HdrMergeError(f"times: {exc}") from None
     try:
-        opts = MergeOptions(**options)
+        opts = MergeOptions.from_fields(**options)
     except TypeError as exc:
         raise HdrMergeError(str(exc)) from None
     check_options(opts)

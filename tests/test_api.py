@@ -399,18 +399,21 @@ def test_json_summary_matches_cli(tmp_path, run, dng_bracket):
 def test_merge_options_compose_algorithm_inputs_and_outputs():
     """Each flat field lands in its part; the algorithm part holds no file concern; the
     composite pickles (batch workers) and copies with changes."""
-    opts = MergeOptions(output=Path("m.exr"), deghost="on", crf="gamma:2.2", noise_cache=False, irls=0)
+    opts = MergeOptions.from_fields(output=Path("m.exr"), deghost="on", crf="gamma:2.2", noise_cache=False, irls=0)
     assert opts.algorithm == MergeSettings(deghost="on", irls=0)
     assert opts.inputs == InputOptions(crf="gamma:2.2")
     assert opts.io == OutputOptions(output=Path("m.exr"), noise_cache=False)
-    assert (opts.deghost, opts.crf, opts.output, opts.noise_cache) == ("on", "gamma:2.2", Path("m.exr"), False)
+    assert opts == MergeOptions(MergeSettings(deghost="on", irls=0), InputOptions(crf="gamma:2.2"),
+                                OutputOptions(output=Path("m.exr"), noise_cache=False))
     algorithm_fields = {f for f in MergeSettings.__dataclass_fields__}
     assert not algorithm_fields & {"output", "profile_out", "overwrite", "preview", "compression", "half", "crf",
                                    "noise", "profile", "noise_cache", "extra_channels"}
     assert pickle.loads(pickle.dumps(opts)) == opts
     again = opts.replace(output=Path("n.exr"), align="off")
-    assert again.output == Path("n.exr") and again.align == "off" and opts.output == Path("m.exr")
+    assert again.io.output == Path("n.exr") and again.algorithm.align == "off" and opts.io.output == Path("m.exr")
     with pytest.raises(TypeError, match="wrong"):
-        MergeOptions(wrong=1)
-    with pytest.raises(AttributeError):
-        opts.wrong  # noqa: B018
+        MergeOptions.from_fields(wrong=1)
+    with pytest.raises(TypeError, match="MergeSettings"):
+        MergeOptions(InputOptions())
+    with pytest.raises(AttributeError):  # fields are read from their part
+        opts.deghost  # noqa: B018

@@ -383,7 +383,7 @@ def test_a_retried_cluster_task_counts_its_own_earlier_outputs_as_done(tmp_path,
 
     folder, meta = dng_bracket
     paths = [str(p) for p in frames_of(folder, meta)[:3]]
-    opts = MergeOptions(output=tmp_path / "a.exr")
+    opts = MergeOptions.from_fields(output=tmp_path / "a.exr")
     assert merge_one(paths, opts)["status"] == "merged"
     started = time.time() - 60
     again = merge_one(paths, opts, None, started)

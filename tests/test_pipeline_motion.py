@@ -173,7 +173,7 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
             p = tmp_path / f"{kind}{k}.dng"
             write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
             paths.append(str(p))
-        merged = pm.merge_bracket(paths, pm.MergeOptions(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
+        merged = pm.merge_bracket(paths, pm.MergeOptions.from_fields(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
         masks[kind] = ghost_weight(merged.ghosts, merged.ghosts.frames[masked], h, w)
     return masks
 
@@ -556,7 +556,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
 
     def run(name, bracket):
         out = tmp_path / f"{name}.exr"
-        pm.merge(bracket, pm.MergeOptions(output=out, overwrite=True, cfa=True, reference="1/200",
+        pm.merge(bracket, pm.MergeOptions.from_fields(output=out, overwrite=True, cfa=True, reference="1/200",
                                           align="translation" if name != "static" else "off", irls=0))
         return read_exr(str(out))[0][..., 0]
 
@@ -672,7 +672,7 @@ def test_static_raw_bracket_deghosting_rejects_nothing_wherever_the_camera_puts_
         p = tmp_path / f"f{k}.dng"
         write_dng(str(p), z, pattern="RGGB", black=b, white=white, exposure_time=t, iso=100)
         paths.append(str(p))
-    summary = pm.merge(paths, pm.MergeOptions(output=tmp_path / "m.exr", cfa=True, deghost="on", irls=0))
+    summary = pm.merge(paths, pm.MergeOptions.from_fields(output=tmp_path / "m.exr", cfa=True, deghost="on", irls=0))
     assert max(summary["deghost"]["rejected_fraction"]) <= 0.002
 
 

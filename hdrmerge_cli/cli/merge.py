@@ -196,18 +196,18 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
 
     if images:
         raise click.UsageError("give either IMAGES or --batch DIR, not both")
-    if opts.times not in (None, ESTIMATE) or opts.profile_out is not None or opts.preview is not None:
+    if opts.inputs.times not in (None, ESTIMATE) or opts.io.profile_out is not None or opts.io.preview is not None:
         raise click.UsageError("--times, --profile-out and --preview name one bracket's files; with --batch use "
                                "--times-file, and the profiles are named after each EXR")
-    if opts.output.exists() and not opts.output.is_dir():
-        raise click.UsageError(f"{opts.output} is a file; with --batch, -o names the output folder")
+    if opts.io.output.exists() and not opts.io.output.is_dir():
+        raise click.UsageError(f"{opts.io.output} is a file; with --batch, -o names the output folder")
     if scheduler and jobs != 1:
         log.warning("-j is ignored with --scheduler: the cluster's workers decide how many brackets run at once")
     if scheduler:  # cluster workers do not share our working directory: every file path absolute
-        opts = opts.replace(**{
-            k: str(Path(v).resolve()) for k in ("crf", "lut", "times_file", "profile")
-            if (v := getattr(opts, k)) and Path(v).is_file()})
-    bopts = BatchOptions(batch_dir, opts.output, opts, jobs, gap, scheduler, skip_existing)
+        files = {"crf": opts.inputs.crf, "lut": opts.algorithm.lut, "times_file": opts.inputs.times_file,
+                 "profile": opts.inputs.profile}
+        opts = opts.replace(**{k: str(Path(v).resolve()) for k, v in files.items() if v and Path(v).is_file()})
+    bopts = BatchOptions(batch_dir, opts.io.output, opts, jobs, gap, scheduler, skip_existing)
     entries = plan(bopts)
     if dry_run:
         summary = summarize(entries)
@@ -217,7 +217,7 @@ def _batch(images, batch_dir, opts, jobs, gap, scheduler, skip_existing, dry_run
     quiet = logging.getLogger("hdrmerge_cli").level > logging.WARNING
     with click.progressbar(length=todo, label="merging brackets", file=sys.stderr, hidden=quiet or todo == 0 or not sys.stderr.isatty()) as bar:
         summary = run_batch(bopts, entries, progress=bar.update)
-    emit(summary, as_json, f"{summary['merged']} bracket(s) merged into {opts.output}, {summary['skipped']} skipped, "
+    emit(summary, as_json, f"{summary['merged']} bracket(s) merged into {opts.io.output}, {summary['skipped']} skipped, "
                            f"{summary['failed']} failed")
     if summary["failed"]:
         raise HdrMergeError(f"{summary['failed']} of {len(summary['brackets'])} brackets failed (see above)")

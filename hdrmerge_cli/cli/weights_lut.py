@@ -56,21 +56,20 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
     if plot:
         check_figure_path(plot, overwrite)
     spec = crf or profile
-    opts = MergeOptions(output=output, noise=noise, profile=profile, crf=crf)
     if images:
         frames = read_bracket(list(images))
         if frames[0].kind in ("raw", "linear"):
             raise HdrMergeError(f"{frames[0].path}: RAW brackets have per-file black levels; give --times and --bits")
         exposures, n_codes = list(exposure_values(frames)), frames[0].n_codes
         curve = choose_crf(frames, spec)
-        params = resolve_noise(opts, frames)
+        params = resolve_noise(frames, noise, profile, crf)
         prior = prior_rate or (prior_rate_of(frames, np.array(exposures), curve) if weights in NOISE_MODEL_WEIGHTS
                                else None)
         names = frames[0].channel_names
     else:
         exposures, n_codes = sorted(times), 2**bits
         curve = resolve_crf(spec or "linear")
-        params = resolve_noise(opts, [])
+        params = resolve_noise([], noise, profile, crf)
         prior = prior_rate
         per_rgb = (params and set(params) != {"*"}) or (curve.table is not None and curve.table.shape[0] == 3)
         names = ["R", "G", "B"] if per_rgb else ["*"]

@@ -287,9 +287,10 @@ def merge_one(paths: list[str], opts: MergeOptions, profile_text: str | None = N
     workers (their file systems may not hold it).  ``started``: the batch's start time on a
     cluster, where a task may run again after its worker died: outputs this batch already
     wrote for it (the EXR and its profile, both newer than ``started``) count as done."""
-    profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(Path(opts.output))
-    if started is not None and all(p.exists() and p.stat().st_mtime >= started for p in (opts.output, profile_out)):
-        return {"status": "merged", "summary": {"output": str(opts.output), "profile": str(profile_out),
+    io = opts.io
+    profile_out = Path(io.profile_out) if io.profile_out else default_profile_path(Path(io.output))
+    if started is not None and all(p.exists() and p.stat().st_mtime >= started for p in (io.output, profile_out)):
+        return {"status": "merged", "summary": {"output": str(io.output), "profile": str(profile_out),
                                                 "retried": True}}
     try:
         if profile_text is not None:
@@ -315,7 +316,8 @@ def run_batch(opts: BatchOptions, entries: list[dict], progress=None) -> dict:
     sent to the workers once).  ``progress(n)`` is called as brackets finish.  Returns the
     batch summary; the caller decides the exit status from ``summary["failed"]``."""
     todo = [e for e in entries if e["status"] == "planned"]
-    profile_text = Path(opts.merge.profile).read_text(encoding="utf-8") if opts.merge.profile else None
+    profile = opts.merge.inputs.profile
+    profile_text = Path(profile).read_text(encoding="utf-8") if profile else None
     jobs = [(e, opts.merge.replace(output=Path(e["output"]), profile_out=None)) for e in todo]
     client = _connect(opts.scheduler) if opts.scheduler and jobs else None  # before anything is created
     # nothing to write: no output folder either; interrupted, or every bracket failed: the

@@ -59,8 +59,8 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     t0 = time.perf_counter()
     start_preparing_kernels()
     frames, crf, codes = open_bracket(paths, opts)
-    if Path(opts.output).suffix.lower() == ".dng" and frames[0].kind != "raw":
-        raise HdrMergeError(f"{opts.output}: a DNG output holds a CFA mosaic, but {frames[0].path} is not a Bayer "
+    if Path(opts.io.output).suffix.lower() == ".dng" and frames[0].kind != "raw":
+        raise HdrMergeError(f"{opts.io.output}: a DNG output holds a CFA mosaic, but {frames[0].path} is not a Bayer "
                             "RAW frame; name the output *.exr")
     merged = merge_frames(frames, crf, opts, load=codes, t_start=t0)
     del codes  # the frames' codes are not needed for colour and writing: freed before their peak
@@ -97,42 +97,42 @@ def prepare_kernels() -> None:
 
 def check_options(opts: MergeOptions) -> None:
     """Refuse unknown option values before any work."""
-    for extra in opts.extra_channels:
+    for extra in opts.io.extra_channels:
         if extra not in EXTRA_CHANNELS:
             raise HdrMergeError(f"unknown extra channel {extra!r} (choose from {', '.join(EXTRA_CHANNELS)})")
-    exr_compression(opts.compression, opts.half)  # an unknown name fails before any work
-    if opts.colorspace not in COLORSPACES:
-        raise HdrMergeError(f"unknown colour space {opts.colorspace!r} (choose from {', '.join(COLORSPACES)})")
-    reference_exposure(opts.reference, np.ones(1))  # a bad --reference fails before any work
-    if opts.cfa and opts.colorspace != "rec709":
-        log.warning("--cfa writes the camera's mosaic: --colorspace %s does not apply", opts.colorspace)
+    exr_compression(opts.io.compression, opts.io.half)  # an unknown name fails before any work
+    if opts.io.colorspace not in COLORSPACES:
+        raise HdrMergeError(f"unknown colour space {opts.io.colorspace!r} (choose from {', '.join(COLORSPACES)})")
+    reference_exposure(opts.algorithm.reference, np.ones(1))  # a bad --reference fails before any work
+    if opts.io.cfa and opts.io.colorspace != "rec709":
+        log.warning("--cfa writes the camera's mosaic: --colorspace %s does not apply", opts.io.colorspace)
 
 
 def check_outputs(paths: list[str], opts: MergeOptions) -> list:
     """Refuse outputs that cannot or must not be written (wrong type, existing without
     ``overwrite``, the same as an input); returns the inputs the outputs must not replace."""
-    output = Path(opts.output)
-    profile_out = Path(opts.profile_out) if opts.profile_out else default_profile_path(output)
+    output = Path(opts.io.output)
+    profile_out = Path(opts.io.profile_out) if opts.io.profile_out else default_profile_path(output)
     if output.suffix.lower() not in (".exr", ".dng"):
         raise HdrMergeError(f"{output}: merge writes OpenEXR (*.exr) or, from RAW, a floating-point DNG (*.dng)")
-    if output.suffix.lower() == ".dng" and (opts.extra_channels or opts.preview is not None):
+    if output.suffix.lower() == ".dng" and (opts.io.extra_channels or opts.io.preview is not None):
         raise HdrMergeError(f"{output}: a DNG holds the colour mosaic only (it embeds its own preview); "
                             "--extra-channels and --preview need an EXR output")
     if output.suffix.lower() == ".dng":
-        for name, value, default in (("colorspace", opts.colorspace, "rec709"),
-                                     ("compression", opts.compression, "auto")):
+        for name, value, default in (("colorspace", opts.io.colorspace, "rec709"),
+                                     ("compression", opts.io.compression, "auto")):
             if value != default:
                 log.warning("%s: a DNG holds the camera's mosaic (Deflate-compressed): --%s %s does not apply",
                             output, name, value)
-    check_writable(output, opts.overwrite)
-    check_writable(profile_out, opts.overwrite)
-    if opts.preview is not None:
-        if Path(opts.preview).suffix.lower() not in PREVIEW_SUFFIXES:
-            raise HdrMergeError(f"{opts.preview}: a preview is written as {', '.join(PREVIEW_SUFFIXES)} (by suffix)")
-        check_writable(opts.preview, opts.overwrite)
-    inputs = list(paths) + [p for p in (opts.profile, opts.lut, opts.times_file, opts.crf)
+    check_writable(output, opts.io.overwrite)
+    check_writable(profile_out, opts.io.overwrite)
+    if opts.io.preview is not None:
+        if Path(opts.io.preview).suffix.lower() not in PREVIEW_SUFFIXES:
+            raise HdrMergeError(f"{opts.io.preview}: a preview is written as {', '.join(PREVIEW_SUFFIXES)} (by suffix)")
+        check_writable(opts.io.preview, opts.io.overwrite)
+    inputs = list(paths) + [p for p in (opts.inputs.profile, opts.algorithm.lut, opts.inputs.times_file, opts.inputs.crf)
                             if p and Path(p).is_file()]
-    check_distinct([output, profile_out] + ([opts.preview] if opts.preview is not None else []), inputs)
+    check_distinct([output, profile_out] + ([opts.io.preview] if opts.io.preview is not None else []), inputs)
     return inputs
 
 
@@ -148,8 +148,8 @@ def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF
     """Stage 1: the frames' metadata, checked and sorted by exposure, the response, and
     the frames' codes as each is decoded (a RAW frame's with its metadata, from one open)."""
     codes = HeldCodes()
-    frames = read_bracket(paths, opts.times, opts.times_file, equal_ok=True, held=codes)
-    return frames, choose_crf(frames, opts.crf or opts.profile, from_profile=not opts.crf, warn=False), codes
+    frames = read_bracket(paths, opts.inputs.times, opts.inputs.times_file, equal_ok=True, held=codes)
+    return frames, choose_crf(frames, opts.inputs.crf or opts.inputs.profile, from_profile=not opts.inputs.crf, warn=False), codes
 
 
 def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_codes,
@@ -162,7 +162,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         log.warning("%s: only one frame; the result has that frame's dynamic range", frames[0].path)
     exposures = exposure_values(frames)
     # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
-    noise, noise_by_iso = (noise, None) if noise is not None else resolve_noise_by_iso(opts, frames)
+    settings, inputs, outputs = opts.algorithm, opts.inputs, opts.io
+    noise, noise_by_iso = ((noise, None) if noise is not None
+                           else resolve_noise_by_iso(frames, inputs.noise, inputs.profile, inputs.crf))
     alignment = None
     if not isinstance(load, HeldCodes):  # every pass below reads the frames: each decoded once
         load = HeldCodes(load)
@@ -170,48 +172,49 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     samples = None
     # the noise's sites drawn as the exposure check decodes the frames, should the bracket's
     # noise be measured (no parameters given, none cached): no decode of its own
-    draw = NoiseDraw(frames) if noise is None and not opts.lut else None
+    draw = NoiseDraw(frames) if noise is None and not settings.lut else None
     if len(frames) > 1 or crf.assumed:  # exposures: the frames' order, the response
         t1 = time.perf_counter()
         samples = sample_frames(frames, load, also=draw)
         if len(frames) > 1:  # registration and the response trust the labels' order: a disordered bracket fails first
             check_order(frames, samples)
         if crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
-            crf = measure_response(frames, samples, cache=opts.noise_cache) or crf
+            crf = measure_response(frames, samples, cache=outputs.noise_cache) or crf
             timings["response"] = time.perf_counter() - t1
-    if opts.align != "off":  # registration
+    if settings.align != "off":  # registration
         t1 = time.perf_counter()
-        alignment = motion.estimate_alignment(frames, exposures, crf, opts.align, load)
+        alignment = motion.estimate_alignment(frames, exposures, crf, settings.align, load)
         timings["align"] = time.perf_counter() - t1
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
     frames, exposures, exposure_report, samples = resolve_exposures(frames, exposures, crf, load,
-                                                                    opts.times == ESTIMATE, samples, alignment)
+                                                                    inputs.times == ESTIMATE, samples, alignment)
     timings["exposure_check"] = time.perf_counter() - t1
     aligned = motion.loader(alignment, load)
     load, groups, seen = _watch_repeats(aligned, frames, exposures)
-    if opts.colorspace == "camera" and frames[0].kind == "image":
+    if outputs.colorspace == "camera" and frames[0].kind == "image":
         log.warning("--colorspace camera: %s carries no camera matrix (camera-processed image); the output is "
                     "Rec.709 (sRGB primaries)", frames[0].path)
-    if opts.cfa and frames[0].kind == "linear":
+    if outputs.cfa and frames[0].kind == "linear":
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
     # the noise is measured on the frames as decoded: resampling smooths it, and frames that
     # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    models = choose_models(frames, exposures, crf, opts, unaligned, noise, draw, samples, noise_by_iso)
+    models = choose_models(frames, exposures, crf, settings, unaligned, noise, draw, samples, noise_by_iso,
+                           with_variance="variance" in outputs.extra_channels, noise_cache=outputs.noise_cache)
     del samples
     timings.update(models.timings)
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
     ghosts = None
-    if opts.deghost != "off":
+    if settings.deghost != "off":
         t0 = time.perf_counter()
         ghosts = motion.find_ghosts(frames, exposures, crf, motion.require_noise(models.noise, frames, crf, load),
-                                    load, opts.deghost)
+                                    load, settings.deghost)
         timings["deghost"] = time.perf_counter() - t0
-    h_ref = reference_exposure(opts.reference, exposures)
+    h_ref = reference_exposure(settings.reference, exposures)
     result, flags, den, variance, iterations = reconstruct(
         frames, exposures, h_ref, models, load,
         motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned), timings,
-        "variance" in opts.extra_channels)
-    check_range(result, opts.half, opts.reference, h_ref)
+        "variance" in outputs.extra_channels)
+    check_range(result, outputs.half, settings.reference, h_ref)
     warn_unmeasured(frames, result, flags)
     repeats = _check_repeats(groups, seen, frames, crf)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,

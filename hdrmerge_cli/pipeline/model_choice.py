@@ -18,7 +18,7 @@ from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.noisespec import iso_key, noise_from_profile, parse_bounds, parse_noise, per_channel
 from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.pipeline.bracket import sample_pattern
-from hdrmerge_cli.pipeline.options import MergeOptions
+from hdrmerge_cli.pipeline.options import MergeSettings
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -71,9 +71,10 @@ class Models:
         return {iso_key(f.iso): self.noise_used(f, n) for f, n in zip(frames, self.frame_noise)}
 
 
-def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: MergeOptions, load=load_codes,
+def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings: MergeSettings, load=load_codes,
                   noise: dict[str, NoiseParams] | None = None, draw=None, samples=None,
-                  noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None) -> Models:
+                  noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None, *, with_variance: bool = False,
+                  noise_cache: bool = True) -> Models:
     """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
     with ``noise_by_iso`` (:func:`resolve_noise_by_iso`: frames of several ISOs, a profile
     with each) every frame takes its own ISO's entry ``noise_by_iso[iso_key(frame.iso)]``;
@@ -95,17 +96,17 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
         noise = frame_noise[0]
         if all(n == noise for n in frame_noise):
             frame_noise = None
-    processed = first.kind == "image" and not crf.is_linear and not opts.lut
+    processed = first.kind == "image" and not crf.is_linear and not settings.lut
     measure_excess_term = processed and samples is not None and len(frames) > 1
-    needs_noise = (opts.variance == "model" or (opts.weights in NOISE_MODEL_WEIGHTS and opts.weights != "bounded")
-                   or bool(opts.irls) or opts.estimator == "ml"
-                   or (opts.estimator == "auto" and (first.kind == "raw" or crf.is_linear))
-                   or (opts.variance == "auto" and first.kind in ("raw", "linear"))
-                   or "variance" in opts.extra_channels)
-    if noise is None and (needs_noise or measure_excess_term) and not opts.lut:
+    needs_noise = (settings.variance == "model" or (settings.weights in NOISE_MODEL_WEIGHTS and settings.weights != "bounded")
+                   or bool(settings.irls) or settings.estimator == "ml"
+                   or (settings.estimator == "auto" and (first.kind == "raw" or crf.is_linear))
+                   or (settings.variance == "auto" and first.kind in ("raw", "linear"))
+                   or with_variance)
+    if noise is None and (needs_noise or measure_excess_term) and not settings.lut:
         t1 = time.perf_counter()
         # measured only to test the excess: a failure leaves the log estimator, no warning
-        noise, estimated = measure_noise(frames, crf, load, cache=opts.noise_cache, draw=draw, quiet=not needs_noise)
+        noise, estimated = measure_noise(frames, crf, load, cache=noise_cache, draw=draw, quiet=not needs_noise)
         timings["noise_estimate"] = time.perf_counter() - t1
         isos = sorted({f.iso for f in frames if f.iso})
         if noise and needs_noise and len(isos) > 1:
@@ -119,22 +120,22 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, opts: Me
         t1 = time.perf_counter()
         excess = measure_excess(samples, exposures, crf, noise, first.channel_names)
         timings["excess_variance"] = time.perf_counter() - t1
-    estimator = opts.estimator if opts.estimator != "auto" else default_estimator(first, crf, noise, excess)
-    weights = opts.weights if opts.weights != "auto" else default_weights(estimator)
-    variance = opts.variance if opts.variance != "auto" else default_variance(noise, crf, estimator)
-    if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not opts.lut:
+    estimator = settings.estimator if settings.estimator != "auto" else default_estimator(first, crf, noise, excess)
+    weights = settings.weights if settings.weights != "auto" else default_weights(estimator)
+    variance = settings.variance if settings.variance != "auto" else default_variance(noise, crf, estimator)
+    if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not settings.lut:
         log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
                     "conservative upper bounds", weights)
-    if opts.irls and not noise:
+    if settings.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
-    n_irls = opts.irls if opts.irls is not None else default_irls(estimator, noise, bool(opts.lut))
+    n_irls = settings.irls if settings.irls is not None else default_irls(estimator, noise, bool(settings.lut))
     t0 = time.perf_counter()
-    prior = prior_rate(frames, exposures, crf, load) if weights in NOISE_MODEL_WEIGHTS and not opts.lut else None
-    luts = lut_columns(opts.lut, frames) if opts.lut else None
-    bounds = parse_bounds(opts.bounds) if opts.bounds else None
-    tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, opts.k,
+    prior = prior_rate(frames, exposures, crf, load) if weights in NOISE_MODEL_WEIGHTS and not settings.lut else None
+    luts = lut_columns(settings.lut, frames) if settings.lut else None
+    bounds = parse_bounds(settings.bounds) if settings.bounds else None
+    tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, settings.k,
                                                    estimator, luts, bounds,
-                                                   with_variance="variance" in opts.extra_channels and not n_irls,
+                                                   with_variance=with_variance and not n_irls,
                                                    excess=excess if estimator == "ml" else None,
                                                    frame_noise=frame_noise)
     timings["tables"] = time.perf_counter() - t0
@@ -255,19 +256,20 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
     return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
 
 
-def resolve_noise(opts, frames: list[Frame]) -> dict[str, NoiseParams] | None:
+def resolve_noise(frames: list[Frame], noise: str | None, profile: str | None,
+                  crf: str | None) -> dict[str, NoiseParams] | None:
     """The noise of :func:`resolve_noise_by_iso` for the first frame's ISO (every
     frame's, where it is one; a warning where the frames' ISOs differ), or None."""
-    noise, by_iso = resolve_noise_by_iso(opts, frames)
+    noise, by_iso = resolve_noise_by_iso(frames, noise, profile, crf)
     if by_iso:
         log.warning("the frames differ in ISO (%s): the noise of %s is used for all of them", ", ".join(by_iso),
                     iso_key(frames[0].iso))
     return noise
 
 
-def resolve_noise_by_iso(opts, frames: list[Frame]) -> tuple[dict[str, NoiseParams] | None,
-                                                              dict[str, dict[str, NoiseParams]] | None]:
-    """``opts``: anything with ``noise``, ``profile`` and ``crf`` (the options' strings).
+def resolve_noise_by_iso(frames: list[Frame], noise: str | None, profile: str | None, crf: str | None
+                         ) -> tuple[dict[str, NoiseParams] | None, dict[str, dict[str, NoiseParams]] | None]:
+    """``noise``, ``profile``, ``crf``: the options' strings (:class:`~hdrmerge_cli.pipeline.options.InputOptions`).
     Noise parameters from ``--noise`` (for every frame, whatever its ISO), else from the
     profile (``--profile``, or a profile given as ``--crf``), else None (a CRF-only
     profile from estimate-crf included: the noise is then measured on a RAW bracket, as
@@ -278,9 +280,9 @@ def resolve_noise_by_iso(opts, frames: list[Frame]) -> tuple[dict[str, NoisePara
     differ (each frame is merged with its own), else None.  Frames of several ISOs and a
     profile that lacks one of them (a profile of one entry too) is an error: ``--noise``
     gives one noise for all."""
-    if opts.noise:
-        return parse_noise(opts.noise), None
-    source = opts.profile or (opts.crf if opts.crf and opts.crf.lower().endswith(".json") else None)
+    if noise:
+        return parse_noise(noise), None
+    source = profile or (crf if crf and crf.lower().endswith(".json") else None)
     if source:
         prof = load_profile(source)
         if prof.get("noise") and any(k.startswith("ISO") for k in prof["noise"]):

@@ -10,9 +10,7 @@
   and the per-camera cache.
 
 :class:`MergeOptions` composes the three for ``hdrmerge-cli merge`` and
-:func:`hdrmerge_cli.merge_files`; it also reads any part's field as its own attribute
-(``opts.estimator``, ``opts.output``) and takes the fields flat (``MergeOptions(output=...,
-deghost="on")``).
+:func:`hdrmerge_cli.merge_files`; each stage takes the part (or the fields) it reads.
 """
 from __future__ import annotations
 
@@ -123,47 +121,42 @@ _PARTS = {"algorithm": MergeSettings, "inputs": InputOptions, "io": OutputOption
 _OWNER = {f.name: part for part, cls in _PARTS.items() for f in dataclasses.fields(cls)}
 
 
-@dataclass(init=False, frozen=True)
+@dataclass(frozen=True)
 class MergeOptions:
     """A file-level merge's options: ``algorithm`` (:class:`MergeSettings`), ``inputs``
-    (:class:`InputOptions`) and ``io`` (:class:`OutputOptions`).
+    (:class:`InputOptions`) and ``io`` (:class:`OutputOptions`), each read by field
+    (``opts.algorithm.deghost``); :meth:`from_fields` sorts the keywords of
+    :func:`hdrmerge_cli.merge_files` into them.
 
-    Built from the parts, from flat fields, or both (flat fields override the parts'):
-
-    >>> opts = MergeOptions(MergeSettings(deghost="on"), output=Path("m.exr"))
-    >>> opts.deghost, opts.output, opts.io.overwrite
+    >>> opts = MergeOptions.from_fields(deghost="on", output=Path("m.exr"))
+    >>> opts.algorithm.deghost, opts.io.output, opts.io.overwrite
     ('on', PosixPath('m.exr'), False)
     >>> opts.replace(overwrite=True).io.overwrite
     True
     """
 
-    algorithm: MergeSettings
-    inputs: InputOptions
-    io: OutputOptions
+    algorithm: MergeSettings = field(default_factory=MergeSettings)
+    inputs: InputOptions = field(default_factory=InputOptions)
+    io: OutputOptions = field(default_factory=OutputOptions)
 
-    def __init__(self, algorithm: MergeSettings | None = None, inputs: InputOptions | None = None,
-                 io: OutputOptions | None = None, **fields):
-        parts = {"algorithm": algorithm or MergeSettings(), "inputs": inputs or InputOptions(),
-                 "io": io or OutputOptions()}
+    def __post_init__(self):
         for name, cls in _PARTS.items():
-            if not isinstance(parts[name], cls):
-                raise TypeError(f"MergeOptions {name}: a {cls.__name__}, not {type(parts[name]).__name__}")
+            if not isinstance(getattr(self, name), cls):
+                raise TypeError(f"MergeOptions {name}: a {cls.__name__}, not {type(getattr(self, name)).__name__}")
+
+    @classmethod
+    def from_fields(cls, **fields) -> MergeOptions:
+        """The options with each keyword in its part, the others at their defaults."""
+        return cls().replace(**fields)
+
+    def replace(self, **fields) -> MergeOptions:
+        """A copy with the given fields (of any part, by name) changed."""
         unknown = sorted(set(fields) - set(_OWNER))
         if unknown:
             raise TypeError(f"MergeOptions: unknown option {unknown[0]!r}")
+        parts = {name: getattr(self, name) for name in _PARTS}
         for name in parts:
             mine = {k: v for k, v in fields.items() if _OWNER[k] == name}
             if mine:
                 parts[name] = dataclasses.replace(parts[name], **mine)
-        for name, part in parts.items():
-            object.__setattr__(self, name, part)
-
-    def __getattr__(self, name: str):
-        part = _OWNER.get(name)
-        if part is None or part not in self.__dict__:
-            raise AttributeError(f"MergeOptions has no option {name!r}")
-        return getattr(self.__dict__[part], name)
-
-    def replace(self, **fields) -> MergeOptions:
-        """A copy with the given flat fields changed."""
-        return MergeOptions(self.algorithm, self.inputs, self.io, **fields)
+        return MergeOptions(**parts)

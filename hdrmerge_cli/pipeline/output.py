@@ -84,20 +84,20 @@ class Merged:
     def colour_channels(self) -> list[str]:
         """The EXR's colour channels: ``Y`` for a mosaic (``--cfa``) or a grey image."""
         if self.first.kind == "raw":
-            return ["Y"] if self.options.cfa else ["R", "G", "B"]
+            return ["Y"] if self.options.io.cfa else ["R", "G", "B"]
         return ["R", "G", "B"] if self.first.channels == 3 else ["Y"]
 
     @property
     def channel_names(self) -> list[str]:
         """The EXR's channels: colour, then the data channels asked for, whose names end
         in no R, G or B (the Color Interop Forum's rule for channels that are not colour)."""
-        extra = [c for c in EXTRA_CHANNELS if c in self.options.extra_channels and c != "variance"]
+        extra = [c for c in EXTRA_CHANNELS if c in self.options.io.extra_channels and c != "variance"]
         return self.colour_channels + extra + self.variance_channels
 
     @property
     def variance_channels(self) -> list[str]:
         """``variance`` (one colour channel) or ``variance.red/green/blue``."""
-        if "variance" not in self.options.extra_channels:
+        if "variance" not in self.options.io.extra_channels:
             return []
         return ["variance"] if len(self.colour_channels) == 1 else ["variance.red", "variance.green", "variance.blue"]
 
@@ -130,7 +130,7 @@ class Merged:
     @property
     def white_balanced(self) -> bool:
         first = self.first
-        return (first.kind == "raw" and not self.options.cfa) or (first.kind == "linear" and first.channels == 3)
+        return (first.kind == "raw" and not self.options.io.cfa) or (first.kind == "linear" and first.channels == 3)
 
     # ------------------------------------------------------------ finish
     @property
@@ -139,7 +139,7 @@ class Merged:
         Camera-processed images count as Rec.709 (sRGB primaries) in their native RGB."""
         if self.colour_channels != ["R", "G", "B"]:
             return None
-        cs = self.options.colorspace
+        cs = self.options.io.colorspace
         return "rec709" if cs == "camera" and self.first.kind == "image" else cs
 
     @cached_property
@@ -161,7 +161,7 @@ class Merged:
         :attr:`colour_matrix`; linear RGB white balance and that matrix; images as merged,
         or through it."""
         first, matrix = self.first, self.colour_matrix
-        if first.kind == "raw" and not self.options.cfa:
+        if first.kind == "raw" and not self.options.io.cfa:
             return _raw_to_rgb_rows(self.result, first, y0, y1, matrix)
         rgb = self.result[y0:y1].reshape(y1 - y0, first.width, -1)
         if first.kind == "linear" and first.channels == 3:  # demosaiced camera RGB
@@ -193,7 +193,7 @@ class Merged:
         own colour space, and for RAW RGB through an identity matrix."""
         first, matrix = self.first, self.colour_matrix
         sq = None if matrix is None else np.square(np.asarray(matrix, np.float32))
-        if first.kind == "raw" and not self.options.cfa:
+        if first.kind == "raw" and not self.options.io.cfa:
             a, b = max(0, y0 - STRIP_HALO), min(self.shape[0], y1 + STRIP_HALO)  # y0, a even: same CFA phase
             gains = np.square(first.white_balance)[bayer_channels(first.cfa_pattern, (b - a, self.shape[1]))]
             var = demosaic_variance(self.variance_samples[a:b] * gains, first.cfa_pattern)[y0 - a:y1 - a]
@@ -208,7 +208,7 @@ class Merged:
         channels, so no full-size RGB copy is ever held."""
         y1 = min(self.shape[0], y0 + STRIP_ROWS)
         rgb = self.colour_rows(y0, y1)
-        extra = self.options.extra_channels
+        extra = self.options.io.extra_channels
         planes = [rgb]
         if "clipped" in extra:
             planes.append(self.flags[y0:y1, :, None].astype(np.float32))
@@ -227,7 +227,7 @@ class Merged:
         first, m = self.first, self.models
         profile = new_profile({"make": first.make, "model": first.model}, first.bits, self.crf,
                               [f.path for f in self.frames], "merge")
-        profile["weights"] = f"lut:{Path(self.options.lut).name}" if self.options.lut else m.weights
+        profile["weights"] = f"lut:{Path(self.options.algorithm.lut).name}" if self.options.algorithm.lut else m.weights
         if m.noise:
             profile["noise"] = {"used": m.noise_used(first)}
             if m.frame_noise:  # the frames' ISOs differ: "used" is the reference frame's
@@ -264,7 +264,7 @@ class Merged:
         if first.camera:
             attrs["Make"], attrs["Model"] = first.make, first.model
         attrs.update(self.colour_tags())
-        if first.kind == "raw" and self.options.cfa:
+        if first.kind == "raw" and self.options.io.cfa:
             attrs["hdrmerge:cfaPattern"] = first.cfa_pattern
         if self.variance_channels:
             attrs["hdrmerge:varianceChannels"] = (
@@ -287,10 +287,10 @@ class Merged:
         from hdrmerge_cli.pipeline import motion
 
         opts = self.options
-        output = Path(output if output is not None else opts.output)
-        profile_out = Path(profile_out or opts.profile_out or default_profile_path(output))
-        preview = preview if preview is not None else opts.preview
-        overwrite = opts.overwrite if overwrite is None else overwrite
+        output = Path(output if output is not None else opts.io.output)
+        profile_out = Path(profile_out or opts.io.profile_out or default_profile_path(output))
+        preview = preview if preview is not None else opts.io.preview
+        overwrite = opts.io.overwrite if overwrite is None else overwrite
         profile_text = dumps(self.profile())
         if output.suffix.lower() == ".dng":
             with atomic_paths([output, profile_out], overwrite, list(inputs)) as tmps:
@@ -298,19 +298,19 @@ class Merged:
                 write_text(tmps[1], profile_text)
             return {"output": str(output), "profile": str(profile_out), "dng_baseline_exposure_ev": round(baseline, 2)}
         attrs = self.header(profile_out.name, profile_text)
-        extra = opts.extra_channels
+        extra = opts.io.extra_channels
         wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
         ghost_img = motion.ghost_image(self.ghosts, *self.shape) if "ghost" in extra else None
         strips = prefetched(lambda y0: self.strip(y0, ghost_img, wsum), range(0, self.shape[0], STRIP_ROWS))
         n_colour = len(self.colour_channels)
         thumb = None
         if preview is not None:
-            thumb = BlockMean(*self.shape, n_colour, block_factor(*self.shape, opts.preview_size))
+            thumb = BlockMean(*self.shape, n_colour, block_factor(*self.shape, opts.io.preview_size))
             strips = _tee_preview(strips, thumb, n_colour)
         outputs = [output, profile_out] + ([Path(preview)] if thumb else [])
         with atomic_paths(outputs, overwrite, list(inputs)) as tmps:
-            write_exr(tmps[0], strips, self.channel_names, attrs, half=opts.half, size=self.shape,
-                      compression=opts.compression)
+            write_exr(tmps[0], strips, self.channel_names, attrs, half=opts.io.half, size=self.shape,
+                      compression=opts.io.compression)
             write_text(tmps[1], profile_text)
             if thumb:
                 rgb = upright(thumb.result(), self.orientation)
@@ -341,7 +341,7 @@ class Merged:
                         as_shot_neutral=1.0 / first.white_balance, make=first.make or "hdrmerge-cli",
                         model=first.model or "merged", exposure_time=self.h_ref, iso=first.iso,
                         aperture=first.aperture, baseline_exposure=baseline,
-                        orientation=self.orientation, preview=preview, bits=16 if self.options.half else 32,
+                        orientation=self.orientation, preview=preview, bits=16 if self.options.io.half else 32,
                         white_level=white, datetime=first.timestamp)
         return baseline
 

@@ -154,12 +154,13 @@ def meter(paths: list[str], opts: PlanOptions) -> Metering:
     """Merge the metering frames (``merge``'s defaults) and read the scene off the result."""
     from hdrmerge_cli.pipeline.bracket import sample_pattern
     from hdrmerge_cli.pipeline.merge import merge_bracket
-    from hdrmerge_cli.pipeline.options import MergeOptions
+    from hdrmerge_cli.pipeline.options import InputOptions, MergeOptions, OutputOptions
 
     if not paths:
         raise HdrMergeError("no metering frames (give one or more frames of the scene)")
-    merged = merge_bracket(list(paths), MergeOptions(profile=opts.profile, crf=opts.crf, times=opts.times,
-                                                     times_file=opts.times_file, noise_cache=opts.noise_cache))
+    merged = merge_bracket(list(paths), MergeOptions(
+        inputs=InputOptions(profile=opts.profile, crf=opts.crf, times=opts.times, times_file=opts.times_file),
+        io=OutputOptions(noise_cache=opts.noise_cache)))
     first = merged.first
     names = list(first.channel_names)
     # each channel's 1.0 is its own full scale at h_ref: code values per second at the reference ISO
