@@ -126,3 +126,15 @@ def test_times_estimate_resorting_a_handheld_bracket_keeps_each_warp_on_its_fram
     d = np.log(b[inner][ok]) - np.log(a[inner][ok])
     # the same frames moved by the same warps: equal up to the estimated exposures' error
     assert np.sqrt(np.mean((d - np.median(d)) ** 2)) < 0.02
+
+
+def test_info_decodes_each_frame_once(tiff_bracket, decodes):
+    """info's clip classes and its exposure estimates' samples come from one decode."""
+    from hdrmerge_cli.pipeline.info import bracket_info
+
+    folder, meta = tiff_bracket
+    paths = [str(p) for p in frames_of(folder, meta)]
+    out = bracket_info(paths)
+    assert len(out["frames"]) == len(paths) and "exposure_estimates" in out
+    assert [r["path"] for r in out["frames"]] == sorted(paths, key=lambda p: meta["exposure_times"][paths.index(p)])
+    assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}

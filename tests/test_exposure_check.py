@@ -397,7 +397,14 @@ def test_label_motion_comes_from_the_alignment():
     frames = [F("a"), F("b"), F("c")]
     s = Samples([np.zeros((50, 100, 3), np.float32)] * 3, np.ones((50, 100), bool), (0, 0, 0, 0), 2, 1 / 255)
     warps = [np.array([[1.0, 0, 0.1], [0, 1, 0]]), np.eye(2, 3), np.array([[1.0, 0, 0], [0, 1, -0.2]])]
-    m = alignment_motion(frames, {"warps": warps, "unaligned": ["c"], "applied": True}, s)
-    assert m.px == {0: 0.0, 1: None} and m.threshold_px == 3.0
-    m = alignment_motion(frames, {"warps": warps, "unaligned": [], "applied": False}, s)
+    from hdrmerge_cli.pipeline.motion import Alignment
+
+    def found(unaligned, applied):
+        return Alignment("auto", "translation", "none", "b", applied, frames, warps, [1.0] * 3, unaligned, [])
+
+    m = alignment_motion(frames[::-1], found(["c"], True), s)  # the warps follow their frames
+    assert m.px == {0: None, 1: 0.0} and m.threshold_px == 3.0
+    m = alignment_motion(frames, found(["c"], True), s)
+    assert m.px == {0: 0.0, 1: None}
+    m = alignment_motion(frames, found([], False), s)
     assert m.px[0] == pytest.approx(0.1) and m.px[1] == pytest.approx(0.2) and not m.moved()

@@ -1,6 +1,7 @@
 """info: what a bracket holds, and whether it covers its scene."""
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -17,7 +18,8 @@ def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str
     fractions of clipped and dark samples (:func:`~hdrmerge_cli.core.coverage.clip_classes`);
     for the bracket (frames of one layout with exposure times): whether some frame measures
     every pixel (:class:`~hdrmerge_cli.core.coverage.Coverage`) and what to add if not.
-    Frames are decoded two at a time; one decoded frame per thread is held."""
+    Each frame is decoded once, two at a time: its clip classes are kept, and, for a
+    bracket, the samples the exposures are measured on."""
     frames = [read_frame(p) for p in paths]
     if times is not None or times_file is not None:  # as merge and estimate-crf take them
         apply_times(frames, times, times_file)
@@ -26,27 +28,39 @@ def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str
         frames = [frames[i] for i in np.argsort(exposure_values(frames), kind="stable")]
     comparable = timed and len({f.layout for f in frames}) == 1
     coverage = Coverage() if comparable else None
+    position = {id(f): k for k, f in enumerate(frames)}
+    found: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # decoded out of order, taken in order
+    rows: list[dict] = []
+    lock = threading.Lock()
 
-    def classes(frame):
-        return clip_classes(load_codes(frame), sample_pattern(frame), frame.black, frame.white)
+    def classes(frame, codes=None):
+        codes = load_codes(frame) if codes is None else codes
+        both = clip_classes(codes, sample_pattern(frame), frame.black, frame.white)
+        with lock:
+            found[position[id(frame)]] = both
+            while len(rows) in found:  # Coverage takes the frames in order
+                f = frames[len(rows)]
+                clipped, dark = found.pop(len(rows))
+                rows.append(f.summary() | {"width": f.width, "height": f.height, "clipped_fraction":
+                                           float(np.mean(clipped)), "dark_fraction": float(np.mean(dark))})
+                if coverage is not None:
+                    coverage.add(clipped, dark)
 
-    rows = []
-    with ThreadPoolExecutor(2) as pool:
-        for f, (clipped, dark) in zip(frames, pool.map(classes, frames)):
-            rows.append(f.summary() | {"width": f.width, "height": f.height,
-                                       "clipped_fraction": float(np.mean(clipped)), "dark_fraction": float(np.mean(dark))})
-            if coverage is not None:
-                coverage.add(clipped, dark)
-            del clipped, dark
+    samples = None
+    if comparable and len(frames) > 1:  # the exposures' samples and the classes from one decode
+        samples = exposure_check.sample_frames(frames, also=classes)
+    else:
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(classes, frames))
     out = {"frames": rows, "bracket": _bracket_summary(frames, coverage, timed)}
-    if comparable and len(frames) > 1:
-        out["exposure_estimates"] = _estimates(frames, crf_spec)
+    if samples is not None:
+        out["exposure_estimates"] = _estimates(frames, samples, crf_spec)
         for row, est in zip(rows, out["exposure_estimates"]["frames"]):
             row["estimated_exposure_time"] = est["estimate_seconds"]
     return out
 
 
-def _estimates(frames: list[Frame], crf_spec: str | None) -> dict:
+def _estimates(frames: list[Frame], s: exposure_check.Samples, crf_spec: str | None) -> dict:
     """The exposures measured on the frames (as merge checks them), through ``crf_spec``
     (``--crf``; a profile JSON's CRF) or, for images without it, a response fitted on the
     bracket; a label more than 1/3 EV off is also a warning."""
@@ -62,7 +76,6 @@ def _estimates(frames: list[Frame], crf_spec: str | None) -> dict:
     else:
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
     exposures = exposure_values(frames)
-    s = exposure_check.sample_frames(frames)
     exposure_check.check_order(frames, s)
     est, used = exposure_check.estimate_with_response(frames, exposures, s, crf)
     motion = exposure_check.label_motion(s, exposures, crf, est)
