@@ -162,6 +162,7 @@ def headline() -> str:
     for case, ours, peers in (
             ("24 MP x 3 DNG", first,
              {"HDRMerge": "HDRMerge -b 32 (float DNG)", "Luminance_HDR": "luminance-hdr-cli -s out.exr"}),
+            ("24 MP x 3 DNG, 2 EV apart", first, {"HDRMerge": "HDRMerge -b 32 (float DNG)"}),
             ("24 MP x 3 DNG, hand-held", "hdrmerge-cli merge: first merge (default options: aligned)",
              {"HDRMerge": "HDRMerge -b 32 (float DNG; aligns by default)"}),
             ("4 x 0.4 MP DNG", first, {"HDRMerge": "HDRMerge -b 32 (float DNG)"}),

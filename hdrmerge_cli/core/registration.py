@@ -728,3 +728,56 @@ def correlation(reference: np.ndarray, image: np.ndarray) -> float:
     b = (b - np.float32(np.dot(b, on) / n)) * on
     den = float(np.sqrt(float(np.dot(a, a)) * float(np.dot(b, b))))
     return float(np.dot(a, b)) / den if den > 0 else -1.0
+
+
+def registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white: float,
+                       n_codes: int) -> np.ndarray:
+    """The image a frame is registered on, linear with full scale 1, float32: a Bayer
+    mosaic's ``(H, W)`` codes as the mean of each 2 x 2 CFA cell, ``black`` subtracted and
+    divided by ``white - black`` (half resolution, ``(H // 2, W // 2)``); an image's ``(H,
+    W, C)`` codes (``n_codes`` values) as the mean of its channels linearised through the
+    inverse response ``crf`` (:class:`~hdrmerge_cli.core.crf.CRF`), ``(H, W)``."""
+    if mosaic:
+        scale = white - black
+        h, w = codes.shape[0] // 2 * 2, codes.shape[1] // 2 * 2
+        out = np.empty((h // 2, w // 2), np.float32)
+        rows = 64  # in strips: small temporaries, reused rather than faulted in afresh
+        for r in range(0, h, rows):
+            strip = codes[r:min(h, r + rows), :w].astype(np.float32)
+            strip -= black
+            strip /= scale
+            out[r // 2:(r + strip.shape[0]) // 2] = block_mean(strip, 2)
+        return out
+    # the inverse response as a table over the stored codes
+    v = np.arange(n_codes) / (n_codes - 1.0)
+    lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
+    if codes.shape[-1] == 1:  # monochrome: the table lookup is the image
+        return lut[codes[..., 0], 0]
+    if codes.dtype == np.uint8:  # OpenCV's table lookup, all channels in one pass
+        cv2 = _cv2()
+        lin = cv2.LUT(codes, lut[None])
+        if lin.shape[-1] <= 4:  # the channels' mean in one OpenCV pass
+            return cv2.transform(lin, np.full((1, lin.shape[-1]), 1.0 / lin.shape[-1], np.float32))
+    else:
+        lin = np.stack([lut[codes[..., c], c] for c in range(codes.shape[-1])], axis=-1)
+    return lin.mean(axis=-1, dtype=np.float32)
+
+
+def coarse_registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white: float, n_codes: int,
+                              f: int) -> np.ndarray:
+    """:func:`registration_image` reduced to blocks of ``f`` x ``f`` frame pixels (block
+    means; a mosaic's ``f`` even, whole CFA cells; coarse pixel ``u`` centred on frame pixel
+    ``f u + (f - 1) / 2``), float32 ``(H // f, W // f)``."""
+    if not mosaic:
+        return block_mean(registration_image(codes, crf, mosaic, black, white, n_codes), f)
+    cv2 = _cv2()
+    h, w = codes.shape[0] // f * f, codes.shape[1] // f * f
+    out = np.empty((h // f, w // f), np.float32)
+    rows = 32  # coarse rows per strip: small temporaries, reused rather than faulted in afresh
+    for r in range(0, h // f, rows):
+        strip = codes[r * f:min(h, (r + rows) * f), :w]
+        cells = cv2.resize(strip, (w // 2, strip.shape[0] // 2), interpolation=cv2.INTER_AREA)  # 2 x 2 means
+        out[r:r + strip.shape[0] // f] = block_mean(cells.astype(np.float32), f // 2)
+    out -= np.float32(black)
+    out *= np.float32(1.0 / (white - black))
+    return out

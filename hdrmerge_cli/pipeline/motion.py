@@ -79,54 +79,15 @@ class Alignment:
 
 
 def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
-    """The registration image of a frame, full scale 1: RAW the mean of each 2 x 2 CFA cell
-    (black subtracted; half resolution), images the mean of the linearised channels."""
-    if frame.kind == "raw":
-        black = float(np.mean(frame.black))
-        scale = float(np.mean(frame.white) - black)
-        h, w = codes.shape[0] // 2 * 2, codes.shape[1] // 2 * 2
-        out = np.empty((h // 2, w // 2), np.float32)
-        rows = 64  # in strips: small temporaries, reused rather than faulted in afresh
-        for r in range(0, h, rows):
-            strip = codes[r:min(h, r + rows), :w].astype(np.float32)
-            strip -= black
-            strip /= scale
-            out[r // 2:(r + strip.shape[0]) // 2] = registration.block_mean(strip, 2)
-        return out
-    # the inverse response as a table over the stored codes
-    v = np.arange(frame.n_codes) / (frame.n_codes - 1.0)
-    lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
-    if codes.shape[-1] == 1:  # monochrome: the table lookup is the image
-        return lut[codes[..., 0], 0]
-    if codes.dtype == np.uint8:  # OpenCV's table lookup, all channels in one pass
-        import cv2
-
-        lin = cv2.LUT(codes, lut[None])
-        if lin.shape[-1] <= 4:  # the channels' mean in one OpenCV pass
-            return cv2.transform(lin, np.full((1, lin.shape[-1]), 1.0 / lin.shape[-1], np.float32))
-    else:
-        lin = np.stack([lut[codes[..., c], c] for c in range(codes.shape[-1])], axis=-1)
-    return lin.mean(axis=-1, dtype=np.float32)
+    """The frame's :func:`~hdrmerge_cli.core.registration.registration_image`."""
+    return registration.registration_image(codes, crf, frame.kind == "raw", float(np.mean(frame.black)),
+                                           float(np.mean(frame.white)), frame.n_codes)
 
 
 def _coarse_linear(frame: Frame, codes: np.ndarray, crf: CRF, f: int) -> np.ndarray:
-    """:func:`_linear` reduced to blocks of ``f`` x ``f`` frame pixels (block means; RAW: ``f``
-    even, whole CFA cells; coarse pixel ``u`` centred on frame pixel ``f u + (f - 1) / 2``)."""
-    if frame.kind != "raw":
-        return registration.block_mean(_linear(frame, codes, crf), f)
-    import cv2
-
-    h, w = codes.shape[0] // f * f, codes.shape[1] // f * f
-    out = np.empty((h // f, w // f), np.float32)
-    rows = 32  # coarse rows per strip: small temporaries, reused rather than faulted in afresh
-    for r in range(0, h // f, rows):
-        strip = codes[r * f:min(h, (r + rows) * f), :w]
-        cells = cv2.resize(strip, (w // 2, strip.shape[0] // 2), interpolation=cv2.INTER_AREA)  # 2 x 2 means
-        out[r:r + strip.shape[0] // f] = registration.block_mean(cells.astype(np.float32), f // 2)
-    black = float(np.mean(frame.black))
-    out -= np.float32(black)
-    out *= np.float32(1.0 / (float(np.mean(frame.white)) - black))
-    return out
+    """The frame's :func:`~hdrmerge_cli.core.registration.coarse_registration_image`."""
+    return registration.coarse_registration_image(codes, crf, frame.kind == "raw", float(np.mean(frame.black)),
+                                                  float(np.mean(frame.white)), frame.n_codes, f)
 
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> Alignment:
