@@ -50,7 +50,7 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF, gamma_crf, table_crf
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
-from hdrmerge_cli.io.frames import Frame
+from hdrmerge_cli.io.frames import Frame, HeldCodes
 from hdrmerge_cli.pipeline.options import ESTIMATORS, MergeOptions, MergeSettings, OutputOptions
 from hdrmerge_cli.pipeline.output import Merged
 
@@ -73,15 +73,12 @@ _DOC_STACK = """stack : sequence of K arrays, or an array of shape (K, ...)
 @dataclass
 class _Stack:
     """A stack as the pipeline reads a bracket: frames sorted by exposure (``frames[k]``
-    is input frame ``order[k]``), ``load(frame)`` their codes."""
+    is input frame ``order[k]``), ``load(frame)`` their codes (held by frame)."""
 
     frames: list[Frame]
-    codes: dict[str, np.ndarray]
+    load: HeldCodes
     order: np.ndarray
     grey: bool
-
-    def load(self, frame: Frame) -> np.ndarray:
-        return self.codes[frame.path]
 
     @property
     def raw(self) -> bool:
@@ -136,8 +133,10 @@ def _stack(stack, times, cfa: str | None = None, black: float = 0.0, white: floa
     frames = [_frame(f"<array {order[k]}>", arrays[i], times[i], cfa, black, white, bits, container)
               for k, i in enumerate(order)]
     grey = frames[0].kind == "image" and first.ndim == 2  # decoded images are (H, W, C)
-    codes = {f.path: arrays[i][..., None] if grey else arrays[i] for f, i in zip(frames, order)}
-    return _Stack(frames, codes, order, grey)
+    held = HeldCodes()
+    for f, i in zip(frames, order):
+        held.hold(f, arrays[i][..., None] if grey else arrays[i])
+    return _Stack(frames, held, order, grey)
 
 
 def _frame(name: str, a: np.ndarray, t: float, cfa_pattern: str | None, black: float, white: float, bits: int,
@@ -200,12 +199,9 @@ def _response(response, st: _Stack) -> CRF:
     if not crf.assumed:
         return crf
     from hdrmerge_cli.pipeline.crf import measure_response
-    from hdrmerge_cli.pipeline.exposure_check import check_order, sample_frames
+    from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
-    samples = sample_frames(st.frames, st.load)
-    if len(st.frames) > 1:
-        check_order(st.frames, samples)
-    return measure_response(st.frames, samples, cache=False) or crf
+    return measure_response(st.frames, ordered_samples(st.frames, st.load), cache=False) or crf
 
 
 def _noise(noise) -> dict[str, NoiseParams] | None:
@@ -401,13 +397,12 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     0.22
     """
     from hdrmerge_cli.pipeline.crf import fit_with_labels, is_flat
-    from hdrmerge_cli.pipeline.exposure_check import check_order, sample_frames, thin_overlap
+    from hdrmerge_cli.pipeline.exposure_check import ordered_samples, thin_overlap
 
     st = _stack(stack, times, None, black, white, bits)
     if len(np.unique(st.exposures)) < 2:
         raise HdrMergeError("a response is measured on two exposures or more")
-    samples = sample_frames(st.frames, st.load)
-    check_order(st.frames, samples)
+    samples = ordered_samples(st.frames, st.load)
     thin = thin_overlap(samples)
     if thin is not None:
         k, both = thin

@@ -288,7 +288,7 @@ def _exposure_log(name, crf, caplog, times_file=None):
         logger.addHandler(caplog.handler)
     try:
         with caplog.at_level(logging.WARNING, logger="hdrmerge_cli"):
-            rep = ex.resolve_exposures(frames, exposure_values(frames), crf, samples=ex.sample_frames(frames))[2]
+            rep = ex.resolve_exposures(frames, exposure_values(frames), crf, samples=ex.ordered_samples(frames))[2]
     finally:
         if own:
             logger.removeHandler(caplog.handler)

@@ -462,7 +462,9 @@ class HeldCodes:
         self._decoding: dict[int, threading.Lock] = {}
 
     def hold(self, frame: Frame, codes: np.ndarray) -> None:
-        """Keep ``codes`` as ``frame``'s (read-only from now on)."""
+        """Keep ``codes`` as ``frame``'s, handed out as a read-only view (the caller's
+        array keeps its own flags)."""
+        codes = codes.view()
         codes.flags.writeable = False
         with self._lock:
             self._codes[id(frame)] = codes

@@ -148,7 +148,7 @@ def _samples(frames: list[Frame], v: list[np.ndarray], step: int) -> Samples:
 
 def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_SAMPLES, also=None) -> Samples:
     """Decode every frame (two at a time) into :class:`Samples`; ``also(frame, codes)``, when
-    given, sees each frame's codes too (e.g. :class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`)."""
+    given, sees each frame's codes too (e.g. info's clip classes)."""
     step, cell = _step_and_cell(frames[0], max_samples)
 
     def one(frame):
@@ -160,6 +160,16 @@ def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_S
     with ThreadPoolExecutor(2) as pool:
         v = list(pool.map(one, frames))
     return _samples(frames, v, step)
+
+
+def ordered_samples(frames: list[Frame], load=load_codes, also=None) -> Samples:
+    """The exposures stage's one sample set: :func:`sample_frames`, the frames' order then
+    checked (:func:`check_order`): everything after it (the response, registration, the
+    labels) trusts the order."""
+    samples = sample_frames(frames, load, also=also)
+    if len(frames) > 1:
+        check_order(frames, samples)
+    return samples
 
 
 # ---------------------------------------------------------------- checks
@@ -561,7 +571,8 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
 
 def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
                       samples: Samples | None = None, alignment=None):
-    """merge: check the frames' order, measure their exposures and warn about labels more
+    """merge: measure the frames' exposures on ``samples`` (:func:`ordered_samples`, whose
+    order is checked; drawn through ``load`` when not given) and warn about labels more
     than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
     instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
     merge's ``alignment``, the samples are brought onto the reference by its warps where it
@@ -575,8 +586,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         if use_estimates:
             log.warning("--times estimate: a single frame has nothing to compare; its label is used")
         return frames, exposures, None, samples
-    s = samples if samples is not None else sample_frames(frames, load)
-    check_order(frames, s)
+    s = samples if samples is not None else ordered_samples(frames, load)
     if alignment is not None and alignment.applied:
         s = s.registered([alignment.warp_of(f) for f in frames])
     est, used = estimate_with_response(frames, exposures, s, crf, rounds=2 if use_estimates else 1)

@@ -48,7 +48,7 @@ def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str
 
     samples = None
     if comparable and len(frames) > 1:  # the exposures' samples and the classes from one decode
-        samples = exposure_check.sample_frames(frames, also=classes)
+        samples = exposure_check.sample_frames(frames, also=classes)  # ordered in _estimates, after the rows
     else:
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(classes, frames))

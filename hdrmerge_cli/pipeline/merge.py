@@ -40,9 +40,8 @@ from hdrmerge_cli.pipeline.bracket import (
     reference_exposure,
 )
 from hdrmerge_cli.pipeline.crf import measure_response
-from hdrmerge_cli.pipeline.exposure_check import check_order, resolve_exposures, sample_frames
+from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise_by_iso
-from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 
@@ -170,14 +169,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         load = HeldCodes(load)
     unaligned = load
     samples = None
-    # the noise's sites drawn as the exposure check decodes the frames, should the bracket's
-    # noise be measured (no parameters given, none cached): no decode of its own
-    draw = NoiseDraw(frames) if noise is None and not settings.lut else None
     if len(frames) > 1 or crf.assumed:  # exposures: the frames' order, the response
         t1 = time.perf_counter()
-        samples = sample_frames(frames, load, also=draw)
-        if len(frames) > 1:  # registration and the response trust the labels' order: a disordered bracket fails first
-            check_order(frames, samples)
+        samples = ordered_samples(frames, load)  # a disordered bracket fails first
         if crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
             crf = measure_response(frames, samples, cache=outputs.noise_cache) or crf
             timings["response"] = time.perf_counter() - t1
@@ -198,7 +192,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
     # the noise is measured on the frames as decoded: resampling smooths it, and frames that
     # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    models = choose_models(frames, exposures, crf, settings, unaligned, noise, draw, samples, noise_by_iso,
+    models = choose_models(frames, exposures, crf, settings, unaligned, noise, samples, noise_by_iso,
                            with_variance="variance" in outputs.extra_channels, noise_cache=outputs.noise_cache)
     del samples
     timings.update(models.timings)

@@ -72,15 +72,14 @@ class Models:
 
 
 def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings: MergeSettings, load=load_codes,
-                  noise: dict[str, NoiseParams] | None = None, draw=None, samples=None,
+                  noise: dict[str, NoiseParams] | None = None, samples=None,
                   noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None, *, with_variance: bool = False,
                   noise_cache: bool = True) -> Models:
     """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
     with ``noise_by_iso`` (:func:`resolve_noise_by_iso`: frames of several ISOs, a profile
     with each) every frame takes its own ISO's entry ``noise_by_iso[iso_key(frame.iso)]``;
-    else measured on the bracket, on the sites ``draw`` kept as the frames were decoded
-    (:class:`~hdrmerge_cli.pipeline.calibrate.NoiseDraw`) or through ``load``, where the
-    options need them), the variance beyond the noise model of a camera-processed bracket
+    else measured on the bracket's codes (``load``, the merge's held codes) where the
+    options need them and the per-camera cache has none), the variance beyond the noise model of a camera-processed bracket
     (measured on the exposure check's ``samples``, :mod:`hdrmerge_cli.pipeline.excess`: it
     picks the estimator, and the ML estimator's variance holds it), variance mode and the
     per-frame tables, each option's ``auto`` resolved by the defaults below.  The log
@@ -106,7 +105,7 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
     if noise is None and (needs_noise or measure_excess_term) and not settings.lut:
         t1 = time.perf_counter()
         # measured only to test the excess: a failure leaves the log estimator, no warning
-        noise, estimated = measure_noise(frames, crf, load, cache=noise_cache, draw=draw, quiet=not needs_noise)
+        noise, estimated = measure_noise(frames, crf, load, cache=noise_cache, quiet=not needs_noise)
         timings["noise_estimate"] = time.perf_counter() - t1
         isos = sorted({f.iso for f in frames if f.iso})
         if noise and needs_noise and len(isos) > 1:
@@ -198,12 +197,11 @@ WHOLE_FRAME = 1 << 62
 QUIET_RETRY_SITES = 1 << 17
 
 
-def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, draw=None,
-                  quiet: bool = False):
+def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, quiet: bool = False):
     """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
     code, fast path; for images on the signal linearised by ``crf``); where the drawn sites
     cannot pin some channel, again on every site; on failure fall back
-    to photon-noise weights (``draw``: see :func:`choose_models`).  With ``cache``, an
+    to photon-noise weights.  The sites are drawn here, from ``load``.  With ``cache``, an
     earlier merge's measurement of the same camera and ISO is read from the per-camera
     cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there.
     ``quiet``: a failure, or a channel that takes the others' noise, is logged at info level,
@@ -228,11 +226,11 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
     # frame's own statistics, the rest from the pairs (pipeline.excess)
     pairs = frames[0].kind != "image" or crf.is_linear
     try:
-        used, entries = estimate_bracket_noise(frames, crf, load, draw, pairs)
+        used, entries = estimate_bracket_noise(frames, crf, load, pairs=pairs)
         failed = [ch for ch, e in entries.items() if "stand_in_from" in e]
     except HdrMergeError as exc:
         failed = [str(exc)]
-    # too few levels on the drawn tiles (a dark or flat bracket): decoded again, on every site
+    # too few levels on the drawn tiles (a dark or flat bracket): drawn again, on every site
     # (on 4x the tiles where the noise only tests an image bracket's excess)
     if failed:
         sites = QUIET_RETRY_SITES if quiet else WHOLE_FRAME
