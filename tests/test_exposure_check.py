@@ -408,3 +408,38 @@ def test_label_motion_comes_from_the_alignment():
     assert m.px == {0: 0.0, 1: None}
     m = alignment_motion(frames, found([], False), s)
     assert m.px[0] == pytest.approx(0.1) and m.px[1] == pytest.approx(0.2) and not m.moved()
+
+
+def test_normalised_samples_against_direct_levels():
+    """core.comparametric.normalised_samples: an image's codes minus black over the range
+    per channel, every step-th row and column; a mosaic's in whole 2 x 2 cells, each site
+    with its own colour's levels (independent loop over the sites)."""
+    from hdrmerge_cli.core.comparametric import normalised_samples
+
+    rng = np.random.default_rng(2)
+    image = rng.integers(0, 256, (9, 11, 3)).astype(np.uint8)
+    v = normalised_samples(image, [0, 1, 2], [255, 250, 245], 3)
+    np.testing.assert_allclose(v, (image[::3, ::3] - np.array([0, 1, 2])) / np.array([255, 249, 243]), rtol=1e-6)
+    mosaic = rng.integers(0, 4096, (10, 12)).astype(np.uint16)
+    cell = np.array([[0, 1], [3, 2]])
+    black, white = np.array([10.0, 20.0, 30.0, 40.0]), np.array([4000.0, 4010.0, 4020.0, 4030.0])
+    v = normalised_samples(mosaic, black, white, 2, cell)
+    rows = [i for i in range(10) if (i // 2) % 2 == 0]
+    cols = [j for j in range(12) if (j // 2) % 2 == 0]
+    assert v.shape == (len(rows), len(cols), 1)
+    for a, i in enumerate(rows):
+        for b, j in enumerate(cols):
+            k = cell[i % 2, j % 2]
+            assert v[a, b, 0] == pytest.approx((mosaic[i, j] - black[k]) / (white[k] - black[k]), rel=1e-6)
+
+
+def test_linearise_through_a_code_table_equals_the_inverse_response():
+    """core.crf.linearise: through its table over whole codes, g(v) to float32 precision of
+    the direct evaluation; a linear response returns v clipped to [0, 1]."""
+    from hdrmerge_cli.core.crf import linearise
+
+    crf = CRF("gamma", 2.2)
+    v = np.random.default_rng(4).integers(0, 256, (20, 3)) / 255.0
+    np.testing.assert_allclose(linearise(v, crf, 1 / 255), np.stack([crf.inverse(v[:, c], c) for c in range(3)], -1),
+                               rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(linearise(np.array([[-0.1, 0.5, 1.2]]), CRF("linear"), 1 / 255), [[0.0, 0.5, 1.0]])

@@ -405,3 +405,25 @@ def response_from_comparagrams(grams: list[np.ndarray], log_ratios: np.ndarray, 
     mid = levels // 2
     ata[mid, mid] += max(total, 1.0)  # g(mid) = 0
     return np.linalg.solve(ata, atb)
+
+
+def _subsample_index(n: int, step: int, mosaic: bool) -> np.ndarray:
+    idx = np.arange(n)
+    return idx[(idx // 2) % step == 0] if mosaic else idx[::step]
+
+
+def normalised_samples(codes: np.ndarray, black, white, step: int = 1, cell: np.ndarray | None = None) -> np.ndarray:
+    """``v = (z - black) / (white - black)`` of a frame's codes, float32, every ``step``-th
+    row and column: an image's ``(H, W, C)`` codes with ``(C,)`` levels, ``(H', W', C)``; a
+    mosaic's ``(H, W)`` codes in whole 2 x 2 cells (every ``step``-th cell), each site with
+    the levels of its colour index in ``cell`` (2 x 2; None: the first), ``(H', W', 1)``."""
+    mosaic = codes.ndim == 2
+    ys = _subsample_index(codes.shape[0], step, mosaic)
+    xs = _subsample_index(codes.shape[1], step, mosaic)
+    z = codes[np.ix_(ys, xs)].astype(np.float32)
+    black = np.asarray(black, dtype=np.float32)
+    white = np.asarray(white, dtype=np.float32)
+    if mosaic:
+        c = cell[(ys % 2)[:, None], (xs % 2)[None, :]] if cell is not None else np.zeros((len(ys), len(xs)), np.intp)
+        return ((z - black[c]) / (white[c] - black[c]))[..., None]
+    return (z - black[: z.shape[-1]]) / (white[: z.shape[-1]] - black[: z.shape[-1]])

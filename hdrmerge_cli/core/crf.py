@@ -161,3 +161,19 @@ def inverse_crf_codes(crf: CRF, z: np.ndarray, z_max: float, channel: int = 0) -
     without the log); codes outside ``[0, z_max]`` are clamped."""
     v = np.clip(np.asarray(z, dtype=np.float64) / float(z_max), 0.0, 1.0)
     return crf.inverse(v, channel)
+
+
+def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
+    """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
+    clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds
+    whole codes (``codes_step``: one code as a fraction of full scale, at most 2^16 codes)
+    through a float32 table over them, else evaluated per value."""
+    vc = np.clip(v, 0.0, 1.0)
+    if crf.is_linear:
+        return vc
+    n = int(round(1.0 / codes_step)) + 1
+    if n > 1 << 16:
+        return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
+    grid = np.linspace(0.0, 1.0, n)
+    z = np.rint(vc * (n - 1)).astype(np.int64)
+    return np.stack([crf.inverse(grid, c).astype(np.float32)[z[..., c]] for c in range(v.shape[-1])], -1)

@@ -17,12 +17,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.crf import CRF, linearise
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.comparametric import (
     LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, border_mask, chain_pairs, comparagram, constant_border,
-    estimate_exposures, moved_threshold_px, order_test, pair_displacement, response_from_comparagrams,
-    robust_log_ratio,
+    estimate_exposures, moved_threshold_px, normalised_samples, order_test, pair_displacement,
+    response_from_comparagrams, robust_log_ratio,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 
@@ -110,24 +110,9 @@ def _from_cell_planes(planes: np.ndarray, like: np.ndarray) -> np.ndarray:
     return out
 
 
-def _subsample_index(n: int, step: int, raw: bool) -> np.ndarray:
-    idx = np.arange(n)
-    return idx[(idx // 2) % step == 0] if raw else idx[::step]
-
-
 def normalise(frame: Frame, codes: np.ndarray, step: int = 1, cell: np.ndarray | None = None) -> np.ndarray:
-    """``v = (z - black) / (white - black)`` of a frame's codes, subsampled by ``step``
-    (RAW: whole 2 x 2 cells, each site with its own levels; ``cell`` its colour indices)."""
-    raw = codes.ndim == 2
-    ys = _subsample_index(codes.shape[0], step, raw)
-    xs = _subsample_index(codes.shape[1], step, raw)
-    z = codes[np.ix_(ys, xs)].astype(np.float32)
-    black = np.asarray(frame.black, dtype=np.float32)
-    white = np.asarray(frame.white, dtype=np.float32)
-    if raw:
-        c = cell[(ys % 2)[:, None], (xs % 2)[None, :]] if cell is not None else np.zeros((len(ys), len(xs)), np.intp)
-        return ((z - black[c]) / (white[c] - black[c]))[..., None]
-    return (z - black[: z.shape[-1]]) / (white[: z.shape[-1]] - black[: z.shape[-1]])
+    """The frame's :func:`~hdrmerge_cli.core.comparametric.normalised_samples`."""
+    return normalised_samples(codes, frame.black, frame.white, step, cell)
 
 
 def _step_and_cell(first: Frame, max_samples: int = MAX_SAMPLES) -> tuple[int, np.ndarray | None]:
@@ -233,20 +218,6 @@ def crf_verified(crf: CRF) -> bool:
 
 def usable_range(crf: CRF) -> tuple[float, float]:
     return RANGE_LINEAR if crf.is_linear else RANGE_VERIFIED if crf_verified(crf) else RANGE_UNVERIFIED
-
-
-def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
-    """``gamma^-1(v)`` per channel (``v`` itself for a linear response), through a table
-    over the code values when ``v`` holds whole codes."""
-    vc = np.clip(v, 0.0, 1.0)
-    if crf.is_linear:
-        return vc
-    n = int(round(1.0 / codes_step)) + 1
-    if n > 1 << 16:
-        return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
-    grid = np.linspace(0.0, 1.0, n)
-    z = np.rint(vc * (n - 1)).astype(np.int64)
-    return np.stack([crf.inverse(grid, c).astype(np.float32)[z[..., c]] for c in range(v.shape[-1])], -1)
 
 
 def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
