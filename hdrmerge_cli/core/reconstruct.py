@@ -662,21 +662,21 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
 
-    Without ``adjust`` the image is re-weighted in strips of :data:`IRLS_STRIP_ROWS` rows,
-    each iterated to its own convergence, the new estimate and ``den`` written over
-    ``log_e`` and ``den`` (a sample's weights depend on its own estimate only, so a strip
-    is the same computation at a strip's memory); with ``adjust`` (per-frame weights of the
-    whole frame) in one piece.
+    The image is re-weighted in strips of :data:`IRLS_STRIP_ROWS` rows, each iterated to
+    its own convergence, the new estimate and ``den`` written over ``log_e`` and ``den`` (a
+    sample's weights depend on its own estimate only, so a strip is the same computation
+    at a strip's memory).
 
     codes_of : ``k -> codes`` of frame k, ``(H, W)`` or ``(H, W, C)``
     y_full : per frame, the full-scale code value ``white - black``
     rows : per frame, the :func:`noise_rows` of its noise (P tuples of three ``(R,)``
         float32 arrays, code values of that frame); frames that share one noise pass the
         same tuple (``[noise_rows(params)] * P``)
-    adjust : optional ``(k, codes, w, own) -> (w', factor)``: frame k's weights ``w``
-        (``(rows, cols)``) as the merge uses them (e.g. a resampling variance added) and a
-        ghost / coverage ``factor`` in [0, 1] (or None), also applied to the frame's
-        censored terms; ``own``: ``w`` is not read again, so ``w'`` may be written into it
+    adjust : optional ``(k, codes, w, own, rows) -> (w', factor)``: frame k's weights ``w``
+        (``(rows, cols)``) of its ``codes`` in the slice ``rows`` of its rows, as the merge
+        uses them (e.g. a resampling variance added), and a ghost / coverage ``factor`` in
+        [0, 1] (or None), also applied to the frame's censored terms; ``own``: ``w`` is not
+        read again, so ``w'`` may be written into it
     den : the summed inverse-variance weights of ``log_e``'s estimate (:class:`LogMerge`'s
         ``den``; released during the first pass).  With it the first pass drops clipped
         readings the estimate makes impossible and adds the censored terms straight into
@@ -694,9 +694,9 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
     height = log_e.shape[0]
-    if adjust is not None or height <= IRLS_STRIP_ROWS:
+    if height <= IRLS_STRIP_ROWS:
         return _irls_piece(codes_of, tables, pattern, log_e, exposures, y_full, rows, linear, iterations, tol,
-                           variance, adjust, den)
+                           variance, None if adjust is None else (lambda *a: adjust(*a, slice(0, height))), den)
     flags = np.empty(log_e.shape, np.int8)
     given = den is not None
     den = den if given else np.empty(log_e.shape, np.float32)
@@ -705,7 +705,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     for r0 in range(0, height, IRLS_STRIP_ROWS):
         part = slice(r0, min(height, r0 + IRLS_STRIP_ROWS))
         le, fl, dn, it, ch, *v = _irls_piece(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures,
-                                             y_full, rows, linear, iterations, tol, variance, None,
+                                             y_full, rows, linear, iterations, tol, variance,
+                                             None if adjust is None else (lambda *a: adjust(*a, part)),
                                              den[part] if given else None)
         log_e[part], flags[part], den[part] = le, fl, dn
         if variance:
@@ -716,7 +717,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
 
 def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
                 linear: bool, iterations: int, tol: float, variance: bool, adjust, den: np.ndarray | None):
-    """:func:`irls` on whole frames (or one strip of rows of every frame): new arrays."""
+    """:func:`irls` on one strip of rows of every frame (``adjust`` bound to its rows):
+    new arrays."""
     flags = None
     prev_den = den if linear else None
     change = np.inf

@@ -43,12 +43,13 @@ def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarra
     return out
 
 
-def covered_mask(warp: np.ndarray, height: int, width: int) -> np.ndarray:
+def covered_mask(warp: np.ndarray, height: int, width: int, rows: slice | None = None) -> np.ndarray:
     """Which reference pixels ``(x, y)`` the warp takes inside the frame (``W @ (x, y, 1)``
-    within half a pixel of its edge), ``(height, width)`` bool.  The set is convex: each
-    row's pixels inside form one interval, found from the four edge inequalities."""
-    y = np.arange(height, dtype=np.float64)
-    lo, hi = np.full(height, -np.inf), np.full(height, np.inf)
+    within half a pixel of its edge), ``(height, width)`` bool (``rows``: those rows
+    only).  The set is convex: each row's pixels inside form one interval, found from the
+    four edge inequalities."""
+    y = np.arange(height, dtype=np.float64)[rows if rows is not None else slice(None)]
+    lo, hi = np.full(y.size, -np.inf), np.full(y.size, np.inf)
     for row, size in ((warp[0], width), (warp[1], height)):  # -0.5 <= p x + q(y) <= size - 0.5
         p, q = row[0], row[1] * y + row[2]
         if abs(p) < 1e-12:
@@ -59,7 +60,7 @@ def covered_mask(warp: np.ndarray, height: int, width: int) -> np.ndarray:
         lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
     first = np.clip(np.ceil(lo - 1e-9), 0, width).astype(np.int64)  # each row's pixels first..last
     last = np.clip(np.floor(hi + 1e-9) + 1, 0, width).astype(np.int64)
-    out = np.zeros((height, width), bool)
+    out = np.zeros((y.size, width), bool)
     for i in np.flatnonzero(last > first):  # row by row: faster than a comparison per pixel
         out[i, first[i]:last[i]] = True
     return out
@@ -251,7 +252,7 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = Non
 def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np.ndarray | None, slope: np.ndarray,
                             certainty: np.ndarray, n_codes: int, spread: np.ndarray, warp: np.ndarray,
                             out: np.ndarray | None = None, weight: np.ndarray | None = None,
-                            cfa: str | None = None) -> np.ndarray:
+                            cfa: str | None = None, row0: int = 0) -> np.ndarray:
     """Inverse-variance weights of the samples of a mosaic resampled by ``warp``.
 
     A table weight ``w = c / v`` (``c`` the weighting function, ``v`` the variance of the
@@ -263,8 +264,9 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
     ``w``, ``codes``, ``spread``: ``(H, W)`` (``w`` None: the table ``weight`` at each code;
     ``out`` may be ``w``; ``spread`` :func:`spread_code` codes, or float32).  ``slope``,
     ``certainty``, ``weight``: flattened ``(C * n_codes,)`` float32 tables, a sample's row
-    from ``pattern`` (``(ph, pw)`` rows tiled over the mosaic; None: row 0).  Returns
-    ``(H, W)`` float32 (one compiled pass)."""
+    from ``pattern`` (``(ph, pw)`` rows tiled over the mosaic; None: row 0).  ``row0``
+    (even): the arrays are rows ``row0`` on of the mosaic.  Returns ``(H, W)`` float32 (one
+    compiled pass)."""
     sites = np.array([[_site_warp(warp, dx, dy) for dx in (0, 1)] for dy in (0, 1)], np.float64)
     rows = np.zeros((1, 1), np.intp) if pattern is None else np.asarray(pattern, np.intp)
     green = np.zeros((2, 2), np.bool_) if cfa is None else np.array([[c == "G" for c in cfa[:2]], [c == "G" for c in cfa[2:4]]])
@@ -275,7 +277,7 @@ def resampled_weight_mosaic(w: np.ndarray | None, codes: np.ndarray, pattern: np
                            np.asarray(weight if table else np.empty(1), np.float32), table, codes, rows,
                            np.asarray(slope, np.float32), np.asarray(certainty, np.float32), n_codes,
                            spread if spread.dtype == np.uint16 else spread_code(spread), _spread_table(), sites,
-                           np.asarray(warp, np.float64), green, out)
+                           np.asarray(warp, np.float64), green, int(row0), out)
     return out
 
 
@@ -337,17 +339,18 @@ def _filled_green_noise(fx, fy, on_green):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, spread_of, sites, warp,
-                           green, out):  # pragma: no cover - compiled
+                           green, row0, out):  # pragma: no cover - compiled
     h, width = codes.shape
     ph, pw = rows.shape
     zero = np.float32(0.0)
     for r in numba.prange(h):
-        dy, v = r & 1, r >> 1
+        ra = r + row0  # the mosaic's row
+        dy, v = ra & 1, ra >> 1
         for col in range(width):
             dx, u = col & 1, col >> 1
             if green[dy, dx]:  # read on the filled full-resolution green image
-                x = warp[0, 0] * col + warp[0, 1] * r + warp[0, 2]
-                y = warp[1, 0] * col + warp[1, 1] * r + warp[1, 2]
+                x = warp[0, 0] * col + warp[0, 1] * ra + warp[0, 2]
+                y = warp[1, 0] * col + warp[1, 1] * ra + warp[1, 2]
                 x0, y0 = np.floor(x), np.floor(y)
                 e, s = _filled_green_noise(x - x0, y - y0, green[int(y0) & 1, int(x0) & 1])
             else:
@@ -357,7 +360,7 @@ def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_co
                 fy -= np.floor(fy)
                 e, s = (fx * fx + (1 - fx) ** 2) * (fy * fy + (1 - fy) ** 2), 1.0
             e32, s32 = np.float32(e), np.float32(s)
-            i = rows[r % ph, col % pw] * n_codes + min(codes[r, col], n_codes - 1)
+            i = rows[ra % ph, col % pw] * n_codes + min(codes[r, col], n_codes - 1)
             g = slope[i]
             spread_u = g * g * spread_of[spread[r, col]]
             c = certainty[i]

@@ -486,8 +486,9 @@ class HeldCodes:
             with self._lock:
                 codes = self._codes.get(key)
             if codes is None:
-                codes = self.load(frame)
-                self.hold(frame, codes)
+                self.hold(frame, self.load(frame))
+                with self._lock:
+                    codes = self._codes[key]
             return codes
 
 

@@ -453,20 +453,21 @@ class Ghosts:
                 "covered": list(self.covered), "rejected_fraction": self.rejected_fraction}
 
 
-def ghost_weight(ghosts: Ghosts, frame: Frame, height: int, width: int) -> np.ndarray:
-    """The frame's soft rejection ``m`` in [0, 1] per pixel ``(height, width)`` float32:
-    its block mask interpolated bilinearly (rows and columns beyond the blocks repeat the
-    last ones)."""
+def ghost_weight(ghosts: Ghosts, frame: Frame, height: int, width: int, rows: slice | None = None) -> np.ndarray:
+    """The frame's soft rejection ``m`` in [0, 1] per pixel ``(height, width)`` float32
+    (``rows``: those rows only): its block mask interpolated bilinearly (rows and columns
+    beyond the blocks repeat the last ones)."""
     import cv2
 
     m = ghosts.mask_of(frame)
     ch, cw = ghosts.covered
     hb, wb = m.shape
+    r0, r1, _ = (rows or slice(0, height)).indices(height)
     # pixel centre (x + 1/2) lands on block coordinate (x + 1/2) wb / cw - 1/2, as a resize
     # to the covered pixels reads it; beyond them the border repeats (one pass)
     sx, sy = wb / cw, hb / ch
-    a = np.float64([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5]])
-    return cv2.warpAffine(m.astype(np.float32) * np.float32(1 / 255), a, (width, height),
+    a = np.float64([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5 + sy * r0]])
+    return cv2.warpAffine(m.astype(np.float32) * np.float32(1 / 255), a, (width, r1 - r0),
                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
@@ -480,17 +481,18 @@ def ghost_image(ghosts: Ghosts | None, height: int, width: int) -> np.ndarray:
     return out
 
 
-def covered(frame: Frame, warp: np.ndarray, periods: bool) -> np.ndarray:
-    """Which pixels of the aligned frame come from inside it, ``(H, W)`` bool (a pixel's
-    channels share its value); the others are stand-ins (the edge repeated) and get no
-    weight in the merge.  ``periods``: a RAW frame moved by whole CFA periods."""
+def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = None) -> np.ndarray:
+    """Which pixels of the aligned frame come from inside it, ``(H, W)`` bool (``rows``:
+    those rows only; a pixel's channels share its value); the others are stand-ins (the
+    edge repeated) and get no weight in the merge.  ``periods``: a RAW frame moved by whole
+    CFA periods."""
     h, w = frame.height, frame.width
     if frame.kind == "raw" and periods:  # whole CFA periods
         tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
-        rows = (np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1)
+        inside = ((np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1))[rows or slice(None)]
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
-        return rows[:, None] & cols[None, :]
-    return resample.covered_mask(warp, h, w)
+        return inside[:, None] & cols[None, :]
+    return resample.covered_mask(warp, h, w, rows)
 
 
 def sample_weights(tables, pattern, frames: list[Frame], ghosts: Ghosts | None, alignment: Alignment | None,
@@ -535,47 +537,58 @@ class SampleWeights:
         self.tables, self.pattern, self.frames = tables, pattern, frames
         self.ghosts, self.alignment, self.load = ghosts, alignment, load
         self.validity = validity or [None] * len(frames)
+        self.slopes: dict[int, np.ndarray] = {}  # per frame, its value table's slope
 
-    def factor(self, k: int) -> np.ndarray | None:
+    def factor(self, k: int, rows: slice | None = None) -> np.ndarray | None:
         """``(H, W)`` float32 in [0, 1] per pixel (an image's channels share it), or None
         (all 1): zero where the aligned frame does not cover the reference or is
-        transparent, ``1 - m`` in its rejected ghost cells (feathered ``m``, so no seam)."""
+        transparent, ``1 - m`` in its rejected ghost cells (feathered ``m``, so no seam);
+        ``rows``: those rows only."""
         frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
         out = None
         if ghosts is not None and ghosts.mask_of(frame).any():
-            out = ghost_weight(ghosts, frame, frame.height, frame.width)
+            out = ghost_weight(ghosts, frame, frame.height, frame.width, rows)
             np.subtract(np.float32(1.0), out, out=out)
-        masks = [self.validity[k]]
+        valid = self.validity[k]
+        masks = [None if valid is None else valid[rows or slice(None)]]
         if alignment is not None:
-            masks.append(covered(frame, alignment.warp_of(frame), alignment.resampling == "cfa-periods"))
+            masks.append(covered(frame, alignment.warp_of(frame), alignment.resampling == "cfa-periods", rows))
         for inside in masks:
             if inside is not None:
                 out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
         return out
 
-    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray | None, own: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray | None, own: bool,
+                  rows: slice | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """``w`` (None: the table's, for a resampled frame) with the resampling's variance
         added and times :meth:`factor` (broadcast over an image's channels), and the
         factor; ``own``: ``w`` may be overwritten (a fresh full-size array costs its page
-        faults, tenths of a second at 24 MP)."""
+        faults, tenths of a second at 24 MP); ``rows``: ``codes`` and ``w`` are those rows
+        of the frame."""
         spread = self.load.spread(self.frames[k]) if self.load is not None else None
         if spread is not None:
-            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread),
+            rows = rows or slice(0, spread.shape[0])
+            if k not in self.slopes:
+                self.slopes[k] = value_slope(self.tables[k])
+            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread[rows]),
                                       self.alignment.warp_of(self.frames[k]), out=w if own else None,
-                                      cfa=self.frames[k].cfa_pattern), True
-        f = self.factor(k)
+                                      cfa=self.frames[k].cfa_pattern, row0=rows.indices(spread.shape[0])[0],
+                                      slope=self.slopes[k]), True
+        f = self.factor(k, rows)
         if f is None:
             return w, None
         per_pixel = w.reshape(f.shape + (-1,))
         out = np.multiply(per_pixel, f[..., None], out=per_pixel if own else None)
         return out.reshape(w.shape), f
 
-    def adjust(self, k: int, codes: np.ndarray, w: np.ndarray, own: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    def adjust(self, k: int, codes: np.ndarray, w: np.ndarray, own: bool = False,
+               rows: slice | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Inverse-variance weights ``w`` (``(H, W')``) of frame ``k``'s ``codes`` with the
         resampling's variance added (:func:`resampled_weight`), times :meth:`factor`;
         returns ``(weights, factor)``, the factor per sample ``(H, W')``.  ``own``: the
-        weights may be written into ``w`` (the caller's buffer, else left as it is)."""
-        out, f = self._weighted(k, codes, w, own=own)
+        weights may be written into ``w`` (the caller's buffer, else left as it is);
+        ``rows``: ``codes`` and ``w`` are those rows of the frame (a strip of the IRLS)."""
+        out, f = self._weighted(k, codes, w, own=own, rows=rows)
         if f is not None and f.shape != out.shape:
             f = np.repeat(f, out.shape[1] // f.shape[1], axis=1)
         return out, f
@@ -593,16 +606,25 @@ class SampleWeights:
 
 
 def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, spread: np.ndarray,
-                     warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None) -> np.ndarray:
+                     warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None,
+                     row0: int = 0, slope: np.ndarray | None = None) -> np.ndarray:
     """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
     mosaic resampled by ``warp`` with the interpolation's variance added
     (:func:`~hdrmerge_cli.core.resample.resampled_weight_mosaic`), from the frame's
     ``tables``: the slope of its value table (linear or log value per code) and its
-    certainty ``w(z)``.  ``out`` may be ``w``."""
+    certainty ``w(z)`` (``slope``: :func:`value_slope`, computed when not given).  ``out``
+    may be ``w``; ``row0``: the arrays are rows ``row0`` on of the frame."""
+    slope = value_slope(tables) if slope is None else slope
+    return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, tables.n_codes, spread, warp,
+                                         out,
+                                         weight=tables.weight, cfa=cfa, row0=row0)
+
+
+def value_slope(tables) -> np.ndarray:
+    """The slope of a frame's value table per code (flattened ``(R * N,)`` float32), for
+    :func:`resampled_weight`."""
     n = tables.n_codes
-    slope = np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
-    return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, n, spread, warp, out,
-                                         weight=tables.weight, cfa=cfa)
+    return np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
 
 
 def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
