@@ -3,16 +3,18 @@
 The merge runs as stages, each entered once, that the CLI and the Python API
 (:mod:`hdrmerge_cli.api`) share:
 
-1. read: the frames' metadata and the response (:func:`open_bracket`);
-2. exposures: samples of every frame, their order checked, the response measured on them
-   when none was given (:func:`~hdrmerge_cli.pipeline.crf.measure_response`);
+1. read: the frames' metadata, their codes (each file decoded once, held by frame:
+   :class:`~hdrmerge_cli.io.frames.HeldCodes`) and the response (:func:`open_bracket`);
+2. exposures: one sample set of every frame, its order checked
+   (:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`), the response measured on
+   it when none was given (:func:`~hdrmerge_cli.pipeline.crf.measure_response`);
 3. registration: the warps that bring the frames onto the reference
    (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`); the exposure labels are then
    checked on the registered samples, with the motion registration measured
    (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
 4. noise and the weights' tables (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`);
 5. ghosts (:func:`~hdrmerge_cli.pipeline.motion.find_ghosts`);
-6. merge: the frames streamed through (7), then re-weighting (:func:`reconstruct`);
+6. merge: the held codes through (7), then re-weighting in strips (:func:`reconstruct`);
 7. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
 """
 from __future__ import annotations
@@ -129,8 +131,8 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
         if Path(opts.io.preview).suffix.lower() not in PREVIEW_SUFFIXES:
             raise HdrMergeError(f"{opts.io.preview}: a preview is written as {', '.join(PREVIEW_SUFFIXES)} (by suffix)")
         check_writable(opts.io.preview, opts.io.overwrite)
-    inputs = list(paths) + [p for p in (opts.inputs.profile, opts.algorithm.lut, opts.inputs.times_file, opts.inputs.crf)
-                            if p and Path(p).is_file()]
+    given = (opts.inputs.profile, opts.algorithm.lut, opts.inputs.times_file, opts.inputs.crf)
+    inputs = list(paths) + [p for p in given if p and Path(p).is_file()]
     check_distinct([output, profile_out] + ([opts.io.preview] if opts.io.preview is not None else []), inputs)
     return inputs
 
@@ -146,9 +148,9 @@ def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
 def open_bracket(paths: list[str], opts: MergeOptions) -> tuple[list[Frame], CRF, HeldCodes]:
     """Stage 1: the frames' metadata, checked and sorted by exposure, the response, and
     the frames' codes as each is decoded (a RAW frame's with its metadata, from one open)."""
-    codes = HeldCodes()
-    frames = read_bracket(paths, opts.inputs.times, opts.inputs.times_file, equal_ok=True, held=codes)
-    return frames, choose_crf(frames, opts.inputs.crf or opts.inputs.profile, from_profile=not opts.inputs.crf, warn=False), codes
+    inputs, codes = opts.inputs, HeldCodes()
+    frames = read_bracket(paths, inputs.times, inputs.times_file, equal_ok=True, held=codes)
+    return frames, choose_crf(frames, inputs.crf or inputs.profile, from_profile=not inputs.crf, warn=False), codes
 
 
 def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_codes,
