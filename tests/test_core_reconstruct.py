@@ -394,7 +394,7 @@ def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layo
     for passes in (1, 4):
         out = {}
         for strip in (8, 1000):  # strips of 8 rows (the last one 2), and one piece
-            monkeypatch.setattr(reconstruct, "IRLS_STRIP_ROWS", strip)
+            monkeypatch.setattr(reconstruct, "STRIP_ROWS", strip)
             log_e, flags, den = merge_in_memory(codes, tables, pattern, linear)
             out[strip] = irls(codes.__getitem__, tables, pattern, log_e, times, [float(full)] * 3, maps, linear,
                               passes, variance=True, den=den if with_den else None,

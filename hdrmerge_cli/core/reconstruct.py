@@ -651,8 +651,9 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
     return cen
 
 
-#: rows of a strip of :func:`irls` (even: whole CFA periods): its sums stay strip-sized
-IRLS_STRIP_ROWS = 128
+#: rows of a strip of the merge's passes (:func:`irls`, the pipeline's first pass; even: whole CFA periods):
+#: their sums and per-sample weights stay strip-sized
+STRIP_ROWS = 128
 
 
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
@@ -662,7 +663,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
 
-    The image is re-weighted in strips of :data:`IRLS_STRIP_ROWS` rows, each iterated to
+    The image is re-weighted in strips of :data:`STRIP_ROWS` rows, each iterated to
     its own convergence, the new estimate and ``den`` written over ``log_e`` and ``den`` (a
     sample's weights depend on its own estimate only, so a strip is the same computation
     at a strip's memory).
@@ -694,7 +695,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
     height = log_e.shape[0]
-    if height <= IRLS_STRIP_ROWS:
+    if height <= STRIP_ROWS:
         return _irls_piece(codes_of, tables, pattern, log_e, exposures, y_full, rows, linear, iterations, tol,
                            variance, None if adjust is None else (lambda *a: adjust(*a, slice(0, height))), den)
     flags = np.empty(log_e.shape, np.int8)
@@ -702,8 +703,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     den = den if given else np.empty(log_e.shape, np.float32)
     var = np.empty(log_e.shape, np.float32) if variance else None
     passes, change = 0, 0.0
-    for r0 in range(0, height, IRLS_STRIP_ROWS):
-        part = slice(r0, min(height, r0 + IRLS_STRIP_ROWS))
+    for r0 in range(0, height, STRIP_ROWS):
+        part = slice(r0, min(height, r0 + STRIP_ROWS))
         le, fl, dn, it, ch, *v = _irls_piece(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures,
                                              y_full, rows, linear, iterations, tol, variance,
                                              None if adjust is None else (lambda *a: adjust(*a, part)),

@@ -30,7 +30,7 @@ import numpy as np
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, LogMerge, irls, noise_rows
+from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, noise_rows
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes
 from hdrmerge_cli.io.images import exr_compression
@@ -365,41 +365,42 @@ def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) 
                     100 * dark / flags.size, 100 * saturated / flags.size)
 
 
-# ---------------------------------------------------------------- streaming
+# ---------------------------------------------------------------- the first pass
 def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
-    """Frame k+1 loaded (held codes; resampled on first use) in a worker thread while frame
-    k is merged.  Returns ``log E``, or ``E * scale`` when ``scale`` is given (see
-    :meth:`LogMerge.finish`), the flags, the summed weights, with ``variance`` the result's
-    variance (:attr:`LogMerge.variance`; else None), and the timings."""
+    """(7) over the frames' codes (``load``: held, or resampled on first use, two frames at
+    a time), in strips of :data:`~hdrmerge_cli.core.reconstruct.STRIP_ROWS` rows of
+    every frame: the sums, and the per-sample weights of moved or deghosted frames
+    (``weights_of(k, codes, rows)``), are strip-sized.  Returns ``log E``, or ``E * scale``
+    when ``scale`` is given (see :meth:`LogMerge.finish`), the flags, the summed weights,
+    with ``variance`` the result's variance (:attr:`LogMerge.variance`; else None), and the
+    timings."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
-    acc = LogMerge(shape, pattern, variance=variance)
-    decode_time = 0.0
-    merge_time = 0.0
 
     def decode(frame):
-        t = time.perf_counter()
         codes = load(frame)
         if codes.shape != shape:
             raise HdrMergeError(f"{frame.path}: decoded size {codes.shape} differs from the metadata {shape}")
-        return codes, time.perf_counter() - t
+        return codes
 
     t_start = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(decode, frames[0])
-        for k, frame in enumerate(frames):
-            codes, dt = pending.result()
-            decode_time += dt
-            if k + 1 < len(frames):
-                pending = pool.submit(decode, frames[k + 1])
-            t = time.perf_counter()
-            weight, factor = (None, None) if weights_of is None else weights_of(k, codes)
-            acc.add(codes, tables[k], last=k == len(frames) - 1, weight=weight, factor=factor)
-            del weight, factor
-            del codes
-            merge_time += time.perf_counter() - t
-    t = time.perf_counter()
-    result, flags = acc.finish(linear, scale)
-    merge_time += time.perf_counter() - t
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        codes = list(pool.map(decode, frames))
+    decode_time = time.perf_counter() - t_start
+    result = np.empty(shape, np.float32)
+    flags = np.empty(shape, np.int8)
+    den = np.empty(shape, np.float32)
+    var = np.empty(shape, np.float32) if variance else None
+    height, last = shape[0], len(frames) - 1
+    for r0 in range(0, height, STRIP_ROWS):
+        part = slice(r0, min(height, r0 + STRIP_ROWS))
+        acc = LogMerge(result[part].shape, pattern, variance=variance)
+        for k, z in enumerate(codes):
+            weight, factor = (None, None) if weights_of is None else weights_of(k, z[part], part)
+            acc.add(z[part], tables[k], last=k == last, weight=weight, factor=factor)
+        result[part], flags[part] = acc.finish(linear, scale)
+        den[part] = acc.den
+        if variance:
+            var[part] = acc.variance
     total = time.perf_counter() - t_start
-    return (result, flags, acc.den, acc.variance if variance else None,
-            {"decode": decode_time, "merge": merge_time, "decode_and_merge_wall": total})
+    return result, flags, den, var, {"decode": decode_time, "merge": total - decode_time,
+                                     "decode_and_merge_wall": total}

@@ -593,15 +593,17 @@ class SampleWeights:
             f = np.repeat(f, out.shape[1] // f.shape[1], axis=1)
         return out, f
 
-    def __call__(self, k: int, codes: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """``(weight, factor)`` for :meth:`LogMerge.add`: where the frame was not resampled
-        with a spread (images; RAW moved by whole CFA periods) only the per-pixel
-        :meth:`factor` (weight None), which the merge applies to the table's weights in its
-        own pass; else the per-sample weights (``codes``' shape, float32) with the factor in
-        them, and the factor, which then only says where the frame is a sample's own."""
+    def __call__(self, k: int, codes: np.ndarray, rows: slice | None = None
+                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(weight, factor)`` for :meth:`LogMerge.add` of frame ``k``'s ``codes`` (``rows``:
+        those rows of the frame): where the frame was not resampled with a spread (images;
+        RAW moved by whole CFA periods) only the per-pixel :meth:`factor` (weight None),
+        which the merge applies to the table's weights in its own pass; else the per-sample
+        weights (``codes``' shape, float32) with the factor in them, and the factor, which
+        then only says where the frame is a sample's own."""
         if self.load is None or self.load.spread(self.frames[k]) is None:
-            return None, self.factor(k)
-        w, f = self._weighted(k, codes, None, own=True)  # the table's weights, read in the same pass
+            return None, self.factor(k, rows)
+        w, f = self._weighted(k, codes, None, own=True, rows=rows)  # the table's weights, read in the same pass
         return w.reshape(codes.shape).astype(np.float32, copy=False), f
 
 
