@@ -219,17 +219,17 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
 
 def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,
                 timings: dict, with_variance: bool = False) -> tuple:
-    """The frames through (7) (:func:`_stream`), then ``models.n_irls`` passes of
+    """The frames through (7) (:func:`_first_pass`), then ``models.n_irls`` passes of
     re-weighting at the merged estimate (:func:`~hdrmerge_cli.core.reconstruct.irls`), both
     reading the frames' held codes (``load``).  Returns ``(E * h_ref, flags, summed
     weights, variance, IRLS passes)``; the variance of ``E * h_ref`` under the noise model
     (float32, like the result) with ``with_variance``, else None."""
     ml = models.estimator == "ml"
-    # without IRLS the stream's last pass returns the linear image directly
-    result, flags, den, variance, stream_timings = _stream(
+    # without IRLS the first pass returns the linear image directly
+    result, flags, den, variance, pass_timings = _first_pass(
         frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref, load, weights_of,
         with_variance and not models.n_irls)
-    timings.update(stream_timings)
+    timings.update(pass_timings)
     if not models.n_irls:
         return result, flags, den, variance, 0
     t0 = time.perf_counter()
@@ -238,7 +238,7 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     else:
         maps = [noise_rows(per_channel(n, models.table_channels)) for n in models.frame_noise]
     y_full = [float(f.white[0] - f.black[0]) for f in frames]
-    del flags  # IRLS makes its own; it writes over the stream's estimate and weights
+    del flags  # IRLS makes its own; it writes over the first pass's estimate and weights
     log_e, flags, den, iterations, change, *var = irls(lambda k: load(frames[k]), models.tables, models.pattern,
                                                        result, exposures, y_full, maps, ml, models.n_irls,
                                                        variance=with_variance,
@@ -366,7 +366,7 @@ def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) 
 
 
 # ---------------------------------------------------------------- the first pass
-def _stream(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
+def _first_pass(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
     """(7) over the frames' codes (``load``: held, or resampled on first use, two frames at
     a time), in strips of :data:`~hdrmerge_cli.core.reconstruct.STRIP_ROWS` rows of
     every frame: the sums, and the per-sample weights of moved or deghosted frames
