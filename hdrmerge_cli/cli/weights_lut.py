@@ -19,7 +19,6 @@ from hdrmerge_cli.io.plots import check_figure_path
 from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, plot_luts, weight_luts, write_luts
 from hdrmerge_cli.pipeline.bracket import choose_crf, exposure_values, read_bracket
 from hdrmerge_cli.pipeline.model_choice import prior_rate as prior_rate_of, resolve_noise
-from hdrmerge_cli.pipeline.options import MergeOptions
 
 
 @click.command("weights-lut")

@@ -457,7 +457,7 @@ class HeldCodes:
 
     def __init__(self, load=load_codes):
         self.load = load
-        self._codes: dict[int, np.ndarray] = {}
+        self._codes: dict[int, tuple[Frame, np.ndarray]] = {}  # id -> (the frame, kept alive: its id stays its own)
         self._lock = threading.Lock()
         self._decoding: dict[int, threading.Lock] = {}
 
@@ -467,7 +467,7 @@ class HeldCodes:
         codes = codes.view()
         codes.flags.writeable = False
         with self._lock:
-            self._codes[id(frame)] = codes
+            self._codes[id(frame)] = (frame, codes)
 
     def drop(self, frame: Frame) -> None:
         """Forget ``frame``'s codes (a caller that keeps what it made of them instead); a later
@@ -475,21 +475,21 @@ class HeldCodes:
         with self._lock:
             self._codes.pop(id(frame), None)
 
-    def __call__(self, frame: Frame) -> np.ndarray:
-        key = id(frame)
+    def _held(self, frame: Frame) -> np.ndarray | None:
         with self._lock:
-            codes = self._codes.get(key)
-            if codes is not None:
-                return codes
-            one = self._decoding.setdefault(key, threading.Lock())
-        with one:
-            with self._lock:
-                codes = self._codes.get(key)
-            if codes is None:
-                self.hold(frame, self.load(frame))
-                with self._lock:
-                    codes = self._codes[key]
+            entry = self._codes.get(id(frame))
+        return None if entry is None else entry[1]
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        codes = self._held(frame)
+        if codes is not None:
             return codes
+        with self._lock:
+            one = self._decoding.setdefault(id(frame), threading.Lock())
+        with one:  # two threads asking for one frame: one decode
+            if self._held(frame) is None:
+                self.hold(frame, self.load(frame))
+            return self._held(frame)
 
 
 def load_validity(frame: Frame) -> np.ndarray | None:

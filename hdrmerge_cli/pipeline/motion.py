@@ -29,6 +29,15 @@ def reference_index(frames: list[Frame]) -> int:
     return len(frames) // 2
 
 
+def _of_frame(frame: Frame, frames: list[Frame], items: list):
+    """The item of ``items`` that stands beside ``frame`` itself (not its path or position)
+    in ``frames``."""
+    for f, item in zip(frames, items):
+        if f is frame:
+            return item
+    raise KeyError(frame.path)
+
+
 @dataclasses.dataclass
 class Alignment:
     """What :func:`estimate_alignment` found: per frame (the lists in the order of
@@ -55,10 +64,7 @@ class Alignment:
     still: list[str]
 
     def warp_of(self, frame: Frame) -> np.ndarray:
-        for f, w in zip(self.frames, self.warps):
-            if f is frame:
-                return w
-        raise KeyError(frame.path)
+        return _of_frame(frame, self.frames, self.warps)
 
     @property
     def sizes(self) -> list[float]:
@@ -442,10 +448,7 @@ class Ghosts:
     masks: list[np.ndarray]
 
     def mask_of(self, frame: Frame) -> np.ndarray:
-        for f, m in zip(self.frames, self.masks):
-            if f is frame:
-                return m
-        raise KeyError(frame.path)
+        return _of_frame(frame, self.frames, self.masks)
 
     def summary(self) -> dict:
         """``merge --json``'s ``deghost``."""
@@ -618,8 +621,7 @@ def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, s
     may be ``w``; ``row0``: the arrays are rows ``row0`` on of the frame."""
     slope = value_slope(tables) if slope is None else slope
     return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, tables.n_codes, spread, warp,
-                                         out,
-                                         weight=tables.weight, cfa=cfa, row0=row0)
+                                         out, weight=tables.weight, cfa=cfa, row0=row0)
 
 
 def value_slope(tables) -> np.ndarray:
