@@ -5,7 +5,8 @@ import pytest
 from scipy.stats import norm
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.excess_variance import N_LEVELS, P_FALSE_ALARM, fit_excess_variance, level_of
+from hdrmerge_cli.core.excess_variance import (MATERIAL_DB, N_LEVELS, P_FALSE_ALARM, excess_effect_db,
+                                               fit_excess_variance, level_of)
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.pipeline.exposure_check import Samples
 from hdrmerge_cli.pipeline.excess import measure_excess
@@ -96,6 +97,26 @@ def test_at_interpolates_between_bin_centres():
     assert level_of(np.array([0.0, 0.5, 1.0])).tolist() == [0, N_LEVELS // 2, N_LEVELS - 1]
 
 
+def test_effect_is_the_change_of_the_inverse_variance_mean_error():
+    """excess_effect_db against a loop over pixels: each pixel's merged variance is the
+    inverse of its readings' summed inverse variances; unread readings (NaN, inf) drop."""
+    rng = np.random.default_rng(11)
+    v = rng.uniform(1e-3, 1e-1, (3, 500))
+    v[0, :50] = np.nan
+    v[1, 40:60] = np.inf
+    v[:, 45] = np.nan  # no frame reads it
+    e = rng.uniform(0, 2e-2, (3, 500))
+    num = den = 0.0
+    for i in range(500):
+        read = [k for k in range(3) if np.isfinite(v[k, i])]
+        if read:
+            num += 1 / sum(1 / (v[k, i] + e[k, i]) for k in read)
+            den += 1 / sum(1 / v[k, i] for k in read)
+    assert excess_effect_db(v, e) == pytest.approx(10 * np.log10(num / den), rel=1e-12)
+    assert excess_effect_db(v, np.zeros_like(e)) == 0.0
+    assert excess_effect_db(np.full((2, 3), np.nan), np.ones((2, 3))) == 0.0
+
+
 def _bracket(times, noise_sd, tone_sd, seed, channels=3, clip_channel=None, bits=8):
     """Samples of a bracket through gamma 2.2: linear signal with Poisson-like noise of
     ``noise_sd`` relative at full scale, optionally a per-frame tone error of ``tone_sd``
@@ -126,10 +147,26 @@ def test_a_bracket_the_model_explains_keeps_no_excess():
     assert fit.chi_model == pytest.approx(1.0, abs=0.1)
 
 
+def test_a_small_significant_misfit_is_not_kept():
+    """The noise 6 % above the model's: the test finds it (statistic above its threshold),
+    but it raises the predicted error of the merge by about 0.25 dB, below MATERIAL_DB: no
+    excess is kept, and the effect is reported.  At 1.5x it matters (about 1.6 dB)."""
+    _, _, _, model = _bracket([0.25, 1.0, 4.0], 0.01, 0.0, 4, bits=16)
+    s, h, crf, _ = _bracket([0.25, 1.0, 4.0], 0.01 * 1.06 ** 0.5, 0.0, 4, bits=16)
+    fit = measure_excess(s, h, crf, model, list("RGB"))
+    assert fit.statistic > norm.isf(P_FALSE_ALARM) and fit.chi_model == pytest.approx(1.06, abs=0.03)
+    assert 0.05 < fit.effect_db < MATERIAL_DB / 2 and fit.effect_db_low <= fit.effect_db
+    assert not fit.kept and np.all(fit.levels == 0) and fit.chi_fit == fit.chi_model
+    s, h, crf, _ = _bracket([0.25, 1.0, 4.0], 0.01 * 1.5 ** 0.5, 0.0, 4, bits=16)
+    fit = measure_excess(s, h, crf, model, list("RGB"))
+    assert fit.kept and MATERIAL_DB < fit.effect_db_low < fit.effect_db < 10 * np.log10(1.5) + 0.2
+
+
 def test_processing_error_is_measured_as_excess():
     s, h, crf, noise = _bracket([0.25, 1.0, 4.0], 0.01, 0.15, 5)
     fit = measure_excess(s, h, crf, noise, list("RGB"))
     assert fit.kept and fit.chi_model > 2 and fit.chi_fit == pytest.approx(1.0, abs=0.2)
+    assert fit.effect_db_low >= MATERIAL_DB and fit.effect_db >= fit.effect_db_low
     # a relative error 0.15 sin(...) on each frame: about 0.15^2 / 2 of variance per reading
     mid = fit.levels[N_LEVELS // 4:3 * N_LEVELS // 4]
     assert 0.2 * 0.15 ** 2 / 2 < np.median(mid) < 3 * 0.15 ** 2 / 2

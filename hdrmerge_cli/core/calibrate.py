@@ -14,9 +14,10 @@ of measurement are rows of the same linear fit:
   rows ``[1 + r^2, mu (1 + r), 0]``, every unclipped pixel counting.
 
 Exposure pairs whose differences follow the scene's gradient saw frames that moved
-(:func:`pair_gradient_test`); the local statistics then give the fit.  The quadratic term
-is kept only when an F-test needs it.  A single bracket cannot tell
-gain FPN from static scene texture; only flat fields can (:mod:`photon_transfer`).
+(:func:`pair_gradient_test`); the local statistics then give the fit.  Photographs do not
+measure the quadratic term: in local statistics gain FPN and static scene texture both add
+variance in proportion to ``mu^2``, and exposure pairs cancel both, so the fit is the affine
+one (``beta = 0``, not measured); only flat fields measure beta (:mod:`photon_transfer`).
 :func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell.  Method:
 docs/method.md, "Calibrating the noise".
 """
@@ -496,17 +497,15 @@ def variance_points(mean, var, count, ratio: float | None = None) -> VariancePoi
 
 @dataclass
 class NoiseFit:
-    """Parameters of (17) with the fit's statistics: the model kept ("affine": beta = 0,
-    or "quadratic"), the F statistic and p-value of the quadratic term, the number of
-    binned points, their relative RMS residual, and the points themselves (for plots)."""
+    """Parameters of (17) measured on photographs with the fit's statistics: the model
+    ("affine": photographs do not measure beta, module docstring), the number of binned
+    points, their relative RMS residual, and the points themselves (for plots)."""
 
     sigma_o2: float
     alpha: float
     beta: float
     model: str
     points: int
-    f_statistic: float
-    p_value: float
     residual_rms: float
     data: VariancePoints | None = None
 
@@ -562,38 +561,18 @@ def _robust_wls(design, var, counts, free, fixed):
     return full, np.sqrt(counts / 2.0) * (var - pred) / pred
 
 
-def fit_noise_model(points: VariancePoints, p_threshold: float = 0.01,
-                    known: tuple[float, float] | None = None) -> NoiseFit:
-    """Robust fit of (17) to binned points (:class:`VariancePoints`), affine and quadratic;
-    the quadratic term is kept when the F-test of the nested models gives
-    ``p < p_threshold`` (residual sums over the points both fits treat as inliers,
-    |standardised residual| <= 5 robust scales).  ``known = (c0, c1)`` holds sigma_o^2 and
-    sqrt(alpha) fixed (measured elsewhere) and fits and tests beta alone."""
+def fit_noise_model(points: VariancePoints) -> NoiseFit:
+    """Robust fit of the affine (17), ``Var = c0 + c1 mu``, to binned points
+    (:class:`VariancePoints`; their quadratic column is not used: module docstring)."""
     if points.mean.size < 4:
         raise HdrMergeError(f"too few intensity levels ({points.mean.size}) to fit the noise model")
     var, counts, design = points.var, points.count, points.design
-    base = [known[0], known[1], 0.0] if known else [0.0, 0.0, 0.0]
-    c_aff, r_aff = _robust_wls(design, var, counts, [] if known else [0, 1], base)
-    quad_possible = bool(np.any(design[:, 2] > 0)) and points.mean.size >= 5
-    c_quad, r_quad = _robust_wls(design, var, counts, [2] if known else [0, 1, 2], base) if quad_possible \
-        else (c_aff, r_aff)
-    scale = 1.4826 * np.median(np.abs(r_quad)) + 1e-12
-    inl = (np.abs(r_quad) <= 5 * scale) & (np.abs(r_aff) <= 5 * max(scale, 1.4826 * np.median(np.abs(r_aff))))
-    dof = int(np.count_nonzero(inl)) - (1 if known else 3)
-    if quad_possible and dof > 0:
-        rss_aff, rss_quad = float(np.sum(r_aff[inl] ** 2)), float(np.sum(r_quad[inl] ** 2))
-        f_stat = max(rss_aff - rss_quad, 0.0) / max(rss_quad / dof, 1e-300)
-        p = float(special.fdtrc(1, dof, f_stat))  # F(1, dof) survival function
-    else:
-        f_stat, p = 0.0, 1.0
-    quadratic = p < p_threshold and c_quad[2] > 0
-    coef, r = (c_quad, r_quad) if quadratic else (c_aff, r_aff)
+    coef, r = _robust_wls(design, var, counts, [0, 1], [0.0, 0.0, 0.0])
     if coef[1] <= 0:
         raise HdrMergeError("the noise does not grow with the signal: cannot estimate the gain")
-    alpha = coef[1] ** 2
     rel = r / np.sqrt(counts / 2.0)
-    return NoiseFit(float(coef[0]), float(alpha), float(coef[2] * alpha), "quadratic" if quadratic else "affine",
-                    int(points.mean.size), float(f_stat), p, float(np.sqrt(np.mean(rel**2))), points)
+    return NoiseFit(float(coef[0]), float(coef[1] ** 2), 0.0, "affine", int(points.mean.size),
+                    float(np.sqrt(np.mean(rel**2))), points)
 
 
 def pair_information(planes: list[np.ndarray], lo: float, hi: float, ratios: list, coef) -> np.ndarray:
@@ -667,7 +646,7 @@ def fit_standard_errors(fit: NoiseFit, pairs: bool) -> tuple[float, float]:
     if data is None:
         return float("inf"), float("inf")
     use = data.kind == ("pair" if pairs else "local")
-    cols = [0, 1] + ([2] if not pairs and fit.model == "quadratic" else [])
+    cols = [0, 1]
     design, var, count = data.design[use][:, cols], data.var[use], data.count[use]
     if var.size <= len(cols):
         return float("inf"), float("inf")
@@ -681,14 +660,14 @@ def fit_standard_errors(fit: NoiseFit, pairs: bool) -> tuple[float, float]:
     return float(np.sqrt(cov[0, 0])), float(2 * abs(fit.coef[1]) * np.sqrt(cov[1, 1]))
 
 
-def _local_fit(pooled: WindowStats, bins: int, p_threshold: float) -> NoiseFit:
+def _local_fit(pooled: WindowStats, bins: int) -> NoiseFit:
     """(17) from the frames' local statistics alone: a first fit with median-relative texture
     rejection, then the noise-relative rejection (:func:`texture_limit`) and the final fit."""
-    first = fit_noise_model(binned_variance(pooled, bins=bins), p_threshold).coef
+    first = fit_noise_model(binned_variance(pooled, bins=bins)).coef
     points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, first))
     if points.mean.size < 4:
         raise HdrMergeError(f"too few usable flat windows ({pooled.mean.size}) to measure the noise")
-    return fit_noise_model(points, p_threshold)
+    return fit_noise_model(points)
 
 
 def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
@@ -702,7 +681,7 @@ def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
 
 
 def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int = 7, bins: int = 64,
-                   pairs: bool = True, p_threshold: float = 0.01,
+                   pairs: bool = True,
                    pair_bins: int = 128) -> tuple[NoiseFit, list[float]]:
     """Noise parameters of (17) for one channel from frames of one scene at one ISO.
 
@@ -715,9 +694,9 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
 
     Notes: with pairs, sigma_o^2 and alpha come from the pairs (per pixel, or per window
     when the frames are clipped at black, :data:`BLACK_CLIPPED`; refitted without the
-    pixels that clipping or outliers affect) and beta, with its F-test, from the local
-    statistics of every frame after rejecting windows beyond :data:`TEXTURE_SIGMAS`.
-    Without pairs, where they do not show the gain (their fit finds none), where their
+    pixels that clipping or outliers affect); the local statistics of every frame (windows
+    beyond :data:`TEXTURE_SIGMAS` rejected) join the points for the plot and the residual.
+    Beta is not measured (module docstring).  Without pairs, where they do not show the gain (their fit finds none), where their
     differences follow the scene's gradient (per pixel: :func:`pair_gradient_test` at the
     false-alarm rate :data:`PAIR_MOTION_P`) or where they predict more variance than the
     frames' own flat windows (:func:`_pairs_moved`), the frames moved or the pairs cannot
@@ -757,7 +736,7 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
             # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
             # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
             try:
-                coef = fit_noise_model(VariancePoints.concat(first_points), p_threshold).coef
+                coef = fit_noise_model(VariancePoints.concat(first_points)).coef
             except HdrMergeError:  # the pairs do not show the gain (read noise swamps it)
                 pixel_pairs, ratios = [], []
             for pp in pixel_pairs:
@@ -775,20 +754,18 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     if pair_points:
         pair_data = VariancePoints.concat(pair_points)
         try:
-            fit = fit_noise_model(pair_data, p_threshold)
+            fit = fit_noise_model(pair_data)
         except HdrMergeError:  # as above
             fit = None
     if fit is None:
-        return _local_fit(pooled, bins, p_threshold), []
+        return _local_fit(pooled, bins), []
     try:
-        alone = _local_fit(pooled, bins, p_threshold)
+        alone = _local_fit(pooled, bins)
     except HdrMergeError:
         alone = None
     if alone is not None and (gradient_p < PAIR_MOTION_P or _pairs_moved(fit, alone, pooled)):
         return alone, []
     local_points = binned_variance(pooled, bins=bins, max_texture=texture_limit(pooled.mean, fit.coef))
-    if local_points.mean.size >= 4:  # beta from the flat windows, sigma_o^2 and alpha held
-        fit = fit_noise_model(local_points, p_threshold, known=(fit.coef[0], fit.coef[1]))
     data = VariancePoints.concat([pair_data, local_points])
     rel = (data.var - data.design @ fit.coef) / np.maximum(data.design @ fit.coef, 1e-12)
     fit.data, fit.points, fit.residual_rms = data, int(data.mean.size), float(np.sqrt(np.mean(rel**2)))

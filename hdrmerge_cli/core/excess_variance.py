@@ -22,9 +22,15 @@ tail and would bias the variance low; the residuals are therefore taken against
 ``x ~ chi^2_1`` and the soft-L1 weight ``u(r) = (1 + (r / f)^2)^(-1/2)`` (Fisher
 consistency: the fit is unbiased on Gaussian pairs).
 
-The term is kept only when the model alone fails the pairs: without excess the statistic
-``T = sum(d^2 / (V_j + V_l) - 1) / sqrt(2 n)`` is asymptotically standard normal, and the
-excess is kept when ``T`` exceeds its ``1 - P_FALSE_ALARM`` quantile.
+The term is kept only where the pairs pin it and it matters (:func:`excess_effect_db`):
+
+- *pinned*: without excess the statistic ``T = sum(d^2 / (V_j + V_l) - 1) / sqrt(2 n)`` is
+  asymptotically standard normal, and ``T`` must exceed its ``1 - P_FALSE_ALARM`` quantile;
+- *material*: with 10^5 pair samples any misfit above ~1.5 % passes that test, so the fitted
+  excess must also raise the predicted error of the merged ``log E`` (the inverse-variance
+  mean of the frames' readings, model variance against model plus excess) by at least
+  :data:`MATERIAL_DB`, with the excess scaled down to the lower end of its uncertainty
+  (``chi_model - 1`` less two standard errors of ``chi_model``).
 """
 from __future__ import annotations
 
@@ -37,6 +43,9 @@ N_LEVELS = 32
 #: false-alarm rate of the test that keeps the excess term (a bracket the model explains
 #: gets one with this probability)
 P_FALSE_ALARM = 1e-3
+#: the least change of the predicted error of the merged ``log E`` (dB) for which the term
+#: is kept: below it the noise model explains the bracket to within 26 % of its variance
+MATERIAL_DB = 1.0
 #: fewest pair samples to fit the term from
 MIN_SAMPLES = 500
 #: scale of the soft-L1 loss on the standardised residuals of ``d^2``
@@ -52,11 +61,16 @@ class ExcessVariance:
 
     levels : (N_LEVELS,) float64, the excess variance of ``log E`` per code-level bin
         (zeros when the term is not kept)
-    kept : whether the test kept the term
+    kept : whether the term is kept (pinned and material: module docstring)
     chi_model : mean ``d^2 / (V_j + V_l)`` of the model alone (1 when it explains the pairs)
     chi_fit : the same with the excess term
     statistic : the test statistic ``T``
     samples : pair samples used
+    chi_stderr : standard error of ``chi_model`` (the sample standard deviation of
+        ``d^2 / (V_j + V_l)`` over ``sqrt(n)``: no Gaussian assumption)
+    effect_db : how much the fitted excess raises the predicted error of the merged
+        ``log E`` (dB; nan where not fitted)
+    effect_db_low : the same with the excess at the lower end of its uncertainty
     """
 
     levels: np.ndarray
@@ -65,6 +79,9 @@ class ExcessVariance:
     chi_fit: float
     statistic: float
     samples: int
+    chi_stderr: float = float("nan")
+    effect_db: float = float("nan")
+    effect_db_low: float = float("nan")
 
     @property
     def tested(self) -> bool:
@@ -85,7 +102,9 @@ class ExcessVariance:
 
         return {"tested": self.tested, "kept": self.kept, "levels_sd": [num(s, 4) for s in np.sqrt(self.levels)],
                 "chi_model": num(self.chi_model, 4), "chi_fit": num(self.chi_fit, 4),
-                "statistic": num(self.statistic, 2), "samples": self.samples}
+                "statistic": num(self.statistic, 2), "samples": self.samples,
+                "chi_stderr": num(self.chi_stderr, 5), "effect_db": num(self.effect_db, 3),
+                "effect_db_low": num(self.effect_db_low, 3), "material_db": MATERIAL_DB}
 
 
 def level_of(v: np.ndarray, n_levels: int = N_LEVELS) -> np.ndarray:
@@ -102,7 +121,8 @@ def fit_excess_variance(d: np.ndarray, base: np.ndarray, level_a: np.ndarray, le
         exposures' errors are the label check's business)
     base : (n,) ``V_j + V_l`` of the model, > 0
     level_a, level_b : (n,) int code-level bins of the two readings (:func:`level_of`)
-    Returns an :class:`ExcessVariance`.
+    Returns an :class:`ExcessVariance` whose ``kept`` says only that the test found the
+    model short (pinned); :func:`with_effect` adds whether that matters.
     """
     from scipy.optimize import nnls
     from scipy.special import ndtri
@@ -114,9 +134,10 @@ def fit_excess_variance(d: np.ndarray, base: np.ndarray, level_a: np.ndarray, le
         return ExcessVariance(np.zeros(n_levels), False, float("nan"), float("nan"), float("nan"), n)
     ratio = d2 / base
     chi_model = float(ratio.mean())
+    chi_stderr = float(ratio.std(ddof=1) / np.sqrt(n))
     statistic = float((ratio - 1.0).sum() / np.sqrt(2.0 * n))
     if statistic <= ndtri(1.0 - p_false_alarm):
-        return ExcessVariance(np.zeros(n_levels), False, chi_model, chi_model, statistic, n)
+        return ExcessVariance(np.zeros(n_levels), False, chi_model, chi_model, statistic, n, chi_stderr)
     la, lb = np.asarray(level_a, np.int64), np.asarray(level_b, np.int64)
     used = np.bincount(np.concatenate([la, lb]), minlength=n_levels) > 0
     levels = np.zeros(n_levels)
@@ -129,7 +150,49 @@ def fit_excess_variance(d: np.ndarray, base: np.ndarray, level_a: np.ndarray, le
         levels[used] = _nnls_two_hot(la, lb, u2, y - base, n_levels, used, nnls)
     levels = _fill_empty(levels, used)
     chi_fit = float(np.mean(d2 / (base + levels[la] + levels[lb])))
-    return ExcessVariance(levels, True, chi_model, chi_fit, statistic, n)
+    return ExcessVariance(levels, True, chi_model, chi_fit, statistic, n, chi_stderr)
+
+
+def excess_effect_db(model_var: np.ndarray, excess_var: np.ndarray) -> float:
+    """How much an excess raises the predicted error of a merge (dB).
+
+    model_var, excess_var : (K, n) variances of ``log E`` of the K frames' readings of n
+        pixel-channels under the model and the excess; NaN or inf where a frame's reading
+        is not used (clipped, undefined).
+    Returns ``10 log10(sum_i m_i(V + e) / sum_i m_i(V))`` over the pixel-channels some frame
+    reads, with ``m_i(V) = 1 / sum_k 1 / V_ki`` the variance of the inverse-variance mean
+    of pixel ``i``'s readings (the linearised (7) with the weights of (20): the bound each
+    estimator approaches); 0 where no frame reads any pixel.
+    """
+    v = np.where(np.isfinite(model_var), model_var, np.inf)
+    e = np.where(np.isfinite(excess_var), excess_var, 0.0)
+    info_model = np.sum(1.0 / v, axis=0)
+    info_with = np.sum(1.0 / (v + e), axis=0)
+    read = info_model > 0
+    if not read.any():
+        return 0.0
+    return float(10.0 * np.log10(np.sum(1.0 / info_with[read]) / np.sum(1.0 / info_model[read])))
+
+
+def with_effect(fit: ExcessVariance, model_var: np.ndarray, levels_of: np.ndarray) -> ExcessVariance:
+    """``fit`` with its effect on the predicted error (:func:`excess_effect_db`) and
+    ``kept`` only where the term is pinned and material (module docstring).
+
+    model_var : (K, n) model variances of ``log E`` of the readings (as in
+        :func:`excess_effect_db`)
+    levels_of : (K, n) int code-level bins of the same readings (:func:`level_of`)
+    """
+    from dataclasses import replace
+
+    if not fit.kept:
+        return fit
+    effect = excess_effect_db(model_var, fit.levels[levels_of])
+    excess_size = fit.chi_model - 1.0
+    low = max(0.0, excess_size - 2.0 * fit.chi_stderr) / excess_size if excess_size > 0 else 0.0
+    effect_low = excess_effect_db(model_var, low * fit.levels[levels_of])
+    kept = effect_low >= MATERIAL_DB
+    return replace(fit, kept=kept, levels=fit.levels if kept else np.zeros_like(fit.levels),
+                   chi_fit=fit.chi_fit if kept else fit.chi_model, effect_db=effect, effect_db_low=effect_low)
 
 
 def _nnls_two_hot(la, lb, u2, target, n_levels, used, nnls) -> np.ndarray:

@@ -186,8 +186,8 @@ def _fit_entry(fit: NoiseFit, pairs: list[float], window: int) -> dict:
     source = "exposure pairs" if pairs else "local statistics"
     return fit.as_dict() | {
         "method": {"sigma_o2": source, "alpha": source,
-                   "beta": "local statistics" + (" (scene texture and gain FPN look alike in one bracket; "
-                                                 "--flats measures beta)" if fit.beta > 0 else "")},
+                   "beta": "not measured: in photographs scene texture and gain FPN look alike (--flats "
+                           "measures beta); 0 is used"},
         "window": window, "exposure_ratios": [round(r, 5) for r in pairs],
     }
 
@@ -512,8 +512,7 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
     ``achievable_stderr`` the Cramer-Rao bound of the drawn sites' exposure contrasts
     (None where they hold none).
 
-    merge uses sigma_o^2 and alpha; beta from photographs may be scene texture (see
-    :mod:`hdrmerge_cli.core.calibrate`), so it is recorded but not used.  ``pairs=False``:
+    Photographs do not measure beta (:mod:`hdrmerge_cli.core.calibrate`): it is 0.  ``pairs=False``:
     each frame's own local statistics alone, not the exposure pairs (a camera-processed
     bracket, whose pairs also hold what the processing adds, measured apart:
     :mod:`hdrmerge_cli.pipeline.excess`)."""

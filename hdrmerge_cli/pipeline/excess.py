@@ -7,7 +7,8 @@ import logging
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.excess_variance import ExcessVariance, fit_excess_variance, level_of
+from hdrmerge_cli.core.excess_variance import (MATERIAL_DB, ExcessVariance, fit_excess_variance, level_of,
+                                               with_effect)
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
 from hdrmerge_cli.core.reconstruct import quantisation_variance
 from hdrmerge_cli.io.noisespec import per_channel
@@ -52,7 +53,9 @@ def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, No
                    channel_names: list[str], seed: int = 0) -> ExcessVariance:
     """Fit the excess term on every pair of frames, each channel's readings where both
     frames' codes are unclipped and the model's sd of ``log E`` is at most
-    :data:`MAX_MODEL_SD`, off the constant borders.
+    :data:`MAX_MODEL_SD`, off the constant borders; keep it where it is pinned and changes
+    the predicted error of the merge materially
+    (:func:`~hdrmerge_cli.core.excess_variance.with_effect`, over every sample's readings).
 
     samples : :class:`~hdrmerge_cli.pipeline.exposure_check.Samples` of an image bracket
         (registered onto the reference where the bracket was aligned)
@@ -90,11 +93,19 @@ def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, No
     empty = [np.zeros(0)], [np.ones(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     d_all, base_all, la, lb = (x or e for x, e in zip((d_all, base_all, la, lb), empty))
     fit = fit_excess_variance(np.concatenate(d_all), np.concatenate(base_all), np.concatenate(la), np.concatenate(lb))
+    # every sample's readings (K, n x channels): the model's variance of log E and the level
+    model_var = np.stack([np.concatenate([var for _, var in chans]) for _, _, chans in terms])
+    levels = np.stack([level_of(flat.T.ravel()) for flat, _, _ in terms])
+    fit = with_effect(fit, model_var, levels)
     if not fit.tested:
         log.info("variance beyond the noise model: %d pair samples, too few to test the model", fit.samples)
-    else:
+    elif np.isnan(fit.effect_db):
         log.info("variance beyond the noise model on %d pair samples: the pairs' variance is %.3g x the "
-                 "model's, %s", fit.samples, fit.chi_model,
-                 f"excess kept (test statistic {fit.statistic:.1f}), sd of log E per level up to "
-                 f"{np.sqrt(fit.levels.max()):.3f}" if fit.kept else "no excess kept")
+                 "model's, within its test (statistic %.1f): no excess kept", fit.samples, fit.chi_model, fit.statistic)
+    else:
+        log.info("variance beyond the noise model on %d pair samples: the pairs' variance is %.3g +- %.2g x the "
+                 "model's; it raises the predicted error of the merge by %.2f dB (at least %.2f dB), %s",
+                 fit.samples, fit.chi_model, fit.chi_stderr, fit.effect_db, fit.effect_db_low,
+                 f"excess kept, sd of log E per level up to {np.sqrt(fit.levels.max()):.3f}" if fit.kept
+                 else f"below the {MATERIAL_DB:g} dB that matters: no excess kept")
     return fit

@@ -192,9 +192,6 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
 
 #: ``NoiseDraw`` sites that keep every site of a channel
 WHOLE_FRAME = 1 << 62
-#: sites per channel and frame of the second try of a noise measurement that only tests an
-#: image bracket's excess (4x the fast path's)
-QUIET_RETRY_SITES = 1 << 17
 
 
 def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, quiet: bool = False):
@@ -231,12 +228,11 @@ def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = 
     except HdrMergeError as exc:
         failed = [str(exc)]
     # too few levels on the drawn tiles (a dark or flat bracket): drawn again, on every site
-    # (on 4x the tiles where the noise only tests an image bracket's excess)
+    # (one measurement whatever it is for: the excess test and the ML weights read the same)
     if failed:
-        sites = QUIET_RETRY_SITES if quiet else WHOLE_FRAME
-        log.info("the noise could not be measured on the drawn sites (%s); measuring on more", failed[0])
+        log.info("the noise could not be measured on the drawn sites (%s); measuring on every site", failed[0])
         try:
-            used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=sites), pairs)
+            used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=WHOLE_FRAME), pairs)
         except HdrMergeError as exc:
             if quiet:
                 log.info("could not measure the noise on the bracket (%s)", exc)
