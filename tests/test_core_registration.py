@@ -366,6 +366,34 @@ def test_still_test_sends_large_motion_to_the_full_registration():
     assert not registration.still_test(scene, turned, 1, 128, 128, 0.25)[0]
 
 
+def test_displacement_margin_holds_a_still_pairs_registration_and_not_a_real_shift():
+    """On 100 seeded noise draws over a still scene, the full registration's displacement
+    exceeds the pair's margin (p_miss = 5 %) in at most 5 % of them (binomial 99.9 % bound of
+    100 draws: 13); a real 1.5 px shift in the same noise is always beyond its margin.  The
+    margin is in frame pixels: the same pair read as 2x block means of a frame twice the size
+    gives twice the margin, within 25 %."""
+    rng = np.random.default_rng(5)
+    scene = _still_scene(rng, 128)
+    moved = _shifted(scene, 1.5)
+    beyond = {0.0: 0, 1.5: 0}
+    margins = []
+    for d, other in ((0.0, scene), (1.5, moved)):
+        for _ in range(100):
+            a = (scene + 0.3 * rng.standard_normal(scene.shape)).astype(np.float32)
+            b = (other + 0.3 * rng.standard_normal(scene.shape)).astype(np.float32)
+            warp, _ = registration.estimate_warp(a, b, "translation")
+            margin = registration.displacement_margin(a, b, warp, 1, 128, 128, p_miss=0.05)
+            margins.append(margin)
+            beyond[d] += registration.warp_size(warp, 128, 128) > margin
+    assert beyond[0.0] <= 13 and beyond[1.5] == 100
+    a = (scene + 0.3 * rng.standard_normal(scene.shape)).astype(np.float32)
+    b = (scene + 0.3 * rng.standard_normal(scene.shape)).astype(np.float32)
+    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+    one = registration.displacement_margin(a, b, identity, 1, 128, 128)
+    two = registration.displacement_margin(a, b, identity, 2, 256, 256)
+    assert two == pytest.approx(2 * one, rel=0.25)
+
+
 def test_registration_images_against_direct_means():
     """A mosaic's registration image is the mean of each 2 x 2 cell, black-subtracted and
     scaled (numpy reshape, float64, to 1e-6); its coarse image the block mean of that (to

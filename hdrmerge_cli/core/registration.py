@@ -19,6 +19,7 @@ exposure brackets do not zoom).
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 
@@ -609,8 +610,27 @@ def _dft_side(n: int) -> int:
     return n
 
 
+class StillTest(NamedTuple):
+    """:func:`still_test`'s verdict.
+
+    still : displaced by less than the tolerance at every corner, at the test's confidence
+    warp : the estimated translation as a warp (the frame centre's displacement)
+    bound : the corner bound (frame pixels): estimate plus ``z(1 - p_miss)`` deviations
+    rho : the correlation coefficient (:func:`correlation`)
+    margin : ``z(1 - p_miss)`` deviations at the least certain corner (frame pixels): a
+        displacement below it is one the coarse images cannot tell from none (inf where the
+        test measured nothing: large motion, no linear step)
+    """
+
+    still: bool
+    warp: np.ndarray
+    bound: float
+    rho: float
+    margin: float
+
+
 def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int, width: int, tol: float,
-               p_miss: float = STILL_P_MISS) -> tuple[bool, np.ndarray, float, float]:
+               p_miss: float = STILL_P_MISS) -> StillTest:
     """Whether ``image`` lies within ``tol`` frame pixels of ``reference`` everywhere, decided
     on coarse images without registering them.
 
@@ -622,9 +642,7 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     displaced by ``tol`` or more at some corner is declared still with probability at most
     ``p_miss`` (the linear step's range: a phase correlation a pixel or more off is never
     still).  A still pair needs no registration; any other is registered in full.
-    Returns ``(still, warp, bound, rho)``: the estimated translation as a warp (the frame
-    centre's displacement), the corner bound (frame pixels) and the correlation coefficient
-    (:func:`correlation`)."""
+    Returns a :class:`StillTest`."""
     from statistics import NormalDist
 
     cv2 = _cv2()
@@ -637,28 +655,68 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     scale *= k
     t = STILL_TILE
     if min(h, w) < 2 * t + 4:
-        return False, identity, float("inf"), -1.0
+        return StillTest(False, identity, float("inf"), -1.0, float("inf"))
     rho = correlation(a, b)
     (px, py), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64),
                                      cv2.createHanningWindow((w, h), cv2.CV_64F))
     if max(abs(px), abs(py)) >= 1.0:
-        return False, identity, float("inf"), rho
+        return StillTest(False, identity, float("inf"), rho, float("inf"))
     step = linear_step(a, b)
     if step is None:
-        return False, identity, float("inf"), rho
+        return StillTest(False, identity, float("inf"), rho, float("inf"))
     theta, cov = step
-    cy, cx = (h - 1) / 2, (w - 1) / 2
-    s = max(cx, cy)
     z = NormalDist().inv_cdf(1.0 - p_miss)
-    bound = 0.0
-    for fx, fy in ((0, 0), (width - 1, 0), (0, height - 1), (width - 1, height - 1)):
-        ux, uy = (fx - (scale - 1) / 2) / scale, (fy - (scale - 1) / 2) / scale  # in the test's pixels
-        lin = scale * np.array([[1.0, 0.0, -(uy - cy) / s, 0.0, 0.0], [0.0, 1.0, (ux - cx) / s, 0.0, 0.0]])
+    bound = margin = 0.0
+    for lin in _corner_maps((h, w), scale, height, width):
         spread = float(np.sqrt(max(np.linalg.eigvalsh(lin @ cov @ lin.T)[-1], 0.0)))
         bound = max(bound, float(np.hypot(*(lin @ theta))) + z * spread)
+        margin = max(margin, z * spread)
     warp = identity.copy()
     warp[:, 2] = scale * theta[:2]
-    return bound < tol, warp, bound, rho
+    return StillTest(bound < tol, warp, bound, rho, margin)
+
+
+def _corner_maps(shape: tuple[int, int], scale: int, height: int, width: int) -> list[np.ndarray]:
+    """Per frame corner, the ``(2, 5)`` map from :func:`linear_step`'s ``theta`` (on an image
+    of ``shape`` whose pixel ``u`` is centred on frame pixel ``scale u + (scale - 1) / 2``)
+    to that corner's displacement in frame pixels."""
+    h, w = shape
+    cy, cx = (h - 1) / 2, (w - 1) / 2
+    s = max(cx, cy)
+    out = []
+    for fx, fy in ((0, 0), (width - 1, 0), (0, height - 1), (width - 1, height - 1)):
+        ux, uy = (fx - (scale - 1) / 2) / scale, (fy - (scale - 1) / 2) / scale  # in the test's pixels
+        out.append(scale * np.array([[1.0, 0.0, -(uy - cy) / s, 0.0, 0.0], [0.0, 1.0, (ux - cx) / s, 0.0, 0.0]]))
+    return out
+
+
+def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, scale: int, height: int,
+                        width: int, p_miss: float = STILL_P_MISS) -> float:
+    """What a registration cannot tell from no motion: ``z(1 - p_miss)`` standard deviations of
+    the displacement at the least certain frame corner (frame pixels), from the covariance
+    of :func:`linear_step` of ``reference`` against ``image`` brought onto it by ``warp``
+    (frame pixels; the images as in :func:`still_test`, reduced to at most
+    :data:`PHASE_SIDE` on a side).  A registered displacement below it is one the pair does
+    not pin.  inf where the step is singular or the images too small."""
+    from statistics import NormalDist
+
+    cv2 = _cv2()
+    k = max(1, -(-max(reference.shape) // PHASE_SIDE))
+    f, c = scale * k, (scale * k - 1) / 2
+    a = np.ascontiguousarray(block_mean(reference, k), np.float32)
+    h, w = a.shape
+    if min(h, w) < 2 * STILL_TILE + 4:
+        return float("inf")
+    coarse = warp.astype(np.float64).copy()  # frame -> test pixels: x = f u + c
+    coarse[:, 2] = (warp[:, 2] - (np.eye(2) - warp[:, :2]) @ np.array([c, c])) / f
+    b = cv2.warpAffine(np.ascontiguousarray(block_mean(image, k), np.float32), coarse.astype(np.float32), (w, h),
+                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    step = linear_step(a, b)
+    if step is None:
+        return float("inf")
+    z = NormalDist().inv_cdf(1.0 - p_miss)
+    return max(z * float(np.sqrt(max(np.linalg.eigvalsh(lin @ step[1] @ lin.T)[-1], 0.0)))
+               for lin in _corner_maps((h, w), f, height, width))
 
 
 def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -111,7 +111,10 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     :data:`AUTO_ALIGN_PX` divided by the frame's steps from the reference, so the chained
     warp stays within it) is not registered at full resolution: an image keeps the coarse
     translation estimate, a RAW frame its neighbour's warp (no correction below the
-    tolerance is worth resampling a mosaic colour by colour).  Returns an :class:`Alignment`."""
+    tolerance is worth resampling a mosaic colour by colour).  A pair registered in full
+    keeps its warp only where its displacement exceeds what the pair can tell from no motion
+    (:func:`~hdrmerge_cli.core.registration.displacement_margin`): a displacement the
+    bracket does not pin is not applied.  Returns an :class:`Alignment`."""
     ref = reference_index(frames)
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
@@ -216,7 +219,7 @@ def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: 
         if why is not None:  # the texture test measures at this level
             return identity, f"{why} in the range it shares with its neighbour"
         tol = AUTO_ALIGN_PX / abs(b - ref)
-        is_still, w, bound, rho = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
+        is_still, w, bound, rho, _ = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
         if not is_still:
             log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
                      "resolution", frames[b].path, tol)
@@ -234,13 +237,32 @@ def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: 
         # spread in the weights, clipped taps near white)
         return (identity if raw else w), None
 
+    def pinned(a: int, b: int, w: np.ndarray) -> bool:
+        """Under ``auto``: whether the registered step from frame a to b moves b by more than
+        the pair can tell from no motion
+        (:func:`~hdrmerge_cli.core.registration.displacement_margin` on the coarse images)."""
+        size = registration.warp_size(w, frames[b].height, frames[b].width)
+        lo, hi = _shared_range(frames[a], exposures[a], exposures[b])
+        margin = registration.displacement_margin(registration.log_irradiance(coarse(a), exposures[a], lo, hi),
+                                                  registration.log_irradiance(coarse(b), exposures[b], lo, hi), w,
+                                                  scale, frames[b].height, frames[b].width)
+        if size > margin:
+            return True
+        log.info("%s: registered %.2f px from its neighbour, within the %.2f px the pair cannot tell from no "
+                 "motion; not moved", frames[b].path, size, margin)
+        judged_still.append(b)
+        return False
+
     def chain(indices: list[int]) -> dict:
         """The steps of one side of the reference, outwards: under ``auto`` a step found still at
-        coarse resolution is not registered at full resolution."""
+        coarse resolution is not registered at full resolution, and a registered one is kept
+        only where the pair pins it (:func:`pinned`)."""
         out = {}
         for j in indices:
             a = j - 1 if j > ref else j + 1
             out[j] = (mode == "auto" and still(a, j)) or step(a, j, image)
+            if mode == "auto" and out[j][1] is None and j not in judged_still and not pinned(a, j, out[j][0]):
+                out[j] = identity, None
         return out
 
     # each frame is registered to its neighbour towards the reference (they share the most
