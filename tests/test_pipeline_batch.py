@@ -56,6 +56,63 @@ def test_a_descending_sequence_that_turns_back_has_restarted():
     assert [len(g) for g in group_brackets(frames)] == [4, 4]
 
 
+def _tagged(name, t, iso, bias, stamp, auto=True):
+    """An 8-bit image frame of a compact camera's auto-bracket mode (EXIF ExposureMode 2)."""
+    return Frame(path=f"/x/{name}", kind="image", width=4, height=4, exposure_time=t, iso=iso, aperture=2.8,
+                 make="Cam", model="Compact", timestamp=stamp, bits=8, n_codes=256, black=np.zeros(3),
+                 white=np.full(3, 255.0), channels=3, auto_bracket=auto, exposure_bias=bias)
+
+
+def test_the_cameras_bracketing_tags_decide_and_exposures_not_times_restart():
+    """A compact camera's folder: a single shot, an aborted 2-frame auto bracket, two whole
+    5-frame auto brackets (compensation 0, -0.7, +0.7, -1.3, +1.3; the camera changes ISO
+    inside a bracket, so an exposure time repeats; frames up to 8 s apart) and a single shot.
+    The tags give the brackets whole; the singles and the aborted one apart."""
+    s = "2024-05-01T10:{:02d}:{:02d}"
+    biases = (0.0, -0.7, 0.7, -1.3, 1.3)
+    times = (1 / 30, 1 / 30, 1 / 30, 1 / 60, 1 / 15)
+    isos = (6400, 4000, 10000, 4000, 6400)
+
+    def bracket(tag, minute, n=5, start=0):
+        return [_tagged(f"{tag}{k}", times[k], isos[k], biases[k], s.format(minute, start + 8 * k)) for k in range(n)]
+
+    frames = ([_tagged("single1", 1 / 30, 6400, 0.0, s.format(0, 0), auto=False)] + bracket("aborted", 1, 2)
+              + bracket("one", 1, start=20) + bracket("two", 5) + [_tagged("single2", 1 / 30, 6400, 0.0, s.format(9, 0),
+                                                                           auto=False)])
+    groups = group_brackets(frames, gap=3.0, thumbnail=lambda f: pytest.fail("no scene test is needed"))
+    assert [[f.path[3:] for f in g] for g in groups] == [
+        ["single1"], ["aborted0", "aborted1"], [f"one{k}" for k in range(5)], [f"two{k}" for k in range(5)],
+        ["single2"]]
+
+
+def test_a_changed_iso_is_a_new_exposure_not_a_restart():
+    """Untagged frames: 1/30 s at ISO 6400 then 1/30 s at ISO 1600 are two exposures 2 stops
+    apart, so the sequence goes on; the same time and ISO again restarts it."""
+    f = [_frame("a", 1 / 30), _frame("b", 1 / 30), _frame("c", 1 / 30), _frame("d", 1 / 30)]
+    for frame, iso in zip(f, (6400, 1600, 400, 6400)):
+        frame.iso = float(iso)
+    assert [len(g) for g in group_brackets(f)] == [3, 1]
+
+
+def test_files_the_tool_wrote_and_files_without_a_time_are_left_out(run, tmp_path, dng_bracket):
+    """A merge's preview written into the bracket's folder, and a PNG without EXIF: left out
+    with a warning naming each; the bracket merges."""
+    import OpenImageIO as oiio
+
+    folder, meta = dng_bracket
+    shoot = tmp_path / "shoot"
+    shoot.mkdir()
+    for p in frames_of(folder, meta)[:3]:
+        shutil.copy(p, shoot / Path(p).name)
+    run("merge", *sorted(shoot.glob("*.dng")), "-o", tmp_path / "one.exr", "--preview", shoot / "preview.jpg")
+    buf = oiio.ImageBuf(oiio.ImageSpec(8, 8, 3, oiio.UINT8))
+    buf.write(str(shoot / "notes.png"))
+    proc = run("merge", "--batch", shoot, "-o", tmp_path / "out", "--json")
+    assert json.loads(proc.stdout)["merged"] == 1
+    assert "preview.jpg: written by hdrmerge-cli" in proc.stderr and "left out of the batch" in proc.stderr
+    assert "notes.png: no exposure time" in proc.stderr
+
+
 def _scene(seed, height=160, width=240):
     """A smooth random irradiance field about 14 stops deep, one per seed."""
     from scipy.ndimage import gaussian_filter
@@ -362,9 +419,12 @@ def test_a_batch_whose_every_bracket_fails_leaves_no_output_folder(run, tmp_path
 
     shoot = tmp_path / "shoot"
     shoot.mkdir()
-    for k, level in enumerate((100, 30)):  # no exposure times: the merge fails
-        buf = oiio.ImageBuf(oiio.ImageSpec(32, 24, 3, oiio.UINT8))
-        buf.set_pixels(oiio.ROI(), np.full((24, 32, 3), level, np.uint8))
+    base = np.random.default_rng(0).uniform(20, 200, (24, 32, 3))
+    for k, (level, t) in enumerate(((1.0, 0.01), (0.3, 0.1))):  # the longer exposure darker: the merge fails
+        spec = oiio.ImageSpec(32, 24, 3, oiio.UINT8)
+        spec.attribute("ExposureTime", t)
+        buf = oiio.ImageBuf(spec)
+        buf.set_pixels(oiio.ROI(), (base * level).astype(np.uint8))
         buf.write(str(shoot / f"x{k}.png"))
     out = tmp_path / "a" / "b"
     proc = run("merge", "--batch", shoot, "-o", out, check=False)

@@ -75,6 +75,11 @@ class Frame:
     #: images: the processing the file states (EXIF contrast, saturation, sharpness, custom
     #: rendering, software), which a camera's response depends on; "" when it states none
     style: str = ""
+    #: images: EXIF ExposureMode is "auto bracket" (2): the camera took the frame as part of a
+    #: bracket it set itself
+    auto_bracket: bool = False
+    #: images: EXIF ExposureBiasValue (EV), the exposure compensation of the frame, or None
+    exposure_bias: float | None = None
 
     @property
     def name(self) -> str:
@@ -391,7 +396,18 @@ def _read_image(path: str) -> Frame:
         bits=bits, n_codes=2**container, black=np.zeros(channels), white=np.full(channels, white),
         channels=channels, channel_colors="RGB"[:channels] if channels == 3 else "Y",
         orientation=orientation if 1 <= orientation <= 8 else 1, alpha_channel=alpha, style=_style(spec),
+        auto_bracket=spec.get_int_attribute("Exif:ExposureMode", 0) == 2, exposure_bias=_finite(
+            spec.getattribute("Exif:ExposureBiasValue")),
     )
+
+
+def _finite(value) -> float | None:
+    """``value`` as a finite float, or None."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return None
+    return x if np.isfinite(x) else None
 
 
 #: EXIF tags that describe how a camera processed an image (its picture style)

@@ -69,6 +69,8 @@ class Bracket:
     frames: list[Frame]
     reason: str | None
     joined: list[dict] = dataclasses.field(default_factory=list)
+    #: the index in ``frames`` where the camera's current auto-bracket sequence started
+    sequence: int = 0
 
 
 def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[list[Frame]]:
@@ -80,13 +82,18 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
     """Split frames into brackets, in capture order (timestamp, then file name).
 
     Frames of different cameras or image layouts (a RAW + JPEG folder) go to separate
-    brackets.  Within one layout a new bracket starts where the camera's exposure sequence
-    started again (:func:`restart_reason`), or at a frame taken more than ``gap`` seconds
-    after the previous frame's exposure ended (both timestamped) unless it adds a new
-    exposure time and shows the scene of one of the bracket's frames
-    (:func:`~hdrmerge_cli.core.similarity.same_scene` of their thumbnails; hand-held
-    brackets are often shot seconds apart).  Frames repeating the previous frame's time
-    within ``gap`` (a burst) stay together.
+    brackets.  Within one layout the camera's bracketing tags decide first where they are
+    stated (:func:`bracketing_tags`): a frame that continues the camera's auto-bracket
+    sequence stays, one whose exposure mode differs starts a new bracket, and one that
+    starts a new sequence joins only with an exposure new to the bracket and the bracket's
+    scene (a photographer extending the range with a second sequence).  Untagged frames: a
+    new bracket starts where the exposure sequence started again (:func:`restart_reason`,
+    on exposures: time x ISO / N^2, so a camera that changes ISO inside a bracket stays
+    whole), or at a frame taken more than ``gap`` seconds after the previous frame's
+    exposure ended (both timestamped) unless it adds a new exposure and shows the scene of
+    one of the bracket's frames (:func:`~hdrmerge_cli.core.similarity.same_scene` of their
+    thumbnails; hand-held brackets are often shot seconds apart).  Frames repeating the
+    previous frame's exposure within ``gap`` (a burst) stay together.
 
     ``thumbnail(frame)``: a 2-D array in [0, 1] (default: :data:`THUMBNAIL_SIDE` pixels from
     :func:`~hdrmerge_cli.io.thumbnails.read_thumbnail`), the same shape for frames of one
@@ -105,18 +112,20 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
             reason = None if previous is None else f"another camera or image layout than {previous.name}"
         else:
             last = current.frames[-1]
-            reason = restart_reason(current.frames, f)
+            tags = bracketing_tags(current, f)
             after = _seconds_after(last, f)
-            if reason is None and after is not None and after > gap:
-                what = f"{after:.0f} s after {last.name}'s exposure ended (more than --gap {gap:g} s)"
-                if _same_time(f.exposure_time, last.exposure_time):  # a burst is quick
-                    match, verdict = None, "the same exposure time"
-                else:
-                    match, verdict = scenes.match(current.frames, f)
-                if match is None:
-                    reason = f"{what}, and {verdict}"
-                else:
-                    current.joined.append({"frame": f.name, "gap_seconds": round(after, 3), **match})
+            if tags is not None:
+                verdict, why = tags
+                reason = None if verdict == "continues" else why if verdict == "cut" else \
+                    _join_or_cut(current, f, why, after, scenes)
+            else:
+                reason = restart_reason(current.frames, f)
+                if reason is None and after is not None and after > gap:
+                    what = f"{after:.0f} s after {last.name}'s exposure ended (more than --gap {gap:g} s)"
+                    if _same_exposure(f, last):  # a burst is quick
+                        reason = f"{what}, and the same exposure"
+                    else:
+                        reason = _join_or_cut(current, f, what, after, scenes)
         if current is None or reason is not None:
             current = open_bracket[f.layout] = Bracket([f], reason)
             brackets.append(current)
@@ -124,6 +133,58 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
             current.frames.append(f)
         previous = f
     return brackets
+
+
+def _join_or_cut(current: Bracket, f: Frame, what: str, after: float | None, scenes) -> str | None:
+    """None when ``f`` joins ``current`` across ``what`` (a long gap, a new camera
+    sequence): its exposure is new to the bracket and it shows the bracket's scene; else
+    why it starts a new bracket."""
+    repeated = next((g for g in current.frames if _same_exposure(f, g)), None)
+    if repeated is not None:
+        return f"{what}, and its exposure ({_describe(f)}) repeats {repeated.name}"
+    match, verdict = scenes.match(current.frames, f)
+    if match is None:
+        return f"{what}, and {verdict}"
+    current.joined.append({"frame": f.name, "gap_seconds": None if after is None else round(after, 3), **match})
+    current.sequence = len(current.frames)
+    return None
+
+
+def bracketing_tags(current: Bracket, f: Frame) -> tuple[str, str] | None:
+    """What the camera's bracketing tags (EXIF ExposureMode "auto bracket" and
+    ExposureBiasValue) say of frame ``f`` after the bracket ``current``, as ``(verdict,
+    why)``: ``"continues"`` the camera's sequence; ``"cut"``: its exposure mode changed (an
+    auto-bracket frame next to one that is not); ``"restarted"``: ``f``'s compensation
+    repeats one of the current sequence's.  None where they say nothing (neither ``f`` nor
+    the bracket's last frame is an auto-bracket frame, or a compensation is not stated)."""
+    last = current.frames[-1]
+    if not (f.auto_bracket or last.auto_bracket):
+        return None
+    if f.auto_bracket != last.auto_bracket:
+        return "cut", (f"the camera's exposure mode changed (EXIF ExposureMode: {last.name} "
+                       f"{'is' if last.auto_bracket else 'is not'} an auto-bracket frame, {f.name} "
+                       f"{'is' if f.auto_bracket else 'is not'})")
+    sequence = current.frames[current.sequence:]
+    if f.exposure_bias is None or any(g.exposure_bias is None for g in sequence):
+        return None
+    again = next((g for g in sequence if abs(g.exposure_bias - f.exposure_bias) <= SAME_SETTING_STOPS), None)
+    if again is None:
+        return "continues", ""
+    return "restarted", (f"the camera's auto-bracket sequence started again (compensation "
+                         f"{f.exposure_bias:+.2g} EV repeats {again.name})")
+
+
+def exposure_of(f: Frame) -> float | None:
+    """A frame's exposure for grouping: exposure time x ISO / f-number^2 (a factor the
+    frame does not state counts as ISO 100, f/1), or None without an exposure time."""
+    if f.exposure_time is None:
+        return None
+    return f.exposure_time * (f.iso or 100.0) / 100.0 / (f.aperture or 1.0) ** 2
+
+
+def _describe(f: Frame) -> str:
+    return fmt_time(f.exposure_time) + (f" at ISO {f.iso:g}" if f.iso else "") + (
+        f", f/{f.aperture:g}" if f.aperture else "")
 
 
 def _seconds_after(last: Frame, f: Frame) -> float | None:
@@ -162,9 +223,9 @@ class _SceneTest:
         scene of, as ``{"same_scene_as", "correlation", "gradients"}``, or None and why not
         (a phrase naming the closest candidate)."""
         def stops(g):
-            if f.exposure_time is None or g.exposure_time is None:
+            if exposure_of(f) is None or exposure_of(g) is None:
                 return np.inf
-            return abs(np.log2(g.exposure_time / f.exposure_time))
+            return abs(np.log2(exposure_of(g) / exposure_of(f)))
 
         best = None  # (z, r, n, frame) of the strongest evidence
         try:
@@ -186,38 +247,40 @@ class _SceneTest:
         return None, f"a different scene than {g.name} (structure correlation {r:.2f} on {n} gradients)"
 
 
-def _same_time(a, b) -> bool:
-    return a is not None and b is not None and abs(np.log2(a / b)) <= SAME_SETTING_STOPS
+def _same_exposure(a: Frame, b: Frame) -> bool:
+    """Whether two frames' exposures (:func:`exposure_of`) agree within :data:`SAME_SETTING_STOPS`."""
+    ea, eb = exposure_of(a), exposure_of(b)
+    return ea is not None and eb is not None and abs(np.log2(ea / eb)) <= SAME_SETTING_STOPS
 
 
 def restart_reason(current: list[Frame], f: Frame) -> str | None:
     """Why frame ``f`` starts a new exposure sequence after the bracket ``current``, or
-    None if it does not:
+    None if it does not (on exposures, :func:`exposure_of`):
 
-    - its exposure time repeats one of the bracket (within :data:`SAME_SETTING_STOPS`,
-      the rounding of recorded times) other than the previous frame's (repeating the
-      previous frame's time is a burst, which merges); or
+    - its exposure repeats one of the bracket (within :data:`SAME_SETTING_STOPS`, the
+      rounding of recorded times) other than the previous frame's (repeating the previous
+      frame's exposure is a burst, which merges); or
     - the bracket so far is a monotone (ascending or descending) sequence of at least
       :data:`RESTART_MIN_FRAMES` frames and ``f`` turns back from its last frame by
       :data:`RESTART_FALL_STOPS` or more (AEB restarting, even when the new sequence's
-      times differ slightly from the last one's).  Centre-out orders (0, -, +, --, ++) are
-      not monotone from their start, so their turns do not split them."""
-    t, prev = f.exposure_time, current[-1].exposure_time
+      exposures differ slightly from the last one's).  Centre-out orders (0, -, +, --, ++)
+      are not monotone from their start, so their turns do not split them."""
+    t, prev = exposure_of(f), exposure_of(current[-1])
     if t is None:
         return None
-    if not _same_time(t, prev):
+    if not _same_exposure(f, current[-1]):
         for g in current[:-1]:
-            if _same_time(t, g.exposure_time):
-                return f"the exposure sequence started again ({fmt_time(t)} repeats {g.name})"
-    times = [g.exposure_time for g in current]
-    if len(times) < RESTART_MIN_FRAMES or any(x is None for x in times):
+            if _same_exposure(f, g):
+                return f"the exposure sequence started again ({_describe(f)} repeats {g.name})"
+    times = [exposure_of(g) for g in current]
+    if len(times) < RESTART_MIN_FRAMES or any(x is None for x in times) or prev is None:
         return None
     steps = [np.log2(b / a) for a, b in zip(times, times[1:])]
     back = np.log2(t / prev)
     for sign, way in ((1, "ascending"), (-1, "descending")):
         if all(sign * s > SAME_SETTING_STOPS for s in steps) and -sign * back >= RESTART_FALL_STOPS - SAME_SETTING_STOPS:
             return (f"the exposure sequence started again (the {way} sequence turns back "
-                    f"{abs(back):.1f} stops at {fmt_time(t)})")
+                    f"{abs(back):.1f} stops at {_describe(f)})")
     return None
 
 
@@ -236,7 +299,8 @@ def plan(opts: BatchOptions) -> list[dict]:
     """The brackets of the folder, each ``{"frames": [...], "output": ..., "reason": ...}``
     (``reason``: why it was cut from the frames before it, see :func:`split_brackets`;
     ``joined``: the long gaps it was kept together across); unreadable files are reported
-    as their own failed entries (``"error"``).  A bracket of one frame is warned about."""
+    as their own failed entries (``"error"``), files that are no bracket's frame
+    (:func:`left_out`) are left out with a warning.  A bracket of one frame is warned about."""
     frames, bad = [], []
     paths = list_frames(opts.folder)
     if not paths:
@@ -244,10 +308,16 @@ def plan(opts: BatchOptions) -> list[dict]:
     for p in paths:
         p = str(Path(p).resolve())  # absolute: cluster workers do not share our working directory
         try:
-            frames.append(read_frame(p))
+            frame = read_frame(p)
         except HdrMergeError as exc:
             log.error("%s", exc)
             bad.append({"frames": [p], "output": None, "status": "failed", "error": str(exc)})
+            continue
+        why = left_out(frame)
+        if why:
+            log.warning("%s: %s; left out of the batch", p, why)
+        else:
+            frames.append(frame)
     out, taken = [], set()
     outdir = Path(opts.outdir).resolve()
     brackets = split_brackets(frames, opts.gap)
@@ -269,6 +339,17 @@ def plan(opts: BatchOptions) -> list[dict]:
             entry["status"] = "skipped"
         out.append(entry)
     return out + bad
+
+
+def left_out(frame: Frame) -> str | None:
+    """Why ``frame`` is no bracket's frame, or None: hdrmerge-cli wrote it (its Software tag:
+    a merge's preview), or it states no exposure time (EXIF ExposureTime), which a batch
+    cannot be told."""
+    if "software=hdrmerge-cli" in frame.style.lower():
+        return "written by hdrmerge-cli (a merge's preview), not a camera's frame"
+    if frame.exposure_time is None:
+        return "no exposure time (EXIF ExposureTime)"
+    return None
 
 
 def _single_frame_warning(bracket: Bracket, later: list[Bracket]) -> str:

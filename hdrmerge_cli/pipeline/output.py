@@ -314,7 +314,8 @@ class Merged:
             write_text(tmps[1], profile_text)
             if thumb:
                 rgb = upright(thumb.result(), self.orientation)
-                write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)), {})
+                write_ldr(tmps[2], tonemap_srgb(rgb if rgb.shape[-1] == 3 else np.repeat(rgb[..., :1], 3, axis=-1)),
+                          {"Software": f"hdrmerge-cli {__version__}", "ImageDescription": f"preview of {output.name}"})
         return {"output": str(output), "profile": str(profile_out)} | ({"preview": str(preview)} if thumb else {})
 
     def write_dng(self, path) -> float:
