@@ -33,8 +33,11 @@ LABEL_TOLERANCE_EV = 1.0 / 3.0
 #: the order check fails when more than this fraction of the pixels that changed got darker
 ORDER_DOWN_FRACTION = 0.75
 #: a pair measured on less than this fraction of the frame (a lamp, a window) leans on
-#: the ends of the response: the labels of its frames get twice the tolerance
+#: the ends of the response: the labels its ratio decides are not measured
 WEAK_COVERAGE = 0.05
+#: a label is called wrong only when its difference from the estimate exceeds this many
+#: standard errors of the estimate (as well as the tolerance)
+LABEL_SIGMAS = 3.0
 #: ... and at least this many pixels changed by more than the margin
 ORDER_MIN_CHANGED = 100
 #: a pair registered on the samples counts as moved when displaced by more than this many
@@ -334,19 +337,32 @@ class ExposureEstimate:
     reference: int
     slope: float
 
-    def tolerance(self, tol_ev: float = LABEL_TOLERANCE_EV) -> np.ndarray:
-        """Per frame: ``tol_ev``, doubled when a measured pair of the frame covers less than
-        :data:`WEAK_COVERAGE` of the frame."""
-        n = len(self.difference_ev)
-        weak = np.zeros(n, dtype=bool)
-        for k, p in enumerate(self.pairs):
-            if p.measured and p.coverage < WEAK_COVERAGE:
-                weak[k] = weak[k + 1] = True
-        return np.where(weak, 2 * tol_ev, tol_ev)
+    def stderr_ev(self) -> np.ndarray:
+        """Per frame: the standard error of its estimate (EV), the pair ratios' errors summed
+        in quadrature along the pairs it chains through from the reference (0 for the
+        reference)."""
+        return np.array([np.sqrt(sum(self.pairs[j].stderr ** 2 for j in chain_pairs(k, self.reference))) / np.log(2)
+                         for k in range(len(self.difference_ev))])
+
+    def share(self) -> np.ndarray:
+        """Per frame: the smallest share of the frame both frames of a pair expose well,
+        along the pairs its estimate chains through (1 for the reference)."""
+        return np.array([min((self.pairs[j].coverage for j in chain_pairs(k, self.reference)), default=1.0)
+                         for k in range(len(self.difference_ev))])
+
+    def measured(self) -> np.ndarray:
+        """Per frame: whether its estimate is measured: every pair it chains through has a
+        ratio (:attr:`PairRatio.measured`) on at least :data:`WEAK_COVERAGE` of the frame."""
+        share = self.share()
+        return np.array([all(self.pairs[j].measured for j in chain_pairs(k, self.reference))
+                         and share[k] >= WEAK_COVERAGE for k in range(len(self.difference_ev))])
 
     def mislabelled(self, tol_ev: float = LABEL_TOLERANCE_EV) -> list[int]:
-        tol = self.tolerance(tol_ev)
-        return [k for k, d in enumerate(self.difference_ev) if abs(d) > tol[k]]
+        """The frames whose label is off: the estimate is measured (:meth:`measured`) and
+        differs from the label by more than ``tol_ev`` (what matters) and by more than
+        :data:`LABEL_SIGMAS` standard errors (what the pairs pin)."""
+        se, ok = self.stderr_ev(), self.measured()
+        return [k for k, d in enumerate(self.difference_ev) if ok[k] and abs(d) > max(tol_ev, LABEL_SIGMAS * se[k])]
 
 
 def estimate_exposures(log_label: np.ndarray, pairs: list[PairRatio], free_slope: bool = False) -> ExposureEstimate:

@@ -424,18 +424,23 @@ def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, us
            crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> dict:
     """The ``--json`` record of the estimates: per frame the label and the estimate (in
     seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV,
+    the estimate's standard error, the share of well-exposed pixels it rests on and whether
+    it is measured (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.measured`),
     whether the label is off (``mislabelled``) or could not be checked because the frames
     moved (``moved``); per neighbour pair the measured ratio and, where registered
     (:func:`moved_pairs`), ``moved_px`` (null: not registered: no label in question, or too
     little texture); which exposures the merge used."""
     est_h = np.exp(est.log_h)
     bad = est.mislabelled(tol_ev)
+    se, share, measured = est.stderr_ev(), est.share(), est.measured()
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
         by_motion = motion is not None and k in bad and motion.decided_by_motion(k, est.reference) is not None
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
+                     "stderr_ev": round(float(se[k]), 4), "share": round(float(share[k]), 4),
+                     "measured": bool(measured[k]),
                      "mislabelled": k in bad and not by_motion, "moved": by_motion})
     px = motion.px if motion is not None else {}
     pairs = [{"frames": [frames[k].name, frames[k + 1].name],
