@@ -56,6 +56,29 @@ def test_a_run_of_wrong_labels_is_named_not_the_majority():
     assert est.mislabelled() == [4, 5, 6]
 
 
+def test_a_label_is_called_wrong_only_where_its_estimate_is_measured_and_pinned():
+    """Frame 2 labelled 1/2 EV long.  Its standard error is the pairs' errors from the
+    reference (frame 1) in quadrature; it is called wrong with precise pairs, not where that
+    error is 0.2 EV (0.5 < 3 x 0.2), and not where a pair it chains through shares 2 % of the
+    frame (not measured; frame 0's estimate does not chain through it)."""
+    true = np.log(np.array([1 / 60, 1 / 30, 1 / 15]))
+    label = true.copy()
+    label[2] += 0.5 * np.log(2)
+
+    def pairs(se, coverage):
+        return [PairRatio(float(np.log(2)), se[0], 0.01, 10_000, 10_000, coverage[0]),
+                PairRatio(float(np.log(2)), se[1], 0.01, 10_000, 10_000, coverage[1])]
+
+    est = estimate_exposures(label, pairs((1e-3, 2e-3), (0.5, 0.5)))
+    assert est.reference == 1 and est.mislabelled() == [2]
+    np.testing.assert_allclose(est.stderr_ev(), [1e-3 / np.log(2), 0.0, 2e-3 / np.log(2)])
+    vague = estimate_exposures(label, pairs((1e-3, 0.2 * np.log(2)), (0.5, 0.5)))
+    assert vague.stderr_ev()[2] == pytest.approx(0.2) and vague.mislabelled() == []
+    narrow = estimate_exposures(label, pairs((1e-3, 2e-3), (0.5, 0.02)))
+    assert narrow.measured().tolist() == [True, True, False] and narrow.mislabelled() == []
+    assert narrow.share().tolist() == [0.5, 1.0, 0.02]
+
+
 def test_unmeasured_pairs_keep_their_labels():
     label = np.log(np.array([1, 2, 4], float))
     pairs = [PairRatio(float("nan"), np.inf, np.nan, 10, 0), PairRatio(np.log(2), 1e-3, 0.01, 10_000, 10_000)]
