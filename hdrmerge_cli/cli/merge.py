@@ -36,8 +36,10 @@ log = logging.getLogger("hdrmerge_cli")
                    "exposure by that many EV) (with --batch: the folder to write one EXR per bracket to).")
 @click.option("--batch", "batch_dir", type=click.Path(exists=True, file_okay=False),
               help="Merge every bracket in this folder instead of IMAGES: frames are grouped by camera and image "
-                   "layout, by the exposure sequence starting again, and by capture-time gaps (--gap) unless the "
-                   "frames across the gap show the same scene (compared on thumbnails); each bracket's EXR is named "
+                   "layout, by the camera's bracketing tags (EXIF auto bracket, exposure compensation), by the "
+                   "exposure sequence starting again, and by capture-time gaps (--gap) unless the frames across the "
+                   "gap show the same scene (compared on thumbnails); files without an exposure time and the tool's "
+                   "own previews are left out; each bracket's EXR is named "
                    "after its first frame.  A bad bracket is reported and skipped; the exit status is 1 if any "
                    "failed.  The output folder is left only if an output was written into it.")
 @click.option("-j", "--jobs", default=1, show_default=True, type=click.IntRange(1, 256),
