@@ -26,9 +26,11 @@ A. RAW: 12-bit DNG (RGGB).  ``hdrmerge-cli merge FRAMES --cfa -o out.exr --refer
    dependency.  Truth: ``truth.exr`` mosaicked to RGGB.
 B. 8-bit: lossless 8-bit TIFF through ``--crf gamma:2.5`` (codes = x^0.4 of the 12-bit ADC
    output).  ``hdrmerge-cli merge FRAMES --crf gamma:2.5 -o out.exr`` (defaults), then
-   ``--weights probabilistic``, ``--estimator ml``, ``--estimator ml --weights uniform``, and
-   each of the four again with the true noise ``--noise sigma_o2=S,alpha=A`` on the
-   linearised 8-bit signal (``S = sigma_o2_total / (4095/255)^2``, ``A = alpha / (4095/255)^2``).
+   ``--weights probabilistic``, ``--estimator ml``, ``--estimator log``, ``--estimator ml
+   --weights uniform``, and each of the five again with the true noise ``--noise
+   sigma_o2=S,alpha=A`` on the linearised 8-bit signal (``S = sigma_o2_total / (4095/255)^2``,
+   ``A = alpha / (4095/255)^2``); and the defaults with that noise 10 % low and 10 % high
+   (the estimator the defaults pick when the noise model is off by 10 %).
    Peers, each given the true response x^2.5 (exposure times from simulation.json):
    - pfstools 2.2: ``pfsinhdrgen`` (hdrgen lines ``file 1/t 1 100 0``) ``| pfshdrcalibrate -f
      true.m | pfsout out.exr``: ``-f`` turns self-calibration off and merges with that
@@ -104,7 +106,7 @@ RAW_OURS = {"defaults": [], "--weights triangle": ["--weights", "triangle"],
             "--weights uniform": ["--weights", "uniform"],
             "--weights probabilistic": ["--weights", "probabilistic"], "--estimator log": ["--estimator", "log"]}
 LDR_OURS = {"defaults": [], "--weights probabilistic": ["--weights", "probabilistic"],
-            "--estimator ml": ["--estimator", "ml"],
+            "--estimator ml": ["--estimator", "ml"], "--estimator log": ["--estimator", "log"],
             "--estimator ml --weights uniform": ["--estimator", "ml", "--weights", "uniform"]}
 
 
@@ -403,6 +405,9 @@ def methods(case: str, meta: dict) -> dict:
         for k, f in LDR_OURS.items():
             n = len(out)
             out[f"hdrmerge-cli {k}{tag}"] = (lambda b, w, f=f + extra, n=n: ours(b, f, w, f"ours{n}"), None)
+    for scale, tag in ((0.9, "10 % low"), (1.1, "10 % high")):  # the estimator chosen with a noise model off
+        off = ["--noise", f"sigma_o2={scale * s['sigma_o2_total'] / SCALE**2:.6g},alpha={scale * s['alpha'] / SCALE**2:.6g}"]
+        out[f"hdrmerge-cli defaults + --noise {tag}"] = (lambda b, w, f=off, t=tag: ours(b, f, w, f"ours-{t[:2]}"), None)
     pfs = have("pfsinhdrgen", "pfshdrcalibrate", "pfsout")
     lum = have("luminance-hdr-cli")
     out["pfstools (pfshdrcalibrate -f)"] = (pfstools, pfs and f"{pfs} (apt-get install pfstools)")
