@@ -272,10 +272,10 @@ def restart_reason(current: list[Frame], f: Frame) -> str | None:
         for g in current[:-1]:
             if _same_exposure(f, g):
                 return f"the exposure sequence started again ({_describe(f)} repeats {g.name})"
-    times = [exposure_of(g) for g in current]
-    if len(times) < RESTART_MIN_FRAMES or any(x is None for x in times) or prev is None:
+    exposures = [exposure_of(g) for g in current]
+    if len(exposures) < RESTART_MIN_FRAMES or any(x is None for x in exposures) or prev is None:
         return None
-    steps = [np.log2(b / a) for a, b in zip(times, times[1:])]
+    steps = [np.log2(b / a) for a, b in zip(exposures, exposures[1:])]
     back = np.log2(t / prev)
     for sign, way in ((1, "ascending"), (-1, "descending")):
         if all(sign * s > SAME_SETTING_STOPS for s in steps) and -sign * back >= RESTART_FALL_STOPS - SAME_SETTING_STOPS:
