@@ -405,9 +405,11 @@ def methods(case: str, meta: dict) -> dict:
         for k, f in LDR_OURS.items():
             n = len(out)
             out[f"hdrmerge-cli {k}{tag}"] = (lambda b, w, f=f + extra, n=n: ours(b, f, w, f"ours{n}"), None)
-    for scale, tag in ((0.9, "10 % low"), (1.1, "10 % high")):  # the estimator chosen with a noise model off
-        off = ["--noise", f"sigma_o2={scale * s['sigma_o2_total'] / SCALE**2:.6g},alpha={scale * s['alpha'] / SCALE**2:.6g}"]
-        out[f"hdrmerge-cli defaults + --noise {tag}"] = (lambda b, w, f=off, t=tag: ours(b, f, w, f"ours-{t.split()[-1]}"), None)
+    for scale, tag in ((0.9, "low"), (1.1, "high")):  # the estimator chosen with a noise model off by 10 %
+        off = ["--noise", f"sigma_o2={scale * s['sigma_o2_total'] / SCALE**2:.6g},"
+                          f"alpha={scale * s['alpha'] / SCALE**2:.6g}"]
+        out[f"hdrmerge-cli defaults + --noise 10 % {tag}"] = (lambda b, w, f=off, t=tag: ours(b, f, w, f"ours-{t}"),
+                                                               None)
     pfs = have("pfsinhdrgen", "pfshdrcalibrate", "pfsout")
     lum = have("luminance-hdr-cli")
     out["pfstools (pfshdrcalibrate -f)"] = (pfstools, pfs and f"{pfs} (apt-get install pfstools)")
