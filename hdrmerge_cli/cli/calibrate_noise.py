@@ -36,7 +36,8 @@ def command(images, output, darks, flats, crf, profile, plot, window, bins, over
     statistics in flat, unclipped windows and, for a bracket of a static scene, the
     exposure-normalised differences of consecutive frames (texture-free; frames that
     moved, whose differences exceed twice the flat windows' variance, fall back to the
-    windows alone); beta is kept only when an F-test needs it.  From --darks/--flats:
+    windows alone); photographs do not measure beta (scene texture and gain FPN look alike), so
+    it is 0 unless --flats measure it.  From --darks/--flats:
     photon transfer (EMVA 1288), the reference when available.  The profile says which method gave each number; per frame
     the summary says whether it is photon- or offset-noise limited.  With two or more
     ISOs the profile also holds, per channel, the read noise split into its parts before

@@ -15,7 +15,7 @@ sections 6-8), in the units of the paper's model (17):
   non-uniformity is measured the same way on the averaged darks.  ``beta / alpha`` is the
   weighted least-squares slope of the excess over ``mu^2`` (weights from the sampling
   variance of each level's variances), kept only when its one-sided z-test gives
-  ``p < 0.01`` (the same rule as the F-test of :mod:`calibrate`).
+  ``p < 0.01``.
 """
 from __future__ import annotations
 
