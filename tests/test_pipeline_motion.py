@@ -746,7 +746,7 @@ def _alignment_counting(stack, monkeypatch, coarse=True):
     monkeypatch.setattr(registration, "estimate_warp", counting)
     if not coarse:
         monkeypatch.setattr(registration, "still_test",
-                            lambda a, b, *args, **kw: registration.StillTest(False, None, np.inf, -1.0, np.inf))
+                            lambda a, b, *args, **kw: registration.StillTest(False, None, np.inf, -1.0))
     st = api._stack(stack, [0.5, 1.0, 2.0], "RGGB", 512.0, 16383.0, None)
     out = estimate_alignment(st.frames, st.exposures, api._response(None, st), "auto", st.load)
     monkeypatch.undo()

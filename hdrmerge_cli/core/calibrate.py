@@ -696,8 +696,8 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     when the frames are clipped at black, :data:`BLACK_CLIPPED`; refitted without the
     pixels that clipping or outliers affect); the local statistics of every frame (windows
     beyond :data:`TEXTURE_SIGMAS` rejected) join the points for the plot and the residual.
-    Beta is not measured (module docstring).  Without pairs, where they do not show the gain (their fit finds none), where their
-    differences follow the scene's gradient (per pixel: :func:`pair_gradient_test` at the
+    Beta is not measured (module docstring).  Without pairs, where they do not show the
+    gain (their fit finds none), where their differences follow the scene's gradient (per pixel: :func:`pair_gradient_test` at the
     false-alarm rate :data:`PAIR_MOTION_P`) or where they predict more variance than the
     frames' own flat windows (:func:`_pairs_moved`), the frames moved or the pairs cannot
     tell, and the local statistics give everything.

@@ -186,10 +186,11 @@ def with_effect(fit: ExcessVariance, model_var: np.ndarray, levels_of: np.ndarra
 
     if not fit.kept:
         return fit
-    effect = excess_effect_db(model_var, fit.levels[levels_of])
+    excess = fit.levels[levels_of]
+    effect = excess_effect_db(model_var, excess)
     excess_size = fit.chi_model - 1.0
     low = max(0.0, excess_size - 2.0 * fit.chi_stderr) / excess_size if excess_size > 0 else 0.0
-    effect_low = excess_effect_db(model_var, low * fit.levels[levels_of])
+    effect_low = excess_effect_db(model_var, low * excess)
     kept = effect_low >= MATERIAL_DB
     return replace(fit, kept=kept, levels=fit.levels if kept else np.zeros_like(fit.levels),
                    chi_fit=fit.chi_fit if kept else fit.chi_model, effect_db=effect, effect_db_low=effect_low)

@@ -617,16 +617,12 @@ class StillTest(NamedTuple):
     warp : the estimated translation as a warp (the frame centre's displacement)
     bound : the corner bound (frame pixels): estimate plus ``z(1 - p_miss)`` deviations
     rho : the correlation coefficient (:func:`correlation`)
-    margin : ``z(1 - p_miss)`` deviations at the least certain corner (frame pixels): a
-        displacement below it is one the coarse images cannot tell from none (inf where the
-        test measured nothing: large motion, no linear step)
     """
 
     still: bool
     warp: np.ndarray
     bound: float
     rho: float
-    margin: float
 
 
 def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int, width: int, tol: float,
@@ -655,25 +651,22 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     scale *= k
     t = STILL_TILE
     if min(h, w) < 2 * t + 4:
-        return StillTest(False, identity, float("inf"), -1.0, float("inf"))
+        return StillTest(False, identity, float("inf"), -1.0)
     rho = correlation(a, b)
     (px, py), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64),
                                      cv2.createHanningWindow((w, h), cv2.CV_64F))
     if max(abs(px), abs(py)) >= 1.0:
-        return StillTest(False, identity, float("inf"), rho, float("inf"))
+        return StillTest(False, identity, float("inf"), rho)
     step = linear_step(a, b)
     if step is None:
-        return StillTest(False, identity, float("inf"), rho, float("inf"))
+        return StillTest(False, identity, float("inf"), rho)
     theta, cov = step
     z = NormalDist().inv_cdf(1.0 - p_miss)
-    bound = margin = 0.0
-    for lin in _corner_maps((h, w), scale, height, width):
-        spread = float(np.sqrt(max(np.linalg.eigvalsh(lin @ cov @ lin.T)[-1], 0.0)))
-        bound = max(bound, float(np.hypot(*(lin @ theta))) + z * spread)
-        margin = max(margin, z * spread)
+    bound = max(float(np.hypot(*(lin @ theta))) + z * _spread(lin, cov)
+                for lin in _corner_maps((h, w), scale, height, width))
     warp = identity.copy()
     warp[:, 2] = scale * theta[:2]
-    return StillTest(bound < tol, warp, bound, rho, margin)
+    return StillTest(bound < tol, warp, bound, rho)
 
 
 def _corner_maps(shape: tuple[int, int], scale: int, height: int, width: int) -> list[np.ndarray]:
@@ -688,6 +681,12 @@ def _corner_maps(shape: tuple[int, int], scale: int, height: int, width: int) ->
         ux, uy = (fx - (scale - 1) / 2) / scale, (fy - (scale - 1) / 2) / scale  # in the test's pixels
         out.append(scale * np.array([[1.0, 0.0, -(uy - cy) / s, 0.0, 0.0], [0.0, 1.0, (ux - cx) / s, 0.0, 0.0]]))
     return out
+
+
+def _spread(lin: np.ndarray, cov: np.ndarray) -> float:
+    """The standard deviation of ``lin @ theta`` along its least certain direction, for
+    ``theta`` of covariance ``cov``."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(lin @ cov @ lin.T)[-1], 0.0)))
 
 
 def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, scale: int, height: int,
@@ -707,16 +706,14 @@ def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarr
     h, w = a.shape
     if min(h, w) < 2 * STILL_TILE + 4:
         return float("inf")
-    coarse = warp.astype(np.float64).copy()  # frame -> test pixels: x = f u + c
-    coarse[:, 2] = (warp[:, 2] - (np.eye(2) - warp[:, :2]) @ np.array([c, c])) / f
+    coarse = rescale_warp(np.asarray(warp, np.float64), 1.0 / f, -c / f)  # frame -> test pixels: x = f u + c
     b = cv2.warpAffine(np.ascontiguousarray(block_mean(image, k), np.float32), coarse.astype(np.float32), (w, h),
                        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
     step = linear_step(a, b)
     if step is None:
         return float("inf")
     z = NormalDist().inv_cdf(1.0 - p_miss)
-    return max(z * float(np.sqrt(max(np.linalg.eigvalsh(lin @ step[1] @ lin.T)[-1], 0.0)))
-               for lin in _corner_maps((h, w), f, height, width))
+    return z * max(_spread(lin, step[1]) for lin in _corner_maps((h, w), f, height, width))
 
 
 def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

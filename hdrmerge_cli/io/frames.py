@@ -176,11 +176,9 @@ def separate_python_stderr() -> None:
 
 
 def _positive(value) -> float | None:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        return None
-    return v if np.isfinite(v) and v > 0 else None
+    """``value`` as a finite float above 0, or None."""
+    v = _finite(value)
+    return v if v is not None and v > 0 else None
 
 
 def is_raw_path(path: str | os.PathLike) -> bool:

@@ -219,7 +219,7 @@ def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: 
         if why is not None:  # the texture test measures at this level
             return identity, f"{why} in the range it shares with its neighbour"
         tol = AUTO_ALIGN_PX / abs(b - ref)
-        is_still, w, bound, rho, _ = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
+        is_still, w, bound, rho = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
         if not is_still:
             log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
                      "resolution", frames[b].path, tol)
