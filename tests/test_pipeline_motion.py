@@ -813,3 +813,17 @@ def test_a_still_bracket_far_apart_in_exposure_gets_no_warp(run, tmp_path, seed)
     out = json.loads(run("merge", *sorted((tmp_path / "b").glob("frame_*.dng")), "-o", tmp_path / "m.exr",
                          "--json").stdout)
     assert not out["alignment"]["applied"] and max(out["alignment"]["largest_displacement_px"]) == 0.0
+
+
+def test_a_planned_high_iso_bracket_gets_no_warp(run, tmp_path):
+    """A bracket as ``plan`` gives it for a camera whose read noise follows the amplifier:
+    one short frame at ISO 400, four at ISO 6400 up to 1/5 s, the longest clipped over most
+    of the scene.  Nothing moved, so no frame is warped: every registration lies within
+    what its pair can tell from no motion."""
+    run("simulate", "-o", tmp_path / "b", "-q", "--scene", SHARED / "hdr" / "ScanLines_Desk.exr", "--downscale", "4",
+        "--scale", "80000", "--times", "0.0005,0.00125,0.00625,0.04,0.2", "--iso", "400,6400,6400,6400,6400",
+        "--seed", "3", "--alpha", "0.25", "--sigma-o2", "36", "--sigma-post2", "32", "--base-iso", "100")
+    out = json.loads(run("merge", *sorted((tmp_path / "b").glob("frame_*.dng")), "-o", tmp_path / "m.exr",
+                         "--json").stdout)
+    alignment = out["alignment"]
+    assert not alignment["applied"] and max(alignment["largest_displacement_px"]) == 0.0, alignment

@@ -37,9 +37,12 @@ def _isos(ctx, param, value):
 @click.option("--isos", callback=_isos, metavar="ISO1,ISO2,...",
               help="The ISOs the plan may use, each calibrated in --profile [default: every ISO the profile "
                    "calibrates; without a profile, the metering frames' ISO only].")
-@click.option("--percentile", default=1.0, show_default=True, type=FiniteFloatRange(0.0, 50.0),
-              help="The worst case is taken over irradiances from this percentile of each channel's photosites "
-                   "to the brightest.")
+@click.option("--lose-dark", default=1.0, show_default=True, type=FiniteFloatRange(0.0, 50.0), metavar="PCT",
+              help="The darkest PCT % of each channel's photosites may be lost: the range the plan protects "
+                   "starts above them.")
+@click.option("--lose-bright", default=0.1, show_default=True, type=FiniteFloatRange(0.0, 50.0), metavar="PCT",
+              help="The brightest PCT % of each channel's photosites may be lost (clip in every frame): the range "
+                   "the plan protects ends below them.")
 @click.option("--profile", type=click.Path(exists=True, dir_okay=False),
               help="Camera profile from calibrate-noise: the noise at each ISO [default: measured on the metering "
                    "frames, which then plans their ISO only].")
@@ -56,8 +59,8 @@ def _isos(ctx, param, value):
 @click.option("--overwrite", is_flag=True, help="Replace existing --plot and --gphoto2 files.")
 @click.option("--json", "as_json", is_flag=True, help="Print the plan as JSON instead of a table.")
 @common_options
-def command(metering_frames, budget, min_snr, frames, shutter_speeds, isos, percentile, profile, crf, times, plot,
-            script, search_time, overwrite, as_json):
+def command(metering_frames, budget, min_snr, frames, shutter_speeds, isos, lose_dark, lose_bright, profile, crf,
+            times, plot, script, search_time, overwrite, as_json):
     """Plan the bracket to shoot: the exposure times and ISOs with the best worst-case
     SNR for the scene of METERING_FRAMES.
 
@@ -67,15 +70,18 @@ def command(metering_frames, budget, min_snr, frames, shutter_speeds, isos, perc
     worst-case SNR within that total exposure time; with --min-snr, it is the shortest
     that reaches that SNR (Hasinoff, Durand and Freeman 2010: a mixed-integer program
     over the number of frames of each setting, solved by HiGHS).  The worst case is the
-    lowest SNR of the merged irradiance from the --percentile of each channel's
-    photosites to the brightest.  Prints the frames, the plan compared with a plan at the
-    lowest ISO and with conventional 1- and 2-EV brackets, and the SNR against irradiance.
+    lowest SNR of the merged irradiance over the range the plan protects: each channel's
+    photosites but the --lose-dark darkest and the --lose-bright brightest.  Of the plans
+    within 0.5 dB of the best worst case, and never below the conventional brackets', the
+    plan is the one of least mean error over that range.  Prints the frames, the plan
+    compared with a plan at the lowest ISO and with conventional 1- and 2-EV brackets of
+    the same time, and the SNR against irradiance.
     """
     from hdrmerge_cli.pipeline.plan import PlanOptions, check_options, format_plan, meter, solve, write_outputs
 
     if budget is None and min_snr is None:
         raise click.UsageError("give --time SECONDS, --min-snr DB or both")
-    opts = PlanOptions(budget, min_snr, frames, shutter_speeds, isos, percentile, profile, crf, times,
+    opts = PlanOptions(budget, min_snr, frames, shutter_speeds, isos, lose_dark, lose_bright, profile, crf, times,
                        search_time=search_time)
     check_options(opts)
     write_outputs(None, plot, script, overwrite, check_only=True)

@@ -109,23 +109,26 @@ class Setting:
         v = code_variance(mu, self.noise[channel])
         return self.scale ** 2 / v * censored_factor((self.white[channel] - mu) / np.sqrt(v))
 
-    def clipping_point(self, channel: int, sds: float = 0.0) -> float:
+    def clipping_point(self, channel: int, sds=0.0):
         """The irradiance at which the frame's mean lies ``sds`` standard deviations above
-        white (:func:`dip_mean`; 0: at white)."""
+        white (:func:`dip_mean`; 0: at white); ``sds`` a number or an array."""
         return dip_mean(self.noise[channel], self.white[channel], sds) / self.scale
 
 
-def dip_mean(p: NoiseParams, white: float, sds: float) -> float:
+def dip_mean(p: NoiseParams, white: float, sds):
     """The mean ``mu`` with ``mu - white = sds sqrt(v(mu))``, ``v`` of (17): a quadratic
-    in ``mu`` (cf. (47), whose clipping-safe bound is ``sds = -k``)."""
-    if sds == 0:
-        return float(white)
-    c = 1.0 - sds * sds * p.beta / p.alpha
-    b = 2 * white + sds * sds * np.sqrt(p.alpha)
-    if c <= 0:  # gain FPN so large that the sd grows as fast as the mean: a step past white
-        return white + sds * float(np.sqrt(code_variance(white, p)))
-    root = np.sqrt(max(b * b - 4 * c * (white * white - sds * sds * p.sigma_o2), 0.0))
-    return float((b + np.sign(sds) * root) / (2 * c))
+    in ``mu`` (cf. (47), whose clipping-safe bound is ``sds = -k``).  ``sds``: a number
+    or an array (then an array of means)."""
+    z = np.asarray(sds, dtype=np.float64)
+    c = 1.0 - z * z * p.beta / p.alpha
+    b = 2 * white + z * z * np.sqrt(p.alpha)
+    root = np.sqrt(np.maximum(b * b - 4 * c * (white * white - z * z * p.sigma_o2), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mu = (b + np.sign(z) * root) / (2 * np.where(c > 0, c, 1.0))
+    # gain FPN so large that the sd grows as fast as the mean: a step past white
+    step = white + z * np.sqrt(code_variance(np.float64(white), p))
+    mu = np.where(z == 0, white, np.where(c > 0, mu, step))
+    return float(mu) if mu.ndim == 0 else mu
 
 
 def make_settings(times, isos, noise_at_iso: dict, reference_iso: float, y_full) -> list[Setting]:
@@ -142,16 +145,18 @@ def make_settings(times, isos, noise_at_iso: dict, reference_iso: float, y_full)
 
 @dataclass(frozen=True)
 class SceneRange:
-    """The irradiances a plan must measure, per channel: ``lo`` (the low percentile of the
-    scene's photosites) and ``hi`` (its brightest), code values per second at the
-    reference ISO; ``occupied``: per channel, the ``(start, end)`` intervals of that range
-    the scene's photosites hold (empty: all of it); ``histograms``: per channel
-    ``(edges, counts)`` of log2 r (for reports)."""
+    """The irradiances a plan must measure, per channel: ``lo`` and ``hi``, the ends of the
+    range it protects (code values per second at the reference ISO; the darkest and the
+    brightest photosites beyond them may be lost); ``occupied``: per channel, the
+    ``(start, end)`` intervals of that range the scene's photosites hold (empty: all of
+    it); ``photosites``: per channel ``(r, share)``, the scene's photosites as irradiances
+    (bin centres; 0 for those that read no light) and the share of the channel's
+    photosites at each (empty: the range held evenly in log r, :data:`EVEN_BIN_EV`)."""
 
     lo: tuple[float, ...]
     hi: tuple[float, ...]
     occupied: tuple = ()
-    histograms: tuple = field(default=(), compare=False)
+    photosites: tuple = field(default=(), compare=False)
 
     def intervals(self, channel: int) -> list[tuple[float, float]]:
         if not self.occupied or not len(self.occupied[channel]):
@@ -160,9 +165,28 @@ class SceneRange:
         spans = [(max(a, lo), min(b, hi)) for a, b in self.occupied[channel] if b >= lo and a <= hi]
         return spans or [(lo, hi)]
 
+    def population(self, channel: int, protected: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``(r, share)`` of the channel's photosites; with ``protected``, only those from
+        ``lo`` to ``hi`` (their shares still of all the channel's photosites)."""
+        if self.photosites:
+            r, w = (np.asarray(a, dtype=np.float64) for a in self.photosites[channel])
+        else:
+            lo, hi = self.lo[channel], self.hi[channel]
+            n = max(1, int(np.ceil(np.log2(hi / lo) / EVEN_BIN_EV)))
+            r = lo * 2.0 ** ((np.arange(n) + 0.5) * np.log2(hi / lo) / n)
+            w = np.full(n, 1.0 / n)
+        if protected:
+            keep = (r >= self.lo[channel]) & (r <= self.hi[channel])
+            r, w = r[keep], w[keep]
+        return r, w
+
     @property
     def channels(self) -> int:
         return len(self.lo)
+
+
+#: bins (EV) of a scene's photosites when only its range is known (:class:`SceneRange`)
+EVEN_BIN_EV = 1 / 12
 
 
 def critical_irradiances(settings: list[Setting], scene: SceneRange, channel: int,
@@ -172,12 +196,13 @@ def critical_irradiances(settings: list[Setting], scene: SceneRange, channel: in
     each setting's dip (its mean ``sds`` standard deviations past white) inside one (see
     the module notes), and ``hi``, however few photosites are that bright.  Sorted, code
     values per second."""
-    spans = scene.intervals(channel)
+    spans = np.array(scene.intervals(channel))
     # settings of one scale and noise share their points
     keys = {(s.scale, s.noise[channel], s.white[channel]): s for s in settings}
-    points = [s.clipping_point(channel, z) for s in keys.values() for z in sds]
-    return np.unique(np.array([a for a, _ in spans] + [scene.hi[channel]]
-                              + [p for p in points if any(a < p <= b for a, b in spans)]))
+    z = np.asarray(sds, dtype=np.float64)
+    points = np.concatenate([s.clipping_point(channel, z) for s in keys.values()])
+    inside = np.any((points[:, None] > spans[None, :, 0]) & (points[:, None] <= spans[None, :, 1]), axis=1)
+    return np.unique(np.r_[spans[:, 0], scene.hi[channel], points[inside]])
 
 
 def snr_power(r, plan: list[tuple[Setting, int]], channel: int) -> np.ndarray:
@@ -205,19 +230,67 @@ def worst_case_snr_db(plan: list[tuple[Setting, int]], scene: SceneRange) -> flo
                      for c in range(scene.channels)))
 
 
+def mean_snr_db(plan: list[tuple[Setting, int]], scene: SceneRange) -> float:
+    """The SNR of the mean error over the protected photosites: ``-10 log10`` of the mean
+    of ``1 / SNR(r)`` over every channel's photosites from ``lo`` to ``hi``
+    (:meth:`SceneRange.population`, each channel weighed alike), i.e. the predicted mean
+    squared error of the merged log E (the relative error of E to first order); ``-inf``
+    where a protected photosite is measured by no frame."""
+    total = weight = 0.0
+    for c in range(scene.channels):
+        r, w = scene.population(c, protected=True)
+        p = snr_power(r, plan, c)
+        if np.any(p[w > 0] <= 0):
+            return float("-inf")
+        total += float(np.sum(w / np.where(p > 0, p, 1.0)))
+        weight += float(np.sum(w))
+    return float(10.0 * np.log10(weight / total)) if total > 0 else float("inf")
+
+
+def percentile_snr_db(plan: list[tuple[Setting, int]], scene: SceneRange, q: float) -> float:
+    """The SNR (dB) that all but ``q`` % of the scene's photosites reach or pass: the
+    ``q``-th percentile of SNR(r) over every channel's photosites, lost ones included
+    (:meth:`SceneRange.population`, each channel weighed alike)."""
+    values, weights = [], []
+    for c in range(scene.channels):
+        r, w = scene.population(c)
+        values.append(snr_db(r, plan, c))
+        weights.append(w / max(float(np.sum(w)), 1e-300))
+    v, w = np.concatenate(values), np.concatenate(weights)
+    order = np.argsort(v, kind="stable")
+    cum = np.cumsum(w[order]) / np.sum(w)
+    return float(v[order][min(int(np.searchsorted(cum, q / 100.0)), v.size - 1)])
+
+
+#: of the scene's photosites, the share (%) at which a plan's low end is reported
+LOW_PERCENTILE = 1.0
+
+
 @dataclass(frozen=True)
 class Plan:
     """A solved plan: ``frames`` as ``(setting, count)`` pairs in increasing exposure, its
-    worst-case SNR (dB), total time (s), and how the solver ended (``optimal``, or the
-    relative gap of the best plan found when the time limit stopped it); ``lowest_iso``:
-    the best plan at the lowest ISO alone, where the search solved it first."""
+    worst-case SNR, the SNR of its mean error over the protected photosites
+    (:func:`mean_snr_db`) and the SNR its :data:`LOW_PERCENTILE` % lowest photosites miss
+    (:func:`percentile_snr_db`) (dB), total time (s), and how the solver ended
+    (``optimal``, or the relative gap of the best plan found when the time limit stopped
+    it); ``lowest_iso``: the best plan at the lowest ISO alone, where the search solved it
+    first."""
 
     frames: list
     worst_snr_db: float
     total_time: float
+    mean_snr_db: float = float("nan")
+    low_snr_db: float = float("nan")
     optimal: bool = True
     gap: float = 0.0
     lowest_iso: "Plan | None" = None
+
+
+def evaluate(frames: list[tuple[Setting, int]], scene: SceneRange, optimal: bool = True, gap: float = 0.0) -> Plan:
+    """``frames`` as a :class:`Plan`, sorted by exposure, with its statistics over ``scene``."""
+    frames = sorted(((s, int(n)) for s, n in frames if n > 0), key=lambda p: (p[0].scale, p[0].iso))
+    return Plan(frames, worst_case_snr_db(frames, scene), float(sum(s.time * n for s, n in frames)),
+                mean_snr_db(frames, scene), percentile_snr_db(frames, scene, LOW_PERCENTILE), optimal, gap)
 
 
 def _program(settings, scene):
@@ -230,16 +303,17 @@ def _program(settings, scene):
     return np.vstack(rows)
 
 
-def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float = 0.0):
+def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float = 0.0, gap: float = 1e-3):
     """HiGHS on counts (integers, the first ``n_settings`` variables) and any continuous
-    variables after them (``tau``, bounded below by ``at_least``)."""
+    variables after them (bounded below by ``at_least``: ``tau`` of the worst-case
+    program, 0 for the mean-error program's)."""
     from scipy.optimize import Bounds, milp
 
     integrality = np.r_[np.ones(n_settings), np.zeros(len(c) - n_settings)]
     upper = np.r_[np.full(n_settings, float(max_frames)), np.full(len(c) - n_settings, np.inf)]
     lower = np.r_[np.zeros(n_settings), np.full(len(c) - n_settings, at_least)]
     res = milp(c, constraints=constraints, integrality=integrality, bounds=Bounds(lower, upper),
-               options={"time_limit": time_limit, "mip_rel_gap": 1e-3})
+               options={"time_limit": time_limit, "mip_rel_gap": gap})
     if res.x is None:
         return None, False, np.inf
     counts = np.rint(res.x[:n_settings]).astype(int)
@@ -247,21 +321,117 @@ def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float =
     return counts, res.status == 0, gap
 
 
-def _plan(settings, counts, scene, optimal, gap) -> Plan:
-    frames = sorted(((s, int(n)) for s, n in zip(settings, counts) if n > 0), key=lambda p: (p[0].scale, p[0].iso))
-    return Plan(frames, worst_case_snr_db(frames, scene), float(sum(s.time * n for s, n in frames)), optimal, gap)
+#: worst-case SNR (dB) a plan may give up against the best for a lower mean error over
+#: the rest of the scene (:func:`best_plan`)
+MARGIN_DB = 0.5
+#: spacing (dB) of the tangents below ``1 / SNR`` in the mean-error program, from 3 dB
+#: under its floor to :data:`TANGENT_SPAN_DB` over it: the piecewise-linear bound is within
+#: 1.4 % of ``1 / SNR`` (0.06 dB); photosites further above weigh under 10^-3 of those at it
+TANGENT_DB, TANGENT_SPAN_DB = 1.0, 30.0
+#: relative gap to which the mean-error program is solved (0.04 dB)
+MEAN_GAP = 1e-2
+#: bins (EV) of the protected photosites in the mean-error program (each at its
+#: share-weighted geometric mean irradiance); the plan found is scored on the scene's own
+PROGRAM_BIN_EV = 1 / 3
+
+
+def _least_mean_error(settings, scene, constraints, floor, max_frames, time_limit, start):
+    """Counts that minimise the mean of ``1 / SNR`` over the protected photosites
+    (:func:`mean_snr_db`) subject to ``constraints`` on the counts, near ``start``.
+
+    A MILP in which each photosite bin k (:data:`PROGRAM_BIN_EV`) has ``x_k = SNR(r_k) /
+    floor`` (linear in the counts) and ``u_k`` above every tangent of ``1 / x`` at
+    :data:`TANGENT_DB` steps, ``u_k >= 2 / x_j - x_k / x_j^2``; minimise ``sum w_k u_k``.
+    Its columns are the settings of ``start`` and of the program's linear relaxation, each
+    with its neighbours in time (a restricted master problem: the relaxation points to the
+    settings that matter, and the integer search stays small).  None when the solver
+    finds no solution in ``time_limit``."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+    from scipy.sparse import bmat, csr_matrix, identity, vstack
+
+    rows, weights = [], []
+    for c in range(scene.channels):
+        r, w = _coarsen(*scene.population(c, protected=True), scene.lo[c], PROGRAM_BIN_EV)
+        if r.size:
+            rows.append(np.stack([r * r * s.information(r, c) for s in settings], axis=1) / floor)
+            weights.append(w)
+    if not rows:
+        return None
+    b, w = np.vstack(rows), np.concatenate(weights)
+    w = w / w.sum()
+    x0 = 10 ** (np.arange(-3.0, TANGENT_SPAN_DB + TANGENT_DB, TANGENT_DB) / 10)
+
+    def program(columns):
+        n, k = len(columns), len(w)
+        eye = identity(k, format="csr")
+        blocks = [bmat([[csr_matrix(-b[:, columns]), eye, csr_matrix((k, k))]])]  # x - B n = 0
+        blocks += [bmat([[csr_matrix((k, n)), eye / (x * x), eye]]) for x in x0]  # the tangents
+        blocks += [bmat([[csr_matrix(np.asarray(c.A)[:, columns]), csr_matrix((c.A.shape[0], 2 * k))]])
+                   for c in constraints]
+        lower = np.r_[np.zeros(k), np.repeat(2.0 / x0, k), *[np.broadcast_to(c.lb, c.A.shape[:1]) for c in constraints]]
+        upper = np.r_[np.zeros(k), np.full(k * len(x0), np.inf),
+                      *[np.broadcast_to(c.ub, c.A.shape[:1]) for c in constraints]]
+        return np.r_[np.zeros(n + k), w], LinearConstraint(vstack(blocks, format="csr"), lower, upper)
+
+    everything = np.arange(len(settings))
+    cost, rows_all = program(everything)
+    upper = np.r_[np.full(len(settings), float(max_frames)), np.full(2 * len(w), np.inf)]
+    relaxed = milp(cost, constraints=[rows_all], bounds=Bounds(np.zeros(len(upper)), upper),
+                   options={"time_limit": time_limit})
+    used = set(np.flatnonzero(start > 0))
+    if relaxed.x is not None:
+        used |= set(np.flatnonzero(relaxed.x[:len(settings)] > 1e-6))
+    columns = np.array(sorted(used | {j for i in used for j in _neighbours(settings, i)}))
+    cost, rows = program(columns)
+    counts, _, _ = _solve(cost, [rows], len(columns), max_frames, time_limit, gap=MEAN_GAP)
+    if counts is None:
+        return None
+    out = np.zeros(len(settings), dtype=int)
+    out[columns] = counts
+    return out
+
+
+def _neighbours(settings, i) -> list[int]:
+    """The settings next to ``settings[i]`` in time at its ISO."""
+    same = sorted((j for j, s in enumerate(settings) if s.iso == settings[i].iso), key=lambda j: settings[j].time)
+    k = same.index(i)
+    return same[max(k - 1, 0):k + 2]
+
+
+def _coarsen(r: np.ndarray, w: np.ndarray, lo: float, step_ev: float) -> tuple[np.ndarray, np.ndarray]:
+    """Photosites ``(r, share)`` (all ``r >= lo > 0``) in bins of ``step_ev`` from ``lo``:
+    each bin's share-weighted geometric mean irradiance and its share."""
+    keep = w > 0
+    r, w = r[keep], w[keep]
+    bins, index = np.unique(np.floor(np.log2(r / lo) / step_ev), return_inverse=True)
+    share = np.bincount(index, w, len(bins))
+    return np.exp2(np.bincount(index, w * np.log2(r), len(bins)) / share), share
+
+
+def _with_least_mean_error(settings, scene, counts, constraints, floor, max_frames, time_limit, optimal, gap):
+    """The plan of ``counts`` or, if better in mean error, that of
+    :func:`_least_mean_error` under the same ``constraints``."""
+    plan = evaluate([(s, n) for s, n in zip(settings, counts)], scene, optimal, gap)
+    better = _least_mean_error(settings, scene, constraints, floor, max_frames, time_limit, counts)
+    if better is None:
+        return plan
+    other = evaluate([(s, n) for s, n in zip(settings, better)], scene, optimal, gap)
+    return other if other.mean_snr_db > plan.mean_snr_db else plan
 
 
 def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_frames: int,
-              time_limit: float = TIME_LIMIT) -> Plan:
-    """The plan of at most ``max_frames`` frames and ``budget`` seconds in all with the
-    best worst-case SNR (the program of the module notes), then among plans within
-    0.01 dB of it the shortest.  Raises if no setting fits the budget.
+              time_limit: float = TIME_LIMIT, at_least_db: float = float("-inf"),
+              margin_db: float = MARGIN_DB) -> Plan:
+    """The plan of at most ``max_frames`` frames and ``budget`` seconds in all: of the
+    plans within ``margin_db`` of the best worst-case SNR (the program of the module
+    notes), and not below ``at_least_db`` where the best reaches it, the one of least mean
+    error over the protected photosites (:func:`mean_snr_db`).  Raises if no setting fits
+    the budget.
 
     With several ISOs, the plan at the lowest ISO alone (a program of fewer variables) is
     solved first and bounds the search from below; it is returned unless the other ISOs
-    gain more than 0.01 dB, so a plan is never worse than it, even when the time limit
-    stops the search."""
+    gain more than 0.01 dB of worst case, so a plan is never worse than it, even when the
+    time limit stops the search."""
     from scipy.optimize import LinearConstraint
 
     settings = [s for s in settings if s.time <= budget]
@@ -270,7 +440,8 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
     start = None
     base = min(s.iso for s in settings)
     if any(s.iso != base for s in settings):
-        start = best_plan([s for s in settings if s.iso == base], scene, budget, max_frames, time_limit)
+        start = best_plan([s for s in settings if s.iso == base], scene, budget, max_frames, time_limit,
+                          at_least_db, margin_db)
     a = _program(settings, scene)
     times = np.array([s.time for s in settings])
     n = len(settings)
@@ -285,22 +456,23 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
             return replace(start, lowest_iso=start)
         raise HdrMergeError("no plan within the budget measures every irradiance of the scene (its brightest "
                             "photosites clip in every frame allowed, or its darkest read no light)")
-    # the shortest plan within 0.01 dB of the best (a frame more never lowers the SNR, so
-    # the first solution may hold frames that add time but nothing to the worst case)
-    best = LinearConstraint(a, reached * 10 ** -0.001, np.inf)
-    short, _, _ = _solve(times, [best] + within, n, max_frames, time_limit)
-    plan = replace(_plan(settings, counts if short is None else short, scene, optimal, gap), lowest_iso=start)
     # the lowest-ISO plan unless other ISOs gain more than 0.01 dB (on a sensor without
     # read noise after the amplifier they gain nothing, and a higher ISO only clips sooner)
-    return replace(start, lowest_iso=start) if start is not None and plan.worst_snr_db <= start.worst_snr_db + 0.01 \
-        else plan
+    if start is not None and 10 * np.log10(reached) <= start.worst_snr_db + 0.01:
+        return replace(start, lowest_iso=start)
+    # of the plans within the margin (and not below at_least_db), the least mean error
+    least = min(reached, max(reached * 10 ** (-margin_db / 10), 10 ** (at_least_db / 10)))
+    plan = _with_least_mean_error(settings, scene, counts, [LinearConstraint(a, least, np.inf)] + within, least,
+                                  max_frames, time_limit, optimal, gap)
+    return replace(plan, lowest_iso=start)
 
 
 def shortest_plan(settings: list[Setting], scene: SceneRange, min_snr_db: float, max_frames: int,
                   budget: float | None = None, time_limit: float = TIME_LIMIT) -> Plan | None:
     """The plan of least total time whose worst-case SNR reaches ``min_snr_db`` with at
     most ``max_frames`` frames (and ``budget`` seconds), then among plans within 0.01 %
-    of that time the one of fewest frames; None when none reaches the SNR."""
+    of that time the one of least mean error (:func:`mean_snr_db`); None when none
+    reaches the SNR."""
     from scipy.optimize import LinearConstraint
 
     settings = [s for s in settings if budget is None or s.time <= budget]
@@ -309,48 +481,71 @@ def shortest_plan(settings: list[Setting], scene: SceneRange, min_snr_db: float,
     a = _program(settings, scene)
     times = np.array([s.time for s in settings])
     n = len(settings)
-    cons = [LinearConstraint(a, 10 ** (min_snr_db / 10), np.inf), LinearConstraint(np.ones((1, n)), 1.0, max_frames)]
+    floor = 10 ** (min_snr_db / 10)
+    cons = [LinearConstraint(a, floor, np.inf), LinearConstraint(np.ones((1, n)), 1.0, max_frames)]
     if budget is not None:
         cons.append(LinearConstraint(times[None], -np.inf, budget))
     counts, optimal, gap = _solve(times, cons, n, max_frames, time_limit)
     if counts is None:
         return None
-    fewest, _, _ = _solve(np.ones(n), cons + [LinearConstraint(times[None], -np.inf, float(times @ counts) * 1.0001)],
-                          n, max_frames, time_limit)
-    return _plan(settings, counts if fewest is None else fewest, scene, optimal, gap)
+    same_time = cons + [LinearConstraint(times[None], -np.inf, float(times @ counts) * 1.0001)]
+    return _with_least_mean_error(settings, scene, counts, same_time, floor, max_frames, time_limit, optimal, gap)
 
 
-def conventional_brackets(settings: list[Setting], scene: SceneRange, step_ev: float, max_frames: int):
-    """Every conventional bracket: at the lowest ISO of ``settings``, frames ``step_ev``
-    stops apart (the nearest times of the settings' series), from any first time at which
-    the scene's brightest photosite stays unclipped, 1 to ``max_frames`` frames.  Yields
-    :class:`Plan` objects."""
+def conventional_brackets(settings: list[Setting], step_ev: float, max_frames: int):
+    """Every conventional bracket at the lowest ISO of ``settings``: 1 to ``max_frames``
+    distinct frames ``step_ev`` stops apart (the nearest times of the settings' series)
+    from any first time, the sequence shot ``k`` times over (``k`` times the frames at
+    most ``max_frames``).  Yields ``(frames, k)``: the sequence's settings and the
+    largest ``k``."""
     base = min(s.iso for s in settings)
     series = sorted((s for s in settings if s.iso == base), key=lambda s: s.time)
     log_t = np.log([s.time for s in series])
     for first in series:
-        if any(scene.hi[c] > first.clipping_point(c) for c in range(scene.channels)):
-            break
-        frames, total = [], 0.0
+        frames = []
         for j in range(max_frames):
             s = series[int(np.argmin(np.abs(log_t - np.log(first.time * 2.0 ** (step_ev * j)))))]
-            if frames and s.time <= frames[-1][0].time:
+            if frames and s.time <= frames[-1].time:
                 break
-            frames.append((s, 1))
-            total += s.time
-            yield Plan(list(frames), worst_case_snr_db(frames, scene), total)
+            frames.append(s)
+            yield list(frames), max_frames // len(frames)
 
 
 def best_conventional(settings: list[Setting], scene: SceneRange, step_ev: float, max_frames: int,
                       budget: float | None = None, min_snr_db: float | None = None) -> Plan | None:
-    """The best of :func:`conventional_brackets` within ``budget`` seconds (highest
-    worst-case SNR, then shortest), or with ``min_snr_db`` the shortest that reaches it;
-    None when none qualifies."""
-    plans = [p for p in conventional_brackets(settings, scene, step_ev, max_frames)
-             if (budget is None or p.total_time <= budget * (1 + 1e-9))
-             and (min_snr_db is None or p.worst_snr_db >= min_snr_db)]
-    if not plans:
-        return None
-    if min_snr_db is not None:
-        return min(plans, key=lambda p: (p.total_time, -p.worst_snr_db))
-    return max(plans, key=lambda p: (p.worst_snr_db, -p.total_time))
+    """The best of :func:`conventional_brackets`, each shot as many times over as
+    ``budget`` seconds allow: the highest worst-case SNR, then the least mean error
+    (:func:`mean_snr_db`), then the shortest; or, with ``min_snr_db``, the shortest that
+    reaches it (then the least mean error).  None when none qualifies.
+
+    A sequence shot ``k`` times has ``k`` times its SNR at every irradiance, so each
+    sequence is evaluated once and its repeats by adding ``10 log10 k`` dB."""
+    best, best_key = None, None
+    for frames, most in conventional_brackets(settings, step_ev, max_frames):
+        once = sum(s.time for s in frames)
+        worst = worst_case_snr_db([(s, 1) for s in frames], scene)
+        if not np.isfinite(worst):
+            continue
+        if min_snr_db is None:
+            k = most if budget is None else min(most, int(np.floor(budget * (1 + 1e-9) / once)))
+        else:
+            k = max(1, int(np.ceil(10 ** ((min_snr_db - worst) / 10) * (1 - 1e-12))))
+            if budget is not None and k * once > budget * (1 + 1e-9):
+                continue
+        if not 1 <= k <= most or (best_key is not None and worst + 10 * np.log10(k) < best_key[0]
+                                  and min_snr_db is None):
+            continue
+        p = _repeated(evaluate([(s, 1) for s in frames], scene), k)
+        key = (-p.total_time, p.mean_snr_db) if min_snr_db is not None else (
+            p.worst_snr_db, p.mean_snr_db, -p.total_time)
+        if best_key is None or key > best_key:
+            best, best_key = p, key
+    return best
+
+
+def _repeated(plan: Plan, k: int) -> Plan:
+    """``plan`` shot ``k`` times over: its SNRs ``10 log10 k`` dB higher."""
+    gain = 10 * np.log10(k)
+    return replace(plan, frames=[(s, n * k) for s, n in plan.frames], total_time=plan.total_time * k,
+                   worst_snr_db=plan.worst_snr_db + gain, mean_snr_db=plan.mean_snr_db + gain,
+                   low_snr_db=plan.low_snr_db + gain)

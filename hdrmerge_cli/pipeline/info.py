@@ -137,8 +137,8 @@ def format_info(summary: dict) -> str:
         s = summary["snr"]
         p = s["plan_of_the_same_time"]
         own = ("its frames leave some of the scene unmeasured (clipped in the shortest)"
-               if s["worst_case_snr_db"] is None else f"{s['worst_case_snr_db']:.1f} dB")
-        text.append(f"predicted worst-case SNR: {own} (from the {s['percentile']:g} % darkest photosites to the "
-                    f"brightest); a plan of the same {s['total_time']:.4g} s reaches "
+               if s["predicted_worst_snr_db"] is None else f"{s['predicted_worst_snr_db']:.1f} dB")
+        text.append(f"predicted worst-case SNR: {own} (between the {s['lose_dark']:g} % darkest and the "
+                    f"{s['lose_bright']:g} % brightest photosites); a plan of the same {s['total_time']:.4g} s reaches "
                     f"{p['predicted_worst_snr_db']:.1f} dB with {len(p['frames'])} frames ('hdrmerge-cli plan')")
     return "\n".join(text)

@@ -26,9 +26,9 @@ log = logging.getLogger("hdrmerge_cli")
 SMOOTH = 3
 #: 1-EV bins of the SNR-against-irradiance table
 TABLE_STEP_EV = 1.0
-#: bins (EV) of the histogram that finds the irradiances the scene holds, and the share of a
-#: channel's photosites a bin must hold to count (the worst case ignores rarer irradiances,
-#: as it ignores the darkest --percentile)
+#: bins (EV) of the histogram of the scene's photosites, and the share of a channel's
+#: photosites a bin must hold to count in the worst case (which ignores rarer irradiances,
+#: as it ignores the darkest --lose-dark and the brightest --lose-bright)
 OCCUPIED_BIN_EV, OCCUPIED_SHARE = 1 / 12, 1e-3
 
 
@@ -36,16 +36,17 @@ OCCUPIED_BIN_EV, OCCUPIED_SHARE = 1 / 12, 1e-3
 class PlanOptions:
     """``time``: budget (s); ``min_snr``: the worst-case SNR to reach (dB); ``frames``: at
     most this many; ``shutter_speeds``/``isos``: the settings allowed (None: the 1/3-stop
-    series, the profile's calibrated ISOs); ``percentile``: of the scene's photosites, the
-    dark end of the range the worst case is taken over; the rest: the metering frames'
-    inputs as in ``merge``."""
+    series, the profile's calibrated ISOs); ``lose_dark``, ``lose_bright``: the shares (%)
+    of each channel's darkest and brightest photosites the plan may lose (the range it
+    protects lies between); the rest: the metering frames' inputs as in ``merge``."""
 
     time: float | None = None
     min_snr: float | None = None
     frames: int = 10
     shutter_speeds: tuple | None = None
     isos: tuple | None = None
-    percentile: float = 1.0
+    lose_dark: float = 1.0
+    lose_bright: float = 0.1
     profile: str | None = None
     crf: str | None = None
     times: list | None = None
@@ -86,46 +87,58 @@ def channel_planes(r: np.ndarray, flags: np.ndarray, cell: np.ndarray | None, n_
     return out
 
 
-def scene_range(planes: list[list], percentile: float, names: list[str]) -> capture.SceneRange:
-    """Per channel, ``lo`` = the ``percentile`` of the photosites' irradiance after a
-    :data:`SMOOTH` x :data:`SMOOTH` box over same-colour photosites (a photosite dark in
-    every frame counts as 0; the box keeps the metering frames' own noise out of the dark
-    end), ``hi`` = the brightest photosite as metered (a small highlight is not averaged
-    away), and the intervals of ``[lo, hi]`` the photosites hold (:func:`_occupied`).
+def scene_range(planes: list[list], lose_dark: float, lose_bright: float, names: list[str]) -> capture.SceneRange:
+    """Per channel, the range a plan protects: ``lo`` and ``hi`` the ``lose_dark`` and
+    ``100 - lose_bright`` percentiles of the photosites' irradiance, each averaged over
+    :data:`SMOOTH` x :data:`SMOOTH` same-colour photosites (a photosite dark in every frame
+    counts as 0; the box keeps the metering frames' own noise out of both ends); the
+    intervals of ``[lo, hi]`` the photosites hold (:func:`_occupied`); and the photosites
+    themselves in :data:`OCCUPIED_BIN_EV` bins (:attr:`~capture.SceneRange.photosites`).
 
     planes : :func:`channel_planes`, irradiance in code values per second at the
         reference ISO
     """
     from scipy.ndimage import uniform_filter
 
-    lo, hi, occupied, hists = [], [], [], []
+    lo, hi, occupied, photosites = [], [], [], []
     for c, chan in enumerate(planes):
         v = np.concatenate([uniform_filter(np.where(f == FLAG_DARK, 0.0, p).astype(np.float64), SMOOTH,
                                            mode="nearest").ravel() for p, f in chan])
-        low = float(np.percentile(v, percentile))
-        top = max(float(np.max(p)) for p, _ in chan)
+        low, top = (float(x) for x in np.percentile(v, [lose_dark, 100.0 - lose_bright]))
         if not low > 0:
-            raise HdrMergeError(f"the darkest {percentile:g} % of the {names[c]} photosites read no light in the "
-                                "metering frames; meter with a longer frame, or raise --percentile")
+            raise HdrMergeError(f"the darkest {lose_dark:g} % of the {names[c]} photosites read no light in the "
+                                "metering frames; meter with a longer frame, or raise --lose-dark")
         lo.append(low)
-        hi.append(top)
-        logs = np.log2(np.minimum(v[v >= low], top))
-        occupied.append(_occupied(logs, np.log2(low), np.log2(top), v.size))
-        edges = np.arange(np.floor(np.log2(low)), np.ceil(np.log2(top)) + TABLE_STEP_EV, TABLE_STEP_EV)
-        hists.append((edges, np.histogram(logs, edges)[0]))
-    return capture.SceneRange(tuple(lo), tuple(hi), tuple(occupied), tuple(hists))
+        hi.append(max(top, low))
+        r, counts = _histogram(v, low)
+        photosites.append((r, counts / v.size))
+        half = 2.0 ** (OCCUPIED_BIN_EV / 2)
+        inside = (r * half > low) & (r / half < hi[-1])
+        occupied.append(_occupied(r[inside], counts[inside] >= OCCUPIED_SHARE * v.size, low, hi[-1]))
+    return capture.SceneRange(tuple(lo), tuple(hi), tuple(occupied), tuple(photosites))
 
 
-def _occupied(logs: np.ndarray, lo: float, hi: float, n: int) -> list[tuple[float, float]]:
-    """The intervals (irradiance) of :data:`OCCUPIED_BIN_EV` bins from ``lo`` to ``hi``
-    (log2) holding at least :data:`OCCUPIED_SHARE` of the ``n`` photosites, runs merged."""
-    edges = lo + OCCUPIED_BIN_EV * np.arange(int(np.ceil((hi - lo) / OCCUPIED_BIN_EV)) + 1)
-    edges[-1] = max(edges[-1], hi)
-    counts = np.histogram(logs, edges)[0]
+def _histogram(v: np.ndarray, anchor: float) -> tuple[np.ndarray, np.ndarray]:
+    """The irradiances ``v`` in :data:`OCCUPIED_BIN_EV` bins of log2 r, one edge at
+    ``anchor``: the occupied bins' centres (irradiance; 0 for the photosites that read no
+    light) and their counts."""
+    lit = v[v > 0]
+    k = np.floor((np.log2(lit) - np.log2(anchor)) / OCCUPIED_BIN_EV).astype(np.int64)
+    bins, counts = np.unique(k, return_counts=True)
+    r = anchor * 2.0 ** ((bins + 0.5) * OCCUPIED_BIN_EV)
+    if lit.size < v.size:
+        r, counts = np.r_[0.0, r], np.r_[v.size - lit.size, counts]
+    return r, counts.astype(np.float64)
+
+
+def _occupied(r: np.ndarray, held: np.ndarray, lo: float, hi: float) -> list[tuple[float, float]]:
+    """The intervals (irradiance) of the bins centred at ``r`` (of :data:`OCCUPIED_BIN_EV`)
+    that hold enough photosites (``held``), runs merged, within ``[lo, hi]``."""
+    half = 2.0 ** (OCCUPIED_BIN_EV / 2)
     out = []
-    for k in np.flatnonzero(counts >= OCCUPIED_SHARE * n):
-        a, b = 2.0 ** edges[k], 2.0 ** edges[k + 1]
-        if out and out[-1][1] >= a:
+    for centre in r[held]:
+        a, b = max(centre / half, lo), min(centre * half, hi)
+        if out and out[-1][1] >= a * (1 - 1e-9):
             out[-1] = (out[-1][0], b)
         else:
             out.append((a, b))
@@ -168,7 +181,7 @@ def meter(paths: list[str], opts: PlanOptions) -> Metering:
     cell = None if merged.result.ndim == 3 else sample_pattern(first)
     planes = [[(p * np.float32(y_full[c] / merged.h_ref), f) for p, f in chan]
               for c, chan in enumerate(channel_planes(merged.result, merged.flag_samples, cell, len(names)))]
-    scene = scene_range(planes, opts.percentile, names)
+    scene = scene_range(planes, opts.lose_dark, opts.lose_bright, names)
     clipped = float(np.mean(merged.flag_samples == FLAG_SATURATED))
     if clipped > 0:
         log.warning("%.3g %% of the photosites are clipped in every metering frame: the plan takes them at the "
@@ -214,10 +227,18 @@ def check_options(opts: PlanOptions) -> None:
 
 
 def solve(metering: Metering, opts: PlanOptions) -> dict:
-    """The plan and its comparisons, as the JSON summary of ``plan``."""
+    """The plan and its comparisons, as the JSON summary of ``plan``.  With ``--time``
+    the conventional brackets of that time are found first: the plan's worst case is never
+    below theirs (:func:`capture.best_plan`'s ``at_least_db``)."""
     settings = settings_for(metering, opts)
     metering = replace(metering, scene=measurable(metering.scene, settings, metering.channels))
     scene = metering.scene
+    base = min(s.iso for s in settings)
+    at = f"at ISO {base:g}" if metering.reference_iso else "at the metering frames' ISO"
+
+    def conventional_of(budget):
+        return {step: capture.best_conventional(settings, scene, step, opts.frames, budget) for step in (1, 2)}
+
     if opts.min_snr is not None:
         plan = capture.shortest_plan(settings, scene, opts.min_snr, opts.frames, opts.time, opts.search_time)
         if plan is None:
@@ -226,21 +247,22 @@ def solve(metering: Metering, opts: PlanOptions) -> dict:
             within = f"in {opts.time:g} s" if opts.time is not None else "with the longest shutter time"
             raise HdrMergeError(f"--min-snr {opts.min_snr:g}: impossible; {opts.frames} frames {within} reach at most "
                                 f"{reach.worst_snr_db:.1f} dB (allow more --frames or --time, or a lower --min-snr)")
+        budget, floor = plan.total_time, float("-inf")
+        conventional = conventional_of(budget)
     else:
-        plan = capture.best_plan(settings, scene, opts.time, opts.frames, opts.search_time)
-    budget = opts.time if opts.time is not None else plan.total_time
-    base = min(s.iso for s in settings)
-    at = f"at ISO {base:g}" if metering.reference_iso else "at the metering frames' ISO"
+        budget = opts.time
+        conventional = conventional_of(budget)
+        floor = max((p.worst_snr_db for p in conventional.values() if p is not None), default=float("-inf"))
+        plan = capture.best_plan(settings, scene, budget, opts.frames, opts.search_time, at_least_db=floor)
     compare = {}
     if len({s.iso for s in settings}) > 1:
         fixed = (capture.shortest_plan([s for s in settings if s.iso == base], scene, opts.min_snr, opts.frames,
                                        opts.time, opts.search_time) if opts.min_snr is not None else
                  plan.lowest_iso or capture.best_plan([s for s in settings if s.iso == base], scene, budget,
-                                                      opts.frames, opts.search_time))
+                                                      opts.frames, opts.search_time, at_least_db=floor))
         compare[f"plan {at} only"] = fixed
     for step in (1, 2):
-        compare[f"conventional {step}-EV bracket {at}"] = capture.best_conventional(
-            settings, scene, step, opts.frames, budget)
+        compare[f"conventional {step}-EV bracket {at}"] = conventional[step]
         compare[f"conventional {step}-EV bracket {at}, same SNR"] = capture.best_conventional(
             settings, scene, step, 64, None, plan.worst_snr_db - 1e-9)
     return summary(metering, plan, compare, opts)
@@ -292,8 +314,9 @@ def snr_table(metering: Metering, plans: dict) -> list[dict]:
     edges = np.arange(np.floor(np.log2(min(scene.lo))), np.ceil(np.log2(max(scene.hi))) + TABLE_STEP_EV,
                       TABLE_STEP_EV)
     counts = np.zeros(len(edges) - 1)
-    for e, n in scene.histograms:
-        np.add.at(counts, np.clip(np.searchsorted(edges, e[:-1]), 0, len(counts) - 1), n)
+    for c in range(scene.channels):
+        r, w = scene.population(c, protected=True)
+        counts += np.histogram(np.log2(r), edges, weights=w)[0]
     share = counts / max(counts.sum(), 1)
     fine = np.linspace(edges[0], edges[-1], int(round((edges[-1] - edges[0]) * CURVE_POINTS_PER_EV)) + 1)
     bins = np.clip(np.searchsorted(edges, fine, side="right") - 1, 0, len(counts) - 1)
@@ -322,6 +345,12 @@ def _finite(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
 
+def _stats(p: capture.Plan) -> dict:
+    """A plan's predicted statistics (dB; None where some irradiance goes unmeasured)."""
+    return {"predicted_worst_snr_db": _finite(p.worst_snr_db), "predicted_mean_snr_db": _finite(p.mean_snr_db),
+            "predicted_low_snr_db": _finite(p.low_snr_db)}
+
+
 def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOptions) -> dict:
     shown = {"plan": plan} | {k: v for k, v in compare.items() if "same SNR" not in k}
     known = metering.reference_iso is not None
@@ -330,18 +359,22 @@ def summary(metering: Metering, plan: capture.Plan, compare: dict, opts: PlanOpt
         "metering_frames": [{"time": t, "iso": i} for t, i in metering.own],
         "reference_iso": metering.reference_iso,
         "worst_case": {"definition": "the lowest SNR (dB, the squared irradiance over its variance after the "
-                                     "merge) over the irradiances each channel's photosites hold, from the given "
-                                     "percentile to the brightest (1/12-EV bins with at least 0.1 % of them, and "
-                                     "the brightest)",
-                       "percentile": opts.percentile,
+                                     "merge) over the irradiances each channel's photosites hold, between its "
+                                     "darkest lose_dark % and its brightest lose_bright % (1/12-EV bins with at "
+                                     "least 0.1 % of them, and both ends)",
+                       "mean": "the SNR of the mean squared error of log E over those photosites: -10 log10 of "
+                               "the mean of 1 / SNR",
+                       "low": f"the SNR that all but {capture.LOW_PERCENTILE:g} % of all the photosites reach",
+                       "lose_dark": opts.lose_dark, "lose_bright": opts.lose_bright,
+                       "margin_db": capture.MARGIN_DB,
                        "range": {c: [lo, hi] for c, lo, hi in zip(metering.channels, metering.scene.lo,
                                                                  metering.scene.hi)}},
         "frames": _frames_json(plan, known),
         "total_time": plan.total_time,
-        "predicted_worst_snr_db": _finite(plan.worst_snr_db),
+        **_stats(plan),
         "solver": {"optimal": plan.optimal, "gap_db": float(-10 * np.log10(max(1 - plan.gap, 1e-12)))},
         "compared": {name: None if p is None else {"frames": _frames_json(p, known), "total_time": p.total_time,
-                                                   "predicted_worst_snr_db": _finite(p.worst_snr_db)}
+                                                   **_stats(p)}
                      for name, p in compare.items()},
         "snr_table": snr_table(metering, shown),
         "snr_curves": snr_curves(metering.scene, shown),
@@ -371,21 +404,25 @@ def format_plan(s: dict) -> str:
     wc = s["worst_case"]
     n = len(s["frames"])
     lines = [f"plan for {s['camera']}: {n} frame{'s' if n != 1 else ''}, {s['total_time']:.4g} s in all, "
-             f"predicted worst-case SNR {_db(s['predicted_worst_snr_db'])}",
-             f"(worst case: the lowest SNR over the irradiances the scene holds, from its {wc['percentile']:g} % "
-             "darkest photosites to the brightest"
+             f"predicted worst-case SNR {_db(s['predicted_worst_snr_db'])}, mean {_db(s['predicted_mean_snr_db'])}",
+             f"(worst case: the lowest SNR over the irradiances the scene holds, between its {wc['lose_dark']:g} % "
+             f"darkest and {wc['lose_bright']:g} % brightest photosites; mean: of the squared error over them; "
+             f"{capture.LOW_PERCENTILE:g} %: the SNR all but the lowest {capture.LOW_PERCENTILE:g} % of the "
+             "photosites reach"
              + ("" if s["solver"]["optimal"] else f"; the search stopped within {s['solver']['gap_db']:.2f} dB of "
                                                     "the best plan") + ")",
              "", f"{'frame':>5}  {'time':>8}  {'ISO':>6}"]
     lines += [f"{k + 1:>5}  {shutter_label(f['time']):>8}  {_iso(f['iso']):>6}" for k, f in enumerate(s["frames"])]
-    width = max([len("compared with")] + [len(name) for name in s["compared"]])
-    lines += ["", f"{'compared with':<{width}} {'frames':>6} {'time':>9} {'worst-case SNR':>15}"]
-    for name, p in s["compared"].items():
+    width = max(len(name) for name in ["plan", *s["compared"]])
+    lines += ["", f"{'':<{width}} {'frames':>6} {'time':>9} {'worst case':>11} {'mean':>11} "
+                  f"{f'{capture.LOW_PERCENTILE:g} %':>11}"]
+    for name, p in {"plan": s, **s["compared"]}.items():
         if p is None:
             lines.append(f"{name:<{width}} {'none':>6}")
         else:
             lines.append(f"{name:<{width}} {len(p['frames']):>6} {p['total_time']:>8.4g}s "
-                         f"{_db(p['predicted_worst_snr_db']):>15}")
+                         + " ".join(f"{_db(p[k]):>11}" for k in ("predicted_worst_snr_db", "predicted_mean_snr_db",
+                                                                  "predicted_low_snr_db")))
     cols = [k for k in s["snr_table"][0] if k not in ("log2_irradiance", "share")] if s["snr_table"] else []
     lines += ["", "SNR (dB, lowest channel) against irradiance (log2 of code values per second at ISO "
               f"{_iso(s['reference_iso'])}); share of the scene's photosites per 1-EV bin",
@@ -497,9 +534,9 @@ def bracket_snr(paths: list[str], opts: PlanOptions) -> dict:
                                 "bracket's SNR needs every frame's ISO")
         own.append((replace(s, time=float(t)), 1))
     scene = measurable(metering.scene, settings, metering.channels)
-    budget = sum(s.time for s, _ in own)
-    best = capture.best_plan(settings, scene, budget, max(opts.frames, len(own)), opts.search_time)
-    return {"worst_case_snr_db": _finite(capture.worst_case_snr_db(own, scene)), "total_time": budget,
-            "percentile": opts.percentile,
-            "plan_of_the_same_time": {"frames": _frames_json(best, metering.reference_iso is not None),
-                                      "predicted_worst_snr_db": _finite(best.worst_snr_db)}}
+    shot = capture.evaluate(own, scene)
+    best = capture.best_plan(settings, scene, shot.total_time, max(opts.frames, len(own)), opts.search_time,
+                             at_least_db=shot.worst_snr_db)
+    return {**_stats(shot), "total_time": shot.total_time, "lose_dark": opts.lose_dark,
+            "lose_bright": opts.lose_bright,
+            "plan_of_the_same_time": {"frames": _frames_json(best, metering.reference_iso is not None), **_stats(best)}}
