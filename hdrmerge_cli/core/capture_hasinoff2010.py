@@ -303,17 +303,16 @@ def _program(settings, scene):
     return np.vstack(rows)
 
 
-def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float = 0.0, gap: float = 1e-3):
+def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float = 0.0):
     """HiGHS on counts (integers, the first ``n_settings`` variables) and any continuous
-    variables after them (bounded below by ``at_least``: ``tau`` of the worst-case
-    program, 0 for the mean-error program's)."""
+    variables after them (``tau``, bounded below by ``at_least``)."""
     from scipy.optimize import Bounds, milp
 
     integrality = np.r_[np.ones(n_settings), np.zeros(len(c) - n_settings)]
     upper = np.r_[np.full(n_settings, float(max_frames)), np.full(len(c) - n_settings, np.inf)]
     lower = np.r_[np.zeros(n_settings), np.full(len(c) - n_settings, at_least)]
     res = milp(c, constraints=constraints, integrality=integrality, bounds=Bounds(lower, upper),
-               options={"time_limit": time_limit, "mip_rel_gap": gap})
+               options={"time_limit": time_limit, "mip_rel_gap": 1e-2})
     if res.x is None:
         return None, False, np.inf
     counts = np.rint(res.x[:n_settings]).astype(int)
@@ -324,78 +323,69 @@ def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float =
 #: worst-case SNR (dB) a plan may give up against the best for a lower mean error over
 #: the rest of the scene (:func:`best_plan`)
 MARGIN_DB = 0.5
-#: spacing (dB) of the tangents below ``1 / SNR`` in the mean-error program, from 3 dB
-#: under its floor to :data:`TANGENT_SPAN_DB` over it: the piecewise-linear bound is within
-#: 1.4 % of ``1 / SNR`` (0.06 dB); photosites further above weigh under 10^-3 of those at it
+#: bins (EV) of the protected photosites in the relaxation that guides the mean-error
+#: search (each at its share-weighted geometric mean irradiance)
+RELAX_BIN_EV = 1 / 3
+#: spacing (dB) of the relaxation's tangents below ``1 / SNR``, from 3 dB under its floor
+#: to :data:`TANGENT_SPAN_DB` over it: within 1.4 % of ``1 / SNR`` (0.06 dB); photosites
+#: further above weigh under 10^-3 of those at the floor
 TANGENT_DB, TANGENT_SPAN_DB = 1.0, 30.0
-#: relative gap to which the mean-error program is solved (0.04 dB)
-MEAN_GAP = 1e-2
-#: bins (EV) of the protected photosites in the mean-error program (each at its
-#: share-weighted geometric mean irradiance); the plan found is scored on the scene's own
-PROGRAM_BIN_EV = 1 / 3
 
 
-def _least_mean_error(settings, scene, constraints, floor, max_frames, time_limit, start):
-    """Counts that minimise the mean of ``1 / SNR`` over the protected photosites
-    (:func:`mean_snr_db`) subject to ``constraints`` on the counts, near ``start``.
+def _least_mean_error(settings, scene, a, floor, budget, max_frames, counts) -> np.ndarray:
+    """Counts of least mean error over the protected photosites (:func:`mean_snr_db`) that
+    keep ``a @ counts >= floor`` (the worst-case program's rows), the total time within
+    ``budget`` and at most ``max_frames`` frames.
 
-    A MILP in which each photosite bin k (:data:`PROGRAM_BIN_EV`) has ``x_k = SNR(r_k) /
-    floor`` (linear in the counts) and ``u_k`` above every tangent of ``1 / x`` at
-    :data:`TANGENT_DB` steps, ``u_k >= 2 / x_j - x_k / x_j^2``; minimise ``sum w_k u_k``.
-    Its columns are the settings of ``start`` and of the program's linear relaxation, each
-    with its neighbours in time (a restricted master problem: the relaxation points to the
-    settings that matter, and the integer search stays small).  None when the solver
-    finds no solution in ``time_limit``."""
+    An exchange search (:func:`_exchange`) from two starts, the better result kept:
+    ``counts`` (the best worst case's plan) and the rounded optimum of the problem with
+    the counts continuous (:func:`_relaxed_counts`), which spreads the frames as the whole
+    scene asks and leads the search past the local optima around the first."""
+    rows, weights = [], []
+    for c in range(scene.channels):
+        r, w = scene.population(c, protected=True)
+        rows.append(np.stack([r * r * s.information(r, c) for s in settings], axis=1))
+        weights.append(w)
+    b, w = np.vstack(rows), np.concatenate(weights)
+    if not w.size:
+        return counts
+    times = np.array([s.time for s in settings])
+    starts = [counts]
+    relaxed = _relaxed_counts(settings, scene, a, floor, times, budget, max_frames)
+    if relaxed is not None:
+        starts.append(_rounded(relaxed, times, budget, max_frames))
+    found = [_exchange(b, w, a, floor, times, budget, max_frames, start) for start in starts]
+    return min(found, key=lambda f: f[1])[0]
+
+
+def _relaxed_counts(settings, scene, a, floor, times, budget, max_frames) -> np.ndarray | None:
+    """The counts, taken as continuous, that minimise the mean of ``1 / SNR`` over the
+    protected photosites (in :data:`RELAX_BIN_EV` bins) subject to ``a @ n >= floor``,
+    the budget and the frames: a linear program in which each bin k has ``x_k = SNR(r_k)
+    / floor`` and ``u_k`` above every tangent of ``1 / x`` at :data:`TANGENT_DB` steps,
+    ``u_k >= 2 / x_j - x_k / x_j^2``; minimise ``sum w_k u_k``.  None if HiGHS finds none."""
     from scipy.optimize import Bounds, LinearConstraint, milp
     from scipy.sparse import bmat, csr_matrix, identity, vstack
 
     rows, weights = [], []
     for c in range(scene.channels):
-        r, w = _coarsen(*scene.population(c, protected=True), scene.lo[c], PROGRAM_BIN_EV)
-        if r.size:
-            rows.append(np.stack([r * r * s.information(r, c) for s in settings], axis=1) / floor)
-            weights.append(w)
-    if not rows:
-        return None
+        r, w = _coarsen(*scene.population(c, protected=True), scene.lo[c], RELAX_BIN_EV)
+        rows.append(np.stack([r * r * s.information(r, c) for s in settings], axis=1) / floor)
+        weights.append(w)
     b, w = np.vstack(rows), np.concatenate(weights)
-    w = w / w.sum()
+    n, k = len(settings), len(w)
     x0 = 10 ** (np.arange(-3.0, TANGENT_SPAN_DB + TANGENT_DB, TANGENT_DB) / 10)
-
-    def program(columns):
-        n, k = len(columns), len(w)
-        eye = identity(k, format="csr")
-        blocks = [bmat([[csr_matrix(-b[:, columns]), eye, csr_matrix((k, k))]])]  # x - B n = 0
-        blocks += [bmat([[csr_matrix((k, n)), eye / (x * x), eye]]) for x in x0]  # the tangents
-        blocks += [bmat([[csr_matrix(np.asarray(c.A)[:, columns]), csr_matrix((c.A.shape[0], 2 * k))]])
-                   for c in constraints]
-        lower = np.r_[np.zeros(k), np.repeat(2.0 / x0, k), *[np.broadcast_to(c.lb, c.A.shape[:1]) for c in constraints]]
-        upper = np.r_[np.zeros(k), np.full(k * len(x0), np.inf),
-                      *[np.broadcast_to(c.ub, c.A.shape[:1]) for c in constraints]]
-        return np.r_[np.zeros(n + k), w], LinearConstraint(vstack(blocks, format="csr"), lower, upper)
-
-    everything = np.arange(len(settings))
-    cost, rows_all = program(everything)
-    upper = np.r_[np.full(len(settings), float(max_frames)), np.full(2 * len(w), np.inf)]
-    relaxed = milp(cost, constraints=[rows_all], bounds=Bounds(np.zeros(len(upper)), upper),
-                   options={"time_limit": time_limit})
-    used = set(np.flatnonzero(start > 0))
-    if relaxed.x is not None:
-        used |= set(np.flatnonzero(relaxed.x[:len(settings)] > 1e-6))
-    columns = np.array(sorted(used | {j for i in used for j in _neighbours(settings, i)}))
-    cost, rows = program(columns)
-    counts, _, _ = _solve(cost, [rows], len(columns), max_frames, time_limit, gap=MEAN_GAP)
-    if counts is None:
-        return None
-    out = np.zeros(len(settings), dtype=int)
-    out[columns] = counts
-    return out
-
-
-def _neighbours(settings, i) -> list[int]:
-    """The settings next to ``settings[i]`` in time at its ISO."""
-    same = sorted((j for j, s in enumerate(settings) if s.iso == settings[i].iso), key=lambda j: settings[j].time)
-    k = same.index(i)
-    return same[max(k - 1, 0):k + 2]
+    eye, pad = identity(k, format="csr"), csr_matrix((1, 2 * k))
+    blocks = [bmat([[csr_matrix(-b), eye, csr_matrix((k, k))]])]  # x - B n = 0
+    blocks += [bmat([[csr_matrix((k, n)), eye / (x * x), eye]]) for x in x0]  # the tangents
+    blocks += [bmat([[csr_matrix(a / floor), csr_matrix((a.shape[0], 2 * k))]]),
+               bmat([[csr_matrix(times[None]), pad]]), bmat([[csr_matrix(np.ones((1, n))), pad]])]
+    lower = np.r_[np.zeros(k), np.repeat(2.0 / x0, k), np.ones(a.shape[0]), -np.inf, 1.0]
+    upper = np.r_[np.zeros(k), np.full(k * len(x0), np.inf), np.full(a.shape[0], np.inf), budget, max_frames]
+    res = milp(np.r_[np.zeros(n + k), w / w.sum()],
+               constraints=[LinearConstraint(vstack(blocks, format="csr"), lower, upper)],
+               bounds=Bounds(np.zeros(n + 2 * k), np.r_[np.full(n, float(max_frames)), np.full(2 * k, np.inf)]))
+    return None if res.x is None else res.x[:n]
 
 
 def _coarsen(r: np.ndarray, w: np.ndarray, lo: float, step_ev: float) -> tuple[np.ndarray, np.ndarray]:
@@ -403,20 +393,59 @@ def _coarsen(r: np.ndarray, w: np.ndarray, lo: float, step_ev: float) -> tuple[n
     each bin's share-weighted geometric mean irradiance and its share."""
     keep = w > 0
     r, w = r[keep], w[keep]
-    bins, index = np.unique(np.floor(np.log2(r / lo) / step_ev), return_inverse=True)
-    share = np.bincount(index, w, len(bins))
-    return np.exp2(np.bincount(index, w * np.log2(r), len(bins)) / share), share
+    _, index = np.unique(np.floor(np.log2(r / lo) / step_ev), return_inverse=True)
+    share = np.bincount(index, w)
+    return np.exp2(np.bincount(index, w * np.log2(r)) / share), share
 
 
-def _with_least_mean_error(settings, scene, counts, constraints, floor, max_frames, time_limit, optimal, gap):
-    """The plan of ``counts`` or, if better in mean error, that of
-    :func:`_least_mean_error` under the same ``constraints``."""
-    plan = evaluate([(s, n) for s, n in zip(settings, counts)], scene, optimal, gap)
-    better = _least_mean_error(settings, scene, constraints, floor, max_frames, time_limit, counts)
-    if better is None:
-        return plan
-    other = evaluate([(s, n) for s, n in zip(settings, better)], scene, optimal, gap)
-    return other if other.mean_snr_db > plan.mean_snr_db else plan
+def _rounded(x: np.ndarray, times: np.ndarray, budget: float, max_frames: int) -> np.ndarray:
+    """Continuous counts ``x`` rounded down, then the frames of the largest remainders
+    added while the budget and the frames allow."""
+    counts = np.floor(x + 1e-9).astype(int)
+    for j in np.argsort(-(x - counts), kind="stable"):
+        if counts.sum() < max_frames and times @ counts + times[j] <= budget * (1 + 1e-12):
+            counts[j] += 1
+    return counts
+
+
+def _exchange(b, w, a, floor, times, budget, max_frames, counts) -> tuple[np.ndarray, tuple]:
+    """From ``counts``, while one improves, the best move that adds a frame of any setting
+    or puts one frame at another setting, within the budget and the frames.  Moves are
+    ranked first by how far the worst case falls short of ``floor`` (``1 - min(a n) /
+    floor``, 0 when it holds), then by the mean error ``sum_k w_k / SNR_k`` (``b``: the
+    photosites' ``r^2 I``).  Returns the counts and their (shortfall, mean error)."""
+    counts = counts.copy()
+
+    def score(snr, worst):
+        with np.errstate(divide="ignore"):
+            error = w @ np.where(snr > 0, 1.0 / np.maximum(snr, 1e-300), np.inf)
+        return np.maximum(0.0, 1.0 - np.min(worst, axis=0) / floor), error
+
+    while True:
+        snr, worst, spent = b @ counts, a @ counts, float(times @ counts)
+        now = tuple(float(v[0]) for v in score(snr[:, None], worst[:, None]))
+        best = None
+        outs = ([-1] if counts.sum() < max_frames else []) + list(np.flatnonzero(counts))
+        for i in outs:
+            less_b, less_a, less_t = (0.0, 0.0, 0.0) if i < 0 else (b[:, [i]], a[:, [i]], times[i])
+            short, error = score(snr[:, None] - less_b + b, worst[:, None] - less_a + a)
+            fits = spent - less_t + times <= budget * (1 + 1e-12)
+            fits[i] &= i < 0
+            for j in np.flatnonzero(fits):
+                if best is None or (short[j], error[j]) < best[0]:
+                    best = ((short[j], error[j]), i, j)
+        if best is None or not (best[0][0] < now[0] - 1e-12 or (best[0][0] <= now[0] and best[0][1] < now[1] * (1 - 1e-6))):
+            return counts, now
+        _, out, into = best
+        if out >= 0:
+            counts[out] -= 1
+        counts[into] += 1
+
+
+def _with_least_mean_error(settings, scene, a, counts, floor, budget, max_frames, optimal, gap) -> Plan:
+    """The plan of ``counts`` after :func:`_least_mean_error`."""
+    better = _least_mean_error(settings, scene, a, floor, budget, max_frames, counts)
+    return evaluate([(s, n) for s, n in zip(settings, better)], scene, optimal, gap)
 
 
 def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_frames: int,
@@ -462,8 +491,7 @@ def best_plan(settings: list[Setting], scene: SceneRange, budget: float, max_fra
         return replace(start, lowest_iso=start)
     # of the plans within the margin (and not below at_least_db), the least mean error
     least = min(reached, max(reached * 10 ** (-margin_db / 10), 10 ** (at_least_db / 10)))
-    plan = _with_least_mean_error(settings, scene, counts, [LinearConstraint(a, least, np.inf)] + within, least,
-                                  max_frames, time_limit, optimal, gap)
+    plan = _with_least_mean_error(settings, scene, a, counts, least, budget, max_frames, optimal, gap)
     return replace(plan, lowest_iso=start)
 
 
@@ -488,8 +516,8 @@ def shortest_plan(settings: list[Setting], scene: SceneRange, min_snr_db: float,
     counts, optimal, gap = _solve(times, cons, n, max_frames, time_limit)
     if counts is None:
         return None
-    same_time = cons + [LinearConstraint(times[None], -np.inf, float(times @ counts) * 1.0001)]
-    return _with_least_mean_error(settings, scene, counts, same_time, floor, max_frames, time_limit, optimal, gap)
+    return _with_least_mean_error(settings, scene, a, counts, floor, float(times @ counts) * 1.0001, max_frames,
+                                  optimal, gap)
 
 
 def conventional_brackets(settings: list[Setting], step_ev: float, max_frames: int):
