@@ -72,7 +72,7 @@ def command(metering_frames, budget, min_snr, frames, shutter_speeds, isos, lose
     over the number of frames of each setting, solved by HiGHS).  The worst case is the
     lowest SNR of the merged irradiance over the range the plan protects: each channel's
     photosites but the --lose-dark darkest and the --lose-bright brightest.  Of the plans
-    within 0.5 dB of the best worst case, and never below the conventional brackets', the
+    within 1 dB of the best worst case, and never below the conventional brackets', the
     plan is the one of least mean error over that range.  Prints the frames, the plan
     compared with a plan at the lowest ISO and with conventional 1- and 2-EV brackets of
     the same time, and the SNR against irradiance.

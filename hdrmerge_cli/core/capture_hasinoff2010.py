@@ -30,12 +30,16 @@ the brightest photosite or at a frame's dip: :func:`critical_irradiances` lists 
 within 0.1 dB of the minimum over a dense grid, tested).
 
 Plans.  SNR(r) is linear in the number of frames ``n_s`` shot with each setting s, so
-the best plan is a mixed-integer linear program over the counts (Hasinoff, Sec. 4):
-maximise ``tau`` subject to ``sum_s n_s r_i^2 I_s(r_i) >= tau`` at every critical
-irradiance ``r_i``, ``sum_s n_s t_s <= T`` and ``sum_s n_s <= N`` (:func:`best_plan`); or
-minimise the total time subject to ``tau >= tau_min`` (:func:`shortest_plan`).  Both are
-solved by HiGHS (``scipy.optimize.milp``) to a relative gap of 1e-3 (0.004 dB) unless
-its time limit stops the branch and bound first (then the best plan found, with its gap).
+the best worst case is a mixed-integer linear program over the counts (Hasinoff, Sec.
+4): maximise ``tau`` subject to ``sum_s n_s r_i^2 I_s(r_i) >= tau`` at every critical
+irradiance ``r_i``, ``sum_s n_s t_s <= T`` and ``sum_s n_s <= N``; or minimise the total
+time subject to ``tau >= tau_min`` (:func:`shortest_plan`).  Both are solved by HiGHS
+(``scipy.optimize.milp``) to a relative gap of 1e-2 (0.04 dB) unless its time limit
+stops the branch and bound first (then the best plan found, with its gap).  Of the plans
+within :data:`MARGIN_DB` of the best worst case, :func:`best_plan` then takes the one of
+least mean error over the protected photosites (:func:`mean_snr_db`,
+:func:`_least_mean_error`): the last fraction of a dB at the worst irradiance is not
+worth several dB over the rest of the scene.
 """
 from __future__ import annotations
 
@@ -44,6 +48,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.excess_variance import MATERIAL_DB
 from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
 #: shutter times of the 1/3-stop series as cameras label them (s), 1/8000 to 30 s
@@ -321,8 +326,8 @@ def _solve(c, constraints, n_settings, max_frames, time_limit, at_least: float =
 
 
 #: worst-case SNR (dB) a plan may give up against the best for a lower mean error over
-#: the rest of the scene (:func:`best_plan`)
-MARGIN_DB = 0.5
+#: the rest of the scene (:func:`best_plan`): a difference the tool calls material
+MARGIN_DB = MATERIAL_DB
 #: bins (EV) of the protected photosites in the relaxation that guides the mean-error
 #: search (each at its share-weighted geometric mean irradiance)
 RELAX_BIN_EV = 1 / 3
