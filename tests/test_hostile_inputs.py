@@ -376,3 +376,66 @@ def test_black_frames_are_not_called_clipped(tmp_path, value, words, absent):
     skipped = [ln for ln in stderr.splitlines() if "skipped" in ln]
     assert len(skipped) == 2 and all(words in ln and absent not in ln for ln in skipped), stderr
     assert not (tmp_path / "n.json").exists()
+
+
+# ---------------------------------------------------------------- the hostile run's leftovers (issue 49)
+def test_calibrate_noise_refuses_frames_of_two_sizes_before_any_array(tmp_path, flats_and_darks):
+    """A bracket of two sizes, and flats of two sizes, were a broadcasting traceback."""
+    small, large = tmp_path / "s", tmp_path / "l"
+    _cli("simulate", "-q", "-o", small, "--size", "64x64", "--frames", "2", "--seed", "1")
+    _cli("simulate", "-q", "-o", large, "--size", "96x64", "--frames", "2", "--seed", "1", "--times", "0.5,0.9")
+    line = _refused(*_cli("calibrate-noise", small / "frame_00.dng", large / "frame_01.dng", "-o", tmp_path / "out.json"),
+                    1, ["size 96x64 differs from 64x64", "pixel by pixel"])
+    assert str(large / "frame_01.dng") in line
+    flats = tmp_path / "flats"
+    flats.mkdir()
+    for k, f in enumerate(sorted((flats_and_darks / "flats").glob("*.dng"))[:2]):
+        (flats / f"a{k}.dng").write_bytes(f.read_bytes())
+    _cli("simulate", "-q", "-o", tmp_path / "f2", "--scene", "flat", "--scale", "1000", "--size", "64x96",
+         "--frames", "2")
+    for f in sorted((tmp_path / "f2").glob("*.dng")):
+        (flats / f"b{f.name}").write_bytes(f.read_bytes())
+    _refused(*_cli("calibrate-noise", "--flats", flats, "--darks", flats_and_darks / "darks", "-o",
+                   tmp_path / "out.json"), 1, ["size", "differs from", "pixel by pixel"])
+    _nothing_written(tmp_path)
+
+
+def test_cfa_on_an_image_bracket_says_it_writes_rgb(tmp_path, jpeg_bracket):
+    folder, meta = jpeg_bracket
+    code, stderr = _cli("merge", *frames_of(folder, meta), "--cfa", "-o", tmp_path / "m.exr")
+    assert code == 0 and "--cfa" in stderr and "camera-processed image" in stderr and "writing RGB" in stderr
+
+
+def test_lut_names_itself_in_the_header_and_profile_not_the_unused_weights(tmp_path, jpeg_bracket):
+    import OpenImageIO as oiio
+
+    folder, meta = jpeg_bracket
+    frames = frames_of(folder, meta)
+    lut = tmp_path / "w.csv"
+    code, stderr = _cli("weights-lut", *frames, "-o", lut)
+    assert code == 0, stderr
+    code, stderr = _cli("merge", *frames, "--lut", lut, "--weights", "triangle", "-o", tmp_path / "m.exr")
+    assert code == 0 and "--weights triangle is not used" in stderr, stderr
+    header = oiio.ImageInput.open(str(tmp_path / "m.exr")).spec().getattribute("hdrmerge:weights")
+    assert header == "lut:w.csv"
+    assert json.loads((tmp_path / "m.profile.json").read_text())["weights"] == "lut:w.csv"
+
+
+@pytest.mark.parametrize("fmt", ["jpg", "dng"])
+def test_simulate_refuses_16_bit_output_its_format_cannot_hold(tmp_path, fmt):
+    _refused(*_cli("simulate", "--format", fmt, "--out-bits", "16", "--size", "64x64", "-o", tmp_path / "out"), 2,
+             ["--out-bits"])
+    assert not (tmp_path / "out").exists()
+
+
+def test_plan_refuses_metering_frames_at_an_iso_the_profile_lacks(tmp_path):
+    from hdrmerge_cli.core.crf import CRF
+    from hdrmerge_cli.io.profile import new_profile
+
+    _cli("simulate", "-q", "-o", tmp_path / "m", "--size", "128x96", "--frames", "3", "--iso", "400", "--seed", "2")
+    profile = tmp_path / "cam.json"
+    prof = new_profile({"make": "hdrmerge-cli", "model": "simulated sensor"}, 14, CRF("linear"), [], "test")
+    profile.write_text(json.dumps(prof | {"noise": {"ISO100": {c: {"sigma_o2": 9.0, "alpha": 0.25, "beta": 0.0}
+                                                               for c in "RGB"}}}))
+    _refused(*_cli("plan", *sorted((tmp_path / "m").glob("*.dng")), "--profile", profile, "--time", "0.5"), 1,
+             [str(profile), "ISO400", "ISO100"])

@@ -106,6 +106,10 @@ def command(output_dir, scene, size, downscale, scale, frames, repeat, times, fm
     """
     bits = bits or (14 if fmt == "dng" else 12)
     black = black if black is not None else (2 ** (bits - 5) if fmt == "dng" else 0)
+    if out_bits == "16" and fmt in ("jpg", "dng"):
+        raise click.BadParameter("JPEG holds 8 bits per sample; give --format tif or png for 16" if fmt == "jpg" else
+                                 "DNG frames hold the sensor's --bits; --out-bits is for TIFF and PNG",
+                                 param_hint="--out-bits")
     if sigma_post2 > sigma_o2:
         raise click.BadParameter(f"{sigma_post2:g} exceeds --sigma-o2 {sigma_o2:g} (it is the part of the read noise "
                                  "after the amplifier)", param_hint="--sigma-post2")

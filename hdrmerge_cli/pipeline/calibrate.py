@@ -222,11 +222,15 @@ def _combine(image: dict | None, ptc: dict | None) -> dict:
 
 
 def _check_group(frames: list[Frame], what: str) -> None:
-    """One camera and file type; ISO known for all frames or for none."""
+    """One camera, file type and size (frames are compared pixel by pixel); ISO known for
+    all frames or for none."""
     ref = frames[0]
     for f in frames:
         if f.kind != ref.kind or f.camera != ref.camera:
             raise HdrMergeError(f"{f.path}: a different camera or file type than {ref.path}")
+        if (f.width, f.height) != (ref.width, ref.height):
+            raise HdrMergeError(f"{f.path}: size {f.width}x{f.height} differs from {ref.width}x{ref.height} of "
+                                f"{ref.path}; the {what} are compared pixel by pixel")
     isos = {f.iso is None for f in frames}
     if len(isos) > 1:
         missing = next(f for f in frames if f.iso is None)

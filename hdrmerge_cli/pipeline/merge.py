@@ -190,8 +190,9 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
     if outputs.colorspace == "camera" and frames[0].kind == "image":
         log.warning("--colorspace camera: %s carries no camera matrix (camera-processed image); the output is "
                     "Rec.709 (sRGB primaries)", frames[0].path)
-    if outputs.cfa and frames[0].kind == "linear":
-        log.warning("--cfa: %s holds linear RGB (already demosaiced), no mosaic; writing RGB", frames[0].path)
+    if outputs.cfa and frames[0].kind != "raw":
+        log.warning("--cfa: %s holds %s, no mosaic; writing RGB", frames[0].path,
+                    "linear RGB (already demosaiced)" if frames[0].kind == "linear" else "a camera-processed image")
     # the noise is measured on the frames as decoded: resampling smooths it, and frames that
     # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
     models = choose_models(frames, exposures, crf, settings, unaligned, noise, samples, noise_by_iso,

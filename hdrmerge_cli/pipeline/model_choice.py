@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -138,6 +139,10 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
                                                    excess=excess if estimator == "ml" else None,
                                                    frame_noise=frame_noise)
     timings["tables"] = time.perf_counter() - t0
+    if settings.lut:  # the table's weights are the merge's, whatever --weights says
+        if settings.weights != "auto":
+            log.warning("--weights %s is not used: --lut %s gives the weights", settings.weights, settings.lut)
+        weights = f"lut:{Path(settings.lut).name}"
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
                   table_channels, excess, timings, frame_noise)
 

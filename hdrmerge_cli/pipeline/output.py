@@ -227,7 +227,7 @@ class Merged:
         first, m = self.first, self.models
         profile = new_profile({"make": first.make, "model": first.model}, first.bits, self.crf,
                               [f.path for f in self.frames], "merge")
-        profile["weights"] = f"lut:{Path(self.options.algorithm.lut).name}" if self.options.algorithm.lut else m.weights
+        profile["weights"] = m.weights
         if m.noise:
             profile["noise"] = {"used": m.noise_used(first)}
             if m.frame_noise:  # the frames' ISOs differ: "used" is the reference frame's

@@ -209,6 +209,11 @@ def settings_for(metering: Metering, opts: PlanOptions) -> list[capture.Setting]
         if metering.reference_iso is None:
             raise HdrMergeError(f"{metering.source}: states no ISO, so its irradiance cannot be related to the "
                                 "profile's ISOs")
+        lacking = sorted({iso for _, iso in metering.own if iso is not None and float(iso) not in noise_at})
+        if lacking:
+            raise HdrMergeError(f"{opts.profile}: calibrates no {iso_key(float(lacking[0]))}, the ISO of metering "
+                                f"frames (it has {', '.join(iso_key(i) for i in sorted(noise_at))}); meter at one of "
+                                "those, or run calibrate-noise there")
         if opts.isos:
             missing = [i for i in opts.isos if float(i) not in noise_at]
             if missing:
