@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from conftest import frames_of
+from conftest import SHARED, frames_of, needs_shared
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import atomic_paths
 from hdrmerge_cli.io.profile import KIND, save_profile
@@ -439,3 +439,28 @@ def test_plan_refuses_metering_frames_at_an_iso_the_profile_lacks(tmp_path):
                                                                for c in "RGB"}}}))
     _refused(*_cli("plan", *sorted((tmp_path / "m").glob("*.dng")), "--profile", profile, "--time", "0.5"), 1,
              [str(profile), "ISO400", "ISO100"])
+
+
+@needs_shared
+def test_calibrate_noise_refuses_one_textured_photograph(tmp_path):
+    """One DNG of a textured scene: its local statistics read texture as noise (sigma_o2 of
+    0 or 2e5 against 9); refused, naming the frame and what would measure the noise."""
+    folder = tmp_path / "one"
+    _cli("simulate", "-q", "-o", folder, "--frames", "1", "--seed", "4", "--scene",
+         SHARED / "hdr" / "ScanLines_StillLife.exr", "--downscale", "4", "--scale", "20000")
+    line = _refused(*_cli("calibrate-noise", folder / "frame_00.dng", "-o", tmp_path / "out.json"), 1,
+                    ["do not pin the noise", "+/-", "two or more exposures", "--flats"])
+    assert str(folder / "frame_00.dng") in line
+    _nothing_written(tmp_path)
+
+
+def test_calibrate_noise_on_flats_without_darks_states_the_read_noise_uncertainty(tmp_path):
+    flats = tmp_path / "flats"
+    _cli("simulate", "-q", "-o", flats, "--scene", "flat", "--scale", "300", "--size", "96x96", "--frames", "5",
+         "--repeat", "2")
+    code, stderr = _cli("calibrate-noise", "--flats", flats, "-o", tmp_path / "n.json")
+    assert code == 0 and "without --darks" in stderr and "+/-" in stderr, stderr
+    noise = json.loads((tmp_path / "n.json").read_text())["noise"]["ISO100"]
+    for entry in noise.values():
+        se = entry["stderr"]["sigma_o2"]
+        assert se > 0 and abs(entry["sigma_o2"] - 9.08) < 4 * se

@@ -69,6 +69,7 @@ class PTCResult:
     z_statistic: float
     p_value: float
     residual_rms: float
+    sigma_o2_stderr: float
 
 
 def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]], full_scale: float,
@@ -76,7 +77,8 @@ def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]
     """EMVA 1288 photon transfer for one channel: the parameters of (17).
 
     darks : frames (H, W) with no light, at least 2, or None (then the read noise is the
-        intercept of the photon-transfer line and the offset is taken as 0).
+        intercept of the photon-transfer line and the offset is taken as 0).  The read
+        noise's standard error is that of the darks' temporal variance, or of the intercept.
     flats : per exposure level a list of at least 2 frames (H, W) of a uniform field.
     full_scale : the largest value above black (saturation), for the 70 % linear range.
     Values are linear code values above the black level."""
@@ -100,16 +102,18 @@ def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]
     used = (mean > 0) & (mean <= LINEAR_RANGE * full_scale)
     if np.count_nonzero(used) < 2:
         raise HdrMergeError("flats: fewer than two exposure levels between black and 70 % of saturation")
+    n = levels[0][0].size
     if dark_var is not None:  # EMVA: sigma^2_y - sigma^2_dark = K mu, through the origin, weighted by the
         w = 1.0 / temporal[used] ** 2  # sampling variance of each level's temporal variance (~ 2 sigma^4 / N)
         k = float(np.sum(w * mean[used] * (temporal[used] - dark_var)) / np.sum(w * mean[used] ** 2))
         sigma_o2 = dark_var
+        sigma_o2_stderr = dark_var * float(np.sqrt(2.0 / (n * (len(darks) - 1))))
         pred = dark_var + k * mean
     else:  # no darks: read noise from the intercept
         if np.count_nonzero(used) < 3:
             raise HdrMergeError("flats without darks: need three exposure levels in the linear range")
-        k, sigma_o2 = np.polyfit(mean[used], temporal[used], 1, w=1.0 / temporal[used])
-        sigma_o2 = max(float(sigma_o2), 0.0)
+        (sigma_o2, k), sigma_o2_stderr = _weighted_line(mean[used], temporal[used], n * (count[used] - 1))
+        sigma_o2 = max(sigma_o2, 0.0)
         pred = sigma_o2 + k * mean
     if not k > 0:
         raise HdrMergeError("flats: the temporal variance does not grow with the signal (are they flat fields "
@@ -117,7 +121,6 @@ def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]
     # PRNU: excess spatial variance of the averaged frames over mu^2, weighted by the
     # sampling variance of each level's excess (both terms are sample variances of N
     # Gaussian values, independent because (A + B) and (A - B) are)
-    n = levels[0][0].size
     excess = spatial - temporal / count - dsnu2
     sel = mean > 0
     var_excess = 2 * spatial**2 * IMMERKAER_SUM_RHO2 / n + 2 * (temporal / count) ** 2 / (n * (count - 1))
@@ -131,4 +134,16 @@ def photon_transfer(darks: list[np.ndarray] | None, flats: list[list[np.ndarray]
     rel = (temporal[used] - pred[used]) / pred[used]
     return PTCResult(float(sigma_o2), float(alpha), float(slope * alpha) if quadratic else 0.0,
                      "quadratic" if quadratic else "affine", dark_offset, float(dsnu2), mean, temporal, spatial, used,
-                     float(t), p, float(np.sqrt(np.mean(rel**2))))
+                     float(t), p, float(np.sqrt(np.mean(rel**2))), float(sigma_o2_stderr))
+
+
+def _weighted_line(x: np.ndarray, y: np.ndarray, dof: np.ndarray) -> tuple[tuple[float, float], float]:
+    """``y = a + b x`` by least squares weighted by the sampling variance of each ``y``, a
+    variance of ``dof`` degrees of freedom (``2 y^2 / dof``): ``((a, b), stderr of a)``,
+    the covariance scaled up by the residuals' reduced chi-square where it exceeds 1."""
+    design = np.c_[np.ones_like(x), x]
+    w = dof / (2.0 * y * y)
+    cov = np.linalg.inv(design.T @ (w[:, None] * design))
+    coef = cov @ design.T @ (w * y)
+    chi2 = float(np.sum(w * (y - design @ coef) ** 2)) / max(len(y) - 2, 1)
+    return (float(coef[0]), float(coef[1])), float(np.sqrt(cov[0, 0] * max(chi2, 1.0)))

@@ -182,6 +182,24 @@ def frame_report(frame: Frame, planes, params: dict[str, dict]) -> dict:
             "break_point": breaks}
 
 
+#: local statistics measure a parameter when it is at least this many of its standard
+#: errors (a relative error of at most 25 %); below that, scene texture is being read as noise
+PINNED_STDERRS = 4.0
+
+
+def _check_pinned(fits: dict[str, dict], frames: list[Frame]) -> None:
+    """Refuse noise that one frame's local statistics (no exposure pair) do not pin: a
+    parameter within :data:`PINNED_STDERRS` standard errors of 0 on some channel."""
+    if any(e["method"]["alpha"] != "local statistics" for e in fits.values()):
+        return
+    weak = [f"{c}: {p} {e[p]:.3g} +/- {e['stderr'][p]:.2g}" for c, e in fits.items() for p in ("sigma_o2", "alpha")
+            if not e[p] >= PINNED_STDERRS * e["stderr"][p]]
+    if weak:
+        raise HdrMergeError(f"{frames[0].path}: its local statistics do not pin the noise ({'; '.join(weak[:3])}): "
+                            "scene texture is read as noise; give two or more exposures of a still scene, or --flats "
+                            "and --darks")
+
+
 def _fit_entry(fit: NoiseFit, pairs: list[float], window: int) -> dict:
     source = "exposure pairs" if pairs else "local statistics"
     return fit.as_dict() | {
@@ -196,7 +214,7 @@ def _ptc_entry(r: PTCResult) -> dict:
     return {
         "sigma_o2": r.sigma_o2, "alpha": r.alpha, "beta": r.beta, "model": r.model,
         "points": int(np.count_nonzero(r.used)), "residual_rms": r.residual_rms,
-        "z_statistic": r.z_statistic, "p_value": r.p_value,
+        "z_statistic": r.z_statistic, "p_value": r.p_value, "stderr": {"sigma_o2": round(r.sigma_o2_stderr, 4)},
         "dark_offset": r.dark_offset, "dsnu2": r.dsnu2,
         "method": {"sigma_o2": "photon transfer: darks" if r.dark_offset is not None
                    else "photon transfer: intercept of the flats",
@@ -292,6 +310,12 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
                                 [f for f in flats if iso_key(f.iso) == iso], crf)
         if not fits and not ptcs:
             continue
+        if not ptcs:
+            _check_pinned(fits, group)
+        if ptcs and not fits and all(e["dark_offset"] is None for e in ptcs.values()):
+            log.warning("%s: without --darks the read noise is the intercept of the photon-transfer line (%s: %s); "
+                        "darks measure it directly", opts.flats, iso, ", ".join(
+                            f"{c} {e['sigma_o2']:.3g} +/- {e['stderr']['sigma_o2']:.2g}" for c, e in ptcs.items()))
         noise[iso] = {name: _combine(fits.get(name), ptcs.get(name)) for name in sorted(set(fits) | set(ptcs))}
         for name, e in noise[iso].items():
             plot_data.setdefault(iso, {}).setdefault(name, {})["levels"] = e.get("levels")
@@ -428,6 +452,7 @@ def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> d
         out[name] = _ptc_entry(r)
     if not out:
         raise HdrMergeError(f"{flats[0].path}: photon transfer needs at least two flats per exposure time")
+
     return out
 
 
