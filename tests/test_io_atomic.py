@@ -84,10 +84,11 @@ def test_colliding_outputs_are_refused_before_any_work(run, tmp_path, jpeg_brack
         assert target.read_bytes() == before
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_a_signal_mid_write_removes_the_temporaries(run, tmp_path_factory, sig):
-    """SIGTERM/SIGHUP while the outputs are being written (a temporary exists): every
-    temporary removed, no output, exit 128 + n, one line."""
+    """SIGTERM/SIGHUP/SIGINT (Ctrl-C) while the outputs are being written (a temporary
+    exists): every temporary removed, no output, exit 128 + n (130 for Ctrl-C, not click's
+    "Aborted!" and 1), one line."""
     from conftest import _command
 
     folder = tmp_path_factory.mktemp("big")

@@ -96,9 +96,10 @@ class _Group(click.Group):
             raise
         except HdrMergeError as exc:
             raise DataError(name_config_in_error(ctx.meta, str(exc))) from None
-        except Terminated as exc:
-            click.echo(f"hdrmerge-cli: stopped by {signal.Signals(exc.signum).name}; no partial output was left", err=True)
-            ctx.exit(128 + exc.signum)
+        except (Terminated, KeyboardInterrupt) as exc:  # Unix tools exit 128 + the signal (130 for Ctrl-C)
+            signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+            click.echo(f"hdrmerge-cli: stopped by {signal.Signals(signum).name}; no partial output was left", err=True)
+            ctx.exit(128 + signum)
         except MemoryError:
             advice = OUT_OF_MEMORY.get(ctx.invoked_subcommand, OUT_OF_MEMORY["merge"])
             raise DataError(f"out of memory: {advice}") from None
