@@ -239,16 +239,21 @@ def _combine(image: dict | None, ptc: dict | None) -> dict:
     return out
 
 
+def _check_sizes(frames: list[Frame], what: str) -> None:
+    """One size for frames compared pixel by pixel (a bracket's exposure pairs; darks and
+    flats), refused before they are compared."""
+    for f in frames[1:]:
+        if (f.width, f.height) != (frames[0].width, frames[0].height):
+            raise HdrMergeError(f"{f.path}: size {f.width}x{f.height} differs from {frames[0].width}x"
+                                f"{frames[0].height} of {frames[0].path}; the {what} are compared pixel by pixel")
+
+
 def _check_group(frames: list[Frame], what: str) -> None:
-    """One camera, file type and size (frames are compared pixel by pixel); ISO known for
-    all frames or for none."""
+    """One camera and file type; ISO known for all frames or for none."""
     ref = frames[0]
     for f in frames:
         if f.kind != ref.kind or f.camera != ref.camera:
             raise HdrMergeError(f"{f.path}: a different camera or file type than {ref.path}")
-        if (f.width, f.height) != (ref.width, ref.height):
-            raise HdrMergeError(f"{f.path}: size {f.width}x{f.height} differs from {ref.width}x{ref.height} of "
-                                f"{ref.path}; the {what} are compared pixel by pixel")
     isos = {f.iso is None for f in frames}
     if len(isos) > 1:
         missing = next(f for f in frames if f.iso is None)
@@ -297,7 +302,9 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
     isos = sorted({iso_key(f.iso) for f in everything})
     for iso in isos:
         group = sorted((f for f in images if iso_key(f.iso) == iso), key=lambda f: f.exposure_time or 0.0)
+        _check_sizes([f for f in darks + flats if iso_key(f.iso) == iso], "darks and flats")
         read = _read_group(group, crf, "images")
+        _check_sizes([f for f, _ in read], "photographs")  # those kept: a black frame is skipped as such
         if group and not read:
             raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (all clipped or black)")
         fits: dict[str, dict] = {}
