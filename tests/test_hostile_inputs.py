@@ -464,3 +464,47 @@ def test_calibrate_noise_on_flats_without_darks_states_the_read_noise_uncertaint
     for entry in noise.values():
         se = entry["stderr"]["sigma_o2"]
         assert se > 0 and abs(entry["sigma_o2"] - 9.08) < 4 * se
+
+
+def test_a_dng_smaller_than_libraw_reads_says_so(tmp_path):
+    from hdrmerge_cli.io.dng_integer import write_dng
+
+    path = tmp_path / "tiny.dng"
+    write_dng(str(path), np.full((3, 3), 1000, np.uint16), pattern="RGGB", black=512, white=16383,
+              exposure_time=0.01, iso=100, aperture=8.0)
+    _refused(*_cli("info", path), 1, [str(path), "3 x 3 pixels", "at least 32 x 32"])
+
+
+@pytest.mark.parametrize("name", ["dir.csv", "dir.json"])
+def test_a_crf_folder_named_like_a_table_is_a_folder(tmp_path, jpeg_bracket, name):
+    folder, meta = jpeg_bracket
+    (tmp_path / name).mkdir()
+    _refused(*_cli("merge", *frames_of(folder, meta), "--crf", tmp_path / name, "-o", tmp_path / "out.exr"), 1,
+             ["is a folder"], absent=["no such file"])
+
+
+def _flat_tiffs(tmp_path, value, times=(0.01, 0.04, 0.16), size=(64, 48)):
+    import OpenImageIO as oiio
+
+    files = []
+    for k, t in enumerate(times):
+        spec = oiio.ImageSpec(size[0], size[1], 3, oiio.UINT8)
+        spec.attribute("ExposureTime", t)
+        files.append(tmp_path / f"v{value}_{k}.tif")
+        out = oiio.ImageOutput.create(str(files[-1]))
+        assert out.open(str(files[-1]), spec) and out.write_image(np.full((size[1], size[0], 3), value, np.uint8))
+        out.close()
+    return files
+
+
+@pytest.mark.parametrize("value, words", [(0, "read black"), (255, "clipped at white")])
+def test_estimate_crf_on_black_or_white_frames_names_the_frame_not_the_spacing(tmp_path, value, words):
+    files = _flat_tiffs(tmp_path, value)
+    _refused(*_cli("estimate-crf", *files, "-o", tmp_path / "out.csv"), 1, [words, "too few unclipped"],
+             absent=["too far apart"])
+
+
+def test_calibrate_noise_on_a_one_pixel_frame_says_it_is_too_small_not_black(tmp_path):
+    files = _flat_tiffs(tmp_path, 100, times=(0.01,), size=(1, 1))
+    code, stderr = _cli("calibrate-noise", *files, "--crf", "srgb", "-o", tmp_path / "n.json")
+    assert code == 1 and "holds 1 pixels, too few" in stderr and "black" not in stderr, stderr

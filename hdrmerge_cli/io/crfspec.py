@@ -58,6 +58,9 @@ def read_crf_csv(path: str) -> CRF:
 def resolve_crf(spec: str) -> CRF:
     """``--crf``: a profile JSON (``.json``), a CSV table (``.csv``/``.txt``) or a model
     name (:func:`parse_crf`)."""
+    if os.path.isdir(spec):
+        raise HdrMergeError(f"{spec}: is a folder, not a camera response (linear, srgb, gamma:G, a CSV table or "
+                            "a profile JSON)")
     if spec.lower().endswith(".json"):
         return crf_from_json(load_profile(spec)["crf"], spec)
     if spec.lower().endswith((".csv", ".txt")):
@@ -67,9 +70,6 @@ def resolve_crf(spec: str) -> CRF:
     try:
         return parse_crf(spec)
     except HdrMergeError:
-        if os.path.isdir(spec):
-            raise HdrMergeError(f"{spec}: is a folder, not a camera response (linear, srgb, gamma:G, a CSV table or "
-                                "a profile JSON)") from None
         if os.path.isfile(spec):
             raise HdrMergeError(f"{spec}: not a camera response: a response file is a CSV table (.csv, .txt) or a "
                                 "profile JSON (.json)") from None

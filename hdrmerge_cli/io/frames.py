@@ -339,16 +339,39 @@ def _visible(raw) -> np.ndarray:
     return np.ascontiguousarray(raw.raw_image_visible)
 
 
+#: sides (pixels) of the smallest RAW image LibRaw reads (16 x 16 fails, 24 x 24 reads)
+MIN_RAW_SIDE = 32
+
+
 def _libraw_reason(exc, path: str | None = None) -> str:
     name = type(exc).__name__
     if name == "LibRawFileUnsupportedError" and path and Path(path).suffix.lower() == ".x3f":
         return "a Sigma Foveon X3F file, which LibRaw does not read; convert it to a linear DNG first"
+    if name == "LibRawFileUnsupportedError" and path:
+        size = _tiff_size(path)
+        if size and min(size) < MIN_RAW_SIDE:
+            return (f"its image is {size[0]} x {size[1]} pixels; LibRaw reads RAW images of at least {MIN_RAW_SIDE} x "
+                    f"{MIN_RAW_SIDE}")
     return {
         "LibRawIOError": "unreadable or truncated data",
         "LibRawFileUnsupportedError": "unsupported file format",
         "LibRawDataError": "corrupt data",
         "LibRawTooBigError": "image too large",
     }.get(name, name)
+
+
+def _tiff_size(path: str) -> tuple[int, int] | None:
+    """Width and height of a TIFF-based file (a DNG) as its header states them, or None."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        oiio.geterror()
+        return None
+    try:
+        return inp.spec().width, inp.spec().height
+    finally:
+        inp.close()
 
 
 def _white_balance(wb: np.ndarray, daylight: np.ndarray) -> np.ndarray:

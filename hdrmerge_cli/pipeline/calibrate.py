@@ -76,6 +76,9 @@ def _usable(frame: Frame, planes, sites: int | None = None) -> str | None:
                                                                          (bright, "are clipped at white")) if v > 0]
         return " and ".join(parts)
     if not any(_has_signal(p, lo, hi, sites) for _, p, lo, hi in planes):
+        if frame.width * frame.height < MIN_SIGNAL_SITES:
+            return (f"it holds {frame.width * frame.height} pixels, too few to measure noise on (at least "
+                    f"{MIN_SIGNAL_SITES})")
         return "it is black (no signal above its noise floor)"
     return None
 
@@ -306,7 +309,7 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
         read = _read_group(group, crf, "images")
         _check_sizes([f for f, _ in read], "photographs")  # those kept: a black frame is skipped as such
         if group and not read:
-            raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (all clipped or black)")
+            raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (each was skipped, as the warnings say)")
         fits: dict[str, dict] = {}
         for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
             k = [c for c, *_ in read[0][1]].index(name)

@@ -203,9 +203,23 @@ def check_overlap(frames: list[Frame], s: Samples) -> None:
     if thin is not None:
         k, both = thin
         pixels = frames[k].width * frames[k].height
-        why = f"the frames have only {pixels} pixels" if pixels < MIN_OVERLAP else "the exposures are too far apart"
+        why = (f"the frames have only {pixels} pixels to estimate a CRF" if pixels < MIN_OVERLAP else
+               _clipped_alone(frames, s, k) or "the exposures are too far apart to estimate a CRF")
         raise HdrMergeError(f"{frames[k].path}: only {both} pixels are unclipped both here and in "
-                            f"{frames[k - 1].path} (need {MIN_OVERLAP}); {why} to estimate a CRF")
+                            f"{frames[k - 1].path} (need {MIN_OVERLAP}); {why}")
+
+
+def _clipped_alone(frames: list[Frame], s: Samples, k: int) -> str | None:
+    """Why the pair ending at frame ``k`` shares too few unclipped pixels when one frame
+    alone has too few (black or white), else None."""
+    lo, hi = 0.5 * s.codes_step, 1 - 0.5 * s.codes_step
+    for j in (k - 1, k):
+        v = s.v[j][s.inside]
+        if np.count_nonzero(((v > lo) & (v < hi)).all(-1)) * s.step ** 2 < MIN_OVERLAP:
+            parts = [f"{100 * x:.1f} % of its pixels {what}" for x, what in (
+                (np.mean((v <= lo).any(-1)), "read black"), (np.mean((v >= hi).any(-1)), "are clipped at white")) if x]
+            return f"{frames[j].path} holds too few unclipped pixels ({' and '.join(parts)})"
+    return None
 
 
 # ---------------------------------------------------------------- estimates

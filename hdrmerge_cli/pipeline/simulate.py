@@ -24,7 +24,7 @@ from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, gain_pattern, quantise_crf, quantise_raw
 from hdrmerge_cli.io.atomic import atomic_paths, output_folder, write_text
 from hdrmerge_cli.io.crfspec import resolve_crf
-from hdrmerge_cli.io.frames import read_frame
+from hdrmerge_cli.io.frames import MIN_RAW_SIDE, read_frame
 from hdrmerge_cli.io.images import read_exr, read_header, write_exr, write_ldr
 from hdrmerge_cli.io.malloc import available_memory
 from hdrmerge_cli.io.noisespec import iso_key
@@ -35,7 +35,6 @@ log = logging.getLogger("hdrmerge_cli")
 
 FORMATS = ("dng", "jpg", "tif", "png")
 CFA_PATTERN = "RGGB"
-MIN_DNG_SIZE = 32  # LibRaw refuses very small DNGs (16 x 16 fails, 24 x 24 reads)
 #: shortest exposure time a DNG stores (a 32-bit rational), and any other format
 SHORTEST = {"dng": 1e-6}
 #: peak memory of a simulation per pixel of the scene (bytes; the built-in scene's
@@ -213,8 +212,8 @@ def simulate(opts: SimulateOptions) -> dict:
     crf = CRF("linear") if opts.fmt == "dng" else resolve_crf(opts.crf)
     out_bits = 8 if opts.fmt == "jpg" else opts.out_bits
     irradiance, scene_name = load_scene(opts)
-    if opts.fmt == "dng" and min(irradiance.shape[:2]) < MIN_DNG_SIZE:
-        raise HdrMergeError(f"{scene_name}: LibRaw reads DNGs of at least {MIN_DNG_SIZE} x {MIN_DNG_SIZE} pixels; "
+    if opts.fmt == "dng" and min(irradiance.shape[:2]) < MIN_RAW_SIDE:
+        raise HdrMergeError(f"{scene_name}: LibRaw reads DNGs of at least {MIN_RAW_SIDE} x {MIN_RAW_SIDE} pixels; "
                             + ("use a larger --size or less --downscale" if scene_name in ("builtin", "flat", "dark")
                                else "use less --downscale or a larger scene"))
     rng = np.random.default_rng(opts.seed)
