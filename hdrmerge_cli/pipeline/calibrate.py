@@ -309,7 +309,7 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
         read = _read_group(group, crf, "images")
         _check_sizes([f for f, _ in read], "photographs")  # those kept: a black frame is skipped as such
         if group and not read:
-            raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (each was skipped, as the warnings say)")
+            raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (the warnings above say why)")
         fits: dict[str, dict] = {}
         for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
             k = [c for c, *_ in read[0][1]].index(name)
