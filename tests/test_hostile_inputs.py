@@ -508,3 +508,26 @@ def test_calibrate_noise_on_a_one_pixel_frame_says_it_is_too_small_not_black(tmp
     files = _flat_tiffs(tmp_path, 100, times=(0.01,), size=(1, 1))
     code, stderr = _cli("calibrate-noise", *files, "--crf", "srgb", "-o", tmp_path / "n.json")
     assert code == 1 and "holds 1 pixels, too few" in stderr and "black" not in stderr, stderr
+
+
+@needs_shared
+def test_given_times_that_contradict_the_frames_are_named(tmp_path):
+    """Equal times given to a 4-stop bracket, and a wrong given time where the response
+    in use does not fit either: the messages name --times, not the metadata or the
+    response alone."""
+    frames = sorted((SHARED / "brackets" / "stack_jpg").glob("stack_room_exp_[234].jpg"))
+    code, stderr = _cli("merge", *frames, "--times", "0.1,0.1,0.1", "-o", tmp_path / "a.exr")
+    assert code == 0 and "by --times" in stderr and "check --times" in stderr and "metadata" not in stderr, stderr
+    code, stderr = _cli("merge", *frames, "--times", "0.125,0.0333,0.0166", "--crf", "gamma:1.5", "-o",
+                        tmp_path / "b.exr")
+    assert code == 0 and "the time --times gives it" in stderr and "not at fault" not in stderr, stderr
+
+
+@needs_shared
+def test_two_frames_whose_labels_disagree_name_both(tmp_path):
+    """Two frames tell a ratio, not which label is wrong: both are named, the absurd one
+    included whichever is the reference."""
+    frames = sorted((SHARED / "brackets" / "stack_jpg").glob("stack_room_exp_[23].jpg"))
+    code, stderr = _cli("merge", *frames, "--times", "1e5,0.0333", "--crf", "srgb", "-o", tmp_path / "m.exr")
+    assert code == 0 and "cannot tell which label is wrong" in stderr, stderr
+    assert all(str(f) in stderr for f in frames) and "1e+05 s" in stderr

@@ -80,6 +80,9 @@ class Frame:
     auto_bracket: bool = False
     #: images: EXIF ExposureBiasValue (EV), the exposure compensation of the frame, or None
     exposure_bias: float | None = None
+    #: where ``exposure_time`` comes from: ``"its metadata"``, ``"--times"`` or the times file
+    #: (:func:`~hdrmerge_cli.io.times.apply_times`), for messages that question it
+    time_source: str = "its metadata"
 
     @property
     def name(self) -> str:

@@ -105,13 +105,13 @@ def apply_times(frames, times, times_file: str | None = None) -> None:
         if len(times) != len(frames):
             raise HdrMergeError(f"--times gives {len(times)} values for {len(frames)} frames")
         for f, t in zip(frames, times):
-            f.exposure_time = t
+            f.exposure_time, f.time_source = t, "--times"
     if times_file is not None:
         table = read_times_file(times_file)
         for f in frames:
             if f.name not in table:
                 raise HdrMergeError(f"{f.path}: not listed in the times file {times_file}")
-            f.exposure_time = table[f.name]
+            f.exposure_time, f.time_source = table[f.name], f"the times file {times_file}"
     for f in frames:
         if f.exposure_time is None:
             hint = ("--times estimate needs one labelled frame for the scale: give the times with --times-file"

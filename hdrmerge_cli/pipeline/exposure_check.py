@@ -541,7 +541,18 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
         if j is not None:
             warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
             continue
+        given = next((g.time_source for g in (f, ref) if g.time_source != "its metadata"), None)
         why = response_at_fault(est, k, tol_ev)
+        if len(frames) == 2 and (why is None or given):  # a ratio: neither label outvotes the other
+            log.warning("%s and %s: labelled %s and %s%s, but the frames' ratio is %+.2f EV from theirs; two frames "
+                        "cannot tell which label is wrong (check both)%s", ref.path, f.path, _fmt(ref.exposure_time),
+                        _fmt(f.exposure_time), f" by {given}" if given else "", -est.difference_ev[k], hint)
+            called.append(k)
+            continue
+        if why is not None and given:  # the user's times are the first suspect, whatever the ratios say
+            log.warning("%s: %+.2f EV from the time %s gives it (%s), and %s; check %s", f.path,
+                        -est.difference_ev[k], given, _fmt(f.exposure_time), why, given)
+            continue
         if why is not None:  # a response measured on the bracket leaves the user nothing to change: -v only
             measured = crf is not None and crf.name.startswith(("measured", "estimate-crf"))
             (log.info if measured else log.warning)(
@@ -552,8 +563,9 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
                 "; measure the response on the bracket (no --crf) or with 'hdrmerge-cli estimate-crf'")
             continue
         t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
-        log.warning("%s: labelled %s, but the frames say %s (%+.2f EV, alike in shadows and highlights, as a wrong "
-                    "label makes; measured against %s, labelled %s)%s", f.path, _fmt(f.exposure_time), _fmt(t_est),
+        log.warning("%s: labelled %s%s, but the frames say %s (%+.2f EV, alike in shadows and highlights, as a wrong "
+                    "label makes; measured against %s, labelled %s)%s", f.path, _fmt(f.exposure_time),
+                    f" by {f.time_source}" if f.time_source != "its metadata" else "", _fmt(t_est),
                     -est.difference_ev[k], ref.name, _fmt(ref.exposure_time), hint)
         called.append(k)
     return called

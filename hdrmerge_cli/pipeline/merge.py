@@ -313,10 +313,11 @@ def _check_repeats(groups, seen, frames: list[Frame], crf: CRF) -> list[dict]:
             report.append(entry | {"compared": True, "ratio_ev": round(check.ratio_ev, 4),
                                    "outlier_fraction": check.outliers, "samples": check.samples})
             if check.exposure_changed:
-                log.warning("%s: the same exposure (%s) as %s by its metadata, but %.2f stops %s: the exposure "
-                            "changed between them (check the metadata or give --times)", b.path,
-                            fmt_time(b.exposure_time), a.name, abs(check.ratio_ev),
-                            "brighter" if check.ratio_ev > 0 else "darker")
+                given = b.time_source != "its metadata"
+                log.warning("%s: the same exposure (%s) as %s by %s, but %.2f stops %s: the exposure changed "
+                            "between them (%s)", b.path, fmt_time(b.exposure_time), a.name, b.time_source,
+                            abs(check.ratio_ev), "brighter" if check.ratio_ev > 0 else "darker",
+                            f"check {b.time_source}" if given else "check the metadata or give --times")
             elif check.content_differs:
                 log.warning("%s: the same exposure as %s, but %.1f %% of the pixels differ beyond the noise (motion "
                             "between the frames?); consider --align auto or --deghost auto", b.path, a.name,
