@@ -531,3 +531,11 @@ def test_two_frames_whose_labels_disagree_name_both(tmp_path):
     code, stderr = _cli("merge", *frames, "--times", "1e5,0.0333", "--crf", "srgb", "-o", tmp_path / "m.exr")
     assert code == 0 and "cannot tell which label is wrong" in stderr, stderr
     assert all(str(f) in stderr for f in frames) and "1e+05 s" in stderr
+
+
+def test_unlit_flats_with_darks_blame_the_flats(tmp_path, flats_and_darks):
+    """Dark frames given as --flats beside real darks: the flats are named, not the darks."""
+    line = _refused(*_cli("calibrate-noise", "--flats", flats_and_darks / "darks", "--darks",
+                          flats_and_darks / "darks", "-o", tmp_path / "out.json"), 1, ["not a flat field", "--flats"])
+    assert "not a dark frame" not in line
+    _nothing_written(tmp_path)

@@ -416,6 +416,19 @@ def _choose_crf(first: Frame, opts: CalibrateOptions, base: dict | None):
 DARK_SIGMAS, DARK_FRACTION = 5.0, 0.01
 
 
+def _check_flats(levels: list[dict[str, list]]) -> None:
+    """Refuse --flats that read no light (dark frames given as flats): a flat's mean must
+    lie above black by more than a dark frame's may (:data:`DARK_SIGMAS`, :data:`DARK_FRACTION`)."""
+    for level in levels:
+        for name, items in level.items():
+            for plane, _, hi, f in items:
+                mean, sigma = float(np.mean(plane)), float(np.std(plane))
+                if mean <= max(DARK_SIGMAS * sigma, DARK_FRACTION * hi):
+                    raise HdrMergeError(f"{f.path}: not a flat field: its mean lies {mean:.4g} above the black level "
+                                        f"(channel {name}), within {DARK_SIGMAS:g} times its noise, as a dark frame's; "
+                                        "give frames of a uniformly lit field as --flats")
+
+
 def _check_darks(dark_planes: dict[str, list], levels: list[dict[str, list]]) -> None:
     """Refuse --darks that are not dark (flat fields or photographs given as darks would
     make their photon noise the read noise): per channel, a dark frame's mean must lie
@@ -450,6 +463,7 @@ def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> d
         if len(fs) < 2:
             log.warning("%s: the only flat at %g s; photon transfer needs pairs, skipped", fs[0].path, t)
     levels = [_by_channel(_read_group(fs, crf, "flats")) for _, fs in sorted(by_time.items()) if len(fs) >= 2]
+    _check_flats(levels)
     _check_darks(dark_planes, levels)
     out = {}
     for name in (levels[0] if levels else {}):
