@@ -539,3 +539,21 @@ def test_unlit_flats_with_darks_blame_the_flats(tmp_path, flats_and_darks):
                           flats_and_darks / "darks", "-o", tmp_path / "out.json"), 1, ["not a flat field", "--flats"])
     assert "not a dark frame" not in line
     _nothing_written(tmp_path)
+
+
+@pytest.mark.parametrize("command", ["calibrate-noise", "estimate-crf"])
+def test_a_plot_is_not_left_behind_when_its_profile_cannot_be_written(tmp_path, jpeg_bracket, monkeypatch, command):
+    """The profile and its plot are one transaction: a profile that fails to write takes
+    the plot with it."""
+    def fail(prof, path):
+        def write(tmp):
+            raise OSError(28, "No space left on device", tmp)
+        return write
+
+    for module in ("hdrmerge_cli.pipeline.calibrate", "hdrmerge_cli.pipeline.crf"):
+        monkeypatch.setattr(f"{module}.profile_writer", fail)
+    folder, meta = jpeg_bracket
+    args = ["--crf", "srgb"] if command == "calibrate-noise" else []
+    _refused(*_cli(command, *frames_of(folder, meta), *args, "-o", tmp_path / "out.json", "--plot",
+                   tmp_path / "out.png"), 1, [str(tmp_path / "out.json"), "No space left"])
+    assert not list(tmp_path.iterdir())

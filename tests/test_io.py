@@ -6,7 +6,7 @@ import pytest
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import UMASK, atomic_text
+from hdrmerge_cli.io.atomic import UMASK, write_text, write_together
 from hdrmerge_cli.io.crfspec import read_crf_csv, resolve_crf
 from hdrmerge_cli.io.frames import load_codes, read_frame
 from hdrmerge_cli.io.images import read_exr, write_exr
@@ -101,11 +101,11 @@ def test_atomic_outputs_get_the_umask_mode_or_keep_the_replaced_files(tmp_path):
     """mkstemp's 0600 must not leak into the outputs: a new file gets 0666 & ~umask, an
     overwritten one keeps its mode."""
     fresh, kept = tmp_path / "a.txt", tmp_path / "b.txt"
-    atomic_text(fresh, "x", overwrite=False)
+    write_together([(fresh, lambda tmp: write_text(tmp, "x"))], overwrite=False)
     assert fresh.stat().st_mode & 0o777 == 0o666 & ~UMASK
     kept.write_text("old")
     kept.chmod(0o640)
-    atomic_text(kept, "new", overwrite=True)
+    write_together([(kept, lambda tmp: write_text(tmp, "new"))], overwrite=True)
     assert kept.stat().st_mode & 0o777 == 0o640 and kept.read_text() == "new"
 
 

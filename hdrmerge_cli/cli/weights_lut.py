@@ -13,10 +13,11 @@ from hdrmerge_cli.cli.options import (
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
+from hdrmerge_cli.io.atomic import write_together
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
-from hdrmerge_cli.io.plots import check_figure_path
-from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, plot_luts, weight_luts, write_luts
+from hdrmerge_cli.io.plots import check_figure_path, figure_writer
+from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, luts_figure, luts_writer, weight_luts
 from hdrmerge_cli.pipeline.bracket import choose_crf, exposure_values, read_bracket
 from hdrmerge_cli.pipeline.model_choice import prior_rate as prior_rate_of, resolve_noise
 
@@ -77,8 +78,10 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
                                 parse_bounds(bounds) if bounds else None)
     check_luts(table, labels, weights, prior_rate if weights in NOISE_MODEL_WEIGHTS else None)
     meta = {"weights": weights, "crf": curve.describe(), "exposures": exposures, "n_codes": n_codes, "k": k}
-    write_luts(output, table, labels, meta, overwrite)
+    writers = [(output, luts_writer(output, table, labels, meta))]
     if plot:
-        plot_luts(plot, table, labels, f"{weights} weights, CRF {curve.describe()}", overwrite)
+        writers.append((plot, figure_writer(luts_figure(table, labels, f"{weights} weights, CRF {curve.describe()}"),
+                                            plot)))
+    write_together(writers, overwrite)
     emit(meta | {"output": str(output), "columns": labels, "plot": str(plot) if plot else None}, as_json,
          f"wrote {output}" + (f" and {plot}" if plot else ""))

@@ -182,9 +182,13 @@ def write_text(tmp: str, text: str) -> None:
         raise
 
 
-def atomic_text(path: str | os.PathLike, text: str, overwrite: bool) -> None:
-    with atomic_path(path, overwrite) as tmp:
-        write_text(tmp, text)
+def write_together(writers: list, overwrite: bool) -> None:
+    """Outputs committed as one transaction (:func:`atomic_paths`): ``writers`` is a list of
+    ``(path, write)``, ``write(tmp)`` writing that output to its temporary; if one fails,
+    none is written (a plot is not left behind when its profile cannot be written)."""
+    with atomic_paths([p for p, _ in writers], overwrite) as tmps:
+        for (_, write), tmp in zip(writers, tmps):
+            write(tmp)
 
 
 @contextlib.contextmanager

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import atomic_path, check_writable
+from hdrmerge_cli.io.atomic import check_writable, write_together
 
 def check_figure_path(path: str | Path, overwrite: bool) -> None:
     """Refuse, before any work is done, a figure that could not be written: a suffix
@@ -28,7 +28,15 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path: str | Path, overwrite: bool) -> None:
-    with atomic_path(path, overwrite) as tmp:
+def figure_writer(fig, path: str | Path):
+    """A writer of ``fig`` in the format of ``path``'s suffix, for
+    :func:`~hdrmerge_cli.io.atomic.write_together` (the figure is closed once saved)."""
+    def write(tmp: str) -> None:
         fig.savefig(tmp, format=Path(path).suffix.lower().lstrip("."))
-    pyplot().close(fig)
+        pyplot().close(fig)
+
+    return write
+
+
+def save_figure(fig, path: str | Path, overwrite: bool) -> None:
+    write_together([(path, figure_writer(fig, path))], overwrite)

@@ -28,7 +28,7 @@ import numpy as np
 from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.crf import CRF, gamma_crf, table_crf
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import atomic_text
+from hdrmerge_cli.io.atomic import write_text, write_together
 
 SCHEMA_VERSION = 1
 KIND = "hdrmerge-cli camera profile"
@@ -206,6 +206,13 @@ def dumps(profile: dict) -> str:
     return json.dumps(profile, indent=1, allow_nan=False) + "\n"
 
 
-def save_profile(path: str | os.PathLike, profile: dict, overwrite: bool) -> None:
+def profile_writer(profile: dict, path: str | os.PathLike):
+    """``profile`` checked, and a writer of it for
+    :func:`~hdrmerge_cli.io.atomic.write_together`."""
     validate(profile, str(path))
-    atomic_text(path, dumps(profile), overwrite)
+    text = dumps(profile)
+    return lambda tmp: write_text(tmp, text)
+
+
+def save_profile(path: str | os.PathLike, profile: dict, overwrite: bool) -> None:
+    write_together([(path, profile_writer(profile, path))], overwrite)

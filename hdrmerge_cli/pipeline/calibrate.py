@@ -16,11 +16,11 @@ from hdrmerge_cli.core.calibrate import (
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
-from hdrmerge_cli.io.atomic import check_writable
+from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import Frame, cfa_corner, list_frames, load_codes, read_frame
 from hdrmerge_cli.io.noisespec import iso_key, iso_of_key
-from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
-from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, save_profile
+from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
+from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.pipeline.bracket import choose_crf
 from hdrmerge_cli.pipeline.noise_draw import NoiseDraw, channel_codes
 
@@ -354,9 +354,10 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
         profile["read_noise_split"] = split
     else:
         profile.pop("read_noise_split", None)
+    writers = [(output, profile_writer(profile, output))]
     if opts.plot:
-        plot_noise(opts.plot, noise, plot_data, opts.overwrite)
-    save_profile(output, profile, opts.overwrite or updating)
+        writers.append((opts.plot, figure_writer(noise_figure(noise, plot_data), opts.plot)))
+    write_together(writers, opts.overwrite or updating)
     return {"output": str(output), "noise": noise, "read_noise_split": split or None, "frames": reports,
             "plot": str(opts.plot) if opts.plot else None, "seconds": round(time.perf_counter() - t0, 4)}
 
@@ -480,7 +481,7 @@ def _photon_transfer(iso: str, darks: list[Frame], flats: list[Frame], crf) -> d
     return out
 
 
-def plot_noise(path: Path, noise: dict, plot_data: dict, overwrite: bool) -> None:
+def noise_figure(noise: dict, plot_data: dict):
     """Like the paper's Fig. 22: per ISO and channel, the measured noise variance against
     the mean (log-log) with the fitted curve (17); exposure-pair points are scaled to one
     frame by the model ratio, photon-transfer levels are drawn as measured."""
@@ -522,7 +523,7 @@ def plot_noise(path: Path, noise: dict, plot_data: dict, overwrite: bool) -> Non
     for ax in axes.ravel()[len(rows):]:
         ax.set_visible(False)
     fig.tight_layout()
-    save_figure(fig, path, overwrite)
+    return fig
 
 
 def _read_drawn(frames: list[Frame], crf, load, draw: NoiseDraw, pool) -> list[tuple[Frame, list]]:

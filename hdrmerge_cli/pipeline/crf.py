@@ -16,11 +16,11 @@ from hdrmerge_cli.core.crf_goossens2012 import (
 )
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import check_writable
+from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.noisespec import parse_bounds
-from hdrmerge_cli.io.plots import check_figure_path, pyplot, save_figure
-from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, save_profile
+from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
+from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import exposure_check
 from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
@@ -299,9 +299,11 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
                               [f.path for f in frames], command)
     profile["crf"].update(details)
+    writers = [(output, profile_writer(profile, output))]
     if opts.plot is not None and points is not None:
-        plot_crf(opts.plot, np.log(np.maximum(crf.table, 1e-300)), *points, frames, opts.overwrite, opts.seed)
-    save_profile(output, profile, opts.overwrite or updating)
+        writers.append((opts.plot, figure_writer(crf_figure(np.log(np.maximum(crf.table, 1e-300)), *points, frames,
+                                                            opts.seed), opts.plot)))
+    write_together(writers, opts.overwrite or updating)
     return {
         "output": str(output), "method": opts.method, "frames": [f.summary() for f in frames],
         "crf": crf.describe(), "made_monotone": changed, "exposure_check": label_report, **{k: v for k, v in details.items() if k != "method"},
@@ -309,8 +311,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     }
 
 
-def plot_crf(path: Path, g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarray, frames, overwrite: bool,
-             seed: int = 0, points: int = 200) -> None:
+def crf_figure(g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarray, frames, seed: int = 0, points: int = 200):
     """Like Debevec & Malik's Fig. 3: per channel the recovered ``g(z)`` (log exposure
     against code value) and, for a few pixels, each frame's sample placed at
     ``log E_i + log h_j`` (``log E_i`` merged from its frames with triangle weights).
@@ -339,4 +340,4 @@ def plot_crf(path: Path, g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarr
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, markerscale=3)
     fig.tight_layout()
-    save_figure(fig, path, overwrite)
+    return fig

@@ -12,8 +12,8 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K
 from hdrmerge_cli.core.reconstruct import certainty_table
-from hdrmerge_cli.io.atomic import atomic_path, write_text
-from hdrmerge_cli.io.plots import pyplot, save_figure
+from hdrmerge_cli.io.atomic import write_text
+from hdrmerge_cli.io.plots import pyplot
 
 LUT_FORMATS = (".csv", ".npy", ".json")
 
@@ -58,11 +58,14 @@ def check_luts(table: np.ndarray, labels: list[str], weights: str, prior_rate: f
     raise HdrMergeError(f"{what}: that exposure would be ignored (check --noise, --bounds and --k)")
 
 
-def write_luts(path: Path, table: np.ndarray, labels: list[str], meta: dict, overwrite: bool) -> None:
+def luts_writer(path: Path, table: np.ndarray, labels: list[str], meta: dict):
+    """A writer of the table in the format of ``path``'s suffix (checked here), for
+    :func:`~hdrmerge_cli.io.atomic.write_together`."""
     suffix = Path(path).suffix.lower()
     if suffix not in LUT_FORMATS:
         raise HdrMergeError(f"{path}: unknown table format (use {', '.join(LUT_FORMATS)})")
-    with atomic_path(path, overwrite) as tmp:
+
+    def write(tmp: str) -> None:
         if suffix == ".npy":
             np.save(tmp, table)
         elif suffix == ".json":
@@ -72,9 +75,11 @@ def write_luts(path: Path, table: np.ndarray, labels: list[str], meta: dict, ove
             np.savetxt(tmp, np.hstack([z, table]), delimiter=",", header="z," + ",".join(labels),
                        comments="", fmt=["%d"] + ["%.9g"] * table.shape[1])
 
+    return write
+
 
 def read_luts(path: str) -> np.ndarray:
-    """A table written by :func:`write_luts`: ``(n_codes, columns)`` float64 in [0, 1]."""
+    """A table written by :func:`luts_writer`: ``(n_codes, columns)`` float64 in [0, 1]."""
     suffix = Path(path).suffix.lower()
     try:
         if suffix == ".npy":
@@ -97,7 +102,7 @@ def read_luts(path: str) -> np.ndarray:
     return table
 
 
-def plot_luts(path: Path, table: np.ndarray, labels: list[str], title: str, overwrite: bool) -> None:
+def luts_figure(table: np.ndarray, labels: list[str], title: str):
     """The weight curves against the code value, like the paper's Figs. 13 and 16."""
     fig, ax = pyplot().subplots(figsize=(7, 4), dpi=110)
     z = np.arange(table.shape[0])
@@ -110,4 +115,4 @@ def plot_luts(path: Path, table: np.ndarray, labels: list[str], title: str, over
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    save_figure(fig, path, overwrite)
+    return fig

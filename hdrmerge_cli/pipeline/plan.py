@@ -498,10 +498,10 @@ def plot_snr(s: dict):
 
 def write_outputs(summary: dict | None, plot: Path | None, script: Path | None, overwrite: bool,
                   check_only: bool = False) -> None:
-    """``--plot`` and ``--gphoto2``: checked before any work (``check_only``), then written,
-    each atomically."""
-    from hdrmerge_cli.io.atomic import atomic_paths, check_writable, write_text
-    from hdrmerge_cli.io.plots import check_figure_path, save_figure
+    """``--plot`` and ``--gphoto2``: checked before any work (``check_only``), then written
+    together (neither is left without the other)."""
+    from hdrmerge_cli.io.atomic import check_writable, write_text, write_together
+    from hdrmerge_cli.io.plots import check_figure_path, figure_writer
 
     if check_only:
         if plot:
@@ -509,12 +509,12 @@ def write_outputs(summary: dict | None, plot: Path | None, script: Path | None, 
         if script:
             check_writable(script, overwrite)
         return
-    if script:
-        with atomic_paths([script], overwrite) as (tmp,):
-            write_text(tmp, gphoto2_script(summary))
-            Path(tmp).chmod(0o755)
-    if plot:
-        save_figure(plot_snr(summary), plot, overwrite)
+    def shell_script(tmp: str) -> None:
+        write_text(tmp, gphoto2_script(summary))
+        Path(tmp).chmod(0o755)
+
+    write_together(([(script, shell_script)] if script else [])
+                   + ([(plot, figure_writer(plot_snr(summary), plot))] if plot else []), overwrite)
 
 
 # ---------------------------------------------------------------- a bracket's own SNR (info --snr)
