@@ -186,21 +186,28 @@ def frame_report(frame: Frame, planes, params: dict[str, dict]) -> dict:
 
 
 #: local statistics measure a parameter when it is at least this many of its standard
-#: errors (a relative error of at most 25 %); below that, scene texture is being read as noise
+#: errors (a relative error of at most 25 %); a gain below that is scene texture read as noise
 PINNED_STDERRS = 4.0
 
 
 def _check_pinned(fits: dict[str, dict], frames: list[Frame]) -> None:
-    """Refuse noise that one frame's local statistics (no exposure pair) do not pin: a
-    parameter within :data:`PINNED_STDERRS` standard errors of 0 on some channel."""
+    """Noise from local statistics alone (no exposure pair to check them against): refuse
+    a gain (alpha) within :data:`PINNED_STDERRS` standard errors of 0 on some channel
+    (scene texture read as noise), and name a read noise that is not pinned."""
     if any(e["method"]["alpha"] != "local statistics" for e in fits.values()):
         return
-    weak = [f"{c}: {p} {e[p]:.3g} +/- {e['stderr'][p]:.2g}" for c, e in fits.items() for p in ("sigma_o2", "alpha")
-            if not e[p] >= PINNED_STDERRS * e["stderr"][p]]
-    if weak:
-        raise HdrMergeError(f"{frames[0].path}: its local statistics do not pin the noise ({'; '.join(weak[:3])}): "
-                            "scene texture is read as noise; give two or more exposures of a still scene, or --flats "
-                            "and --darks")
+
+    def weak(p):
+        return [f"{c}: {p} {e[p]:.3g} +/- {e['stderr'][p]:.2g}" for c, e in fits.items()
+                if not e[p] >= PINNED_STDERRS * e["stderr"][p]]
+
+    if weak("alpha"):
+        raise HdrMergeError(f"{frames[0].path}: its local statistics do not pin the noise ({'; '.join(weak('alpha')[:3])}"
+                            "): scene texture is read as noise; give two or more exposures of a still scene, or "
+                            "--flats and --darks")
+    if weak("sigma_o2"):
+        log.warning("%s: its local statistics do not pin the read noise (%s); --darks measure it", frames[0].path,
+                    "; ".join(weak("sigma_o2")))
 
 
 def _fit_entry(fit: NoiseFit, pairs: list[float], window: int) -> dict:
