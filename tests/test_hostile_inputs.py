@@ -557,3 +557,64 @@ def test_a_plot_is_not_left_behind_when_its_profile_cannot_be_written(tmp_path, 
     _refused(*_cli(command, *frames_of(folder, meta), *args, "-o", tmp_path / "out.json", "--plot",
                    tmp_path / "out.png"), 1, [str(tmp_path / "out.json"), "No space left"])
     assert not list(tmp_path.iterdir())
+
+
+def _with_alpha(src, dst, associated: bool):
+    """The frames of ``src`` (8-bit) with an alpha channel: 128 on the left third, 0 on a
+    band, 255 elsewhere; straight as PNG and unassociated TIFF store it, or multiplied in
+    (associated TIFF)."""
+    import OpenImageIO as oiio
+
+    dst.mkdir()
+    out_paths = []
+    for p in sorted(src.glob("frame_*.png")):
+        inp = oiio.ImageInput.open(str(p))
+        spec, px = inp.spec(), inp.read_image(format=oiio.UINT8)
+        inp.close()
+        a = np.full(px.shape[:2], 255, np.uint8)
+        a[:, :64], a[:, 64:80] = 128, 0
+        colour = np.rint(px * (a[..., None] / 255.0)).astype(np.uint8) if associated else px
+        new = oiio.ImageSpec(spec.width, spec.height, 4, oiio.UINT8)
+        new.alpha_channel = 3
+        for attr in spec.extra_attribs:
+            new.attribute(attr.name, attr.type, attr.value)
+        if not associated:
+            new.attribute("oiio:UnassociatedAlpha", 1)
+        q = dst / (p.stem + (".tif" if associated else ".png"))
+        out = oiio.ImageOutput.create(str(q))
+        assert out.open(str(q), new) and out.write_image(np.dstack([colour, a]))
+        out.close()
+        out_paths.append(q)
+    return out_paths
+
+
+@pytest.mark.parametrize("associated", [False, True])
+def test_partial_alpha_is_a_weight_and_the_output_keeps_its_own(tmp_path, associated):
+    """RGBA frames whose alpha is partial: the colour is read as the file declares it
+    (straight in PNG; multiplied in, in an associated TIFF), alpha weighs the readings, and
+    the EXR carries A with the colour multiplied by it (OpenEXR's convention): un-multiplied,
+    it is the merge of the frames without alpha (was 1.4-2 stops dark, alpha dropped)."""
+    import OpenImageIO as oiio
+
+    _cli("simulate", "-q", "-o", tmp_path / "rgb", "--format", "png", "--size", "192x128", "--frames", "3",
+         "--seed", "2")
+    rgba = _with_alpha(tmp_path / "rgb", tmp_path / "rgba", associated)
+    for name, frames in (("ref", sorted((tmp_path / "rgb").glob("frame_*.png"))), ("alpha", rgba)):
+        code, stderr = _cli("merge", *frames, "--crf", "srgb", "-o", tmp_path / f"{name}.exr")
+        assert code == 0, stderr
+
+    def read(path):
+        inp = oiio.ImageInput.open(str(path))
+        names, px = list(inp.spec().channelnames), inp.read_image(format=oiio.FLOAT)
+        inp.close()
+        return names, px
+
+    (names, ref), (names_a, out) = read(tmp_path / "ref.exr"), read(tmp_path / "alpha.exr")
+    assert names == ["R", "G", "B"] and names_a == ["R", "G", "B", "A"]
+    alpha = out[..., 3]
+    assert np.allclose(alpha[:, :64], 128 / 255) and np.all(alpha[:, 64:80] == 0) and np.all(alpha[:, 80:] == 1)
+    straight = out[..., :3] / np.where(alpha > 0, alpha, 1)[..., None]
+    tol = 0.02 if associated else 1e-3  # associated: the colour was rounded after multiplying by 1/2
+    for part in (np.s_[:, :64], np.s_[:, 80:]):
+        assert np.median(np.abs(straight[part] / ref[part] - 1)) < tol
+    assert np.all(out[:, 64:80, :3] == 0)

@@ -248,9 +248,10 @@ def test_alpha_zero_pixels_carry_no_weight(sources, tmp_path):
         code, stderr = _invoke(["merge", *files, "-o", tmp_path / f"{name}.exr", *common])
         assert code == 0, stderr
         merged[name] = read_exr(str(tmp_path / f"{name}.exr"))[0]
-    assert merged["rgba"].shape[-1] == 3
-    np.testing.assert_allclose(merged["rgba"][:, :20], merged["pair"][:, :20], rtol=1e-6)
-    np.testing.assert_allclose(merged["rgba"][:, 20:], merged["all"][:, 20:], rtol=1e-6)
+    # the output's alpha: the most any frame measured of each pixel (all of it: two frames are opaque)
+    assert merged["rgba"].shape[-1] == 4 and np.all(merged["rgba"][..., 3] == 1)
+    np.testing.assert_allclose(merged["rgba"][:, :20, :3], merged["pair"][:, :20], rtol=1e-6)
+    np.testing.assert_allclose(merged["rgba"][:, 20:, :3], merged["all"][:, 20:], rtol=1e-6)
 
 
 @pytest.mark.parametrize("left, right, words", [

@@ -69,9 +69,12 @@ class Frame:
     #: (frames made from arrays, :func:`hdrmerge_cli.api.merge_arrays`); None where the colour
     #: index does not repeat with a 2 x 2 cell (:func:`cfa_corner` then reads the file)
     cfa_cell: np.ndarray | None = None
-    #: images: the index of the file's alpha channel (gray+alpha, RGBA), else None; a pixel
-    #: whose alpha is 0 is no measurement (:func:`load_validity`)
+    #: images: the index of the file's alpha channel (gray+alpha, RGBA), else None; alpha is
+    #: the share of a pixel the frame measured (:func:`load_validity`), 0 none
     alpha_channel: int | None = None
+    #: images: the file stores colour multiplied by alpha (associated alpha: TIFF
+    #: ExtraSamples 1); PNG and unassociated TIFF store it straight
+    alpha_associated: bool = False
     #: images: the processing the file states (EXIF contrast, saturation, sharpness, custom
     #: rendering, software), which a camera's response depends on; "" when it states none
     style: str = ""
@@ -391,10 +394,21 @@ def _matrix_or_identity(m: np.ndarray) -> np.ndarray:
     return np.eye(3)
 
 
+def _open_image(path: str):
+    """An OpenImageIO input that reads the values as stored: straight (unassociated) alpha
+    is not multiplied into the colour (OpenImageIO does by default); the spec then says
+    whether the file's alpha is straight (``oiio:UnassociatedAlpha`` 1)."""
+    import OpenImageIO as oiio
+
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    return oiio.ImageInput.open(path, config)
+
+
 def _read_image(path: str) -> Frame:
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(path)
+    inp = _open_image(path)
     if inp is None:
         raise HdrMergeError(f"{path}: not a readable image ({_oiio_reason(oiio.geterror())})")
     spec = inp.spec()
@@ -420,6 +434,7 @@ def _read_image(path: str) -> Frame:
         bits=bits, n_codes=2**container, black=np.zeros(channels), white=np.full(channels, white),
         channels=channels, channel_colors="RGB"[:channels] if channels == 3 else "Y",
         orientation=orientation if 1 <= orientation <= 8 else 1, alpha_channel=alpha, style=_style(spec),
+        alpha_associated=alpha is not None and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) != 1,
         auto_bracket=spec.get_int_attribute("Exif:ExposureMode", 0) == 2, exposure_bias=_finite(
             spec.getattribute("Exif:ExposureBiasValue")),
     )
@@ -480,9 +495,15 @@ def load_codes(frame: Frame) -> np.ndarray:
         return codes
     alpha = frame.alpha_channel
     pixels = _read_channels(frame, 0, frame.channels if alpha is None else max(alpha + 1, frame.channels))
-    if alpha is not None:  # transparent pixels read black, below every statistic's dark floor
+    if alpha is not None:
         colour = np.ascontiguousarray(pixels[..., : frame.channels])
-        colour[pixels[..., alpha] == 0] = 0
+        a = pixels[..., alpha]
+        if frame.alpha_associated:  # stored multiplied by alpha: the straight colour, as codes
+            top = np.float32(frame.n_codes - 1)
+            partial = (a > 0) & (a < top)
+            straight = colour[partial].astype(np.float32) * (top / a[partial, None].astype(np.float32))
+            colour[partial] = np.clip(np.rint(straight), 0, top).astype(colour.dtype)
+        colour[a == 0] = 0  # transparent pixels read black, below every statistic's dark floor
         return colour
     return pixels
 
@@ -533,14 +554,16 @@ class HeldCodes:
 
 
 def load_validity(frame: Frame) -> np.ndarray | None:
-    """Where a frame with an alpha channel measured the scene: ``(H, W)`` bool, False where
-    its alpha is 0 (outside a remapped or masked frame, as Hugin's ``nona`` and image editors
-    write them); None where every pixel is valid or the frame has no alpha."""
+    """How much of each pixel a frame with an alpha channel measured: ``(H, W)`` float32 in
+    [0, 1], its alpha over full scale (0 outside a remapped or masked frame, as Hugin's
+    ``nona`` and image editors write them; partial at a feathered edge); None where every
+    pixel is opaque or the frame has no alpha."""
     if frame.alpha_channel is None:
         return None
     a = frame.alpha_channel
-    valid = _read_channels(frame, a, a + 1)[..., 0] > 0
-    return None if valid.all() else valid
+    alpha = _read_channels(frame, a, a + 1)[..., 0]
+    top = frame.n_codes - 1
+    return None if np.all(alpha == top) else alpha.astype(np.float32) / np.float32(top)
 
 
 def _read_channels(frame: Frame, begin: int, end: int) -> np.ndarray:
@@ -548,7 +571,7 @@ def _read_channels(frame: Frame, begin: int, end: int) -> np.ndarray:
     uint8/uint16 as stored."""
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(frame.path)
+    inp = _open_image(frame.path)
     if inp is None:
         raise HdrMergeError(f"{frame.path}: not a readable image ({_oiio_reason(oiio.geterror())})")
     try:

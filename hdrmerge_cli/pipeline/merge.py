@@ -207,15 +207,17 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
                                     load, settings.deghost)
         timings["deghost"] = time.perf_counter() - t0
     h_ref = reference_exposure(settings.reference, exposures)
+    validity = motion.frame_validity(frames, alignment)
     result, flags, den, variance, iterations = reconstruct(
         frames, exposures, h_ref, models, load,
-        motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned), timings,
+        motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned, validity), timings,
         "variance" in outputs.extra_channels)
     check_range(result, outputs.half, settings.reference, h_ref)
     warn_unmeasured(frames, result, flags)
     repeats = _check_repeats(groups, seen, frames, crf)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,
-                  output_orientation(frames), alignment, ghosts, exposure_report, repeats, timings)
+                  output_orientation(frames), alignment, ghosts, exposure_report, repeats, timings,
+                  motion.output_alpha(frames, validity))
 
 
 def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,

@@ -520,14 +520,36 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = 
     return resample.covered_mask(warp, h, w, rows)
 
 
+def frame_validity(frames: list[Frame], alignment: Alignment | None) -> list:
+    """Per frame, :func:`valid_pixels` in the reference's coordinates (by the alignment
+    where it is applied)."""
+    alignment = alignment if alignment is not None and alignment.applied else None
+    return [valid_pixels(f, alignment.warp_of(f) if alignment else None) for f in frames]
+
+
+def output_alpha(frames: list[Frame], validity: list) -> np.ndarray | None:
+    """The merged image's alpha, ``(H, W)`` float32: per pixel the most any frame measured
+    of it (:func:`frame_validity`); None when no frame has an alpha channel."""
+    if all(f.alpha_channel is None for f in frames):
+        return None
+    h, w = frames[0].height, frames[0].width
+    if any(v is None for v in validity):  # a frame measured all of every pixel
+        return np.ones((h, w), np.float32)
+    out = np.zeros((h, w), np.float32)
+    for v in validity:
+        np.maximum(out, v, out=out)
+    return out
+
+
 def sample_weights(tables, pattern, frames: list[Frame], ghosts: Ghosts | None, alignment: Alignment | None,
-                   load=None):
+                   load=None, validity: list | None = None):
     """The per-sample weights of the merge (a :class:`SampleWeights`), or None when no
     frame has transparent pixels and neither the deghosting nor the alignment is applied.
-    ``load``: the merge's :class:`AlignedLoader` (for the resampling spreads)."""
+    ``load``: the merge's :class:`AlignedLoader` (for the resampling spreads);
+    ``validity``: :func:`frame_validity` (read here when not given)."""
     ghosts = ghosts if ghosts is not None and ghosts.applied else None
     alignment = alignment if alignment is not None and alignment.applied else None
-    validity = [valid_pixels(f, alignment.warp_of(f) if alignment else None) for f in frames]
+    validity = validity if validity is not None else frame_validity(frames, alignment)
     if ghosts is None and alignment is None and all(v is None for v in validity):
         return None
     return SampleWeights(tables, pattern, frames, ghosts, alignment, load if isinstance(load, AlignedLoader) else None,
@@ -535,22 +557,20 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts: Ghosts | None, 
 
 
 def valid_pixels(frame: Frame, warp: np.ndarray | None) -> np.ndarray | None:
-    """Where frame's alpha says it measured the scene (:func:`load_validity`), in the
-    reference frame's coordinates (brought there by ``warp``, nearest neighbour), ``(H, W)``
-    bool; None: everywhere."""
+    """How much of each pixel frame's alpha says it measured (:func:`load_validity`), in
+    the reference frame's coordinates (brought there by ``warp``, nearest neighbour),
+    ``(H, W)`` float32 in [0, 1], a weight of its readings; None: all of every pixel."""
     valid = load_validity(frame)
     if valid is None:
         return None
-    log.info("%s: %.1f %% of its pixels are transparent (alpha 0) and carry no weight", frame.path,
-             100 * (1 - np.count_nonzero(valid) / valid.size))
+    log.info("%s: %.1f %% of its pixels are transparent (alpha 0) and carry no weight, %.1f %% partly", frame.path,
+             100 * np.mean(valid == 0), 100 * np.mean((valid > 0) & (valid < 1)))
     if warp is None:
         return valid
     import cv2
 
-    moved = cv2.warpAffine(valid.view(np.uint8), warp.astype(np.float32), (frame.width, frame.height),
-                           flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
-                           borderValue=0)
-    return moved > 0
+    return cv2.warpAffine(valid, warp.astype(np.float32), (frame.width, frame.height),
+                          flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 class SampleWeights:

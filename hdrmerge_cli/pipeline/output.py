@@ -70,6 +70,9 @@ class Merged:
     exposure_check: dict | None = None
     repeats: list = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    #: ``(H, W)`` float32: the most any frame's alpha measured of each pixel; None when the
+    #: frames have no alpha channel (then the EXR has none)
+    alpha: np.ndarray | None = None
 
     # ------------------------------------------------------------ what it holds
     @property
@@ -92,7 +95,7 @@ class Merged:
         """The EXR's channels: colour, then the data channels asked for, whose names end
         in no R, G or B (the Color Interop Forum's rule for channels that are not colour)."""
         extra = [c for c in EXTRA_CHANNELS if c in self.options.io.extra_channels and c != "variance"]
-        return self.colour_channels + extra + self.variance_channels
+        return self.colour_channels + (["A"] if self.alpha is not None else []) + extra + self.variance_channels
 
     @property
     def variance_channels(self) -> list[str]:
@@ -210,6 +213,9 @@ class Merged:
         rgb = self.colour_rows(y0, y1)
         extra = self.options.io.extra_channels
         planes = [rgb]
+        if self.alpha is not None:  # OpenEXR's alpha is associated: colour times alpha
+            a = self.alpha[y0:y1, :, None]
+            planes = [rgb * a, a]
         if "clipped" in extra:
             planes.append(self.flags[y0:y1, :, None].astype(np.float32))
         if "weight" in extra:
