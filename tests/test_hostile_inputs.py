@@ -618,3 +618,17 @@ def test_partial_alpha_is_a_weight_and_the_output_keeps_its_own(tmp_path, associ
     for part in (np.s_[:, :64], np.s_[:, 80:]):
         assert np.median(np.abs(straight[part] / ref[part] - 1)) < tol
     assert np.all(out[:, 64:80, :3] == 0)
+
+
+def test_weights_lut_on_raw_gives_the_true_reason(tmp_path, dng_bracket):
+    """Every frame shares its levels, so 'per-file black levels' was not the reason: weight
+    tables are indexed by code value, and a RAW bracket is weighted from its noise model
+    (merge --lut refuses it for the same reason)."""
+    folder, meta = dng_bracket
+    line = _refused(*_cli("weights-lut", *frames_of(folder, meta), "-o", tmp_path / "out.csv"), 1,
+                    ["RAW mosaic", "noise model", "without --lut"], absent=["black levels"])
+    assert ".dng" in line  # names the frame
+    lut = tmp_path / "w.csv"
+    assert _cli("weights-lut", "--times", "0.01,0.1", "--bits", "8", "-o", lut)[0] == 0
+    _refused(*_cli("merge", *frames_of(folder, meta, [0, 1]), "--lut", lut, "-o", tmp_path / "m.exr"), 1,
+             ["RAW mosaic", "noise model"])

@@ -19,7 +19,7 @@ from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer
 from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, luts_figure, luts_writer, weight_luts
 from hdrmerge_cli.pipeline.bracket import choose_crf, exposure_values, read_bracket
-from hdrmerge_cli.pipeline.model_choice import prior_rate as prior_rate_of, resolve_noise
+from hdrmerge_cli.pipeline.model_choice import RAW_HAS_NO_LUT, prior_rate as prior_rate_of, resolve_noise
 
 
 @click.command("weights-lut")
@@ -58,8 +58,8 @@ def command(images, output, times, weights, crf, profile, bits, noise, prior_rat
     spec = crf or profile
     if images:
         frames = read_bracket(list(images))
-        if frames[0].kind in ("raw", "linear"):
-            raise HdrMergeError(f"{frames[0].path}: RAW brackets have per-file black levels; give --times and --bits")
+        if frames[0].kind == "raw":
+            raise HdrMergeError(f"{frames[0].path}: {RAW_HAS_NO_LUT} (merge it without --lut)")
         exposures, n_codes = list(exposure_values(frames)), frames[0].n_codes
         curve = choose_crf(frames, spec)
         params = resolve_noise(frames, noise, profile, crf)

@@ -331,6 +331,11 @@ def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float
     return float(np.mean(lin[ok]) * full / exposure)
 
 
+#: why a mosaic RAW bracket takes no weight table
+RAW_HAS_NO_LUT = ("a RAW mosaic: weight tables serve image brackets (a code value per table row); a RAW bracket is "
+                  "weighted from its noise model, per sample above its black level")
+
+
 def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
     """``merge --lut``: each frame's ``(C, N)`` weights from a ``weights-lut`` table whose
     columns follow the exposures in increasing order (one per frame, or per frame and channel)."""
@@ -338,7 +343,7 @@ def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
 
     first = frames[0]
     if first.kind == "raw":
-        raise HdrMergeError(f"{path}: weight tables apply to JPEG/TIFF/PNG brackets (RAW black levels vary)")
+        raise HdrMergeError(f"{first.path}: {RAW_HAS_NO_LUT}")
     table = read_luts(path)
     if table.shape[0] != first.n_codes:
         raise HdrMergeError(f"{path}: {table.shape[0]} rows, but the frames have {first.n_codes} code values")
