@@ -632,3 +632,18 @@ def test_weights_lut_on_raw_gives_the_true_reason(tmp_path, dng_bracket):
     assert _cli("weights-lut", "--times", "0.01,0.1", "--bits", "8", "-o", lut)[0] == 0
     _refused(*_cli("merge", *frames_of(folder, meta, [0, 1]), "--lut", lut, "-o", tmp_path / "m.exr"), 1,
              ["RAW mosaic", "noise model"])
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_a_valid_response_no_reference_can_fit_is_named_not_the_reference(tmp_path, jpeg_bracket, half):
+    """A monotone, non-negative response table that puts every code below white under
+    1e-41 of full scale: no --reference brings the merge into the EXR's range, so the
+    response is named."""
+    z = np.arange(256)
+    values = np.where(z < 255, 1e-44 * (1 + z), 1.0)
+    table = tmp_path / "odd.csv"
+    table.write_text("z,linear\n" + "".join(f"{k},{v:.6g}\n" for k, v in zip(z, values)))
+    line = _refused(*_cli("merge", *frames_of(*jpeg_bracket), "--crf", table, "-o", tmp_path / "out.exr",
+                          *(["--half"] if half else [])), 1, ["camera response", "at any --reference"])
+    assert "use a longer --reference" not in line
+    _nothing_written(tmp_path)

@@ -212,7 +212,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         frames, exposures, h_ref, models, load,
         motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned, validity), timings,
         "variance" in outputs.extra_channels)
-    check_range(result, outputs.half, settings.reference, h_ref)
+    check_range(result, outputs.half, settings.reference, h_ref, exposures, crf)
     warn_unmeasured(frames, result, flags)
     repeats = _check_repeats(groups, seen, frames, crf)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,
@@ -331,22 +331,32 @@ def _check_repeats(groups, seen, frames: list[Frame], crf: CRF) -> list[dict]:
 OUTPUT_RANGE = {True: (65504.0, 6.1e-5), False: (3.4e38, 1.2e-38)}
 
 
-def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float) -> None:
+def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float, exposures: np.ndarray,
+                crf: CRF) -> None:
     """Refuse a result that the output type cannot hold (instead of writing clamped values
     or a mostly zero image): values above its largest finite value, or a median below its
-    smallest normal value.  The scale is set by ``--reference``, so the error names it."""
+    smallest normal value.  The scale is set by ``--reference`` (any of the
+    ``exposures``), so the error names it where another reference would fit, and the
+    response (``crf``) where none would."""
     top, tiny = OUTPUT_RANGE[half]
     peak = float(np.max(result, initial=0.0))
-    kind = "half" if half else "float"
-    if not np.isfinite(peak) or peak > top:
-        raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): the brightest values ({peak:.3g}) exceed what "
-                            f"{kind} EXR holds ({top:g}); use a shorter --reference (e.g. shortest)"
-                            + (" or drop --half" if half else ""))
     flat = result.reshape(-1)
-    if np.median(flat[::max(1, flat.size // 100_000)]) < tiny:
-        raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): most values are below what {kind} EXR holds "
-                            f"({tiny:g}); use a longer --reference (e.g. the default, geomean)"
-                            + (" or drop --half" if half else ""))
+    median = float(np.median(flat[::max(1, flat.size // 100_000)]))
+    kind = "half" if half else "float"
+    drop = " or drop --half" if half else ""
+    low, high = float(np.min(exposures)) / h_ref, float(np.max(exposures)) / h_ref  # the rescaling any reference gives
+    over, under = not np.isfinite(peak) or peak > top, median < tiny
+    if not over and not under:
+        return
+    if (over and not peak * low <= top) or (under and not median * high >= tiny):
+        raise HdrMergeError(f"the camera response ({crf.describe()}) maps the codes to merged values from {median:.3g} "
+                            f"(the median) to {peak:.3g}, which {kind} EXR cannot hold ({tiny:g} to {top:g}) at any "
+                            f"--reference; check the response{drop}")
+    if over:
+        raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): the brightest values ({peak:.3g}) exceed what "
+                            f"{kind} EXR holds ({top:g}); use a shorter --reference (e.g. shortest){drop}")
+    raise HdrMergeError(f"--reference {reference} ({h_ref:.3g} s): most values are below what {kind} EXR holds "
+                        f"({tiny:g}); use a longer --reference (e.g. longest){drop}")
 
 
 def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) -> None:
