@@ -64,6 +64,20 @@ class ExposureTables:
     variance: np.ndarray | None = None
 
 
+def neutral_bounds(result: np.ndarray, flags: np.ndarray) -> int:
+    """Where every channel of a pixel is only a lower bound (clipped in every frame that
+    covers it, ``FLAG_SATURATED``), give all its channels the largest: a bound carries no
+    colour, and the largest still bounds each channel from below (the channels' own bounds
+    differ where their responses or white levels do, a colour cast the scene does not
+    have).  ``result``, ``flags``: ``(H, W, C)``, changed in place.  Returns the pixels set."""
+    if result.ndim != 3 or result.shape[-1] < 2:
+        return 0
+    bound = np.all(flags == FLAG_SATURATED, axis=-1)
+    if bound.any():
+        result[bound] = result[bound].max(axis=-1, keepdims=True)
+    return int(np.count_nonzero(bound))
+
+
 def table_size(white, n_codes: int) -> int:
     """Entries of a lookup table: the smallest power of two above every white level (a
     14-bit RAW in a uint16 container needs 16384, not 65536), at most the container's

@@ -30,7 +30,8 @@ import numpy as np
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, noise_rows
+from hdrmerge_cli.core.reconstruct import (FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, neutral_bounds,
+                                           noise_rows)
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes
 from hdrmerge_cli.io.images import exr_compression
@@ -213,6 +214,7 @@ def merge_frames(frames: list[Frame], crf: CRF, opts: MergeOptions, load=load_co
         motion.sample_weights(models.tables, models.pattern, frames, ghosts, alignment, aligned, validity), timings,
         "variance" in outputs.extra_channels)
     check_range(result, outputs.half, settings.reference, h_ref, exposures, crf)
+    neutral_bounds(result, flags)
     warn_unmeasured(frames, result, flags)
     repeats = _check_repeats(groups, seen, frames, crf)
     return Merged(frames, exposures, h_ref, crf, models, opts, result, flags, den, variance, iterations,

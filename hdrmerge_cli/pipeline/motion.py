@@ -71,13 +71,25 @@ class Alignment:
         """Each frame's largest displacement at a corner (pixels)."""
         return [registration.warp_size(w, f.height, f.width) for w, f in zip(self.warps, self.frames)]
 
+    def covered_by_every_frame(self) -> float:
+        """The share of the reference's pixels that every aligned frame covers (1 when the
+        alignment is not applied); the rest is measured by fewer frames."""
+        if not self.applied:
+            return 1.0
+        every = None
+        for f, w in zip(self.frames, self.warps):
+            inside = covered(f, w, self.resampling == "cfa-periods")
+            every = inside if every is None else every & inside
+        return round(float(np.mean(every)), 6)
+
     def summary(self) -> dict:
         """``merge --json``'s ``alignment``."""
         out = {"mode": self.mode, "motion": self.motion, "resampling": self.resampling, "reference": self.reference,
                "frames": [f.path for f in self.frames], "applied": self.applied,
                "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in self.warps],
                "largest_displacement_px": [round(s, 3) for s in self.sizes], "confidence": self.confidence,
-               "unaligned": self.unaligned, "still": self.still}
+               "unaligned": self.unaligned, "still": self.still,
+               "covered_by_every_frame": self.covered_by_every_frame()}
         if self.motion == "similarity":
             out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in self.warps]
             out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in self.warps]
@@ -147,8 +159,14 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
     log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
              "applied" if applied else "not needed")
-    return Alignment(mode, motion, resampling, frames[ref].path, bool(applied), list(frames), warps, confidence,
-                     unaligned, [frames[j].path for j in sorted(judged_still)])
+    out = Alignment(mode, motion, resampling, frames[ref].path, bool(applied), list(frames), warps, confidence,
+                    unaligned, [frames[j].path for j in sorted(judged_still)])
+    if applied:
+        share = out.covered_by_every_frame()
+        if share < 1:
+            log.info("alignment: %.1f %% of the image lies outside some moved frame and is measured by fewer frames "
+                     "(its borders)", 100 * (1 - share))
+    return out
 
 
 def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[float, float] | None:
