@@ -340,3 +340,23 @@ def test_filled_green_noise_against_monte_carlo():
         spreads.append(_resampled_spread(np.rint(mosaic).astype(np.uint16), warp)[inner])
     assert np.mean(var_i) == pytest.approx(sigma**2 * np.mean(e[inner]), rel=0.03)
     assert np.mean(spreads) == pytest.approx(sigma**2 * np.mean((s_ - e)[inner]), rel=0.03)
+
+
+def test_inner_rectangle_lies_inside_the_pixels_every_warp_covers():
+    """For translations the intersection of the covered masks is itself a rectangle, found
+    whole; for rotations the rectangle lies inside the convex intersection and keeps most
+    of it; ``even`` keeps a CFA's phase."""
+    from hdrmerge_cli.core.resample import covered_mask, inner_rectangle
+
+    h, w = 120, 160
+    shifts = [np.array([[1, 0, dx], [0, 1, dy]], float) for dx, dy in ((0, 0), (7.0, -3.0), (-4.0, 5.0))]
+    every = np.logical_and.reduce([covered_mask(m, h, w) for m in shifts])
+    r0, r1, c0, c1 = inner_rectangle(every)
+    assert every[r0:r1, c0:c1].all() and (r1 - r0) * (c1 - c0) == every.sum()
+    angle = np.radians(2.0)
+    rot = np.array([[np.cos(angle), -np.sin(angle), 3.0], [np.sin(angle), np.cos(angle), -2.0]])
+    every = covered_mask(rot, h, w) & covered_mask(np.eye(2, 3), h, w)
+    r0, r1, c0, c1 = inner_rectangle(every, even=True)
+    assert every[r0:r1, c0:c1].all() and (r1 - r0) * (c1 - c0) > 0.8 * every.sum()
+    assert r0 % 2 == c0 % 2 == (r1 - r0) % 2 == (c1 - c0) % 2 == 0
+    assert inner_rectangle(np.zeros((4, 4), bool)) is None

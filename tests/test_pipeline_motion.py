@@ -829,3 +829,25 @@ def test_a_planned_high_iso_bracket_gets_no_warp(run, tmp_path):
                          "--json").stdout)
     alignment = out["alignment"]
     assert not alignment["applied"] and max(alignment["largest_displacement_px"]) == 0.0, alignment
+
+
+@needs_shared
+def test_crop_cuts_the_borders_every_frame_does_not_cover(run, tmp_path):
+    """--crop (as align_image_stack -C): the EXR and its preview are the rectangle every
+    aligned frame covers, stated in the header and --json; a still bracket is not cut."""
+    import OpenImageIO as oiio
+
+    paths = sorted((SHARED / "brackets" / "stack_handheld_jpg").glob("*.jpg"))
+    s = json.loads(run("merge", *paths, "-o", tmp_path / "m.exr", "--crop", "--preview", tmp_path / "p.jpg",
+                       "--json").stdout)
+    (r0, r1), (c0, c1) = s["crop"]["rows"], s["crop"]["columns"]
+    assert 0 < (r1 - r0) * (c1 - c0) < s["width"] * s["height"]
+    assert (r1 - r0) * (c1 - c0) <= (s["alignment"]["covered_by_every_frame"] + 1e-5) * s["width"] * s["height"]
+    spec = oiio.ImageInput.open(str(tmp_path / "m.exr")).spec()
+    assert (spec.height, spec.width) == (r1 - r0, c1 - c0) and "every aligned frame" in spec.getattribute(
+        "hdrmerge:crop")
+    assert oiio.ImageInput.open(str(tmp_path / "p.jpg")).spec().width == c1 - c0
+    run("simulate", "-o", tmp_path / "still", "-q", "--size", "96x64", "--frames", "3")
+    out = json.loads(run("merge", *sorted((tmp_path / "still").glob("*.dng")), "-o", tmp_path / "s.exr", "--crop",
+                         "--json").stdout)
+    assert "crop" not in out and oiio.ImageInput.open(str(tmp_path / "s.exr")).spec().width == 96

@@ -126,6 +126,10 @@ log = logging.getLogger("hdrmerge_cli")
                    "near-white reading sets; "
                    "false-alarm rate 1e-3; regions feathered so that no seam shows; auto acts only when more than "
                    "0.2 % of a frame moves.  --extra-channels ghost shows where.")
+@click.option("--crop", is_flag=True,
+              help="Crop the EXR to the rectangle every aligned frame covers (as align_image_stack -C): the "
+                   "borders a moved frame leaves, which fewer frames measure, are cut.  Nothing is cut when no "
+                   "frame moved.")
 @click.option("--preview", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write a tone-mapped sRGB picture (Reinhard-Devlin; .jpg, .png or .tif) to look at.")
 @click.option("--preview-size", default=2048, show_default=True, type=click.IntRange(0),
@@ -134,7 +138,7 @@ log = logging.getLogger("hdrmerge_cli")
 @common_options
 def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_run, profile_out, weights, crf, times,
             times_file, reference, colorspace, cfa, half, compression, no_cache, extra_channels, noise, profile, variance,
-            estimator, irls, k, lut, bounds, align, deghost, preview, preview_size, overwrite, as_json):
+            estimator, irls, k, lut, bounds, align, deghost, crop, preview, preview_size, overwrite, as_json):
     """Merge a bracket IMAGES... (RAW, or JPEG/TIFF/PNG) into one scene-linear EXR.
 
     Frames are sorted by exposure (time x ISO); exposure times come from EXIF unless
@@ -158,13 +162,17 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         InputOptions(crf=crf, profile=profile, noise=noise, times=times, times_file=times_file),
         OutputOptions(output=output, profile_out=profile_out, overwrite=overwrite, cfa=cfa, half=half,
                       extra_channels=extra_channels, colorspace=colorspace, compression=compression, preview=preview,
-                      preview_size=preview_size, noise_cache=not no_cache),
+                      preview_size=preview_size, noise_cache=not no_cache, crop=crop),
     )
     given = _given(click.get_current_context())
     if preview is not None and str(preview).startswith("-"):  # `--preview --overwrite`: click took the option as the path
         raise click.BadParameter(f"needs a file name (got {preview}, an option?)", param_hint="--preview")
     if "preview_size" in given and preview is None:
         raise click.UsageError("--preview-size applies to --preview only")
+    if crop and output is not None and Path(output).suffix.lower() == ".dng":
+        raise click.BadParameter("a float DNG keeps the whole mosaic; crop an EXR output", param_hint="--crop")
+    if crop and align == "off":
+        raise click.UsageError("--crop cuts the borders an alignment leaves: it needs --align (not off)")
     if "ghost" in extra_channels and deghost == "off":
         log.warning("--extra-channels ghost without --deghost: the ghost channel is all zero")
     if batch_dir:

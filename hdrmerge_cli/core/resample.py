@@ -43,6 +43,35 @@ def apply_warp(codes: np.ndarray, warp: np.ndarray, clip_code: int) -> np.ndarra
     return out
 
 
+def inner_rectangle(mask: np.ndarray, even: bool = False) -> tuple[int, int, int, int] | None:
+    """An axis-aligned rectangle inside a convex ``mask`` ``(H, W)`` bool (the pixels every
+    frame covers): from the mask's bounding box, the side whose edge holds the most pixels
+    outside moves in by one until none does.  ``(r0, r1, c0, c1)``, half-open; ``even``:
+    even offsets and sizes (a CFA mosaic keeps its phase).  None when nothing is inside."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not rows.size:
+        return None
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    while r0 < r1 and c0 < c1:
+        outside = [np.count_nonzero(~mask[r0, c0:c1]), np.count_nonzero(~mask[r1 - 1, c0:c1]),
+                   np.count_nonzero(~mask[r0:r1, c0]), np.count_nonzero(~mask[r0:r1, c1 - 1])]
+        side = int(np.argmax(outside))
+        if outside[side] == 0:
+            break
+        if side == 0:
+            r0 += 1
+        elif side == 1:
+            r1 -= 1
+        elif side == 2:
+            c0 += 1
+        else:
+            c1 -= 1
+    if even:
+        r0, c0 = r0 + r0 % 2, c0 + c0 % 2
+        r1, c1 = r0 + (r1 - r0) // 2 * 2, c0 + (c1 - c0) // 2 * 2
+    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
+
+
 def covered_mask(warp: np.ndarray, height: int, width: int, rows: slice | None = None) -> np.ndarray:
     """Which reference pixels ``(x, y)`` the warp takes inside the frame (``W @ (x, y, 1)``
     within half a pixel of its edge), ``(height, width)`` bool (``rows``: those rows

@@ -71,16 +71,22 @@ class Alignment:
         """Each frame's largest displacement at a corner (pixels)."""
         return [registration.warp_size(w, f.height, f.width) for w, f in zip(self.warps, self.frames)]
 
-    def covered_by_every_frame(self) -> float:
-        """The share of the reference's pixels that every aligned frame covers (1 when the
-        alignment is not applied); the rest is measured by fewer frames."""
+    def every_frame_mask(self) -> np.ndarray | None:
+        """``(H, W)`` bool: the reference's pixels that every aligned frame covers; None when
+        the alignment is not applied (all of them)."""
         if not self.applied:
-            return 1.0
+            return None
         every = None
         for f, w in zip(self.frames, self.warps):
             inside = covered(f, w, self.resampling == "cfa-periods")
             every = inside if every is None else every & inside
-        return round(float(np.mean(every)), 6)
+        return every
+
+    def covered_by_every_frame(self) -> float:
+        """The share of the reference's pixels that every aligned frame covers (1 when the
+        alignment is not applied); the rest is measured by fewer frames."""
+        every = self.every_frame_mask()
+        return 1.0 if every is None else round(float(np.mean(every)), 6)
 
     def summary(self) -> dict:
         """``merge --json``'s ``alignment``."""

@@ -101,6 +101,7 @@ class OutputOptions:
     compression : a key of :data:`hdrmerge_cli.io.images.EXR_COMPRESSIONS`
     preview, preview_size : a tone-mapped picture and its longest side (0: full size)
     noise_cache : read and store noise and response measurements in the per-camera cache
+    crop : crop the EXR to the rectangle every aligned frame covers
     """
 
     output: Path | None = None
@@ -114,6 +115,7 @@ class OutputOptions:
     preview: Path | None = None
     preview_size: int = 2048
     noise_cache: bool = True
+    crop: bool = False
 
 
 #: each flat field's part

@@ -4,6 +4,7 @@ strip by strip, the Python API (:func:`hdrmerge_cli.merge`) also hands out its a
 from __future__ import annotations
 
 import hashlib
+import logging
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -23,6 +24,8 @@ from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.pipeline.bracket import upright
 from hdrmerge_cli.pipeline.model_choice import Models
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
+
+log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
     from hdrmerge_cli.pipeline.motion import Alignment, Ghosts
@@ -89,6 +92,21 @@ class Merged:
         if self.first.kind == "raw":
             return ["Y"] if self.options.io.cfa else ["R", "G", "B"]
         return ["R", "G", "B"] if self.first.channels == 3 else ["Y"]
+
+    @cached_property
+    def crop_box(self) -> tuple[int, int, int, int] | None:
+        """``--crop``: the rows and columns ``(r0, r1, c0, c1)`` (half-open) of the rectangle
+        every aligned frame covers (:func:`~hdrmerge_cli.core.resample.inner_rectangle`;
+        even for RAW, which keeps its CFA phase); None: the whole frame."""
+        from hdrmerge_cli.core.resample import inner_rectangle
+
+        if not self.options.io.crop:
+            return None
+        every = self.alignment.every_frame_mask() if self.alignment is not None else None
+        if every is None or every.all():
+            log.info("--crop: every frame covers the whole image; nothing is cut")
+            return None
+        return inner_rectangle(every, even=self.first.kind == "raw")
 
     @property
     def channel_names(self) -> list[str]:
@@ -308,14 +326,19 @@ class Merged:
         wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
         ghost_img = motion.ghost_image(self.ghosts, *self.shape) if "ghost" in extra else None
         strips = prefetched(lambda y0: self.strip(y0, ghost_img, wsum), range(0, self.shape[0], STRIP_ROWS))
+        shape, box = self.shape, self.crop_box
+        if box is not None:
+            strips, shape = _cropped(strips, box), (box[1] - box[0], box[3] - box[2])
+            attrs["hdrmerge:crop"] = (f"rows {box[0]} to {box[1] - 1}, columns {box[2]} to {box[3] - 1} of the "
+                                      "reference frame: the rectangle every aligned frame covers")
         n_colour = len(self.colour_channels)
         thumb = None
         if preview is not None:
-            thumb = BlockMean(*self.shape, n_colour, block_factor(*self.shape, opts.io.preview_size))
+            thumb = BlockMean(*shape, n_colour, block_factor(*shape, opts.io.preview_size))
             strips = _tee_preview(strips, thumb, n_colour)
         outputs = [output, profile_out] + ([Path(preview)] if thumb else [])
         with atomic_paths(outputs, overwrite, list(inputs)) as tmps:
-            write_exr(tmps[0], strips, self.channel_names, attrs, half=opts.io.half, size=self.shape,
+            write_exr(tmps[0], strips, self.channel_names, attrs, half=opts.io.half, size=shape,
                       compression=opts.io.compression)
             write_text(tmps[1], profile_text)
             if thumb:
@@ -378,6 +401,9 @@ class Merged:
             "crf": self.crf.describe(),
             "width": first.width,
             "height": first.height,
+            **({"crop": {"rows": [self.crop_box[0], self.crop_box[1]], "columns": [self.crop_box[2],
+                                                                                   self.crop_box[3]]}}
+               if self.crop_box else {}),
             "channels": self.channel_names,
             "saturated_fraction": float(np.count_nonzero(flags == FLAG_SATURATED) / n),
             "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
@@ -419,6 +445,16 @@ def cell_rgb(mosaic: np.ndarray, frame: Frame, matrix: np.ndarray, max_side: int
         planes[colour].append(site.reshape(hh // f, f, ww // f, f).mean(axis=(1, 3), dtype=np.float64))
     rgb = np.stack([np.mean(planes[c], axis=0) for c in "RGB"], axis=-1) * frame.white_balance
     return rgb @ np.asarray(matrix, np.float64).T
+
+
+def _cropped(strips, box: tuple[int, int, int, int]):
+    """The EXR strips ``(y0, rows)`` cut to ``box`` = ``(r0, r1, c0, c1)``, ``y0`` counted
+    from ``r0``."""
+    r0, r1, c0, c1 = box
+    for y0, data in strips:
+        a, b = max(y0, r0), min(y0 + data.shape[0], r1)
+        if b > a:
+            yield a - r0, data[a - y0:b - y0, c0:c1]
 
 
 def _tee_preview(strips, preview, n_channels: int):
