@@ -380,7 +380,8 @@ def test_black_frames_are_not_called_clipped(tmp_path, value, words, absent):
 
 # ---------------------------------------------------------------- the hostile run's leftovers (issue 49)
 def test_calibrate_noise_refuses_frames_of_two_sizes_before_any_array(tmp_path, flats_and_darks):
-    """A bracket of two sizes, and flats of two sizes, were a broadcasting traceback."""
+    """A bracket of two sizes, and flats of two sizes: one line naming the frame, nothing
+    compared pixel by pixel."""
     small, large = tmp_path / "s", tmp_path / "l"
     _cli("simulate", "-q", "-o", small, "--size", "64x64", "--frames", "2", "--seed", "1")
     _cli("simulate", "-q", "-o", large, "--size", "96x64", "--frames", "2", "--seed", "1", "--times", "0.5,0.9")
@@ -593,7 +594,7 @@ def test_partial_alpha_is_a_weight_and_the_output_keeps_its_own(tmp_path, associ
     """RGBA frames whose alpha is partial: the colour is read as the file declares it
     (straight in PNG; multiplied in, in an associated TIFF), alpha weighs the readings, and
     the EXR carries A with the colour multiplied by it (OpenEXR's convention): un-multiplied,
-    it is the merge of the frames without alpha (was 1.4-2 stops dark, alpha dropped)."""
+    it is the merge of the frames without alpha."""
     import OpenImageIO as oiio
 
     _cli("simulate", "-q", "-o", tmp_path / "rgb", "--format", "png", "--size", "192x128", "--frames", "3",
@@ -621,9 +622,9 @@ def test_partial_alpha_is_a_weight_and_the_output_keeps_its_own(tmp_path, associ
 
 
 def test_weights_lut_on_raw_gives_the_true_reason(tmp_path, dng_bracket):
-    """Every frame shares its levels, so 'per-file black levels' was not the reason: weight
-    tables are indexed by code value, and a RAW bracket is weighted from its noise model
-    (merge --lut refuses it for the same reason)."""
+    """A RAW bracket whose frames share their levels: weight tables are indexed by code
+    value, and a RAW bracket is weighted from its noise model (merge --lut refuses it for
+    the same reason)."""
     folder, meta = dng_bracket
     line = _refused(*_cli("weights-lut", *frames_of(folder, meta), "-o", tmp_path / "out.csv"), 1,
                     ["RAW mosaic", "noise model", "without --lut"], absent=["black levels"])
