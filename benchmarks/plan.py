@@ -163,20 +163,15 @@ def _measure(folder: Path, merged: Path, electrons: np.ndarray, frames: list[dic
     worst = min(bins)
     return {"predicted_at_truth": float(worst[0]), "measured": float(worst[1]),
             "measured_min": float(min(b[1] for b in bins)),
-            "low_at_truth": _percentile(low_pred, LOW), "low_measured": _percentile(low_meas, LOW)}
+            "low_at_truth": _percentile(low_pred), "low_measured": _percentile(low_meas)}
 
 
-#: the percentile of photosites at which the low end is compared (as plan reports it)
-LOW = 1.0
+def _percentile(parts: list) -> float:
+    """The low end (``plan``'s percentile) of per-photosite SNRs ``[(snr, weight), ...]``."""
+    from hdrmerge_cli.core.capture_hasinoff2010 import LOW_PERCENTILE, weighted_percentile
 
-
-def _percentile(parts: list, q: float) -> float:
-    """The weighted ``q``-th percentile of per-photosite SNRs ``[(snr, weight), ...]``."""
-    v = np.concatenate([a for a, _ in parts])
-    w = np.concatenate([b for _, b in parts])
-    order = np.argsort(v, kind="stable")
-    cum = np.cumsum(w[order]) / w.sum()
-    return float(v[order][min(int(np.searchsorted(cum, q / 100)), v.size - 1)])
+    return weighted_percentile(np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts]),
+                               LOW_PERCENTILE)
 
 
 def _shoot(work: Path, tag: str, scene: Path, scale: float, camera: dict, frames: list[dict], profile: Path,

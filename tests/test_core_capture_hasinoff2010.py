@@ -209,3 +209,14 @@ def test_dip_mean_solves_its_equation_and_meets_the_clipping_safe_bound_of_47():
         assert mu - white == pytest.approx(sds * np.sqrt(code_variance(mu, p)), rel=1e-9)
     # sds = -k: the upper clipping-safe bound of (47), solved there independently
     assert cap.dip_mean(p, white, -3.0) == pytest.approx(clipping_safe_range_exact(p, 0.5, white, 3.0)[1], rel=1e-9)
+
+
+def test_weighted_percentile_against_repeated_values():
+    """Integer weights: the weighted percentile is the plain percentile (lower value) of
+    the values repeated that many times."""
+    rng = np.random.default_rng(1)
+    v, w = rng.normal(size=40), rng.integers(1, 6, size=40)
+    repeated = np.sort(np.repeat(v, w))
+    for q in (0.5, 1.0, 10.0, 50.0, 99.0):
+        k = int(np.ceil(q / 100 * repeated.size)) - 1
+        assert cap.weighted_percentile(v, w.astype(float), q) == repeated[max(k, 0)]

@@ -261,10 +261,15 @@ def percentile_snr_db(plan: list[tuple[Setting, int]], scene: SceneRange, q: flo
         r, w = scene.population(c)
         values.append(snr_db(r, plan, c))
         weights.append(w / max(float(np.sum(w)), 1e-300))
-    v, w = np.concatenate(values), np.concatenate(weights)
-    order = np.argsort(v, kind="stable")
-    cum = np.cumsum(w[order]) / np.sum(w)
-    return float(v[order][min(int(np.searchsorted(cum, q / 100.0)), v.size - 1)])
+    return weighted_percentile(np.concatenate(values), np.concatenate(weights), q)
+
+
+def weighted_percentile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    """The ``q``-th percentile (%) of ``values`` (N,) each counted ``weights`` (N,) times:
+    the smallest value whose cumulative weight reaches ``q`` % of the total."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(weights[order]) / np.sum(weights)
+    return float(values[order][min(int(np.searchsorted(cum, q / 100.0)), values.size - 1)])
 
 
 #: of the scene's photosites, the share (%) at which a plan's low end is reported

@@ -3,6 +3,7 @@ moving objects from the frames that disagree with it (see core/registration.py, 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -71,9 +72,11 @@ class Alignment:
         """Each frame's largest displacement at a corner (pixels)."""
         return [registration.warp_size(w, f.height, f.width) for w, f in zip(self.warps, self.frames)]
 
+    @functools.cached_property
     def every_frame_mask(self) -> np.ndarray | None:
         """``(H, W)`` bool: the reference's pixels that every aligned frame covers; None when
-        the alignment is not applied (all of them)."""
+        the alignment is not applied (all of them).  Made once (the log, ``--json`` and
+        ``--crop`` read it)."""
         if not self.applied:
             return None
         every = None
@@ -85,7 +88,7 @@ class Alignment:
     def covered_by_every_frame(self) -> float:
         """The share of the reference's pixels that every aligned frame covers (1 when the
         alignment is not applied); the rest is measured by fewer frames."""
-        every = self.every_frame_mask()
+        every = self.every_frame_mask
         return 1.0 if every is None else round(float(np.mean(every)), 6)
 
     def summary(self) -> dict:

@@ -102,7 +102,7 @@ class Merged:
 
         if not self.options.io.crop:
             return None
-        every = self.alignment.every_frame_mask() if self.alignment is not None else None
+        every = self.alignment.every_frame_mask if self.alignment is not None else None
         if every is None or every.all():
             log.info("--crop: every frame covers the whole image; nothing is cut")
             return None
