@@ -126,7 +126,8 @@ def run(quick: bool = False, brackets=None) -> tuple[list[dict], dict]:
 
     from hdrmerge_cli.io.frames import load_codes
     from hdrmerge_cli.io.profile import crf_from_json
-    from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
+    from hdrmerge_cli.io.metadata import exposure_values
 
     logging.getLogger("hdrmerge_cli").setLevel(logging.ERROR)
     skipped = {HUGIN: None if shutil.which("align_image_stack") else "not installed (apt-get install hugin-tools)"}

@@ -41,7 +41,8 @@ def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
     """Frames (sorted by exposure), their decimated codes (H, W, 3) uint8, exposures and
     the decimation step."""
     from hdrmerge_cli.io.frames import load_codes
-    from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
+    from hdrmerge_cli.io.metadata import exposure_values
 
     paths = sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     frames = read_bracket(paths)

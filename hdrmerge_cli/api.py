@@ -86,7 +86,7 @@ class _Stack:
 
     @property
     def exposures(self) -> np.ndarray:
-        from hdrmerge_cli.pipeline.bracket import exposure_values
+        from hdrmerge_cli.io.metadata import exposure_values
 
         return exposure_values(self.frames)
 
@@ -234,7 +234,7 @@ def _settings(weighting, estimator, variance_model, irls, k, align, deghost, ref
     """The checked :class:`MergeSettings` of the array API's keywords."""
     from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
     from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
-    from hdrmerge_cli.pipeline.bracket import reference_exposure
+    from hdrmerge_cli.io.metadata import reference_exposure
     from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
 
     _choice("weighting", weighting, ("auto", *sorted(WEIGHTING_FUNCTIONS)))

@@ -201,7 +201,8 @@ def test_info_takes_times_and_reports_estimates(run, dng_bracket):
                                   "ex2f_trees_jpg", "stack_jpg", "stack_ghost_jpg", "eos350d_lamps_night_jpg"])
 def test_no_false_alarm_on_real_brackets(name):
     from hdrmerge_cli.pipeline import exposure_check as ex
-    from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
+    from hdrmerge_cli.io.metadata import exposure_values
 
     folder = SHARED / "brackets" / name
     frames = read_bracket(sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")))
@@ -299,7 +300,8 @@ def _exposure_log(name, crf, caplog, times_file=None):
     import logging
 
     from hdrmerge_cli.pipeline import exposure_check as ex
-    from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
+    from hdrmerge_cli.io.metadata import exposure_values
 
     folder = SHARED / "brackets" / name
     frames = read_bracket(sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")),

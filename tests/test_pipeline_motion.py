@@ -785,7 +785,7 @@ def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path)
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.io.frames import load_codes
-    from hdrmerge_cli.pipeline.bracket import exposure_values
+    from hdrmerge_cli.io.metadata import exposure_values
     from hdrmerge_cli.pipeline.merge import read_bracket
     from hdrmerge_cli.pipeline.motion import estimate_alignment
 

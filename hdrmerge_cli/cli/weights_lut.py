@@ -17,9 +17,10 @@ from hdrmerge_cli.io.atomic import write_together
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer
+from hdrmerge_cli.io.metadata import exposure_values
 from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, luts_figure, luts_writer, weight_luts
-from hdrmerge_cli.pipeline.bracket import choose_crf, exposure_values, read_bracket
 from hdrmerge_cli.pipeline.model_choice import RAW_HAS_NO_LUT, prior_rate as prior_rate_of, resolve_noise
+from hdrmerge_cli.pipeline.bracket import choose_crf, read_bracket
 
 
 @click.command("weights-lut")

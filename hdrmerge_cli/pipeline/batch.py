@@ -26,7 +26,7 @@ from hdrmerge_cli.io.frames import Frame, list_frames, read_frame, separate_pyth
 from hdrmerge_cli.io.logs import StderrFormatter
 from hdrmerge_cli.io.malloc import one_malloc_arena
 from hdrmerge_cli.io.thumbnails import read_thumbnail, thumbnail_shape
-from hdrmerge_cli.pipeline.bracket import fmt_time
+from hdrmerge_cli.io.metadata import fmt_time
 from hdrmerge_cli.pipeline.merge import merge
 from hdrmerge_cli.pipeline.options import DEFAULT_GAP, MergeOptions
 from hdrmerge_cli.pipeline.output import default_profile_path

@@ -22,8 +22,9 @@ from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.io.times import ESTIMATE
+from hdrmerge_cli.io.metadata import exposure_values
 from hdrmerge_cli.pipeline import exposure_check
-from hdrmerge_cli.pipeline.bracket import exposure_values, read_bracket
+from hdrmerge_cli.pipeline.bracket import read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
 

@@ -25,6 +25,7 @@ from hdrmerge_cli.core.comparametric import (
     response_from_comparagrams, robust_log_ratio,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
+from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, exposure_values, fmt_time
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -163,11 +164,9 @@ def check_order(frames: list[Frame], s: Samples) -> None:
     of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels neither clips, off the
     constant borders (frames at the noise floor and equal exposures pass; only a pair
     darker on most changed pixels fails), with a one-line error naming both frames.  Frames
-    whose labels tie (:data:`~hdrmerge_cli.pipeline.bracket.EQUAL_EXPOSURE_RTOL`) are not
+    whose labels tie (:data:`~hdrmerge_cli.io.metadata.EQUAL_EXPOSURE_RTOL`) are not
     ordered by them: the merge compares them as repeats, and ``--times estimate`` orders
     them by their estimates."""
-    from hdrmerge_cli.pipeline.bracket import EQUAL_EXPOSURE_RTOL, exposure_values
-
     margin = max(1.5 * s.codes_step, 0.004)
     h = exposure_values(frames)
     for k in range(1, len(frames)):
@@ -179,8 +178,8 @@ def check_order(frames: list[Frame], s: Samples) -> None:
         if t.disordered:
             raise HdrMergeError(
                 f"{frames[k].path}: darker than {frames[k - 1].path} on {100 * t.down_fraction:.0f} % of the pixels that "
-                f"changed, though labelled a longer exposure ({_fmt(frames[k].exposure_time)} vs "
-                f"{_fmt(frames[k - 1].exposure_time)}); check the exposure times"
+                f"changed, though labelled a longer exposure ({fmt_time(frames[k].exposure_time)} vs "
+                f"{fmt_time(frames[k - 1].exposure_time)}); check the exposure times"
             )
 
 
@@ -545,13 +544,13 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
         why = response_at_fault(est, k, tol_ev)
         if len(frames) == 2 and (why is None or given):  # a ratio: neither label outvotes the other
             log.warning("%s and %s: labelled %s and %s%s, but the frames' ratio is %+.2f EV from theirs; two frames "
-                        "cannot tell which label is wrong (check both)%s", ref.path, f.path, _fmt(ref.exposure_time),
-                        _fmt(f.exposure_time), f" by {given}" if given else "", -est.difference_ev[k], hint)
+                        "cannot tell which label is wrong (check both)%s", ref.path, f.path, fmt_time(ref.exposure_time),
+                        fmt_time(f.exposure_time), f" by {given}" if given else "", -est.difference_ev[k], hint)
             called.append(k)
             continue
         if why is not None and given:  # the user's times are the first suspect, whatever the ratios say
             log.warning("%s: %+.2f EV from the time %s gives it (%s), and %s; check %s", f.path,
-                        -est.difference_ev[k], given, _fmt(f.exposure_time), why, given)
+                        -est.difference_ev[k], given, fmt_time(f.exposure_time), why, given)
             continue
         if why is not None:  # a response measured on the bracket leaves the user nothing to change: -v only
             measured = crf is not None and crf.name.startswith(("measured", "estimate-crf"))
@@ -564,9 +563,9 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
             continue
         t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
         log.warning("%s: labelled %s%s, but the frames say %s (%+.2f EV, alike in shadows and highlights, as a wrong "
-                    "label makes; measured against %s, labelled %s)%s", f.path, _fmt(f.exposure_time),
-                    f" by {f.time_source}" if f.time_source != "its metadata" else "", _fmt(t_est),
-                    -est.difference_ev[k], ref.name, _fmt(ref.exposure_time), hint)
+                    "label makes; measured against %s, labelled %s)%s", f.path, fmt_time(f.exposure_time),
+                    f" by {f.time_source}" if f.time_source != "its metadata" else "", fmt_time(t_est),
+                    -est.difference_ev[k], ref.name, fmt_time(ref.exposure_time), hint)
         called.append(k)
     return called
 
@@ -625,9 +624,5 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     order = np.argsort(est_h, kind="stable")
     frames = [frames[i] for i in order]
     log.info("--times estimate: exposures %s (reference %s)",
-             ", ".join(f"{f.name} {_fmt(f.exposure_time)}" for f in frames), rep["reference"])
+             ", ".join(f"{f.name} {fmt_time(f.exposure_time)}" for f in frames), rep["reference"])
     return frames, est_h[order], rep, replace(s, v=[s.v[i] for i in order])
-
-
-def _fmt(t: float) -> str:
-    return f"1/{1 / t:.4g} s" if t < 1 else f"{t:.4g} s"

@@ -10,7 +10,7 @@ from hdrmerge_cli.core.coverage import Coverage, clip_classes
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.io.times import apply_times
 from hdrmerge_cli.pipeline import exposure_check
-from hdrmerge_cli.pipeline.bracket import exposure_values, fmt_time, sample_pattern
+from hdrmerge_cli.io.metadata import exposure_values, fmt_time, sample_pattern
 
 
 def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str | None = None) -> dict:

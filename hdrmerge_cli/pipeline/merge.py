@@ -35,13 +35,11 @@ from hdrmerge_cli.core.reconstruct import (FLAG_DARK, FLAG_SATURATED, STRIP_ROWS
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes
 from hdrmerge_cli.io.images import exr_compression
+from hdrmerge_cli.io.metadata import equal_exposure_groups, exposure_values, fmt_time, output_orientation, reference_exposure
 from hdrmerge_cli.io.noisespec import per_channel
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import motion
-from hdrmerge_cli.pipeline.bracket import (
-    choose_crf, equal_exposure_groups, exposure_values, fmt_time, output_orientation, read_bracket,
-    reference_exposure,
-)
+from hdrmerge_cli.pipeline.bracket import choose_crf, read_bracket
 from hdrmerge_cli.pipeline.crf import measure_response
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.model_choice import Models, choose_models, resolve_noise_by_iso

@@ -18,7 +18,7 @@ from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.noisespec import iso_key, noise_from_profile, parse_bounds, parse_noise, per_channel
 from hdrmerge_cli.io.profile import load_profile
-from hdrmerge_cli.pipeline.bracket import sample_pattern
+from hdrmerge_cli.io.metadata import sample_pattern
 from hdrmerge_cli.pipeline.options import MergeSettings
 
 log = logging.getLogger("hdrmerge_cli")

@@ -15,6 +15,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes, load_validity
+from hdrmerge_cli.io.metadata import sample_pattern
 from hdrmerge_cli.pipeline.options import ALIGN_MODES, DEGHOST_MODES  # noqa: F401  (read as motion.*)
 
 log = logging.getLogger("hdrmerge_cli")
@@ -346,8 +347,6 @@ class AlignedLoader:
             # is mostly the codes' noise and quantisation there, which the tables already hold)
             out = resample.apply_warp(codes, w, clip)
         else:
-            from hdrmerge_cli.pipeline.bracket import sample_pattern
-
             cell = np.asarray(sample_pattern(frame)).ravel()  # black level per site of the 2 x 2 cell
             if self.periods:
                 out = resample.shift_mosaic(codes, w)
@@ -445,8 +444,6 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     rest); ``params``: :data:`~hdrmerge_cli.core.deghost.RAW_PARAMS` or ``IMAGE_PARAMS`` by
     the frames' kind unless given, ``p_fa`` overriding its false-alarm rate.  Each frame is
     read twice (anchor, test).  Returns :class:`Ghosts`."""
-    from hdrmerge_cli.pipeline.bracket import sample_pattern
-
     first = frames[0]
     raw = first.kind == "raw"
     params = params or (deghost.RAW_PARAMS if raw else deghost.IMAGE_PARAMS)

@@ -21,7 +21,7 @@ from hdrmerge_cli.core.cfa_to_rgb import raw_to_rgb_rows
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
 from hdrmerge_cli.io.frames import Frame
-from hdrmerge_cli.pipeline.bracket import upright
+from hdrmerge_cli.io.metadata import upright
 from hdrmerge_cli.pipeline.model_choice import Models
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 

@@ -165,7 +165,7 @@ def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> d
 
 def meter(paths: list[str], opts: PlanOptions) -> Metering:
     """Merge the metering frames (``merge``'s defaults) and read the scene off the result."""
-    from hdrmerge_cli.pipeline.bracket import sample_pattern
+    from hdrmerge_cli.io.metadata import sample_pattern
     from hdrmerge_cli.pipeline.merge import merge_bracket
     from hdrmerge_cli.pipeline.options import InputOptions, MergeOptions, OutputOptions
 

@@ -245,7 +245,7 @@ def simulate(opts: SimulateOptions) -> dict:
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
         hint = "give longer --times" if opts.times else "lower --scale or give --times"
         times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
-        iso_ref = isos[0]  # merge's h_j = t_j ISO_j / ISO of its first frame (pipeline.bracket.exposure_values)
+        iso_ref = isos[0]  # merge's h_j = t_j ISO_j / ISO of its first frame (io.metadata.exposure_values)
         h = times * np.asarray(isos, float) / iso_ref
         t_ref = float(np.exp(np.mean(np.log(h))))
 
