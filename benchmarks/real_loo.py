@@ -82,7 +82,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     measured = None
     if excess:
         from hdrmerge_cli.pipeline.excess import measure_excess
-        from hdrmerge_cli.pipeline.exposure_check import Samples
+        from hdrmerge_cli.core.samples import Samples
 
         samples = Samples([c.astype(np.float32) / 255.0 for c in codes], np.ones(codes[0].shape[:2], bool),
                           (0, 0, 0, 0), 1, 1.0 / 255.0)

@@ -397,7 +397,8 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     0.22
     """
     from hdrmerge_cli.pipeline.crf import fit_with_labels, is_flat
-    from hdrmerge_cli.pipeline.exposure_check import ordered_samples, thin_overlap
+    from hdrmerge_cli.core.samples import thin_overlap
+    from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
     st = _stack(stack, times, None, black, white, bits)
     if len(np.unique(st.exposures)) < 2:

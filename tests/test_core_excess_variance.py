@@ -8,7 +8,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.excess_variance import (MATERIAL_DB, N_LEVELS, P_FALSE_ALARM, excess_effect_db,
                                                fit_excess_variance, level_of)
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.pipeline.exposure_check import Samples
+from hdrmerge_cli.core.samples import Samples
 from hdrmerge_cli.pipeline.excess import measure_excess
 
 

@@ -200,6 +200,7 @@ def test_info_takes_times_and_reports_estimates(run, dng_bracket):
 @pytest.mark.parametrize("name", ["office_jpg", "eos5d3_foyer_jpg", "em1ii_kitchen_jpg", "eos70d_kitchen_jpg",
                                   "ex2f_trees_jpg", "stack_jpg", "stack_ghost_jpg", "eos350d_lamps_night_jpg"])
 def test_no_false_alarm_on_real_brackets(name):
+    from hdrmerge_cli.core.samples import estimate_with_response
     from hdrmerge_cli.pipeline import exposure_check as ex
     from hdrmerge_cli.pipeline.bracket import read_bracket
     from hdrmerge_cli.io.metadata import exposure_values
@@ -209,7 +210,7 @@ def test_no_false_alarm_on_real_brackets(name):
     h = exposure_values(frames)
     s = ex.sample_frames(frames, max_samples=1 << 17)
     ex.check_order(frames, s)
-    est, _ = ex.estimate_with_response(frames, h, s, CRF("srgb", assumed=True))  # no response given
+    est, _ = estimate_with_response(h, s, CRF("srgb", assumed=True))  # no response given
     assert est.mislabelled() == [], est.difference_ev
 
 
@@ -378,7 +379,7 @@ def test_a_wrong_power_is_told_from_a_wrong_label():
     """Differences proportional to the distance in exposure from the reference are one
     slope (a response of the wrong power); one wrong label leaves half its error off it."""
     from hdrmerge_cli.core.comparametric import ExposureEstimate
-    from hdrmerge_cli.pipeline.exposure_check import power_explains
+    from hdrmerge_cli.core.samples import power_explains
 
     log_h = np.log(2.0) * np.arange(5.0) * 1.5
     power = ExposureEstimate(log_h, 0.2 * (np.arange(5.0) - 2) * 1.5, [], 2, 1.0)
@@ -392,7 +393,7 @@ def test_samples_registered_by_the_alignment_warps_line_up(raw):
     translation, brought back by that warp, equal the reference's samples (bilinear, off
     the uncovered edge) to within the interpolation of a smooth field; RAW samples are
     moved as whole CFA cells."""
-    from hdrmerge_cli.pipeline.exposure_check import Samples
+    from hdrmerge_cli.core.samples import Samples
 
     yy, xx = np.mgrid[0:96, 0:128].astype(np.float32)
     field = lambda dy, dx: (0.5 + 0.3 * np.sin((xx + dx) / 9.0) * np.cos((yy + dy) / 7.0))[..., None]
@@ -413,7 +414,8 @@ def test_label_motion_comes_from_the_alignment():
     """``alignment_motion``: applied warps leave no displacement between registered frames
     and none is known for a frame left unaligned; warps not applied give the distance
     between where the pair's warps take a corner."""
-    from hdrmerge_cli.pipeline.exposure_check import Samples, alignment_motion
+    from hdrmerge_cli.core.samples import Samples
+    from hdrmerge_cli.pipeline.exposure_check import alignment_motion
 
     class F:
         def __init__(self, path):

@@ -16,6 +16,9 @@ from hdrmerge_cli.core.crf_goossens2012 import (
 )
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.samples import (
+    MIN_OVERLAP, Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap,
+)
 from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.noisespec import parse_bounds
@@ -28,8 +31,6 @@ from hdrmerge_cli.pipeline.bracket import read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
 
-#: fewest pixels that two consecutive frames must both expose (neither code clipped)
-MIN_OVERLAP = exposure_check.MIN_OVERLAP
 #: largest --lambda and --coupling: far beyond any useful smoothing (goossens solves up to
 #: about 1, debevec's response is flat from about 1e7), below where the solvers overflow
 MAX_SMOOTHING = 1e6
@@ -129,7 +130,7 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
 
 
-def measure_response(frames: list[Frame], samples: exposure_check.Samples, cache: bool = True) -> CRF | None:
+def measure_response(frames: list[Frame], samples: Samples, cache: bool = True) -> CRF | None:
     """The response of an image bracket given none, fitted on the samples the merge draws
     (:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`, constant borders off) by
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
@@ -137,13 +138,13 @@ def measure_response(frames: list[Frame], samples: exposure_check.Samples, cache
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
     two distinct exposures, or neighbours sharing fewer than :data:`MIN_OVERLAP` unclipped
     pixels) the cached response of the same camera and style, unless the frames contradict
-    it (:func:`~hdrmerge_cli.pipeline.exposure_check.response_fits`); else None, with a warning
+    it (:func:`~hdrmerge_cli.pipeline.response_fits`); else None, with a warning
     saying why and that sRGB is assumed."""
     from hdrmerge_cli.io import noisecache
 
     key = noisecache.response_key(frames[0]) if cache else None
     exposures = exposure_values(frames)
-    thin = exposure_check.thin_overlap(samples)
+    thin = thin_overlap(samples)
     if len(np.unique(exposures)) < 2:
         why = "one exposure only"
     elif thin is not None:
@@ -165,7 +166,7 @@ def measure_response(frames: list[Frame], samples: exposure_check.Samples, cache
     return None
 
 
-def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposure_check.Samples,
+def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: Samples,
                      key: str | None) -> CRF | None:
     """The cached response of ``key`` (:func:`measure_response`), or None: none stored, a
     damaged entry, or frames whose ratios bend through it (most pairs, beyond the label
@@ -181,7 +182,7 @@ def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposu
             return None
     except (HdrMergeError, ValueError):
         return None
-    if len(frames) > 1 and not exposure_check.response_fits(exposure_check.estimate(frames, exposures, samples, crf)):
+    if len(frames) > 1 and not response_fits(estimate(exposures, samples, crf)):
         log.info("the cached response of %s does not fit these frames; not used", key)
         return None
     log.info("camera response of %s from the cache %s (measured on %s, %s)", key, noisecache.response_file(),
@@ -189,21 +190,21 @@ def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: exposu
     return crf
 
 
-def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: exposure_check.Samples) -> CRF:
+def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples) -> CRF:
     """The response and the labels judged together: fit with the labels, check them through
-    the fit (:func:`~hdrmerge_cli.pipeline.exposure_check.estimate`), and while a frame's label
+    the fit (:func:`~hdrmerge_cli.core.samples.estimate`), and while a frame's label
     is off by more than the tolerance in a way a label explains (its ratios do not change
-    with brightness, :func:`~hdrmerge_cli.pipeline.exposure_check.label_at_fault`), refit with
+    with brightness, :func:`~hdrmerge_cli.pipeline.label_at_fault`), refit with
     that frame's estimate in place of its label, the frame furthest off first, at most half
     the frames.  A wrong label then does not bend the curve; the labels are judged (and
     warned about) afterwards against the response returned."""
-    codes = exposure_check.samples_codes(frames, samples)
+    codes = samples_codes(samples)
     log_h = np.log(np.asarray(exposures, np.float64))
     crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
     replaced: list[int] = []
     for _ in range(len(frames) // 2):
-        est = exposure_check.estimate(frames, np.exp(log_h), samples, crf)
-        off = [k for k in est.mislabelled() if k not in replaced and exposure_check.label_at_fault(est, k)]
+        est = estimate(np.exp(log_h), samples, crf)
+        off = [k for k in est.mislabelled() if k not in replaced and label_at_fault(est, k)]
         if not off:
             break
         k = max(off, key=lambda j: abs(est.difference_ev[j]))
@@ -265,13 +266,13 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         check_not_flat(crf, opts.method, smoothing)
         # the labels checked through the fitted response (the comparagrams the fit used);
         # --times estimate: refit with the estimates, until they settle (at most 3 rounds)
-        est = exposure_check.estimate(frames, labels, samples, crf)
+        est = estimate(labels, samples, crf)
         for _ in range(3 if opts.times == ESTIMATE else 0):
             new_log_h = est.log_h
             crf, fits, changed = fit_crf(codes, new_log_h, first.n_codes, opts.method, smoothing, n_samples, options,
                                          np.random.default_rng(opts.seed))
             check_not_flat(crf, opts.method, smoothing)
-            est = exposure_check.estimate(frames, labels, samples, crf)
+            est = estimate(labels, samples, crf)
             moved = float(np.max(np.abs(est.log_h - new_log_h))) / np.log(2)
             log_h = new_log_h
             if moved < 0.01:

@@ -57,7 +57,7 @@ def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, No
     the predicted error of the merge materially
     (:func:`~hdrmerge_cli.core.excess_variance.with_effect`, over every sample's readings).
 
-    samples : :class:`~hdrmerge_cli.pipeline.exposure_check.Samples` of an image bracket
+    samples : :class:`~hdrmerge_cli.core.samples.Samples` of an image bracket
         (registered onto the reference where the bracket was aligned)
     exposures : (K,) the frames' exposures in seconds, as the merge uses them
     noise : per channel parameters of (17) in code units, or None (quantisation alone)

@@ -7,10 +7,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
+from hdrmerge_cli.core.samples import Samples, estimate_with_response
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
+from hdrmerge_cli.io.metadata import exposure_values, fmt_time, sample_pattern
 from hdrmerge_cli.io.times import apply_times
 from hdrmerge_cli.pipeline import exposure_check
-from hdrmerge_cli.io.metadata import exposure_values, fmt_time, sample_pattern
 
 
 def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str | None = None) -> dict:
@@ -60,7 +61,7 @@ def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str
     return out
 
 
-def _estimates(frames: list[Frame], s: exposure_check.Samples, crf_spec: str | None) -> dict:
+def _estimates(frames: list[Frame], s: Samples, crf_spec: str | None) -> dict:
     """The exposures measured on the frames (as merge checks them), through ``crf_spec``
     (``--crf``; a profile JSON's CRF) or, for images without it, a response fitted on the
     bracket; a label more than 1/3 EV off is also a warning."""
@@ -77,7 +78,7 @@ def _estimates(frames: list[Frame], s: exposure_check.Samples, crf_spec: str | N
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
     exposures = exposure_values(frames)
     exposure_check.check_order(frames, s)
-    est, used = exposure_check.estimate_with_response(frames, exposures, s, crf)
+    est, used = estimate_with_response(exposures, s, crf)
     motion = exposure_check.label_motion(s, exposures, crf, est)
     exposure_check.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates",
                                    motion=motion)

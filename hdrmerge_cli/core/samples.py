@@ -1,0 +1,252 @@
+"""The bracket's one sample set and what is measured on it.
+
+:class:`Samples` holds every frame decoded, subsampled and normalised to
+``v = (z - black) / (white - black)`` (drawn by the exposures stage,
+:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`).  On it: the neighbour pairs'
+overlap (:func:`thin_overlap`), their ratios through a response (:func:`measure_pairs`), the
+exposures chained from them (:func:`estimate`; :mod:`hdrmerge_cli.core.comparametric` holds
+the estimators), a quick response fitted on the samples when the one in use is only
+assumed (:func:`quick_response`), and whether the response or a label explains a frame's
+difference from its label (:func:`label_at_fault`, :func:`response_fits`).  The response
+stage, the exposures stage and the excess-variance test all read the same samples here.
+
+Everything here is pure array code: no paths, no printing.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hdrmerge_cli.core.comparametric import (
+    LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, chain_pairs, comparagram, estimate_exposures,
+    response_from_comparagrams, robust_log_ratio,
+)
+from hdrmerge_cli.core.crf import CRF, linearise, table_crf
+
+#: well-exposed range of v (normalised codes) whose ratios are trusted: linear data
+#: (RAW, a linear response) and a verified response (a table: a profile or CSV)
+RANGE_LINEAR = (0.01, 0.9)
+RANGE_VERIFIED = (0.04, 0.94)
+#: an unverified named response (sRGB assumed, gamma:G): the mid range only
+RANGE_UNVERIFIED = (0.1, 0.9)
+#: above a frame's own floor (its 0.5th percentile of v, per channel) by at least this:
+#: frames at the noise floor (film fog, a scanner's black) give no ratios
+FLOOR_MARGIN = 0.03
+#: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
+MIN_OVERLAP = 50
+
+
+@dataclass
+class Samples:
+    """Frames decoded, subsampled and normalised: ``v`` per frame ``(H', W', C)`` float32
+    (C = 1 for a RAW mosaic, every site normalised by its own black and white levels);
+    ``inside``: (H', W') pixels off the constant borders; ``step``: the subsampling (images:
+    every ``step``-th row and column; RAW: whole 2 x 2 CFA cells, one every ``step`` cells,
+    so consecutive sample rows pair up into cells ``2 step`` pixels apart); ``levels``:
+    ``(black, white - black, n_codes)`` of the codes normalised, per channel of ``v``
+    (float32), for :func:`samples_codes`."""
+
+    v: list[np.ndarray]
+    inside: np.ndarray
+    border: tuple[int, int, int, int]
+    step: int
+    codes_step: float  # one code value in units of v
+    raw: bool = False  # a RAW mosaic (samples in whole CFA cells)
+    levels: tuple[np.ndarray, np.ndarray, int] | None = None
+
+    @property
+    def pitch(self) -> int:
+        """Full-resolution pixels between the samples :func:`registration_image` reads
+        (RAW: between CFA cells)."""
+        return 2 * self.step if self.raw else self.step
+
+    def registered(self, warps: list[np.ndarray]) -> Samples:
+        """The samples brought onto the reference by the full-resolution ``warps`` (one
+        ``(2, 3)`` per frame mapping reference pixels to the frame's, as
+        the alignment stage returns them), bilinear
+        (RAW: each site of the CFA cells from the same site of its neighbour cells);
+        ``inside`` keeps only the samples every frame covers."""
+        import cv2
+
+        inside = self.inside.copy()
+        out = []
+        for v, w in zip(self.v, warps):
+            m = np.array(w, np.float64)
+            if np.allclose(m, np.eye(2, 3)):
+                out.append(v)
+                continue
+            m[:, 2] /= self.pitch  # full-resolution pixels -> samples (RAW: cells)
+            planes = _cell_planes(v) if self.raw else v
+            h, wd = planes.shape[:2]
+            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            moved = cv2.warpAffine(np.ascontiguousarray(planes), m, (wd, h), flags=flags,
+                                   borderMode=cv2.BORDER_REPLICATE).reshape(planes.shape)
+            covered = cv2.warpAffine(np.ones((h, wd), np.uint8), m, (wd, h), flags=flags, borderValue=0) > 0
+            if self.raw:
+                moved, covered = _from_cell_planes(moved, v), _from_cell_planes(np.repeat(covered[..., None], 4, -1), np.zeros(v.shape, bool))[..., 0]
+            out.append(moved)
+            inside &= covered
+        return replace(self, v=out, inside=inside)
+
+
+def _cell_planes(v: np.ndarray) -> np.ndarray:
+    """RAW samples ``(H', W', 1)`` (whole 2 x 2 cells) as ``(H' // 2, W' // 2, 4)`` planes."""
+    h2, w2 = v.shape[0] // 2, v.shape[1] // 2
+    return v[:2 * h2, :2 * w2, 0].reshape(h2, 2, w2, 2).transpose(0, 2, 1, 3).reshape(h2, w2, 4)
+
+
+def _from_cell_planes(planes: np.ndarray, like: np.ndarray) -> np.ndarray:
+    """:func:`_cell_planes` inverted into an array shaped as ``like`` (an odd last row or
+    column, outside every whole cell, keeps ``like``'s values)."""
+    h2, w2 = planes.shape[:2]
+    out = like.copy()
+    out[:2 * h2, :2 * w2, 0] = planes.reshape(h2, w2, 2, 2).transpose(0, 2, 1, 3).reshape(2 * h2, 2 * w2)
+    return out
+
+
+def thin_overlap(s: Samples) -> tuple[int, int] | None:
+    """The first neighbour pair sharing fewer than :data:`MIN_OVERLAP` pixels that neither
+    frame clips (0 < z < max; constant borders excluded), as ``(k, pixels)`` with ``k`` the
+    pair's longer frame, or None: a response cannot be chained across such a pair."""
+    lo, hi = 0.5 * s.codes_step, 1 - 0.5 * s.codes_step
+    for k in range(1, len(s.v)):
+        a, b = s.v[k - 1], s.v[k]
+        both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
+        if both < MIN_OVERLAP:
+            return k, both
+    return None
+
+
+def crf_verified(crf: CRF) -> bool:
+    """Linear data, measured response tables and a response the user named are trusted;
+    sRGB assumed for want of one is not: its ratios are read in the mid range and up to a
+    power."""
+    return not crf.assumed
+
+
+def usable_range(crf: CRF) -> tuple[float, float]:
+    return RANGE_LINEAR if crf.is_linear else RANGE_VERIFIED if crf_verified(crf) else RANGE_UNVERIFIED
+
+
+def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
+    """:func:`~hdrmerge_cli.core.comparametric.robust_log_ratio` of every neighbour pair, on the
+    pixels both frames expose well: ``v`` within ``value_range`` (default by the response,
+    :func:`usable_range`) and above each frame's own floor, off the borders; linearised by
+    ``crf`` per channel (RAW: ``v`` itself)."""
+    lo, hi = value_range or usable_range(crf)
+    masks, lin = [], []
+    for v in s.v:
+        inside = v[s.inside]  # (N, C)
+        floor = np.percentile(inside, 0.5, axis=0) + FLOOR_MARGIN if inside.size else np.zeros(v.shape[-1])
+        ok = (v >= np.maximum(lo, floor)) & (v <= hi) & s.inside[..., None]
+        masks.append(ok)
+        lin.append(linearise(v, crf, s.codes_step))
+    total = max(1, int(np.count_nonzero(s.inside)) * s.v[0].shape[-1])
+    out = []
+    for k in range(1, len(s.v)):
+        both = masks[k - 1] & masks[k]
+        r = robust_log_ratio(lin[k - 1][both], lin[k][both])
+        r.coverage = int(np.count_nonzero(both)) / total
+        out.append(r)
+    return out
+
+
+def estimate(exposures: np.ndarray, s: Samples, crf: CRF, value_range: tuple[float, float] | None = None, free_slope: bool = False,
+             moved: frozenset[int] = frozenset()) -> ExposureEstimate:
+    """Every frame's exposure measured on the samples (see :mod:`hdrmerge_cli.core.comparametric`),
+    on the labels' scale (the reference frame keeps its label).  The pairs in ``moved``
+    (frames that moved between the exposures) are marked so: their labels' ratio is kept."""
+    pairs = [replace(p, moved=True) if k in moved else p for k, p in enumerate(measure_pairs(s, crf, value_range))]
+    return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
+
+
+def samples_codes(s: Samples) -> list[np.ndarray]:
+    """The samples off the constant borders back as integer code values (images: exact),
+    ``(N, C)`` int64 per frame."""
+    black, span, n_codes = s.levels
+    return [np.rint(v[s.inside] * span + black).clip(0, n_codes - 1).astype(np.int64) for v in s.v]
+
+
+def quick_response(exposures: np.ndarray, s: Samples, skip: frozenset[int] = frozenset()) -> CRF:
+    """An image bracket's inverse response fitted on its samples (constant borders off)
+    with the given exposures, per channel, from the neighbour pairs' comparagrams
+    (:func:`~hdrmerge_cli.core.comparametric.response_from_comparagrams`): the check's own
+    response when the one in use is an unverified model (sRGB assumed), whose ratios are
+    off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
+    moved) are left out while others remain."""
+    from hdrmerge_cli.core.crf_estimate import inverse_from_log  # (numba: only a bracket given no response)
+    from hdrmerge_cli.core.crf_goossens2012 import from_knots, knot_levels, to_knots
+
+    n = s.levels[2]
+    levels = knot_levels(n)
+    codes = [to_knots(c, n, levels) for c in samples_codes(s)]  # (N, C)
+    log_r = np.diff(np.log(exposures))
+    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
+    tables = []
+    for ch in range(codes[0].shape[-1]):
+        grams = [comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
+        g = from_knots(response_from_comparagrams(grams, log_r[[k - 1 for k in used]]), n)
+        tables.append(inverse_from_log(g)[0])
+    return table_crf(np.stack(tables), "fitted on the bracket")
+
+
+def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: int = 1,
+                           moved: frozenset[int] = frozenset()) -> tuple[ExposureEstimate, CRF]:
+    """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
+    otherwise through a response fitted on the bracket (:func:`quick_response`), jointly:
+    fit with the labels, estimate, refit with the estimates, ``rounds`` times.  Pairs in
+    ``moved`` are not used (their labels' ratio is kept)."""
+    if crf_verified(crf):
+        return estimate(exposures, s, crf, moved=moved), crf
+    h = np.asarray(exposures, dtype=np.float64)
+    fitted = quick_response(h, s, moved)  # its least squares shrink the ratios a little: slope fitted
+    est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
+    for _ in range(rounds - 1):
+        fitted = quick_response(np.exp(est.log_h), s, moved)
+        est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
+    # a label is called wrong only where the assumed response agrees (same sign; the smaller
+    # of the two differences): a fit on pairs that barely overlap, or a camera curve far
+    # from the assumed one, each alone makes false alarms
+    assumed = estimate(exposures, s, crf, moved=moved).difference_ev
+    agree = np.sign(assumed) == np.sign(est.difference_ev)
+    diff = np.where(agree, np.sign(assumed) * np.minimum(np.abs(assumed), np.abs(est.difference_ev)), 0.0)
+    return replace(est, difference_ev=diff), fitted
+
+
+def label_at_fault(est: ExposureEstimate, k: int) -> bool:
+    """Whether frame ``k``'s difference from its label is what a wrong label makes rather
+    than a response that does not fit the frame.  A wrong label moves every pixel's ratio
+    alike; a wrong response (or a frame processed or lit differently) bends the ratios with
+    brightness.  The label is blamed when the ratios' change over the brightness range,
+    summed over the pairs frame ``k``'s estimate chains through (:func:`ratio_bend_ev`), is
+    smaller than the difference itself."""
+    return bool(ratio_bend_ev(est, k) < abs(est.difference_ev[k]))
+
+
+def power_explains(est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV) -> bool:
+    """Whether the differences from the labels grow in proportion to each frame's distance
+    from the reference in exposure, as a response of the wrong power makes (every ratio
+    read through it is scaled alike): one slope fitted through the reference leaves every
+    frame within ``tol_ev``.  Needs three frames; a single wrong label leaves at least half
+    its error off such a line."""
+    d = np.asarray(est.difference_ev, np.float64)
+    x = (est.log_h - est.log_h[est.reference]) / np.log(2)
+    if d.size < 3 or not np.any(x):
+        return False
+    slope = float(np.dot(x, d) / np.dot(x, x))
+    return bool(np.max(np.abs(d - slope * x)) <= tol_ev)
+
+
+def response_fits(est: ExposureEstimate) -> bool:
+    """Whether the response in use fits the bracket: the median measured pair's ratios
+    change by less than the label tolerance over their brightness range.  The response is
+    common to every frame, so where it bends most pairs no label can be judged through it."""
+    trends = [abs(p.trend) for p in est.pairs if p.measured]
+    return not trends or float(np.median(trends)) / np.log(2) < LABEL_TOLERANCE_EV
+
+
+def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:
+    """The change of the pixels' ratios over brightness (EV), summed over the pairs frame
+    ``k``'s estimate chains through (:attr:`~hdrmerge_cli.core.comparametric.PairRatio.trend`)."""
+    return sum(abs(est.pairs[j].trend) for j in chain_pairs(k, est.reference)) / np.log(2)
