@@ -115,8 +115,9 @@ def merged(codes, times, crf, options=None) -> tuple[np.ndarray, np.ndarray]:
     m = merge_arrays(codes, times, crf=crf, **(options or {"align": "off"}))
     h, w = codes[0].shape[:2]
     covered = np.ones((h, w), bool)
-    if m.alignment is not None and m.alignment.applied:
-        for warp in m.alignment.warps:
+    alignment = m.bracket.alignment
+    if alignment is not None and alignment.applied:
+        for warp in alignment.warps:
             covered &= covered_mask(np.asarray(warp), h, w)
     return m.image / m.h_ref, covered
 

@@ -28,7 +28,8 @@ from benchmarks import write_result
 from benchmarks.accuracy import GAMMA, crb_log
 from hdrmerge_cli.core.sensor import SensorModel
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.pipeline.merge import MergeOptions, merge
+from hdrmerge_cli.pipeline.options import MergeOptions
+from hdrmerge_cli.pipeline.run import merge
 from hdrmerge_cli.pipeline.simulate import SimulateOptions, simulate
 
 SCENE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdr" / "ScanLines_Desk.exr"

@@ -46,7 +46,8 @@ from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times
 from hdrmerge_cli.io.images import read_exr
 from hdrmerge_cli.io.frames import read_frame
 from hdrmerge_cli.pipeline.calibrate import CalibrateOptions, _by_channel, _read_group, calibrate_noise
-from hdrmerge_cli.pipeline.merge import MergeOptions, merge
+from hdrmerge_cli.pipeline.options import MergeOptions
+from hdrmerge_cli.pipeline.run import merge
 from hdrmerge_cli.pipeline.simulate import SimulateOptions, load_scene, simulate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"

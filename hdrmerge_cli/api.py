@@ -338,7 +338,8 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
     >>> bool(np.all(np.abs(hdr / scene - 1)[(scene > 0.02) & (scene < 15)] < 0.05))
     True
     """
-    from hdrmerge_cli.pipeline.merge import check_options, merge_frames
+    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.run import check_options, merge_frames
 
     settings = _settings(weighting, estimator, variance_model, irls, k, align, deghost, reference)
     st = _stack(stack, times, cfa, black, white, bits)
@@ -347,7 +348,7 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
     opts = MergeOptions(settings, io=OutputOptions(extra_channels=("variance",) if return_variance else (),
                                                    cfa=st.raw and not demosaic, noise_cache=False))
     check_options(opts)
-    merged = merge_frames(st.frames, crf, opts, load=st.load, noise=params)
+    merged = merge_frames(Bracket(st.frames, crf, st.load, noise=params), opts)
     image = merged.image
     variance = merged.variance if return_variance else None
     if image.shape[-1] == 1:  # a grey image, or a mosaic not demosaiced
@@ -608,7 +609,7 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
         params, _ = measure_noise(st.frames, crf, st.load, cache=False)
     alignment = motion.estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
     load = motion.loader(alignment, st.load)
-    ghosts = motion.find_ghosts(st.frames, st.exposures, crf, motion.require_noise(params, st.frames, crf),
+    ghosts = motion.find_ghosts(st.frames, st.exposures, crf, motion.require_noise(params, st.frames),
                                 load, mode)
     h, w = st.frames[0].height, st.frames[0].width
     masks = np.zeros((len(st.frames), h, w), np.float32)
@@ -665,21 +666,22 @@ def merge_files(paths: Sequence[str | Path], **options) -> Merged:
     """
     import time
 
-    from hdrmerge_cli.pipeline.merge import merge_frames, open_bracket
+    from hdrmerge_cli.pipeline.bracket import read
+    from hdrmerge_cli.pipeline.run import merge_frames
 
     t0 = time.perf_counter()
     noise = options.pop("noise") if not isinstance(options.get("noise"), (str, type(None))) else None
     crf = options.pop("crf") if isinstance(options.get("crf"), CRF) else None
     opts = _options(options)
-    noise = _noise(noise)
-    frames, response, held = open_bracket([str(p) for p in paths], opts)
-    if crf is not None and frames[0].kind == "image":
-        n = frames[0].n_codes
-        if crf.table is not None and crf.table.shape[1] != n:
+    b = read([str(p) for p in paths], opts.inputs)
+    b.noise = _noise(noise)
+    first = b.frames[0]
+    if crf is not None and first.kind == "image":
+        if crf.table is not None and crf.table.shape[1] != first.n_codes:
             raise HdrMergeError(f"crf: the inverse table has {crf.table.shape[1]} entries per channel, but "
-                                f"{frames[0].path} has {n} code values")
-        response = crf
-    return merge_frames(frames, response, opts, load=held, t_start=t0, noise=noise)
+                                f"{first.path} has {first.n_codes} code values")
+        b.crf = crf
+    return merge_frames(b, opts, t_start=t0)
 
 
 def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",
@@ -701,9 +703,10 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
         from hdrmerge_cli.pipeline.bracket import choose_crf
 
         response = choose_crf(st.frames, crf, warn=False)  # none given: merge_frames measures it
-    from hdrmerge_cli.pipeline.merge import merge_frames
+    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.run import merge_frames
 
-    return merge_frames(st.frames, response, opts, load=st.load)
+    return merge_frames(Bracket(st.frames, response, st.load), opts)
 
 
 def _options(options: dict) -> MergeOptions:
@@ -711,7 +714,7 @@ def _options(options: dict) -> MergeOptions:
     numbers (seconds) or text as on the command line: ``reference=0.01`` or ``"1/100"``,
     ``times=[0.01, 0.04]``, ``"1/100,1/25"`` or ``"estimate"``."""
     from hdrmerge_cli.io.times import ESTIMATE, parse_times, seconds
-    from hdrmerge_cli.pipeline.merge import check_options
+    from hdrmerge_cli.pipeline.run import check_options
 
     times = options.get("times")
     if isinstance(times, str):

@@ -80,7 +80,7 @@ def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes):
 def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes):
     paths = _shifted_dngs(tmp_path, (3.0, 0.0, -5.0))
     merged = _merge(paths)
-    assert merged.alignment.applied
+    assert merged.bracket.alignment.applied
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
 
 
@@ -114,12 +114,13 @@ def test_times_estimate_resorting_a_handheld_bracket_keeps_each_warp_on_its_fram
     truth = _merge(given, times_file=str(tmp_path / "true.txt"))
     est = _merge(given, times="estimate")
     assert est.summary()["exposure_check"]["used"] == "estimates"
-    assert [f.path for f in est.frames] == paths  # re-sorted
+    assert [f.path for f in est.bracket.frames] == paths  # re-sorted
     for merged in (truth, est):
-        assert merged.alignment.applied and merged.alignment.reference == paths[2]
-        for frame in merged.frames:  # the scene moved right by dx: the warp's shift is -dx
+        assert merged.bracket.alignment.applied and merged.bracket.alignment.reference == paths[2]
+        for frame in merged.bracket.frames:  # the scene moved right by dx: the warp's shift is -dx
             dx = shifts[paths.index(frame.path)]
-            assert merged.alignment.warp_of(frame)[0, 2] == pytest.approx(-dx, abs=0.25), merged.alignment.summary()
+            alignment = merged.bracket.alignment
+            assert alignment.warp_of(frame)[0, 2] == pytest.approx(-dx, abs=0.25), alignment.summary()
     a, b = truth.image.astype(np.float64), est.image.astype(np.float64)
     inner = (slice(16, -16), slice(16, -16))
     ok = (a[inner] > 1e-3) & (b[inner] > 1e-3)

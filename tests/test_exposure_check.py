@@ -314,7 +314,7 @@ def _exposure_log(name, crf, caplog, times_file=None):
         logger.addHandler(caplog.handler)
     try:
         with caplog.at_level(logging.WARNING, logger="hdrmerge_cli"):
-            rep = ex.resolve_exposures(frames, exposure_values(frames), crf, samples=ex.ordered_samples(frames))[2]
+            rep = ex.resolve_exposures(frames, exposure_values(frames), crf, samples=ex.ordered_samples(frames)).report
     finally:
         if own:
             logger.removeHandler(caplog.handler)

@@ -153,7 +153,7 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
     from hdrmerge_cli.core import sensor as sm
     from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.io.dng_integer import write_dng
-    from hdrmerge_cli.pipeline import merge as pm
+    from hdrmerge_cli.pipeline import run as pm
     from hdrmerge_cli.pipeline.motion import ghost_weight
 
     h, w = 480, 640
@@ -174,7 +174,7 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
             write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
             paths.append(str(p))
         merged = pm.merge_bracket(paths, pm.MergeOptions.from_fields(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
-        masks[kind] = ghost_weight(merged.ghosts, merged.ghosts.frames[masked], h, w)
+        masks[kind] = ghost_weight(merged.bracket.ghosts, merged.bracket.ghosts.frames[masked], h, w)
     return masks
 
 
@@ -186,7 +186,7 @@ def test_alignment_engages_on_a_dark_short_frame(tmp_path, mode, rotation):
     at every corner without rotation; with 0.6 degrees, within 0.6 px and 0.1 degrees (the
     short frame's narrow shared band limits ECC's rotation to about 0.07 degrees here)."""
     from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.pipeline.merge import read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
     from hdrmerge_cli.pipeline.motion import estimate_alignment
 
     times = [2.0**-2.3, 1.0, 2.0**2.3]
@@ -207,7 +207,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
     left where it is -- in a warning when alignment was asked for, in an info line under
     ``auto`` (the default) when nothing registered moved."""
     from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.pipeline.merge import read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
     from hdrmerge_cli.pipeline.motion import estimate_alignment
 
     paths = []
@@ -528,7 +528,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.io.images import read_exr
     from hdrmerge_cli.io.dng_integer import write_dng
-    from hdrmerge_cli.pipeline import merge as pm
+    from hdrmerge_cli.pipeline import run as pm
     from hdrmerge_cli.pipeline import motion
 
     h, w = 96, 128
@@ -655,7 +655,7 @@ def test_static_raw_bracket_deghosting_rejects_nothing_wherever_the_camera_puts_
     from hdrmerge_cli.core import sensor as sm
     from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.io.dng_integer import write_dng
-    from hdrmerge_cli.pipeline import merge as pm
+    from hdrmerge_cli.pipeline import run as pm
 
     rng = np.random.default_rng(17)
     h, w = 240, 320
@@ -786,7 +786,7 @@ def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path)
     from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.io.frames import load_codes
     from hdrmerge_cli.io.metadata import exposure_values
-    from hdrmerge_cli.pipeline.merge import read_bracket
+    from hdrmerge_cli.pipeline.bracket import read_bracket
     from hdrmerge_cli.pipeline.motion import estimate_alignment
 
     run("simulate", "-o", tmp_path, "-q", "--scene", SHARED / "hdr" / "ScanLines_Desk.exr", "--downscale", "2",

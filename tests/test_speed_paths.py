@@ -84,7 +84,8 @@ def test_merge_help_imports_no_numba_scipy_or_the_merge(tmp_path):
     code, mods = _modules_after(["merge", "--help"], tmp_path)
     assert code == 0
     assert not mods & {"numba", "scipy", "importlib.metadata"}, sorted(mods & {"numba", "scipy", "importlib.metadata"})
-    assert not mods & {"hdrmerge_cli.pipeline.merge", "hdrmerge_cli.pipeline.batch", "hdrmerge_cli.core.reconstruct"}
+    assert not mods & {"hdrmerge_cli.pipeline.run", "hdrmerge_cli.pipeline.merge", "hdrmerge_cli.pipeline.batch",
+                     "hdrmerge_cli.core.reconstruct"}
 
 
 def test_choice_vocabularies_match_their_implementations():

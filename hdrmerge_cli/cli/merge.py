@@ -183,7 +183,7 @@ def command(images, output, batch_dir, jobs, gap, scheduler, skip_existing, dry_
         raise click.UsageError("--jobs, --gap, --scheduler, --skip-existing and --dry-run apply to --batch only")
     if output.is_dir():
         raise click.UsageError(f"{output} is a folder; -o names the EXR or DNG to write (or use --batch DIR)")
-    from hdrmerge_cli.pipeline.merge import merge
+    from hdrmerge_cli.pipeline.run import merge
 
     summary = merge(list(images), opts)
     written = [summary["output"], summary["profile"]] + ([summary["preview"]] if summary.get("preview") else [])

@@ -27,7 +27,7 @@ from hdrmerge_cli.io.logs import StderrFormatter
 from hdrmerge_cli.io.malloc import one_malloc_arena
 from hdrmerge_cli.io.thumbnails import read_thumbnail, thumbnail_shape
 from hdrmerge_cli.io.metadata import fmt_time
-from hdrmerge_cli.pipeline.merge import merge
+from hdrmerge_cli.pipeline.run import merge
 from hdrmerge_cli.pipeline.options import DEFAULT_GAP, MergeOptions
 from hdrmerge_cli.pipeline.output import default_profile_path
 

@@ -1,11 +1,15 @@
-"""Read and check a bracket: the frames' metadata, their exposures, the response.
+"""Read and check a bracket: the frames' metadata, their exposures, the response; and
+:class:`Bracket`, the one object the merge's stages share.
 
 The first stage of every command that reads a bracket (merge, estimate-crf,
-calibrate-noise, info); it decodes no pixels."""
+calibrate-noise, info); it decodes no pixels itself (a RAW frame's codes come from the
+open that reads its metadata)."""
 from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +22,60 @@ from hdrmerge_cli.io.profile import crf_from_json, load_profile
 from hdrmerge_cli.io.times import apply_times
 
 log = logging.getLogger("hdrmerge_cli")
+
+if TYPE_CHECKING:  # the stages' results, as the bracket carries them
+    from hdrmerge_cli.core.noise import NoiseParams
+    from hdrmerge_cli.core.samples import Samples
+    from hdrmerge_cli.pipeline.model_choice import Models
+    from hdrmerge_cli.pipeline.motion import Alignment, Ghosts
+    from hdrmerge_cli.pipeline.options import InputOptions
+
+
+@dataclass
+class Bracket:
+    """A bracket as the merge's stages share it: what was read, and what each stage derived
+    from it, set by the runner (:func:`hdrmerge_cli.pipeline.run.merge_frames`) as each stage
+    returns, in reading order.  A stage reads the fields it needs; none calls another.
+
+    frames : sorted by exposure (re-sorted once, by the exposures stage, under ``--times estimate``)
+    crf : the response: linear (RAW), given, or sRGB assumed until the response stage measures it
+    codes : every frame's codes, decoded once and held (:class:`~hdrmerge_cli.io.frames.HeldCodes`)
+    noise : the given noise (``--noise``, a profile), per channel; measured when None and needed
+    noise_by_iso : per ``ISO100``-style key, each ISO's noise where the frames' ISOs differ
+    exposures : ``(P,)`` float64, each frame's ``h_j`` (:func:`~hdrmerge_cli.io.metadata.exposure_values`)
+    samples : the one sample set every check reads (:class:`~hdrmerge_cli.core.samples.Samples`),
+        drawn by the exposures stage; brought onto the reference once the frames are aligned
+    alignment, exposure_report, models, ghosts : the stages' results (None: not run)
+    timings : seconds per stage, for ``--json``
+    """
+
+    frames: list[Frame]
+    crf: CRF
+    codes: HeldCodes
+    noise: dict[str, NoiseParams] | None = None
+    noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None
+    exposures: np.ndarray | None = None
+    samples: Samples | None = None
+    alignment: Alignment | None = None
+    exposure_report: dict | None = None
+    models: Models | None = None
+    ghosts: Ghosts | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.exposures is None:
+            self.exposures = exposure_values(self.frames)
+
+
+def read(paths: list[str], inputs: InputOptions) -> Bracket:
+    """The read stage of a merge: the frames' metadata, checked and sorted by exposure
+    (:func:`read_bracket`; frames of equal exposure are merged as repeats), the response
+    given (``--crf``, a profile's) or assumed, and the frames' codes as each is decoded (a
+    RAW frame's from the open that read its metadata)."""
+    codes = HeldCodes()
+    frames = read_bracket(paths, inputs.times, inputs.times_file, equal_ok=True, held=codes)
+    return Bracket(frames, choose_crf(frames, inputs.crf or inputs.profile, from_profile=not inputs.crf, warn=False),
+                   codes)
 
 
 def read_bracket(paths: list[str], times: list[float] | None = None, times_file: str | None = None,

@@ -346,8 +346,21 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
     return called
 
 
+@dataclass
+class CheckedExposures:
+    """What :func:`resolve_exposures` returns: the frames and their exposures ``(P,)`` as
+    the merge uses them (re-sorted by the estimates under ``--times estimate``), the
+    ``--json`` report (None for a single frame), and the samples as compared (brought onto
+    the reference where the alignment applies, in the frames' order)."""
+
+    frames: list[Frame]
+    exposures: np.ndarray
+    report: dict | None
+    samples: Samples | None
+
+
 def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
-                      samples: Samples | None = None, alignment=None):
+                      samples: Samples | None = None, alignment=None) -> CheckedExposures:
     """merge: measure the frames' exposures on ``samples`` (:func:`ordered_samples`, whose
     order is checked; drawn through ``load`` when not given) and warn about labels more
     than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
@@ -356,13 +369,11 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     applies them and the pairs' motion is what it measured (:func:`alignment_motion`);
     without, the pairs in question are registered on the samples (:func:`moved_pairs`).
 
-    Returns (frames, exposures, the report for ``--json``, the samples as compared: brought
-    onto the reference where the alignment applies, in the returned frames' order).  A
-    single frame has nothing to compare: returned as it is, with no report."""
+    A single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:
         if use_estimates:
             log.warning("--times estimate: a single frame has nothing to compare; its label is used")
-        return frames, exposures, None, samples
+        return CheckedExposures(frames, exposures, None, samples)
     s = samples if samples is not None else ordered_samples(frames, load)
     if alignment is not None and alignment.applied:
         s = s.registered([alignment.warp_of(f) for f in frames])
@@ -393,7 +404,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     warn_mislabelled(frames, exposures, est, hint, motion=None if use_estimates else motion, crf=used)
     rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used, motion=motion)
     if not use_estimates:
-        return frames, exposures, rep, s
+        return CheckedExposures(frames, exposures, rep, s)
     est_h = np.exp(est.log_h)
     for f, h, h_label in zip(frames, est_h, exposures):
         f.exposure_time = float(f.exposure_time * h / h_label)
@@ -401,4 +412,4 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     frames = [frames[i] for i in order]
     log.info("--times estimate: exposures %s (reference %s)",
              ", ".join(f"{f.name} {fmt_time(f.exposure_time)}" for f in frames), rep["reference"])
-    return frames, est_h[order], rep, replace(s, v=[s.v[i] for i in order])
+    return CheckedExposures(frames, est_h[order], rep, replace(s, v=[s.v[i] for i in order]))

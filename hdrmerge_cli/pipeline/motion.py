@@ -496,6 +496,15 @@ class Ghosts:
     def mask_of(self, frame: Frame) -> np.ndarray:
         return _of_frame(frame, self.frames, self.masks)
 
+    def image(self, height: int, width: int) -> np.ndarray:
+        """The 'ghost' extra channel ``(height, width)`` float32: per pixel, the sum over
+        frames of how much each is dropped (0 = none; all 0 when not applied)."""
+        out = np.zeros((height, width), np.float32)
+        if self.applied:
+            for frame in self.frames:
+                out += ghost_weight(self, frame, height, width)
+        return out
+
     def summary(self) -> dict:
         """``merge --json``'s ``deghost``."""
         return {"mode": self.mode, "applied": self.applied, "p_false_alarm": self.p_false_alarm, "block": self.block,
@@ -518,16 +527,6 @@ def ghost_weight(ghosts: Ghosts, frame: Frame, height: int, width: int, rows: sl
     a = np.float64([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5 + sy * r0]])
     return cv2.warpAffine(m.astype(np.float32) * np.float32(1 / 255), a, (width, r1 - r0),
                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
-
-
-def ghost_image(ghosts: Ghosts | None, height: int, width: int) -> np.ndarray:
-    """The 'ghost' extra channel: per pixel, the sum over frames of how much each is
-    dropped (0 = none)."""
-    out = np.zeros((height, width), np.float32)
-    if ghosts is not None and ghosts.applied:
-        for frame in ghosts.frames:
-            out += ghost_weight(ghosts, frame, height, width)
-    return out
 
 
 def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = None) -> np.ndarray:
@@ -697,7 +696,7 @@ def value_slope(tables) -> np.ndarray:
     return np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
 
 
-def require_noise(noise, frames, crf, load=load_codes) -> list[NoiseParams] | None:
+def require_noise(noise, frames) -> list[NoiseParams] | None:
     """Noise parameters for the ghost test: the given (or the merge's measured) ones, else
     None: the test then starts from the codes' quantisation and measures what that leaves
     out on the frames themselves (:func:`~hdrmerge_cli.core.deghost.level_scale`), which

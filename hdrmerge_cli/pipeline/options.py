@@ -68,7 +68,7 @@ class MergeSettings:
 @dataclass(frozen=True)
 class InputOptions:
     """What the files of a bracket are, as text the command line takes; resolved when the
-    bracket is read (:func:`hdrmerge_cli.pipeline.merge.open_bracket`,
+    bracket is read (:func:`hdrmerge_cli.pipeline.bracket.read`,
     :func:`hdrmerge_cli.pipeline.model_choice.resolve_noise`).
 
     crf : images' response: ``linear``, ``srgb``, ``gamma:G``, a CSV table or profile JSON

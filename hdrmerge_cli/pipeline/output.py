@@ -18,17 +18,16 @@ from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, demosaic, demosaic_variance
 from hdrmerge_cli.core.output_colorspace import COLORSPACES, camera_chromaticities, rec709_to
 from hdrmerge_cli.core.cfa_to_rgb import raw_to_rgb_rows
-from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.io.metadata import upright
-from hdrmerge_cli.pipeline.model_choice import Models
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 
 log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.motion import Alignment, Ghosts
+    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.merge import Reconstruction
 
 #: file types ``--preview`` writes (by suffix)
 PREVIEW_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -44,35 +43,21 @@ def default_profile_path(output: Path) -> Path:
 
 @dataclass
 class Merged:
-    """A merged bracket (what :func:`hdrmerge_cli.pipeline.merge.reconstruct_frames`
-    returns).
+    """A merged bracket (what :func:`hdrmerge_cli.pipeline.run.merge_frames` returns): the
+    bracket with every stage's result, and the merge's :class:`~hdrmerge_cli.pipeline.merge.Reconstruction`
+    (in camera RGB: before white balance, demosaic and the camera matrix, which
+    :meth:`strip` applies), with the options it was merged and is written with.
 
-    result : float32 ``(H, W)`` mosaic (RAW) or ``(H, W, C)`` image, scene-linear, 1.0 =
-        the full-scale signal of an exposure of ``h_ref`` seconds, in camera RGB (before
-        white balance, demosaic and the camera matrix, which :meth:`strip` applies)
-    flag_samples : int8, per sample of ``result``: 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
-    den : float32, per sample, the summed weights of the frames that measured it
-    variance_samples : float32 like ``result``, the noise model's variance of each value
-        (in ``result``'s units squared; ``--extra-channels variance``), or None
+    h_ref : the reference exposure (s) whose full-scale signal is 1.0
+    orientation : the output's EXIF orientation; repeats : equal-exposure comparisons for ``--json``
     """
 
-    frames: list[Frame]
-    exposures: np.ndarray
-    h_ref: float
-    crf: CRF
-    models: Models
+    bracket: Bracket
+    reconstruction: Reconstruction
     options: MergeOptions
-    result: np.ndarray
-    flag_samples: np.ndarray
-    den: np.ndarray
-    variance_samples: np.ndarray | None = None
-    iterations: int = 0
+    h_ref: float
     orientation: int = 1
-    alignment: Alignment | None = None
-    ghosts: Ghosts | None = None
-    exposure_check: dict | None = None
     repeats: list = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
     #: ``(H, W)`` float32: the most any frame's alpha measured of each pixel; None when the
     #: frames have no alpha channel (then the EXR has none)
     alpha: np.ndarray | None = None
@@ -80,7 +65,7 @@ class Merged:
     # ------------------------------------------------------------ what it holds
     @property
     def first(self) -> Frame:
-        return self.frames[0]
+        return self.bracket.frames[0]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -102,7 +87,7 @@ class Merged:
 
         if not self.options.io.crop:
             return None
-        every = self.alignment.every_frame_mask if self.alignment is not None else None
+        every = self.bracket.alignment.every_frame_mask if self.bracket.alignment is not None else None
         if every is None or every.all():
             log.info("--crop: every frame covers the whole image; nothing is cut")
             return None
@@ -126,7 +111,7 @@ class Merged:
     def flags(self) -> np.ndarray:
         """``(H, W)`` int8 per pixel: ``FLAG_SATURATED`` where a channel had no unclipped
         reading, else ``FLAG_DARK`` where one was below every frame's noise floor, else 0."""
-        f = self.flag_samples
+        f = self.reconstruction.flags
         if f.ndim == 2:
             return f
         return np.where((f == FLAG_SATURATED).any(-1), FLAG_SATURATED,
@@ -143,7 +128,7 @@ class Merged:
         """``(H, W, 3)`` (or ``(H, W, 1)``) float32: the variance of each value of
         :attr:`image` (:meth:`variance_rows`); None unless ``extra_channels`` has
         ``variance``."""
-        if self.variance_samples is None:
+        if self.reconstruction.variance is None:
             return None
         return np.concatenate([self.variance_rows(y0, min(self.shape[0], y0 + STRIP_ROWS))
                                for y0 in range(0, self.shape[0], STRIP_ROWS)])
@@ -183,8 +168,8 @@ class Merged:
         or through it."""
         first, matrix = self.first, self.colour_matrix
         if first.kind == "raw" and not self.options.io.cfa:
-            return _raw_to_rgb_rows(self.result, first, y0, y1, matrix)
-        rgb = self.result[y0:y1].reshape(y1 - y0, first.width, -1)
+            return _raw_to_rgb_rows(self.reconstruction.result, first, y0, y1, matrix)
+        rgb = self.reconstruction.result[y0:y1].reshape(y1 - y0, first.width, -1)
         if first.kind == "linear" and first.channels == 3:  # demosaiced camera RGB
             rgb = rgb * first.white_balance.astype(np.float32)
         return rgb if matrix is None else camera_to_rec709(rgb, matrix)
@@ -217,9 +202,9 @@ class Merged:
         if first.kind == "raw" and not self.options.io.cfa:
             a, b = max(0, y0 - STRIP_HALO), min(self.shape[0], y1 + STRIP_HALO)  # y0, a even: same CFA phase
             gains = np.square(first.white_balance)[bayer_channels(first.cfa_pattern, (b - a, self.shape[1]))]
-            var = demosaic_variance(self.variance_samples[a:b] * gains, first.cfa_pattern)[y0 - a:y1 - a]
+            var = demosaic_variance(self.reconstruction.variance[a:b] * gains, first.cfa_pattern)[y0 - a:y1 - a]
         else:
-            var = self.variance_samples[y0:y1].reshape(y1 - y0, first.width, -1)
+            var = self.reconstruction.variance[y0:y1].reshape(y1 - y0, first.width, -1)
             if first.kind == "linear" and first.channels == 3:
                 var = var * np.square(first.white_balance).astype(np.float32)
         return var if sq is None else camera_to_rec709(var, sq)
@@ -248,14 +233,14 @@ class Merged:
         """The JSON camera profile this merge used (response, weights, noise)."""
         from hdrmerge_cli.io.profile import new_profile
 
-        first, m = self.first, self.models
-        profile = new_profile({"make": first.make, "model": first.model}, first.bits, self.crf,
-                              [f.path for f in self.frames], "merge")
+        first, m = self.first, self.bracket.models
+        profile = new_profile({"make": first.make, "model": first.model}, first.bits, self.bracket.crf,
+                              [f.path for f in self.bracket.frames], "merge")
         profile["weights"] = m.weights
         if m.noise:
             profile["noise"] = {"used": m.noise_used(first)}
             if m.frame_noise:  # the frames' ISOs differ: "used" is the reference frame's
-                profile["noise"]["noise_per_iso"] = m.noise_per_iso(self.frames)
+                profile["noise"]["noise_per_iso"] = m.noise_per_iso(self.bracket.frames)
         if m.estimated:
             profile["noise"]["estimated_from_bracket"] = m.estimated
         if m.excess is not None:
@@ -264,12 +249,12 @@ class Merged:
 
     def header(self, profile_name: str, profile_text: str) -> dict:
         """The EXR header attributes: provenance, units, colour, orientation."""
-        first, m = self.first, self.models
+        first, m = self.first, self.bracket.models
         attrs = {
             "Software": f"hdrmerge-cli {__version__}",
             "hdrmerge:version": __version__,
-            "hdrmerge:exposureTimes": [f.exposure_time for f in self.frames],
-            "hdrmerge:exposures": list(self.exposures),
+            "hdrmerge:exposureTimes": [f.exposure_time for f in self.bracket.frames],
+            "hdrmerge:exposures": list(self.bracket.exposures),
             "hdrmerge:referenceExposure": self.h_ref,
             "hdrmerge:units": (
                 "scene-linear; 1.0 = the full-scale (clipping) signal of an exposure of "
@@ -279,10 +264,10 @@ class Merged:
             "hdrmerge:weights": m.weights,
             "hdrmerge:estimator": m.estimator,
             "hdrmerge:variance": m.variance,
-            "hdrmerge:crf": self.crf.describe(),
+            "hdrmerge:crf": self.bracket.crf.describe(),
             "hdrmerge:profile": profile_name,
             "hdrmerge:profileSHA256": hashlib.sha256(profile_text.encode()).hexdigest(),
-            "hdrmerge:inputs": "; ".join(f.name for f in self.frames),
+            "hdrmerge:inputs": "; ".join(f.name for f in self.bracket.frames),
             "ExposureTime": self.h_ref,
         }
         if first.camera:
@@ -308,7 +293,6 @@ class Merged:
         from hdrmerge_cli.io.atomic import atomic_paths, write_text
         from hdrmerge_cli.io.images import write_exr, write_ldr
         from hdrmerge_cli.io.profile import dumps
-        from hdrmerge_cli.pipeline import motion
 
         opts = self.options
         output = Path(output if output is not None else opts.io.output)
@@ -323,8 +307,10 @@ class Merged:
             return {"output": str(output), "profile": str(profile_out), "dng_baseline_exposure_ev": round(baseline, 2)}
         attrs = self.header(profile_out.name, profile_text)
         extra = opts.io.extra_channels
-        wsum = (self.den if self.den.ndim == 2 else self.den.mean(axis=-1)) if "weight" in extra else None
-        ghost_img = motion.ghost_image(self.ghosts, *self.shape) if "ghost" in extra else None
+        wsum = (self.reconstruction.den if self.reconstruction.den.ndim == 2 else self.reconstruction.den.mean(axis=-1)) if "weight" in extra else None
+        ghosts = self.bracket.ghosts
+        ghost_img = None if "ghost" not in extra else (
+            ghosts.image(*self.shape) if ghosts is not None else np.zeros(self.shape, np.float32))
         strips = prefetched(lambda y0: self.strip(y0, ghost_img, wsum), range(0, self.shape[0], STRIP_ROWS))
         shape, box = self.shape, self.crop_box
         if box is not None:
@@ -364,10 +350,10 @@ class Merged:
         if first.kind != "raw":
             raise HdrMergeError(f"{path}: a DNG output holds a CFA mosaic; {first.path} is not a Bayer RAW frame "
                                 "(write an EXR)")
-        white = max(1.0, float(np.ceil(np.max(self.result))))
+        white = max(1.0, float(np.ceil(np.max(self.reconstruction.result))))
         baseline = float(np.log2(white))
-        preview = tonemap_srgb(cell_rgb(self.result, first, first.color_matrix, DNG_PREVIEW_SIZE))
-        write_float_dng(path, self.result, cfa_pattern=first.cfa_pattern, xyz_to_camera=camera_xyz_matrix(first),
+        preview = tonemap_srgb(cell_rgb(self.reconstruction.result, first, first.color_matrix, DNG_PREVIEW_SIZE))
+        write_float_dng(path, self.reconstruction.result, cfa_pattern=first.cfa_pattern, xyz_to_camera=camera_xyz_matrix(first),
                         as_shot_neutral=1.0 / first.white_balance, make=first.make or "hdrmerge-cli",
                         model=first.model or "merged", exposure_time=self.h_ref, iso=first.iso,
                         aperture=first.aperture, baseline_exposure=baseline,
@@ -377,28 +363,28 @@ class Merged:
 
     def summary(self) -> dict:
         """What ``merge --json`` prints (without the paths written)."""
-        m, first, flags = self.models, self.first, self.flag_samples
+        m, first, flags = self.bracket.models, self.first, self.reconstruction.flags
         estimated, n = m.estimated, flags.size
-        alignment, ghosts = self.alignment, self.ghosts
+        alignment, ghosts = self.bracket.alignment, self.bracket.ghosts
         return {
-            "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(self.frames, self.exposures)],
+            "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(self.bracket.frames, self.bracket.exposures)],
             "reference_exposure": self.h_ref,
-            "exposure_check": self.exposure_check,
+            "exposure_check": self.bracket.exposure_report,
             "orientation": self.orientation,
             **({"equal_exposures": self.repeats} if self.repeats else {}),
             "weights": m.weights,
             "estimator": m.estimator,
             "variance": m.variance,
-            "irls_iterations": self.iterations,
+            "irls_iterations": self.reconstruction.iterations,
             "noise": m.noise_used(first),
-            **({"noise_per_iso": m.noise_per_iso(self.frames)} if m.frame_noise else {}),
+            **({"noise_per_iso": m.noise_per_iso(self.bracket.frames)} if m.frame_noise else {}),
             "noise_source": (f"measured earlier on the same camera and ISO (cache {estimated['cached']['file']})"
                              if estimated and "cached" in estimated
                              else "measured on the bracket (calibrate-noise fast path)" if estimated
                              else "given (--noise or --profile)" if m.noise else None),
             "prior_rate": m.prior,
             "bounds": list(m.bounds) if m.bounds else None,
-            "crf": self.crf.describe(),
+            "crf": self.bracket.crf.describe(),
             "width": first.width,
             "height": first.height,
             **({"crop": {"rows": [self.crop_box[0], self.crop_box[1]], "columns": [self.crop_box[2],
@@ -409,7 +395,7 @@ class Merged:
             "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
             **({"alignment": alignment.summary()} if alignment else {}),
             **({"deghost": ghosts.summary()} if ghosts else {}),
-            "timing_seconds": {k: round(v, 4) for k, v in self.timings.items()},
+            "timing_seconds": {k: round(v, 4) for k, v in self.bracket.timings.items()},
         }
 
 

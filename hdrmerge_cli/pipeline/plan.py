@@ -166,7 +166,7 @@ def _noise_per_iso(profile_path: str | None, channels: list[str], measured) -> d
 def meter(paths: list[str], opts: PlanOptions) -> Metering:
     """Merge the metering frames (``merge``'s defaults) and read the scene off the result."""
     from hdrmerge_cli.io.metadata import sample_pattern
-    from hdrmerge_cli.pipeline.merge import merge_bracket
+    from hdrmerge_cli.pipeline.run import merge_bracket
     from hdrmerge_cli.pipeline.options import InputOptions, MergeOptions, OutputOptions
 
     if not paths:
@@ -178,16 +178,16 @@ def meter(paths: list[str], opts: PlanOptions) -> Metering:
     names = list(first.channel_names)
     # each channel's 1.0 is its own full scale at h_ref: code values per second at the reference ISO
     y_full = tuple(float(v) for v in np.broadcast_to(first.white - first.black, (len(names),)))
-    cell = None if merged.result.ndim == 3 else sample_pattern(first)
+    cell = None if merged.reconstruction.result.ndim == 3 else sample_pattern(first)
     planes = [[(p * np.float32(y_full[c] / merged.h_ref), f) for p, f in chan]
-              for c, chan in enumerate(channel_planes(merged.result, merged.flag_samples, cell, len(names)))]
+              for c, chan in enumerate(channel_planes(merged.reconstruction.result, merged.reconstruction.flags, cell, len(names)))]
     scene = scene_range(planes, opts.lose_dark, opts.lose_bright, names)
-    clipped = float(np.mean(merged.flag_samples == FLAG_SATURATED))
+    clipped = float(np.mean(merged.reconstruction.flags == FLAG_SATURATED))
     if clipped > 0:
         log.warning("%.3g %% of the photosites are clipped in every metering frame: the plan takes them at the "
                     "clipping level, a lower bound; add a shorter metering frame", 100 * clipped)
-    noise = _noise_per_iso(opts.profile, names, merged.models.noise)
-    return Metering(scene, names, first.iso, y_full, noise, [(f.exposure_time, f.iso) for f in merged.frames],
+    noise = _noise_per_iso(opts.profile, names, merged.bracket.models.noise)
+    return Metering(scene, names, first.iso, y_full, noise, [(f.exposure_time, f.iso) for f in merged.bracket.frames],
                     clipped, first.camera or "unknown camera", str(first.path))
 
 

@@ -1,0 +1,208 @@
+"""merge: the stages of a merge, each called once, in reading order.
+
+The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Python API
+(:mod:`hdrmerge_cli.api`) all go through :func:`merge_frames`:
+
+1. read: the frames' metadata, their codes (each file decoded once, held by frame) and the
+   response given or assumed (:func:`~hdrmerge_cli.pipeline.bracket.read`, a
+   :class:`~hdrmerge_cli.pipeline.bracket.Bracket`);
+2. exposures: one sample set of every frame, its order checked
+   (:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`);
+3. response: measured on those samples when none was given
+   (:func:`~hdrmerge_cli.pipeline.crf.measure_response`);
+4. registration: the warps that bring the frames onto the reference
+   (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`); the exposure labels are then
+   checked on the registered samples (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
+5. noise, the automatic choices and the weights' tables
+   (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`);
+6. ghosts (:func:`~hdrmerge_cli.pipeline.motion.find_ghosts`);
+7. merge: the held codes through (7), then re-weighting in strips
+   (:func:`~hdrmerge_cli.pipeline.merge.reconstruct`), and the checks after it;
+8. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.output_colorspace import COLORSPACES
+from hdrmerge_cli.core.reconstruct import neutral_bounds
+from hdrmerge_cli.io.atomic import check_distinct, check_writable
+from hdrmerge_cli.io.images import exr_compression
+from hdrmerge_cli.io.metadata import output_orientation, reference_exposure
+from hdrmerge_cli.io.times import ESTIMATE
+from hdrmerge_cli.pipeline import motion
+from hdrmerge_cli.pipeline.bracket import Bracket, read
+from hdrmerge_cli.pipeline.crf import measure_response
+from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
+from hdrmerge_cli.pipeline.merge import check_range, check_repeats, reconstruct, warn_unmeasured, watch_repeats
+from hdrmerge_cli.pipeline.model_choice import choose_models, resolve_noise_by_iso
+from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
+from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
+
+log = logging.getLogger("hdrmerge_cli")
+
+
+# ---------------------------------------------------------------- the command
+def merge(paths: list[str], opts: MergeOptions) -> dict:
+    """``hdrmerge-cli merge``: merge a bracket and write the EXR, its profile and the
+    preview; returns the JSON summary.  Writes nothing if anything fails, and fails on
+    bad options or outputs before decoding a pixel."""
+    check_options(opts)
+    inputs = check_outputs(paths, opts)
+    t0 = time.perf_counter()
+    start_preparing_kernels()
+    b = read(paths, opts.inputs)
+    if Path(opts.io.output).suffix.lower() == ".dng" and b.frames[0].kind != "raw":
+        raise HdrMergeError(f"{opts.io.output}: a DNG output holds a CFA mosaic, but {b.frames[0].path} is not a "
+                            "Bayer RAW frame; name the output *.exr")
+    merged = merge_frames(b, opts, t_start=t0)
+    b.codes = None  # the frames' codes are not needed for colour and writing: freed before their peak
+    t0 = time.perf_counter()
+    written = merged.write(inputs=inputs)
+    merged.bracket.timings["color_and_write"] = time.perf_counter() - t0
+    return written | merged.summary()
+
+
+def start_preparing_kernels() -> None:
+    """Start :func:`prepare_kernels` in a thread, so that it overlaps the reading and
+    decoding of the frames.  SciPy's linear algebra, which the set-up imports (Numba looks
+    for its BLAS) and the noise fit imports too (through scipy.optimize, on other
+    threads), is imported here first: the thread then imports only Numba's own modules
+    and theirs, which no other thread imports, so no two threads import one module at once."""
+    import scipy.linalg  # noqa: F401
+
+    threading.Thread(target=prepare_kernels, name="prepare-kernels", daemon=True).start()
+
+
+def prepare_kernels() -> None:
+    """Set up Numba's code generator, which the first compiled kernel loaded from Numba's
+    cache otherwise sets up on the merge's path (0.2-0.3 s of CPU: its registries and the
+    modules behind them).  Holds Numba's compiler lock, as a kernel's load does."""
+    try:
+        from numba.core.compiler_lock import global_compiler_lock
+        from numba.core.registry import cpu_target
+
+        with global_compiler_lock:
+            cpu_target.target_context.refresh()
+    except Exception:  # noqa: BLE001  (a preparation only: the first kernel's load does it otherwise)
+        log.debug("Numba's code generator was not prepared ahead", exc_info=True)
+
+
+def check_options(opts: MergeOptions) -> None:
+    """Refuse unknown option values before any work."""
+    for extra in opts.io.extra_channels:
+        if extra not in EXTRA_CHANNELS:
+            raise HdrMergeError(f"unknown extra channel {extra!r} (choose from {', '.join(EXTRA_CHANNELS)})")
+    exr_compression(opts.io.compression, opts.io.half)  # an unknown name fails before any work
+    if opts.io.colorspace not in COLORSPACES:
+        raise HdrMergeError(f"unknown colour space {opts.io.colorspace!r} (choose from {', '.join(COLORSPACES)})")
+    reference_exposure(opts.algorithm.reference, np.ones(1))  # a bad --reference fails before any work
+    if opts.io.cfa and opts.io.colorspace != "rec709":
+        log.warning("--cfa writes the camera's mosaic: --colorspace %s does not apply", opts.io.colorspace)
+
+
+def check_outputs(paths: list[str], opts: MergeOptions) -> list:
+    """Refuse outputs that cannot or must not be written (wrong type, existing without
+    ``overwrite``, the same as an input); returns the inputs the outputs must not replace."""
+    output = Path(opts.io.output)
+    profile_out = Path(opts.io.profile_out) if opts.io.profile_out else default_profile_path(output)
+    if output.suffix.lower() not in (".exr", ".dng"):
+        raise HdrMergeError(f"{output}: merge writes OpenEXR (*.exr) or, from RAW, a floating-point DNG (*.dng)")
+    if output.suffix.lower() == ".dng" and (opts.io.extra_channels or opts.io.preview is not None):
+        raise HdrMergeError(f"{output}: a DNG holds the colour mosaic only (it embeds its own preview); "
+                            "--extra-channels and --preview need an EXR output")
+    if output.suffix.lower() == ".dng":
+        for name, value, default in (("colorspace", opts.io.colorspace, "rec709"),
+                                     ("compression", opts.io.compression, "auto")):
+            if value != default:
+                log.warning("%s: a DNG holds the camera's mosaic (Deflate-compressed): --%s %s does not apply",
+                            output, name, value)
+    check_writable(output, opts.io.overwrite)
+    check_writable(profile_out, opts.io.overwrite)
+    if opts.io.preview is not None:
+        if Path(opts.io.preview).suffix.lower() not in PREVIEW_SUFFIXES:
+            raise HdrMergeError(f"{opts.io.preview}: a preview is written as {', '.join(PREVIEW_SUFFIXES)} (by suffix)")
+        check_writable(opts.io.preview, opts.io.overwrite)
+    given = (opts.inputs.profile, opts.algorithm.lut, opts.inputs.times_file, opts.inputs.crf)
+    inputs = list(paths) + [p for p in given if p and Path(p).is_file()]
+    check_distinct([output, profile_out] + ([opts.io.preview] if opts.io.preview is not None else []), inputs)
+    return inputs
+
+
+# ---------------------------------------------------------------- the stages
+def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
+    """The stages on files: :func:`~hdrmerge_cli.pipeline.bracket.read`, then :func:`merge_frames`."""
+    t0 = time.perf_counter()
+    return merge_frames(read(paths, opts.inputs), opts, t_start=t0)
+
+
+def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -> Merged:
+    """The stages after reading, each called once, in order, on a read bracket ``b``
+    (frames sorted by exposure); each stage's result is kept in ``b``.  Nothing is written."""
+    t0 = time.perf_counter() if t_start is None else t_start
+    settings, inputs, outputs = opts.algorithm, opts.inputs, opts.io
+    timings = b.timings
+    if len(b.frames) == 1:
+        log.warning("%s: only one frame; the result has that frame's dynamic range", b.frames[0].path)
+    if b.noise is None:  # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
+        b.noise, b.noise_by_iso = resolve_noise_by_iso(b.frames, inputs.noise, inputs.profile, inputs.crf)
+    if len(b.frames) > 1 or b.crf.assumed:  # exposures: the frames' order; the response
+        t1 = time.perf_counter()
+        b.samples = ordered_samples(b.frames, b.codes)  # a disordered bracket fails first
+        if b.crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
+            b.crf = measure_response(b.frames, b.samples, cache=outputs.noise_cache) or b.crf
+            timings["response"] = time.perf_counter() - t1
+    if settings.align != "off":  # registration
+        t1 = time.perf_counter()
+        b.alignment = motion.estimate_alignment(b.frames, b.exposures, b.crf, settings.align, b.codes)
+        timings["align"] = time.perf_counter() - t1
+    t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
+    checked = resolve_exposures(b.frames, b.exposures, b.crf, b.codes, inputs.times == ESTIMATE, b.samples,
+                                b.alignment)
+    b.frames, b.exposures, b.exposure_report, b.samples = (checked.frames, checked.exposures, checked.report,
+                                                           checked.samples)
+    timings["exposure_check"] = time.perf_counter() - t1
+    warn_unused_options(b, opts)
+    # the noise is measured on the frames as decoded: resampling smooths it, and frames that
+    # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
+    b.models = choose_models(b.frames, b.exposures, b.crf, settings, b.codes, b.noise, b.samples, b.noise_by_iso,
+                             with_variance="variance" in outputs.extra_channels, noise_cache=outputs.noise_cache)
+    b.samples = None  # no stage reads the samples after the choices
+    timings.update(b.models.timings)
+    timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
+    aligned = motion.loader(b.alignment, b.codes)
+    if settings.deghost != "off":
+        t1 = time.perf_counter()
+        b.ghosts = motion.find_ghosts(b.frames, b.exposures, b.crf, motion.require_noise(b.models.noise, b.frames),
+                                      aligned, settings.deghost)
+        timings["deghost"] = time.perf_counter() - t1
+    h_ref = reference_exposure(settings.reference, b.exposures)
+    validity = motion.frame_validity(b.frames, b.alignment)
+    load, repeats = watch_repeats(aligned, b.frames, b.exposures)
+    rec = reconstruct(b.frames, b.exposures, h_ref, b.models, load,
+                      motion.sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment,
+                                            aligned, validity),
+                      timings, "variance" in outputs.extra_channels)
+    check_range(rec.result, outputs.half, settings.reference, h_ref, b.exposures, b.crf)
+    neutral_bounds(rec.result, rec.flags)
+    warn_unmeasured(b.frames, rec.result, rec.flags)
+    return Merged(b, rec, opts, h_ref, output_orientation(b.frames), check_repeats(repeats, b.frames, b.crf),
+                  motion.output_alpha(b.frames, validity))
+
+
+def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
+    """Options the bracket's kind makes moot, named once (a camera space or a mosaic asked
+    of camera-processed images)."""
+    first = b.frames[0]
+    if opts.io.colorspace == "camera" and first.kind == "image":
+        log.warning("--colorspace camera: %s carries no camera matrix (camera-processed image); the output is "
+                    "Rec.709 (sRGB primaries)", first.path)
+    if opts.io.cfa and first.kind != "raw":
+        log.warning("--cfa: %s holds %s, no mosaic; writing RGB", first.path,
+                    "linear RGB (already demosaiced)" if first.kind == "linear" else "a camera-processed image")
