@@ -14,7 +14,7 @@ any alignment error: the round trip cubic render + exact inverse linear warp of 
 has an RMS log error of 0.14, 0.026 at sigma 1), scaled so its 99.9th percentile is 1.
 
 **Motion.**  ``N`` = 3 frames (every 4th case 5), the reference is the middle one
-(``hdrmerge_cli.pipeline.motion.reference_index``: ``N // 2`` in exposure order) and is not
+(``hdrmerge_cli.io.metadata.reference_index``: ``N // 2`` in exposure order) and is not
 moved; every other frame gets a rotation about the frame centre, uniform in +-2 degrees, and
 a translation uniform in +-20 px in x and y.  Frame pixel ``p`` sees the scene at
 ``R (p - c) + c + t`` (``c`` the centre), rendered by ``cv2.warpAffine`` (INTER_CUBIC) from the
@@ -247,9 +247,9 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
     replaced).  What is then lost against the static twin is the resampling's (and the
     deghosting's), not the registration's.  Returns the output as :func:`merge`'s ``_rgb``."""
     import hdrmerge_cli
-    from hdrmerge_cli.pipeline import motion as pipeline_motion
+    from hdrmerge_cli.pipeline import run as pipeline_run  # the runner calls the registration stage
 
-    estimate = pipeline_motion.estimate_alignment
+    estimate = pipeline_run.estimate_alignment
 
     def true_alignment(*args, **kwargs):
         found = estimate(*args, **kwargs)
@@ -264,11 +264,11 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
             opts["cfa"] = True
         else:
             opts[flag.lstrip("-")] = next(it)
-    pipeline_motion.estimate_alignment = true_alignment
+    pipeline_run.estimate_alignment = true_alignment
     try:
         hdrmerge_cli.merge_files([str(p) for p in paths], **opts).write(str(out))
     finally:
-        pipeline_motion.estimate_alignment = estimate
+        pipeline_run.estimate_alignment = estimate
     return read_output(out)["_rgb"]
 
 

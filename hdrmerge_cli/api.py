@@ -235,7 +235,7 @@ def _settings(weighting, estimator, variance_model, irls, k, align, deghost, ref
     from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
     from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
     from hdrmerge_cli.io.metadata import reference_exposure
-    from hdrmerge_cli.pipeline.motion import ALIGN_MODES, DEGHOST_MODES
+    from hdrmerge_cli.pipeline.options import ALIGN_MODES, DEGHOST_MODES
 
     _choice("weighting", weighting, ("auto", *sorted(WEIGHTING_FUNCTIONS)))
     _choice("estimator", estimator, ESTIMATORS)
@@ -536,7 +536,8 @@ def register(stack, times, *, response=None, motion: str = "auto", cfa: str | No
     >>> reg.reference, np.round(reg.warps[0][:, 2]).tolist(), reg.warps[1].tolist() == [[1, 0, 0], [0, 1, 0]]
     (1, [-3.0, -2.0], True)
     """
-    from hdrmerge_cli.pipeline.motion import estimate_alignment, reference_index
+    from hdrmerge_cli.pipeline.register import estimate_alignment
+    from hdrmerge_cli.io.metadata import reference_index
 
     if motion == "off":
         raise HdrMergeError("motion: 'off' registers nothing; choose auto, translation or similarity")
@@ -596,10 +597,12 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
     >>> masks.shape, float(masks[2, 45, 60]), float(masks[2, 5, 5]), float(masks[0].max())
     ((3, 96, 128), 1.0, 0.0, 0.0)
     """
-    from hdrmerge_cli.pipeline import motion
+    from hdrmerge_cli.pipeline.ghosts import find_ghosts, require_noise
+    from hdrmerge_cli.pipeline.options import ALIGN_MODES
+    from hdrmerge_cli.pipeline.register import estimate_alignment, loader
 
     _choice("mode", mode, ("on", "auto"))
-    _choice("align", align, motion.ALIGN_MODES)
+    _choice("align", align, ALIGN_MODES)
     st = _stack(stack, times, cfa, black, white, bits)
     crf = _response(response, st)
     params = _noise(noise)
@@ -607,15 +610,14 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
         from hdrmerge_cli.pipeline.model_choice import measure_noise
 
         params, _ = measure_noise(st.frames, crf, st.load, cache=False)
-    alignment = motion.estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
-    load = motion.loader(alignment, st.load)
-    ghosts = motion.find_ghosts(st.frames, st.exposures, crf, motion.require_noise(params, st.frames),
-                                load, mode)
+    alignment = estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
+    load = loader(alignment, st.load)
+    ghosts = find_ghosts(st.frames, st.exposures, crf, require_noise(params, st.frames), load, mode)
     h, w = st.frames[0].height, st.frames[0].width
     masks = np.zeros((len(st.frames), h, w), np.float32)
     if ghosts.applied:
         for k, frame in enumerate(st.frames):
-            masks[st.order[k]] = motion.ghost_weight(ghosts, frame, h, w)
+            masks[st.order[k]] = ghosts.weight(frame, h, w)
     return masks
 
 

@@ -424,7 +424,7 @@ def test_label_motion_comes_from_the_alignment():
     frames = [F("a"), F("b"), F("c")]
     s = Samples([np.zeros((50, 100, 3), np.float32)] * 3, np.ones((50, 100), bool), (0, 0, 0, 0), 2, 1 / 255)
     warps = [np.array([[1.0, 0, 0.1], [0, 1, 0]]), np.eye(2, 3), np.array([[1.0, 0, 0], [0, 1, -0.2]])]
-    from hdrmerge_cli.pipeline.motion import Alignment
+    from hdrmerge_cli.pipeline.register import Alignment
 
     def found(unaligned, applied):
         return Alignment("auto", "translation", "none", "b", applied, frames, warps, [1.0] * 3, unaligned, [])

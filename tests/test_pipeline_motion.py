@@ -1,4 +1,4 @@
-"""merge --align / --deghost (pipeline/motion.py): alignment and deghosting of frames on disk, end to end."""
+"""merge --align / --deghost (pipeline/register.py): alignment and deghosting of frames on disk, end to end."""
 import json
 import logging
 from dataclasses import replace
@@ -88,7 +88,7 @@ def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None, curve=None):
 
 def _ghosts_of(frames, codes, times, mode="on", crf=None, params=None):
     from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.pipeline.motion import find_ghosts
+    from hdrmerge_cli.pipeline.ghosts import find_ghosts
 
     load = {f.path: c for f, c in zip(frames, codes)}
     return find_ghosts(frames, np.asarray(times), crf or CRF("gamma", 2.2), None, lambda f: load[f.path], mode,
@@ -154,7 +154,7 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
     from hdrmerge_cli.core.cfa import mosaic
     from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.pipeline import run as pm
-    from hdrmerge_cli.pipeline.motion import ghost_weight
+    pass
 
     h, w = 480, 640
     yy, xx = np.mgrid[0:h, 0:w]
@@ -174,7 +174,7 @@ def _raw_object_masks(tmp_path, bright: float, obj, frame: int, masked: int, see
             write_dng(str(p), z, pattern="RGGB", black=model.black, white=model.white, exposure_time=t, iso=100)
             paths.append(str(p))
         merged = pm.merge_bracket(paths, pm.MergeOptions.from_fields(output=tmp_path / f"{kind}.exr", cfa=True, deghost="on", irls=0))
-        masks[kind] = ghost_weight(merged.bracket.ghosts, merged.bracket.ghosts.frames[masked], h, w)
+        masks[kind] = merged.bracket.ghosts.weight(merged.bracket.ghosts.frames[masked], h, w)
     return masks
 
 
@@ -187,7 +187,7 @@ def test_alignment_engages_on_a_dark_short_frame(tmp_path, mode, rotation):
     short frame's narrow shared band limits ECC's rotation to about 0.07 degrees here)."""
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.pipeline.bracket import read_bracket
-    from hdrmerge_cli.pipeline.motion import estimate_alignment
+    from hdrmerge_cli.pipeline.register import estimate_alignment
 
     times = [2.0**-2.3, 1.0, 2.0**2.3]
     truth = [_rigid(rotation, 3.0, -2.0), _rigid(0, 0, 0), _rigid(-rotation, -4.0, 5.0)]
@@ -208,7 +208,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
     ``auto`` (the default) when nothing registered moved."""
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.pipeline.bracket import read_bracket
-    from hdrmerge_cli.pipeline.motion import estimate_alignment
+    from hdrmerge_cli.pipeline.register import estimate_alignment
 
     paths = []
     for j, v in enumerate((40, 120, 250)):  # flat grey frames
@@ -233,7 +233,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
 
 
 def test_raw_auto_alignment_resamples_only_when_whole_cfa_periods_leave_an_offset():
-    from hdrmerge_cli.pipeline.motion import whole_periods_suffice
+    from hdrmerge_cli.pipeline.register import whole_periods_suffice
 
     def shift(tx, ty):
         return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty]])
@@ -305,7 +305,7 @@ def test_deghost_with_irls_keeps_the_ghost_out():
     moving, _ = _ghost_mosaics(3, True)
     a = merge_arrays(static, [1.0, 4.0, 16.0], **kw)
     b = merge_arrays(moving, [1.0, 4.0, 16.0], deghost="on", **kw)
-    assert a.iterations == 1 and b.iterations == 1 and b.ghosts.applied
+    assert a.reconstruction.iterations == 1 and b.reconstruction.iterations == 1 and b.bracket.ghosts.applied
     patch = (slice(40, 64), slice(20, 44))
     ratio = b.image[patch][..., 0] / a.image[patch][..., 0]
     # without the longest frame the patch is noisier, not biased (a leak would be ~100x)
@@ -343,7 +343,7 @@ def test_samples_shifted_in_from_outside_get_no_weight():
     """An aligned frame covers the reference only partly: ``covered`` marks the rest (RAW:
     whole CFA periods; images: every channel of a pixel alike)."""
     from hdrmerge_cli.io.frames import Frame
-    from hdrmerge_cli.pipeline.motion import covered
+    from hdrmerge_cli.pipeline.register import covered
 
     def frame(kind, channels):
         return Frame(path="x", kind=kind, width=10, height=6, exposure_time=1.0, iso=None, aperture=None, make="",
@@ -371,12 +371,12 @@ def test_ghost_in_a_non_reference_frame_over_a_dark_reference_region():
     frames, codes, times = _gamma_bracket(np.random.default_rng(2), paint={0: (dark, 160), 2: (mid, 128)})
     g = _ghosts_of(frames, codes, times, "auto")
     assert g.applied
-    from hdrmerge_cli.pipeline.motion import ghost_weight
+    pass
 
-    m0 = ghost_weight(g, g.frames[0], 160, 200)
-    m2 = ghost_weight(g, g.frames[2], 160, 200)
+    m0 = g.weight(g.frames[0], 160, 200)
+    m2 = g.weight(g.frames[2], 160, 200)
     assert m0[dark].min() > 0.95 and m2[mid].min() > 0.95
-    assert ghost_weight(g, g.frames[1], 160, 200).max() == 0  # the reference is the anchor: never dropped
+    assert g.weight(g.frames[1], 160, 200).max() == 0  # the reference is the anchor: never dropped
     assert m0[:, 120:].max() < 0.05  # far from the object the short frame stays
 
 
@@ -388,10 +388,10 @@ def test_clipped_reference_bounds_a_dark_reading_in_another_frame():
     bright = (slice(40, 90), slice(176, 200))
     assert (codes[1][bright] == 255).mean() > 0.9 and 20 < codes[0][bright].mean() < 250
     frames, codes, times = _gamma_bracket(np.random.default_rng(4), paint={0: (bright, 20)})
-    from hdrmerge_cli.pipeline.motion import ghost_weight
+    pass
 
     g = _ghosts_of(frames, codes, times)
-    assert ghost_weight(g, g.frames[0], 160, 200)[45:85, 180:196].min() > 0.95
+    assert g.weight(g.frames[0], 160, 200)[45:85, 180:196].min() > 0.95
 
 
 def test_object_clipped_in_the_long_frame_over_a_dark_reference_region():
@@ -405,12 +405,12 @@ def test_object_clipped_in_the_long_frame_over_a_dark_reference_region():
     assert codes[1][obj].max() <= 80 and (codes[2][obj] < 255).all()  # the reference: <= 0.38 of the long frame's clipping level
     frames, codes, times = _gamma_bracket(np.random.default_rng(2))
     codes[2][obj] = (235, 255, 240)
-    from hdrmerge_cli.pipeline.motion import ghost_weight
+    pass
 
     g = _ghosts_of(frames, codes, times, "auto")
     assert g.applied
-    assert ghost_weight(g, g.frames[2], 160, 200)[obj].min() > 0.95
-    assert ghost_weight(g, g.frames[2], 160, 200)[:, 130:].max() < 0.05
+    assert g.weight(g.frames[2], 160, 200)[obj].min() > 0.95
+    assert g.weight(g.frames[2], 160, 200)[:, 130:].max() < 0.05
 
 
 def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excused():
@@ -425,9 +425,9 @@ def test_glare_around_a_source_clipped_in_agreement_with_the_reference_is_excuse
     codes[2][halo] = np.maximum(codes[2][halo], 255)  # blooming in the long frame only
     codes[1][source] = 255
     g = _ghosts_of(frames, codes, times, "on")
-    from hdrmerge_cli.pipeline.motion import ghost_weight
+    pass
 
-    assert ghost_weight(g, g.frames[2], 160, 200)[halo].max() < 0.05
+    assert g.weight(g.frames[2], 160, 200)[halo].max() < 0.05
 
 
 def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare():
@@ -444,12 +444,12 @@ def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare(
     wide = (slice(50, 130), slice(310, 390))
     assert (codes[2][wide] == 255).any(axis=-1).mean() > 0.95 and codes[1][wide].max() < 255  # clipped, measured
     codes[2][obj] = (255, 255, 250)
-    from hdrmerge_cli.pipeline.motion import ghost_weight
+    pass
 
     g = _ghosts_of(frames, codes, times, "auto")
     assert g.applied
-    assert ghost_weight(g, g.frames[2], 180, 600)[inner].min() > 0.95
-    assert ghost_weight(g, g.frames[2], 180, 600)[:, :150].max() < 0.05
+    assert g.weight(g.frames[2], 180, 600)[inner].min() > 0.95
+    assert g.weight(g.frames[2], 180, 600)[:, :150].max() < 0.05
 
 
 def test_a_night_frame_with_sparse_lamps_is_not_black():
@@ -500,7 +500,7 @@ def test_resampled_weight_adds_the_interpolation_variance():
     between four taps (e = 1/4) the averaged noise weighs 4x, and a spread of noise alone
     (3/4 v) adds nothing."""
     from hdrmerge_cli.core.reconstruct import ExposureTables
-    from hdrmerge_cli.pipeline.motion import resampled_weight
+    from hdrmerge_cli.pipeline.merge import resampled_weight
 
     n = 256
     value = np.arange(n, dtype=np.float32) / 255.0  # slope 1/255 per code
@@ -529,7 +529,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     from hdrmerge_cli.io.images import read_exr
     from hdrmerge_cli.io.dng_integer import write_dng
     from hdrmerge_cli.pipeline import run as pm
-    from hdrmerge_cli.pipeline import motion
+    from hdrmerge_cli.pipeline import register
 
     h, w = 96, 128
     big = np.full((h + 40, w + 40, 3), 0.05)
@@ -553,7 +553,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
     true = [np.float64([[1, 0, shift if k != 1 else 0.0], [0, 1, 0]]) for k in range(3)]
 
     def given(frames, exposures, crf, mode, load=None):
-        return motion.Alignment(mode, "translation", "per-colour", frames[1].path, True, list(frames), true,
+        return register.Alignment(mode, "translation", "per-colour", frames[1].path, True, list(frames), true,
                                 [1.0] * 3, [], [])
 
     def run(name, bracket):
@@ -563,7 +563,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
         return read_exr(str(out))[0][..., 0]
 
     static = run("static", paths["static"])
-    monkeypatch.setattr(motion, "estimate_alignment", given)
+    monkeypatch.setattr(pm, "estimate_alignment", given)  # as the runner calls it
     weighted = run("weighted", paths["moving"])
     monkeypatch.setattr(resample, "spread_code", lambda u: np.zeros(u.shape, np.uint16))  # no spread kept
     unweighted = run("unweighted", paths["moving"])
@@ -598,16 +598,14 @@ def test_static_jpeg_bracket_is_not_deghosted(seed):
     times = [0.25, 1.0, 4.0]
     frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
     m = merge_arrays(frames, times, crf="srgb", deghost="auto")
-    assert max(m.ghosts.rejected_fraction) <= deghost.IMAGE_PARAMS.auto_fraction
-    assert not m.ghosts.applied
+    assert max(m.bracket.ghosts.rejected_fraction) <= deghost.IMAGE_PARAMS.auto_fraction
+    assert not m.bracket.ghosts.applied
 
 
 @pytest.mark.parametrize("frame", [0, 2])
 def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
     """A flat object in one frame only, over the textured part of a JPEG bracket: found
     over (almost) all of its footprint."""
-    from hdrmerge_cli.pipeline import motion
-
     rng = np.random.default_rng(7)
     times = [0.25, 1.0, 4.0]
     scene = _jpeg_scene(rng)
@@ -617,9 +615,9 @@ def test_ghost_over_texture_in_a_jpeg_bracket_is_found(frame):
     value = level * (6.0 if frame == 0 else 1 / 6.0)
     frames = _jpeg_frames(rng, scene, times, ghost=(frame, patch, value))
     m = merge_arrays(frames, times, crf="srgb", deghost="auto")
-    g = m.ghosts
+    g = m.bracket.ghosts
     assert g.applied
-    soft = motion.ghost_weight(g, g.frames[frame], *frames[0].shape[:2])
+    soft = g.weight(g.frames[frame], *frames[0].shape[:2])
     inner = soft[90:130, 130:180]
     assert np.mean(inner > 0.5) >= 0.95
 
@@ -736,7 +734,7 @@ def _alignment_counting(stack, monkeypatch, coarse=True):
     estimate_alignment) and how many frames were registered at full resolution; ``coarse``
     False: no pair is found still at coarse resolution."""
     from hdrmerge_cli import api
-    from hdrmerge_cli.pipeline.motion import estimate_alignment
+    from hdrmerge_cli.pipeline.register import estimate_alignment
 
     calls = []
     full = registration.estimate_warp
@@ -787,7 +785,7 @@ def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path)
     from hdrmerge_cli.io.frames import load_codes
     from hdrmerge_cli.io.metadata import exposure_values
     from hdrmerge_cli.pipeline.bracket import read_bracket
-    from hdrmerge_cli.pipeline.motion import estimate_alignment
+    from hdrmerge_cli.pipeline.register import estimate_alignment
 
     run("simulate", "-o", tmp_path, "-q", "--scene", SHARED / "hdr" / "ScanLines_Desk.exr", "--downscale", "2",
         "--scale", "80000", "--frames", "4", "--seed", "4")

@@ -261,7 +261,7 @@ def tap_variance(codes: np.ndarray, warp: np.ndarray, out_rows: int | None = Non
     (two float warps).  It is the variance of the interpolated value if the true one were
     any of the taps, in proportion to their weights: 0 where the warp lands on a sample or
     the neighbourhood is flat, the squared contrast across an edge the warp falls inside.
-    The merge adds it to a resampled sample's variance (:func:`hdrmerge_cli.pipeline.motion.sample_weights`),
+    The merge adds it to a resampled sample's variance (:func:`hdrmerge_cli.pipeline.merge.sample_weights`),
     so that where resampling cannot reproduce the scene (sharp edges, detail finer than the
     sample pitch, e.g. a CFA colour's sub-plane) the frames that were not resampled decide.
     float32 round-off of ``z^2`` is ``6e-8 z^2``, far below the noise of a reading ``z``."""

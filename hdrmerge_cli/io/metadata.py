@@ -104,3 +104,17 @@ def upright(image: np.ndarray, orientation: int) -> np.ndarray:
         5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
         8: lambda a: np.rot90(a, 1),
     }.get(orientation, lambda a: a)(image)
+
+
+def reference_index(frames: list[Frame]) -> int:
+    """The reference frame of alignment and deghosting: the middle exposure."""
+    return len(frames) // 2
+
+
+def of_frame(frame: Frame, frames: list[Frame], items: list):
+    """The item of ``items`` that stands beside ``frame`` itself (not its path or position)
+    in ``frames``."""
+    for f, item in zip(frames, items):
+        if f is frame:
+            return item
+    raise KeyError(frame.path)

@@ -27,7 +27,8 @@ if TYPE_CHECKING:  # the stages' results, as the bracket carries them
     from hdrmerge_cli.core.noise import NoiseParams
     from hdrmerge_cli.core.samples import Samples
     from hdrmerge_cli.pipeline.model_choice import Models
-    from hdrmerge_cli.pipeline.motion import Alignment, Ghosts
+    from hdrmerge_cli.pipeline.register import Alignment
+    from hdrmerge_cli.pipeline.ghosts import Ghosts
     from hdrmerge_cli.pipeline.options import InputOptions
 
 

@@ -17,7 +17,7 @@ from hdrmerge_cli.core.crf_goossens2012 import (
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap,
+    Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap,
 )
 from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import Frame, load_codes
@@ -136,7 +136,7 @@ def measure_response(frames: list[Frame], samples: Samples, cache: bool = True) 
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
     the curve open, and stored in the per-camera cache (``cache``,
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
-    two distinct exposures, or neighbours sharing fewer than :data:`MIN_OVERLAP` unclipped
+    two distinct exposures, or neighbours sharing fewer than :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` unclipped
     pixels) the cached response of the same camera and style, unless the frames contradict
     it (:func:`~hdrmerge_cli.pipeline.response_fits`); else None, with a warning
     saying why and that sRGB is assumed."""

@@ -215,7 +215,7 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
 
 def alignment_motion(frames: list[Frame], alignment, s: Samples) -> Motion:
     """The neighbour pairs' displacement as the merge's registration measured it
-    (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`), for samples brought onto the
+    (:func:`~hdrmerge_cli.pipeline.register.estimate_alignment`), for samples brought onto the
     reference with its warps when it applies them (:meth:`Samples.registered`): 0 left
     between two registered frames, unknown (None) where either was left unaligned;
     otherwise the largest distance between where the two frames' warps take a corner."""

@@ -7,18 +7,22 @@ import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core import resample
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, noise_rows
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.metadata import equal_exposure_groups, fmt_time
 from hdrmerge_cli.io.noisespec import per_channel
-from hdrmerge_cli.pipeline.model_choice import Models
 
 log = logging.getLogger("hdrmerge_cli")
+
+if TYPE_CHECKING:
+    from hdrmerge_cli.pipeline.model_choice import Models
 
 
 @dataclass
@@ -47,7 +51,7 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     """The frames through (7) (:func:`_first_pass`), then ``models.n_irls`` passes of
     re-weighting at the merged estimate (:func:`~hdrmerge_cli.core.reconstruct.irls`), both
     reading the frames' held codes (``load``), with the per-sample weights ``weights_of``
-    (:class:`~hdrmerge_cli.pipeline.motion.SampleWeights`, or None); the variance of
+    (:class:`~hdrmerge_cli.pipeline.merge.SampleWeights`, or None); the variance of
     ``E * h_ref`` with ``with_variance``.  The stages' seconds are added to ``timings``."""
     ml = models.estimator == "ml"
     # without IRLS the first pass returns the linear image directly
@@ -78,6 +82,125 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
         variance *= result * result
     timings["irls"] = time.perf_counter() - t0
     return Reconstruction(result, flags, den, variance, iterations)
+
+
+# ---------------------------------------------------------------- per-sample weights
+def sample_weights(tables, pattern, frames: list[Frame], ghosts, alignment, load, validity: list):
+    """The per-sample weights of the merge (a :class:`SampleWeights`), or None when no
+    frame has transparent pixels and neither the deghosting nor the alignment is applied.
+    ``ghosts``, ``alignment``: the stages' results (or None); ``load``: the merge's
+    loader, an :class:`~hdrmerge_cli.pipeline.register.AlignedLoader` when it keeps the
+    resampling's spreads; ``validity``: :func:`~hdrmerge_cli.pipeline.register.frame_validity`."""
+    ghosts = ghosts if ghosts is not None and ghosts.applied else None
+    alignment = alignment if alignment is not None and alignment.applied else None
+    if ghosts is None and alignment is None and all(v is None for v in validity):
+        return None
+    return SampleWeights(tables, pattern, frames, ghosts, alignment, load if hasattr(load, "spread") else None,
+                         validity)
+
+
+class SampleWeights:
+    """``(k, codes) -> weights`` of frame ``k`` for the merge (see :meth:`LogMerge.add`):
+    its table weight ``w(z) sigma^-2`` through :meth:`adjust`, which also re-weights the
+    IRLS passes (:func:`~hdrmerge_cli.core.reconstruct.irls`)."""
+
+    def __init__(self, tables, pattern, frames, ghosts, alignment, load, validity=None):
+        self.tables, self.pattern, self.frames = tables, pattern, frames
+        self.ghosts, self.alignment, self.load = ghosts, alignment, load
+        self.validity = validity or [None] * len(frames)
+        self.slopes: dict[int, np.ndarray] = {}  # per frame, its value table's slope
+
+    def factor(self, k: int, rows: slice | None = None) -> np.ndarray | None:
+        """``(H, W)`` float32 in [0, 1] per pixel (an image's channels share it), or None
+        (all 1): zero where the aligned frame does not cover the reference or is
+        transparent, ``1 - m`` in its rejected ghost cells (feathered ``m``, so no seam);
+        ``rows``: those rows only."""
+        frame, ghosts, alignment = self.frames[k], self.ghosts, self.alignment
+        out = None
+        if ghosts is not None and ghosts.mask_of(frame).any():
+            out = ghosts.weight(frame, frame.height, frame.width, rows)
+            np.subtract(np.float32(1.0), out, out=out)
+        valid = self.validity[k]
+        masks = [None if valid is None else valid[rows or slice(None)]]
+        if alignment is not None:
+            masks.append(alignment.coverage(frame, rows))
+        for inside in masks:
+            if inside is not None:
+                out = inside.astype(np.float32) if out is None else np.multiply(out, inside, out=out)
+        return out
+
+    def _weighted(self, k: int, codes: np.ndarray, w: np.ndarray | None, own: bool,
+                  rows: slice | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """``w`` (None: the table's, for a resampled frame) with the resampling's variance
+        added and times :meth:`factor` (broadcast over an image's channels), and the
+        factor; ``own``: ``w`` may be overwritten (a fresh full-size array costs its page
+        faults, tenths of a second at 24 MP); ``rows``: ``codes`` and ``w`` are those rows
+        of the frame."""
+        spread = self.load.spread(self.frames[k]) if self.load is not None else None
+        if spread is not None:
+            rows = rows or slice(0, spread.shape[0])
+            if k not in self.slopes:
+                self.slopes[k] = value_slope(self.tables[k])
+            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread[rows]),
+                                      self.alignment.warp_of(self.frames[k]), out=w if own else None,
+                                      cfa=self.frames[k].cfa_pattern, row0=rows.indices(spread.shape[0])[0],
+                                      slope=self.slopes[k]), True
+        f = self.factor(k, rows)
+        if f is None:
+            return w, None
+        per_pixel = w.reshape(f.shape + (-1,))
+        out = np.multiply(per_pixel, f[..., None], out=per_pixel if own else None)
+        return out.reshape(w.shape), f
+
+    def adjust(self, k: int, codes: np.ndarray, w: np.ndarray, own: bool = False,
+               rows: slice | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Inverse-variance weights ``w`` (``(H, W')``) of frame ``k``'s ``codes`` with the
+        resampling's variance added (:func:`resampled_weight`), times :meth:`factor`;
+        returns ``(weights, factor)``, the factor per sample ``(H, W')``.  ``own``: the
+        weights may be written into ``w`` (the caller's buffer, else left as it is);
+        ``rows``: ``codes`` and ``w`` are those rows of the frame (a strip of the IRLS)."""
+        out, f = self._weighted(k, codes, w, own=own, rows=rows)
+        if f is not None and f.shape != out.shape:
+            f = np.repeat(f, out.shape[1] // f.shape[1], axis=1)
+        return out, f
+
+    def __call__(self, k: int, codes: np.ndarray, rows: slice | None = None
+                 ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(weight, factor)`` for :meth:`LogMerge.add` of frame ``k``'s ``codes`` (``rows``:
+        those rows of the frame): where the frame was not resampled with a spread (images;
+        RAW moved by whole CFA periods) only the per-pixel :meth:`factor` (weight None),
+        which the merge applies to the table's weights in its own pass; else the per-sample
+        weights (``codes``' shape, float32) with the factor in them, and the factor, which
+        then only says where the frame is a sample's own."""
+        if self.load is None or self.load.spread(self.frames[k]) is None:
+            return None, self.factor(k, rows)
+        w, f = self._weighted(k, codes, None, own=True, rows=rows)  # the table's weights, read in the same pass
+        return w.reshape(codes.shape).astype(np.float32, copy=False), f
+
+
+def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, spread: np.ndarray,
+                     warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None,
+                     row0: int = 0, slope: np.ndarray | None = None) -> np.ndarray:
+    """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
+    mosaic resampled by ``warp`` with the interpolation's variance added
+    (:func:`~hdrmerge_cli.core.resample.resampled_weight_mosaic`), from the frame's
+    ``tables``: the slope of its value table (linear or log value per code) and its
+    certainty ``w(z)`` (``slope``: :func:`value_slope`, computed when not given).  ``out``
+    may be ``w``; ``row0``: the arrays are rows ``row0`` on of the frame."""
+    slope = value_slope(tables) if slope is None else slope
+    return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, tables.n_codes, spread, warp,
+                                         out, weight=tables.weight, cfa=cfa, row0=row0)
+
+
+def value_slope(tables) -> np.ndarray:
+    """The slope of a frame's value table per code (flattened ``(R * N,)`` float32), for
+    :func:`resampled_weight`."""
+    n = tables.n_codes
+    return np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
+
+
+def _samples(codes: np.ndarray) -> np.ndarray:
+    return codes.reshape(codes.shape[0], -1)
 
 
 # ---------------------------------------------------------------- checks after the merge

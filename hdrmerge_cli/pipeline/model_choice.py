@@ -190,7 +190,7 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
     which favours readings that came out low under photon noise; one pass at the merged
     estimate removes that bias, and further passes change the result by far less than the
     noise.  The pass keeps the ghost and coverage weights
-    (:class:`~hdrmerge_cli.pipeline.motion.SampleWeights`).  Evidence:
+    (:class:`~hdrmerge_cli.pipeline.merge.SampleWeights`).  Evidence:
     benchmarks/results/cli_defaults.md, motion.md."""
     return int(estimator == "ml" and bool(noise) and not lut)
 

@@ -11,11 +11,11 @@ The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Py
 3. response: measured on those samples when none was given
    (:func:`~hdrmerge_cli.pipeline.crf.measure_response`);
 4. registration: the warps that bring the frames onto the reference
-   (:func:`~hdrmerge_cli.pipeline.motion.estimate_alignment`); the exposure labels are then
+   (:func:`~hdrmerge_cli.pipeline.register.estimate_alignment`); the exposure labels are then
    checked on the registered samples (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
 5. noise, the automatic choices and the weights' tables
    (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`);
-6. ghosts (:func:`~hdrmerge_cli.pipeline.motion.find_ghosts`);
+6. ghosts (:func:`~hdrmerge_cli.pipeline.ghosts.find_ghosts`);
 7. merge: the held codes through (7), then re-weighting in strips
    (:func:`~hdrmerge_cli.pipeline.merge.reconstruct`), and the checks after it;
 8. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
@@ -36,14 +36,17 @@ from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.metadata import output_orientation, reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.pipeline import motion
 from hdrmerge_cli.pipeline.bracket import Bracket, read
 from hdrmerge_cli.pipeline.crf import measure_response
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
-from hdrmerge_cli.pipeline.merge import check_range, check_repeats, reconstruct, warn_unmeasured, watch_repeats
+from hdrmerge_cli.pipeline.ghosts import find_ghosts, require_noise
+from hdrmerge_cli.pipeline.merge import (
+    check_range, check_repeats, reconstruct, sample_weights, warn_unmeasured, watch_repeats,
+)
 from hdrmerge_cli.pipeline.model_choice import choose_models, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
+from hdrmerge_cli.pipeline.register import estimate_alignment, frame_validity, loader, output_alpha
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -160,7 +163,7 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
             timings["response"] = time.perf_counter() - t1
     if settings.align != "off":  # registration
         t1 = time.perf_counter()
-        b.alignment = motion.estimate_alignment(b.frames, b.exposures, b.crf, settings.align, b.codes)
+        b.alignment = estimate_alignment(b.frames, b.exposures, b.crf, settings.align, b.codes)
         timings["align"] = time.perf_counter() - t1
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
     checked = resolve_exposures(b.frames, b.exposures, b.crf, b.codes, inputs.times == ESTIMATE, b.samples,
@@ -176,24 +179,24 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     b.samples = None  # no stage reads the samples after the choices
     timings.update(b.models.timings)
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
-    aligned = motion.loader(b.alignment, b.codes)
+    aligned = loader(b.alignment, b.codes)
     if settings.deghost != "off":
         t1 = time.perf_counter()
-        b.ghosts = motion.find_ghosts(b.frames, b.exposures, b.crf, motion.require_noise(b.models.noise, b.frames),
+        b.ghosts = find_ghosts(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames),
                                       aligned, settings.deghost)
         timings["deghost"] = time.perf_counter() - t1
     h_ref = reference_exposure(settings.reference, b.exposures)
-    validity = motion.frame_validity(b.frames, b.alignment)
+    validity = frame_validity(b.frames, b.alignment)
     load, repeats = watch_repeats(aligned, b.frames, b.exposures)
     rec = reconstruct(b.frames, b.exposures, h_ref, b.models, load,
-                      motion.sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment,
+                      sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment,
                                             aligned, validity),
                       timings, "variance" in outputs.extra_channels)
     check_range(rec.result, outputs.half, settings.reference, h_ref, b.exposures, b.crf)
     neutral_bounds(rec.result, rec.flags)
     warn_unmeasured(b.frames, rec.result, rec.flags)
     return Merged(b, rec, opts, h_ref, output_orientation(b.frames), check_repeats(repeats, b.frames, b.crf),
-                  motion.output_alpha(b.frames, validity))
+                  output_alpha(b.frames, validity))
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
