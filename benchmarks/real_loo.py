@@ -60,14 +60,14 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     (:mod:`hdrmerge_cli.pipeline.excess`), the latter in the tables in place of the fixed
     tolerance.  Returns (E per second in units of the normalised linear signal, CRF)."""
     from hdrmerge_cli.core.reconstruct import merge_frames
-    from hdrmerge_cli.pipeline.crf import fit_crf
+    from hdrmerge_cli.pipeline.response import fit_crf
 
     log_h = np.log(exposures)
     opts = dict(crf_options or {})
     crf, _, _ = fit_crf(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts)
     params = None
     if noise == "measured" and excess:  # as merge measures an image bracket's noise (None where it cannot)
-        from hdrmerge_cli.pipeline.model_choice import measure_noise
+        from hdrmerge_cli.pipeline.noise import measure_noise
 
         lookup = {id(f): c for f, c in zip(frames, codes)}
         found, _ = measure_noise(frames, crf, lambda f: lookup[id(f)], cache=False)
@@ -88,7 +88,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
                           (0, 0, 0, 0), 1, 1.0 / 255.0)
         names = frames[0].channel_names
         measured = measure_excess(samples, exposures, crf, dict(zip(names, params)) if params else None, names)
-    from hdrmerge_cli.pipeline.model_choice import default_variance, prior_rate_of
+    from hdrmerge_cli.pipeline.choices import default_variance, prior_rate_of
 
     k = len(codes) // 2
     prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None
@@ -267,7 +267,7 @@ def neutral_drift(crf, lo: int = 5, hi: int = 250) -> float:
 
 def drift_table(quick: bool = False) -> list[str]:
     """Each bracket's response from all its frames, channels independent and coupled."""
-    from hdrmerge_cli.pipeline.crf import fit_crf
+    from hdrmerge_cli.pipeline.response import fit_crf
 
     lines = ["", "## Neutral ramps", "",
              "Colour drift of a neutral ramp (equal codes in R, G, B) through each bracket's response, codes 5-250: "

@@ -198,7 +198,7 @@ def _response(response, st: _Stack) -> CRF:
     crf = _given_response(response, st)
     if not crf.assumed:
         return crf
-    from hdrmerge_cli.pipeline.crf import measure_response
+    from hdrmerge_cli.pipeline.response import measure_response
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
     return measure_response(st.frames, ordered_samples(st.frames, st.load), cache=False) or crf
@@ -397,7 +397,7 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     >>> round(float(crf.inverse(128 / 255)), 2)   # gamma 2.2: (128/255)**2.2 = 0.22
     0.22
     """
-    from hdrmerge_cli.pipeline.crf import fit_with_labels, is_flat
+    from hdrmerge_cli.pipeline.response import fit_with_labels, is_flat
     from hdrmerge_cli.core.samples import thin_overlap
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
@@ -607,7 +607,7 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
     crf = _response(response, st)
     params = _noise(noise)
     if params is None and st.raw:  # as the merge: a mosaic's noise is measured
-        from hdrmerge_cli.pipeline.model_choice import measure_noise
+        from hdrmerge_cli.pipeline.noise import measure_noise
 
         params, _ = measure_noise(st.frames, crf, st.load, cache=False)
     alignment = estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None

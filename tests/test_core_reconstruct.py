@@ -88,7 +88,7 @@ def test_frames_with_different_black_levels_use_their_own():
     """Two RAW-like frames of one scene whose black levels differ (as some cameras' do per
     shot): each frame's own table must be used."""
     from hdrmerge_cli.io.frames import Frame
-    from hdrmerge_cli.pipeline.model_choice import build_tables as _tables
+    from hdrmerge_cli.pipeline.choices import build_tables as _tables
 
     def frame(black):
         return Frame(path="x", kind="raw", width=2, height=1, exposure_time=1.0, iso=None, aperture=None, make="",

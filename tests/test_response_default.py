@@ -10,7 +10,7 @@ import pytest
 
 from conftest import _simulate, frames_of, log_rmse
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.pipeline.crf import MEASURED
+from hdrmerge_cli.pipeline.response import MEASURED
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,8 @@ from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer
 from hdrmerge_cli.io.metadata import exposure_values
 from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, luts_figure, luts_writer, weight_luts
-from hdrmerge_cli.pipeline.model_choice import RAW_HAS_NO_LUT, prior_rate as prior_rate_of, resolve_noise
+from hdrmerge_cli.pipeline.choices import RAW_HAS_NO_LUT, prior_rate as prior_rate_of
+from hdrmerge_cli.pipeline.noise import resolve_noise
 from hdrmerge_cli.pipeline.bracket import choose_crf, read_bracket
 
 

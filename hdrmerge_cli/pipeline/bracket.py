@@ -26,7 +26,7 @@ log = logging.getLogger("hdrmerge_cli")
 if TYPE_CHECKING:  # the stages' results, as the bracket carries them
     from hdrmerge_cli.core.noise import NoiseParams
     from hdrmerge_cli.core.samples import Samples
-    from hdrmerge_cli.pipeline.model_choice import Models
+    from hdrmerge_cli.pipeline.choices import Models
     from hdrmerge_cli.pipeline.register import Alignment
     from hdrmerge_cli.pipeline.ghosts import Ghosts
     from hdrmerge_cli.pipeline.options import InputOptions

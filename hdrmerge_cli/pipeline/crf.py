@@ -9,25 +9,22 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF, table_crf
-from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sample_pixels
-from hdrmerge_cli.core.crf_goossens2012 import (
-    DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_WEIGHTING, CRFFit, knot_levels, standard_prior,
-)
-from hdrmerge_cli.core.weights import weights_debevec1997_triangle
+from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
+from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_WEIGHTING, DEFAULT_ANCHOR, knot_levels
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.samples import (
-    Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap,
-)
+from hdrmerge_cli.core.samples import estimate
+from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.io.atomic import check_writable, write_together
-from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.frames import load_codes
+from hdrmerge_cli.io.metadata import exposure_values
 from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.io.metadata import exposure_values
 from hdrmerge_cli.pipeline import exposure_check
 from hdrmerge_cli.pipeline.bracket import read_bracket
+from hdrmerge_cli.pipeline.response import fit_crf, is_flat
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -55,20 +52,6 @@ class CRFOptions:
     anchor: float = DEFAULT_ANCHOR  # goossens: weight of the prior towards the standard curve
 
 
-def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, method: str, rng) -> np.ndarray:
-    """(N, P) codes of channel ``c``: every pixel, or ``samples`` of them (Debevec-Malik's
-    stratified choice over the middle frame's codes, else uniformly at random)."""
-    n = codes[0][..., c].size
-    if not samples or samples >= n:
-        out = np.empty((n, len(codes)), codes[0].dtype)
-        for j, fr in enumerate(codes):
-            out[:, j] = fr[..., c].reshape(-1)
-        return out
-    idx = (sample_pixels(codes[len(codes) // 2][..., c], samples, rng) if method == "debevec"
-           else rng.choice(n, samples, replace=False))
-    return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
-
-
 def check_samples(samples: int | None, n_frames: int, n_codes: int, n_pixels: int) -> None:
     """Refuse a --samples too few to determine the response: every code level needs data,
     N (P - 1) >= Zmax - Zmin (Debevec & Malik 1997); 0 or None (all pixels) passes."""
@@ -79,147 +62,12 @@ def check_samples(samples: int | None, n_frames: int, n_codes: int, n_pixels: in
                             "or 0 for all")
 
 
-def is_flat(crf: CRF) -> bool:
-    """A fitted response that spans less than one stop from code 1 to white (any camera's
-    spans many: sRGB 12 stops at 8 bits), which would merge every code to about white."""
-    return bool(np.all(crf.table[:, 1] > 0.5))
-
-
 def check_not_flat(crf: CRF, method: str, smoothing: float | None) -> None:
     """Refuse an :func:`is_flat` fit, naming what flattened it."""
     if is_flat(crf):
         cause = (f"--lambda {smoothing:g} smooths the data away; give a smaller --lambda" if smoothing
                  else "the frames do not determine it; try --method goossens")
         raise HdrMergeError(f"the {method} fit is flat (less than one stop from code 1 to white): {cause}")
-
-
-def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: str = "goossens",
-            smoothing: float | None = None, samples: int | None = None, options: dict | None = None,
-            rng: np.random.Generator | None = None):
-    """The inverse response of decoded frames: ``method`` of
-    :data:`~hdrmerge_cli.core.crf_estimate.CRF_ESTIMATORS`, the channels in one coupled
-    solve for a ``joint`` method (goossens: see its ``coupling``), one by one for the others.
-
-    codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
-    smoothing, samples : None for the method's defaults; options : the method's keywords
-    Returns (CRF with a ``(C, n_codes)`` table, the per-channel fits, whether a fit had to
-    be made monotone).
-    """
-    m = CRF_ESTIMATORS[method]
-    rng = rng if rng is not None else np.random.default_rng(0)
-    samples = m.samples if samples is None else samples
-    options = dict(options or {})
-    if method == "goossens":  # the prior towards the standard curve where the frames leave g open
-        options.setdefault("anchor", DEFAULT_ANCHOR)
-        options.setdefault("prior", standard_prior(n_codes))
-    if m.smoothing is not None:
-        options["smoothing"] = m.smoothing if smoothing is None else smoothing
-    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
-    if m.joint:  # one solve of every channel, coupled
-        fit = m.estimate(samples_of, log_h, n_codes, **options)
-        fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]
-    else:
-        fits = [m.estimate(z, log_h, n_codes, **options) for z in samples_of]
-    for c, fit in enumerate(fits):
-        log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, method, fit.iterations,
-                 "" if fit.converged else " (not converged)", fit.rows)
-    tables, fixed = zip(*(inverse_from_log(f.g) for f in fits))
-    changed = any(fixed)
-    if changed:
-        log.warning("the %s fit was not monotone; it was made non-decreasing", method)
-    return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
-
-
-def measure_response(frames: list[Frame], samples: Samples, cache: bool = True) -> CRF | None:
-    """The response of an image bracket given none, fitted on the samples the merge draws
-    (:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`, constant borders off) by
-    estimate-crf's default method, its prior towards sRGB deciding where the frames leave
-    the curve open, and stored in the per-camera cache (``cache``,
-    :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
-    two distinct exposures, or neighbours sharing fewer than :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` unclipped
-    pixels) the cached response of the same camera and style, unless the frames contradict
-    it (:func:`~hdrmerge_cli.pipeline.response_fits`); else None, with a warning
-    saying why and that sRGB is assumed."""
-    from hdrmerge_cli.io import noisecache
-
-    key = noisecache.response_key(frames[0]) if cache else None
-    exposures = exposure_values(frames)
-    thin = thin_overlap(samples)
-    if len(np.unique(exposures)) < 2:
-        why = "one exposure only"
-    elif thin is not None:
-        k, both = thin
-        why = f"{frames[k - 1].name} and {frames[k].name} share {both} unclipped pixels"
-    else:
-        crf = fit_with_labels(frames, exposures, samples)
-        if not is_flat(crf):
-            if noisecache.store_response(key, crf.table, [f.path for f in frames]):
-                log.debug("response of %s stored in %s", key, noisecache.response_file())
-            return CRF(MEASURED, table=crf.table)
-        why = "the fit is flat"
-    cached = _cached_response(frames, exposures, samples, key)
-    if cached is not None:
-        return cached
-    log.warning("%s: no camera response given and none can be measured on this bracket (%s); assuming sRGB. Run "
-                "'hdrmerge-cli estimate-crf' on a bracket of this camera and pass --crf PROFILE.json",
-                frames[0].path, why)
-    return None
-
-
-def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: Samples,
-                     key: str | None) -> CRF | None:
-    """The cached response of ``key`` (:func:`measure_response`), or None: none stored, a
-    damaged entry, or frames whose ratios bend through it (most pairs, beyond the label
-    tolerance)."""
-    from hdrmerge_cli.io import noisecache
-
-    hit = noisecache.lookup_response(key)
-    if hit is None:
-        return None
-    try:
-        crf = CRF(CACHED, table=table_crf(np.asarray(hit["inverse"], np.float64)).table)
-        if crf.table.shape != (frames[0].channels, frames[0].n_codes):
-            return None
-    except (HdrMergeError, ValueError):
-        return None
-    if len(frames) > 1 and not response_fits(estimate(exposures, samples, crf)):
-        log.info("the cached response of %s does not fit these frames; not used", key)
-        return None
-    log.info("camera response of %s from the cache %s (measured on %s, %s)", key, noisecache.response_file(),
-             ", ".join(Path(p).name for p in hit.get("inputs", [])), hit.get("date"))
-    return crf
-
-
-def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples) -> CRF:
-    """The response and the labels judged together: fit with the labels, check them through
-    the fit (:func:`~hdrmerge_cli.core.samples.estimate`), and while a frame's label
-    is off by more than the tolerance in a way a label explains (its ratios do not change
-    with brightness, :func:`~hdrmerge_cli.pipeline.label_at_fault`), refit with
-    that frame's estimate in place of its label, the frame furthest off first, at most half
-    the frames.  A wrong label then does not bend the curve; the labels are judged (and
-    warned about) afterwards against the response returned."""
-    codes = samples_codes(samples)
-    log_h = np.log(np.asarray(exposures, np.float64))
-    crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
-    replaced: list[int] = []
-    for _ in range(len(frames) // 2):
-        est = estimate(np.exp(log_h), samples, crf)
-        off = [k for k in est.mislabelled() if k not in replaced and label_at_fault(est, k)]
-        if not off:
-            break
-        k = max(off, key=lambda j: abs(est.difference_ev[j]))
-        log_h[k], replaced = est.log_h[k], replaced + [k]
-        crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
-    log.info("camera response measured on the bracket (goossens, %d samples per frame%s)", codes[0].shape[0],
-             f"; fitted with the measured exposures of {', '.join(frames[k].name for k in replaced)}" if replaced
-             else "")
-    return crf
-
-
-#: the name of a response :func:`measure_response` fitted on the bracket being merged
-MEASURED = "measured on the bracket (estimate-crf defaults)"
-#: the name of a response :func:`measure_response` read from the per-camera cache
-CACHED = "measured earlier on this camera (cache)"
 
 
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:

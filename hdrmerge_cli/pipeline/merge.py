@@ -22,7 +22,7 @@ from hdrmerge_cli.io.noisespec import per_channel
 log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.model_choice import Models
+    from hdrmerge_cli.pipeline.choices import Models
 
 
 @dataclass

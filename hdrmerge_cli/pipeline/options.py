@@ -38,7 +38,7 @@ DEFAULT_GAP = 3.0
 @dataclass(frozen=True)
 class MergeSettings:
     """How a bracket is merged; each ``auto`` is resolved per bracket
-    (:mod:`hdrmerge_cli.pipeline.model_choice`, :mod:`hdrmerge_cli.pipeline.motion`).
+    (:mod:`hdrmerge_cli.pipeline.choices`, :mod:`hdrmerge_cli.pipeline.motion`).
 
     estimator : ``auto``, ``log`` (the paper's (7)) or ``ml`` (linear, censored)
     weights : ``auto`` or a key of :data:`hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`
@@ -69,7 +69,7 @@ class MergeSettings:
 class InputOptions:
     """What the files of a bracket are, as text the command line takes; resolved when the
     bracket is read (:func:`hdrmerge_cli.pipeline.bracket.read`,
-    :func:`hdrmerge_cli.pipeline.model_choice.resolve_noise`).
+    :func:`hdrmerge_cli.pipeline.noise.resolve_noise`).
 
     crf : images' response: ``linear``, ``srgb``, ``gamma:G``, a CSV table or profile JSON
         (None: measured on the bracket)

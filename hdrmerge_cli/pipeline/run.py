@@ -9,12 +9,13 @@ The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Py
 2. exposures: one sample set of every frame, its order checked
    (:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`);
 3. response: measured on those samples when none was given
-   (:func:`~hdrmerge_cli.pipeline.crf.measure_response`);
+   (:func:`~hdrmerge_cli.pipeline.response.measure_response`);
 4. registration: the warps that bring the frames onto the reference
    (:func:`~hdrmerge_cli.pipeline.register.estimate_alignment`); the exposure labels are then
    checked on the registered samples (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
-5. noise, the automatic choices and the weights' tables
-   (:func:`~hdrmerge_cli.pipeline.model_choice.choose_models`);
+5. noise (:mod:`~hdrmerge_cli.pipeline.noise`), the excess variance of camera-processed
+   frames (:mod:`~hdrmerge_cli.pipeline.excess`), then the automatic choices and the
+   weights' tables (:func:`~hdrmerge_cli.pipeline.choices.choose_models`);
 6. ghosts (:func:`~hdrmerge_cli.pipeline.ghosts.find_ghosts`);
 7. merge: the held codes through (7), then re-weighting in strips
    (:func:`~hdrmerge_cli.pipeline.merge.reconstruct`), and the checks after it;
@@ -37,16 +38,18 @@ from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.metadata import output_orientation, reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline.bracket import Bracket, read
-from hdrmerge_cli.pipeline.crf import measure_response
+from hdrmerge_cli.pipeline.choices import Models, choose_models, wanted
+from hdrmerge_cli.pipeline.excess import measure_excess
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.ghosts import find_ghosts, require_noise
 from hdrmerge_cli.pipeline.merge import (
     check_range, check_repeats, reconstruct, sample_weights, warn_unmeasured, watch_repeats,
 )
-from hdrmerge_cli.pipeline.model_choice import choose_models, resolve_noise_by_iso
+from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 from hdrmerge_cli.pipeline.register import estimate_alignment, frame_validity, loader, output_alpha
+from hdrmerge_cli.pipeline.response import measure_response
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -172,12 +175,8 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
                                                            checked.samples)
     timings["exposure_check"] = time.perf_counter() - t1
     warn_unused_options(b, opts)
-    # the noise is measured on the frames as decoded: resampling smooths it, and frames that
-    # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    b.models = choose_models(b.frames, b.exposures, b.crf, settings, b.codes, b.noise, b.samples, b.noise_by_iso,
-                             with_variance="variance" in outputs.extra_channels, noise_cache=outputs.noise_cache)
+    b.models = choose(b, opts)
     b.samples = None  # no stage reads the samples after the choices
-    timings.update(b.models.timings)
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
     aligned = loader(b.alignment, b.codes)
     if settings.deghost != "off":
@@ -197,6 +196,25 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     warn_unmeasured(b.frames, rec.result, rec.flags)
     return Merged(b, rec, opts, h_ref, output_orientation(b.frames), check_repeats(repeats, b.frames, b.crf),
                   output_alpha(b.frames, validity))
+
+
+def choose(b: Bracket, opts: MergeOptions) -> Models:
+    """The noise stage (given, cached or measured, where the options need it), the excess
+    variance of a camera-processed bracket (which picks its estimator), then the choices
+    stage on what they measured (:func:`~hdrmerge_cli.pipeline.choices.choose_models`)."""
+    settings, with_variance, timings = opts.algorithm, "variance" in opts.io.extra_channels, b.timings
+    noise, frame_noise = frame_noise_of(b.frames, b.noise, b.noise_by_iso)
+    want, estimated, excess = wanted(b.frames, b.crf, settings, b.samples, with_variance), None, None
+    # the noise is measured on the frames as decoded: resampling smooths it, and frames that
+    # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
+    if noise is None and (want.noise or want.excess) and not settings.lut:
+        noise, estimated = bracket_noise(b.frames, b.crf, b.codes, want.noise, opts.io.noise_cache, timings)
+    if want.excess:
+        t1 = time.perf_counter()
+        excess = measure_excess(b.samples, b.exposures, b.crf, noise, b.frames[0].channel_names)
+        timings["excess_variance"] = time.perf_counter() - t1
+    return choose_models(b.frames, b.exposures, b.crf, settings, b.codes, noise, estimated, excess, frame_noise,
+                         with_variance=with_variance, timings=timings)
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:

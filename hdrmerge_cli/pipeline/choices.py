@@ -1,11 +1,12 @@
-"""Choose the models a merge uses: the estimator, the weights, the noise parameters
-(given, cached or measured on the bracket), the variance mode and the per-frame lookup
-tables of (7)."""
+"""The choices stage: every ``auto`` of the merge's models decided from what the bracket
+measured (the estimator, the weights, the variance mode, the re-weighting passes; which
+measurements those need, :func:`wanted`), and the per-frame lookup tables of (7) they
+make (:func:`choose_models`)."""
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +17,7 @@ from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import exposure_tables, table_size
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
-from hdrmerge_cli.io.noisespec import iso_key, noise_from_profile, parse_bounds, parse_noise, per_channel
-from hdrmerge_cli.io.profile import load_profile
+from hdrmerge_cli.io.noisespec import iso_key, parse_bounds, per_channel
 from hdrmerge_cli.io.metadata import sample_pattern
 from hdrmerge_cli.pipeline.options import MergeSettings
 
@@ -26,7 +26,7 @@ log = logging.getLogger("hdrmerge_cli")
 
 @dataclass
 class Models:
-    """What a merge reconstructs with (the second stage, :func:`choose_models`).
+    """What a merge reconstructs with (the choices stage, :func:`choose_models`).
 
     tables : per frame, the :class:`~hdrmerge_cli.core.reconstruct.ExposureTables` of (7)
     pattern : the periodic table row of each sample (None: one row serves all)
@@ -52,7 +52,6 @@ class Models:
     pattern: np.ndarray | None
     table_channels: list[str]
     excess: object = None  # core.excess_variance.ExcessVariance of a camera-processed bracket, or None
-    timings: dict[str, float] = field(default_factory=dict)
     frame_noise: list[dict[str, NoiseParams]] | None = None
 
     def noise_used(self, frame: Frame, noise: dict[str, NoiseParams] | None = None) -> dict | None:
@@ -72,54 +71,47 @@ class Models:
         return {iso_key(f.iso): self.noise_used(f, n) for f, n in zip(frames, self.frame_noise)}
 
 
-def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings: MergeSettings, load=load_codes,
-                  noise: dict[str, NoiseParams] | None = None, samples=None,
-                  noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None, *, with_variance: bool = False,
-                  noise_cache: bool = True) -> Models:
-    """The estimator, weights, noise parameters (``noise``, from :func:`resolve_noise`;
-    with ``noise_by_iso`` (:func:`resolve_noise_by_iso`: frames of several ISOs, a profile
-    with each) every frame takes its own ISO's entry ``noise_by_iso[iso_key(frame.iso)]``;
-    else measured on the bracket's codes (``load``, the merge's held codes) where the
-    options need them and the per-camera cache has none), the variance beyond the noise model of a camera-processed bracket
-    (measured on the exposure check's ``samples``, :mod:`hdrmerge_cli.pipeline.excess`: it
-    picks the estimator, and the ML estimator's variance holds it), variance mode and the
-    per-frame tables, each option's ``auto`` resolved by the defaults below.  The log
-    estimator keeps the fixed :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: on the
-    real brackets' leave-one-out the measured excess in its place did not lower the error
-    (benchmarks/results/real_loo.md)."""
-    first = frames[0]
-    timings = {}
-    estimated = None
-    frame_noise = None
-    if noise_by_iso:
-        frame_noise = [noise_by_iso[iso_key(f.iso)] for f in frames]
-        noise = frame_noise[0]
-        if all(n == noise for n in frame_noise):
-            frame_noise = None
-    processed = first.kind == "image" and not crf.is_linear and not settings.lut
-    measure_excess_term = processed and samples is not None and len(frames) > 1
-    needs_noise = (settings.variance == "model" or (settings.weights in NOISE_MODEL_WEIGHTS and settings.weights != "bounded")
-                   or bool(settings.irls) or settings.estimator == "ml"
-                   or (settings.estimator == "auto" and (first.kind == "raw" or crf.is_linear))
-                   or (settings.variance == "auto" and first.kind in ("raw", "linear"))
-                   or with_variance)
-    if noise is None and (needs_noise or measure_excess_term) and not settings.lut:
-        t1 = time.perf_counter()
-        # measured only to test the excess: a failure leaves the log estimator, no warning
-        noise, estimated = measure_noise(frames, crf, load, cache=noise_cache, quiet=not needs_noise)
-        timings["noise_estimate"] = time.perf_counter() - t1
-        isos = sorted({f.iso for f in frames if f.iso})
-        if noise and needs_noise and len(isos) > 1:
-            log.warning("the frames differ in ISO (%s): the noise measured on the bracket is one model for all of "
-                        "them; a profile with every ISO (calibrate-noise, then --profile) gives each frame its own "
-                        "noise", ", ".join(f"{i:g}" for i in isos))
-    excess = None
-    if measure_excess_term:
-        from hdrmerge_cli.pipeline.excess import measure_excess
+@dataclass(frozen=True)
+class Wanted:
+    """What the choices need measured before they can be made (:func:`wanted`).
 
-        t1 = time.perf_counter()
-        excess = measure_excess(samples, exposures, crf, noise, first.channel_names)
-        timings["excess_variance"] = time.perf_counter() - t1
+    noise : a noise model: the weights, the variance or the estimator read it
+    excess : an image bracket's variance beyond the noise model, which picks the estimator
+    """
+
+    noise: bool
+    excess: bool
+
+
+def wanted(frames: list[Frame], crf: CRF, settings: MergeSettings, samples, with_variance: bool = False) -> Wanted:
+    """Whether the options, each ``auto`` as the bracket is, need the bracket's noise
+    measured (when none was given), and its excess variance: a camera-processed bracket
+    of two or more frames with the exposures stage's ``samples`` to measure it on."""
+    first = frames[0]
+    processed = first.kind == "image" and not crf.is_linear and not settings.lut
+    noise = (settings.variance == "model" or (settings.weights in NOISE_MODEL_WEIGHTS and settings.weights != "bounded")
+             or bool(settings.irls) or settings.estimator == "ml"
+             or (settings.estimator == "auto" and (first.kind == "raw" or crf.is_linear))
+             or (settings.variance == "auto" and first.kind in ("raw", "linear"))
+             or with_variance)
+    return Wanted(noise, processed and samples is not None and len(frames) > 1)
+
+
+def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings: MergeSettings, load=load_codes,
+                  noise: dict[str, NoiseParams] | None = None, estimated: dict | None = None, excess=None,
+                  frame_noise: list | None = None, *, with_variance: bool = False,
+                  timings: dict | None = None) -> Models:
+    """The estimator, weights, variance mode and re-weighting passes, each option's
+    ``auto`` resolved by the defaults below from what the bracket measured: its noise
+    (``noise``, given or measured, ``estimated`` saying how; ``frame_noise``: each frame's
+    own, frames of several ISOs) and the variance beyond the noise model of a
+    camera-processed bracket (``excess``, :mod:`hdrmerge_cli.pipeline.excess`: it picks the
+    estimator, and the ML estimator's variance holds it); then the per-frame tables of (7)
+    (``load``: the frames' codes, for the prior).  The log estimator keeps the fixed
+    :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: on the real brackets'
+    leave-one-out the measured excess in its place did not lower the error
+    (benchmarks/results/real_loo.md).  The tables' seconds go to ``timings["tables"]``."""
+    first = frames[0]
     estimator = settings.estimator if settings.estimator != "auto" else default_estimator(first, crf, noise, excess)
     weights = settings.weights if settings.weights != "auto" else default_weights(estimator)
     variance = settings.variance if settings.variance != "auto" else default_variance(noise, crf, estimator)
@@ -138,13 +130,14 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
                                                    with_variance=with_variance and not n_irls,
                                                    excess=excess if estimator == "ml" else None,
                                                    frame_noise=frame_noise)
-    timings["tables"] = time.perf_counter() - t0
+    if timings is not None:
+        timings["tables"] = time.perf_counter() - t0
     if settings.lut:  # the table's weights are the merge's, whatever --weights says
         if settings.weights != "auto":
             log.warning("--weights %s is not used: --lut %s gives the weights", settings.weights, settings.lut)
         weights = f"lut:{Path(settings.lut).name}"
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
-                  table_channels, excess, timings, frame_noise)
+                  table_channels, excess, frame_noise)
 
 
 def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
@@ -193,110 +186,6 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
     (:class:`~hdrmerge_cli.pipeline.merge.SampleWeights`).  Evidence:
     benchmarks/results/cli_defaults.md, motion.md."""
     return int(estimator == "ml" and bool(noise) and not lut)
-
-
-#: ``NoiseDraw`` sites that keep every site of a channel
-WHOLE_FRAME = 1 << 62
-
-
-def measure_noise(frames: list[Frame], crf: CRF, load=load_codes, cache: bool = True, quiet: bool = False):
-    """No --noise or --profile: measure (17) on the bracket itself (the calibrate-noise
-    code, fast path; for images on the signal linearised by ``crf``); where the drawn sites
-    cannot pin some channel, again on every site; on failure fall back
-    to photon-noise weights.  The sites are drawn here, from ``load``.  With ``cache``, an
-    earlier merge's measurement of the same camera and ISO is read from the per-camera
-    cache (:mod:`hdrmerge_cli.io.noisecache`) instead, and a new measurement is stored there.
-    ``quiet``: a failure, or a channel that takes the others' noise, is logged at info level,
-    not as a warning (the noise was wanted only to test an image bracket's excess variance)."""
-    from hdrmerge_cli.io import noisecache
-
-    key = noisecache.cache_key(frames[0], crf.describe()) if cache else None
-    hit = noisecache.lookup(key)
-    if hit is not None:
-        used = hit["used"]
-        log.info("noise of %s from the cache %s: %s", key, noisecache.cache_file(),
-                 ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
-        cached = {"file": str(noisecache.cache_file()), "key": key, "date": hit.get("date"),
-                  "measured_on": hit.get("inputs")}
-        return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, (hit.get("estimated_from_bracket") or {}) | {
-            "cached": cached}
-
-    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
-    from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
-
-    # a camera-processed bracket's pairs hold what the processing adds: (17) from each
-    # frame's own statistics, the rest from the pairs (pipeline.excess)
-    pairs = frames[0].kind != "image" or crf.is_linear
-    try:
-        used, entries = estimate_bracket_noise(frames, crf, load, pairs=pairs)
-        failed = [ch for ch, e in entries.items() if "stand_in_from" in e]
-    except HdrMergeError as exc:
-        failed = [str(exc)]
-    # too few levels on the drawn tiles (a dark or flat bracket): drawn again, on every site
-    # (one measurement whatever it is for: the excess test and the ML weights read the same)
-    if failed:
-        log.info("the noise could not be measured on the drawn sites (%s); measuring on every site", failed[0])
-        try:
-            used, entries = estimate_bracket_noise(frames, crf, load, NoiseDraw(frames, sites=WHOLE_FRAME), pairs)
-        except HdrMergeError as exc:
-            if quiet:
-                log.info("could not measure the noise on the bracket (%s)", exc)
-            else:
-                log.warning("could not measure the noise on the bracket (%s); photon-noise weights are used", exc)
-            return None, None
-    say = log.info if quiet else log.warning
-    for e in entries.values():
-        if "stand_in_from" in e:
-            say("%s; its noise is taken as the median of channels %s", e["reason"], ", ".join(e["stand_in_from"]))
-    log.info("noise measured on the bracket: %s",
-             ", ".join(f"{ch} sigma_o2={p['sigma_o2']:.3g} alpha={p['alpha']:.3g}" for ch, p in used.items()))
-    if key is not None and noisecache.store(key, used, entries, [f.path for f in frames]):
-        log.debug("noise of %s stored in %s", key, noisecache.cache_file())
-    return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}, entries
-
-
-def resolve_noise(frames: list[Frame], noise: str | None, profile: str | None,
-                  crf: str | None) -> dict[str, NoiseParams] | None:
-    """The noise of :func:`resolve_noise_by_iso` for the first frame's ISO (every
-    frame's, where it is one; a warning where the frames' ISOs differ), or None."""
-    noise, by_iso = resolve_noise_by_iso(frames, noise, profile, crf)
-    if by_iso:
-        log.warning("the frames differ in ISO (%s): the noise of %s is used for all of them", ", ".join(by_iso),
-                    iso_key(frames[0].iso))
-    return noise
-
-
-def resolve_noise_by_iso(frames: list[Frame], noise: str | None, profile: str | None, crf: str | None
-                         ) -> tuple[dict[str, NoiseParams] | None, dict[str, dict[str, NoiseParams]] | None]:
-    """``noise``, ``profile``, ``crf``: the options' strings (:class:`~hdrmerge_cli.pipeline.options.InputOptions`).
-    Noise parameters from ``--noise`` (for every frame, whatever its ISO), else from the
-    profile (``--profile``, or a profile given as ``--crf``), else None (a CRF-only
-    profile from estimate-crf included: the noise is then measured on a RAW bracket, as
-    without a profile).
-
-    Returns ``(noise, by_iso)``: ``noise`` {channel: NoiseParams} of the first frame's ISO;
-    ``by_iso`` {``ISO100``: {channel: NoiseParams}} for every ISO of ``frames`` where they
-    differ (each frame is merged with its own), else None.  Frames of several ISOs and a
-    profile that lacks one of them (a profile of one entry too) is an error: ``--noise``
-    gives one noise for all."""
-    if noise:
-        return parse_noise(noise), None
-    source = profile or (crf if crf and crf.lower().endswith(".json") else None)
-    if source:
-        prof = load_profile(source)
-        if prof.get("noise") and any(k.startswith("ISO") for k in prof["noise"]):
-            isos = list(dict.fromkeys(f.iso for f in frames))
-            if len(isos) <= 1:  # one ISO: its entry, or the profile's only entry
-                return noise_from_profile(prof, isos[0] if isos else None, source), None
-            missing = [iso_key(i) for i in isos if iso_key(i) not in prof["noise"]]
-            if missing:
-                raise HdrMergeError(f"{source}: no noise entry for {', '.join(missing)} (the frames' ISOs differ; "
-                                    f"the profile has {', '.join(repr(k[:20]) for k in prof['noise'])})")
-            by_iso = {iso_key(i): noise_from_profile(prof, i, source) for i in isos}
-            return by_iso[iso_key(isos[0])], by_iso
-        log.info("%s: the profile has no noise parameters; %s", source,
-                 "measuring them on the bracket" if frames[0].kind == "raw" else "using the weights' defaults")
-    return None, None
 
 
 def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes) -> float:
