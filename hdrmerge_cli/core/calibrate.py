@@ -730,7 +730,7 @@ def _pixel_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi: 
             first_points.append(first)
             ratios.append(r)
     if not pixel_pairs:
-        return [], ratios, 1.0
+        return [], [], 1.0
     # a first fit, then without the pixels whose noise the clipping may cut (by the
     # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
     # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
