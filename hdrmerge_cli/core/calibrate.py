@@ -680,6 +680,82 @@ def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
     return pairs.sigma_o2 + pairs.alpha * level > PAIR_EXCESS * (alone.sigma_o2 + alone.alpha * level)
 
 
+def _measured_ratios(planes: list[np.ndarray], lo: float, hi: float, per_pixel: bool) -> list[float | None]:
+    """The exposure ratio of each pair of consecutive frames (len(planes) - 1), None where it cannot be measured."""
+    measured = []
+    for s, g in zip(planes[:-1], planes[1:]):
+        try:
+            measured.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel))
+        except HdrMergeError:
+            measured.append(None)
+    return measured
+
+
+def _window_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi: float, window: int,
+                        bins: int) -> tuple[list[VariancePoints], list[float]]:
+    """Per-window variance points of the exposure pairs (windows touching no clipped pixel) and their ratios."""
+    points, ratios = [], []
+    for k, r in enumerate(measured):
+        if r is None or r <= 1.05:
+            continue
+        pts = binned_variance(pair_statistics(planes[k], planes[k + 1], r, lo, hi, window), ratio=r,
+                              bins=max(bins // 2, 4), robust=False)
+        if pts.mean.size >= 4:
+            points.append(pts)
+            ratios.append(r)
+    return points, ratios
+
+
+def _refined_pair_points(pp: PixelPairs, coef, lo: float, hi: float, pair_bins: int) -> VariancePoints:
+    """Binned points of one pixel pair without the pixels the clipping or outliers affect (by the model ``coef``)."""
+    mu = np.maximum(np.maximum(pp.key, pp.long), 0.0)
+    pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * mu
+    keep = pp.unclipped(coef, lo, hi) & (pp.dsq <= OUTLIER_SIGMAS**2 * pred)
+    return binned_pairs(pp.subset(keep), pair_bins, coef=coef)
+
+
+def _pixel_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi: float,
+                       pair_bins: int) -> tuple[list[VariancePoints], list[float], float]:
+    """Per-pixel variance points of the exposure pairs, their ratios and the p-value of :func:`pair_gradient_test`."""
+    pixel_pairs, first_points, used, ratios = [], [], [], []
+    for k, r in enumerate(measured):
+        if r is None or r <= 1.05:
+            continue
+        pp = pixel_pair_statistics(planes[k], planes[k + 1], r, lo, hi,
+                                   *selection_keys(planes, _chain_gains(measured, k), k, lo, hi))
+        first = binned_pairs(pp, pair_bins)
+        if first.mean.size >= 4:
+            used.append(k)
+            pixel_pairs.append(pp)
+            first_points.append(first)
+            ratios.append(r)
+    if not pixel_pairs:
+        return [], [], 1.0
+    # a first fit, then without the pixels whose noise the clipping may cut (by the
+    # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
+    # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
+    try:
+        coef = fit_noise_model(VariancePoints.concat(first_points)).coef
+    except HdrMergeError:  # the pairs do not show the gain (read noise swamps it)
+        return [], [], 1.0
+    points = [_refined_pair_points(pp, coef, lo, hi, pair_bins) for pp in pixel_pairs]
+    chi2, dof = 0.0, 0
+    for k in used:
+        c, n = pair_gradient_test(planes[k], planes[k + 1], measured[k], lo, hi, coef)
+        chi2, dof = chi2 + c, dof + n
+    return points, ratios, float(special.chdtrc(dof, chi2)) if dof else 1.0
+
+
+def _pair_points(planes: list[np.ndarray], lo: float, hi: float, window: int, bins: int,
+                 pair_bins: int) -> tuple[list[VariancePoints], list[float], float]:
+    """The exposure pairs' variance points, the ratios of the pairs used and the gradient test's p-value (1 if none)."""
+    per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
+    measured = _measured_ratios(planes, lo, hi, per_pixel)
+    if per_pixel:
+        return _pixel_pair_points(planes, measured, lo, hi, pair_bins)
+    return (*_window_pair_points(planes, measured, lo, hi, window, bins), 1.0)
+
+
 def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int = 7, bins: int = 64,
                    pairs: bool = True,
                    pair_bins: int = 128) -> tuple[NoiseFit, list[float]]:
@@ -705,50 +781,7 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     local = [window_statistics(p, lo, hi, window) for p in planes]
     pair_points, ratios, gradient_p = [], [], 1.0
     if pairs and len(planes) > 1:
-        per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
-        measured = []
-        for s, g in zip(planes[:-1], planes[1:]):
-            try:
-                measured.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel))
-            except HdrMergeError:
-                measured.append(None)
-        pixel_pairs, first_points, used = [], [], []
-        for k, r in enumerate(measured):
-            if r is None or r <= 1.05:
-                continue
-            if not per_pixel:  # windows that touch no clipped pixel
-                pts = binned_variance(pair_statistics(planes[k], planes[k + 1], r, lo, hi, window), ratio=r,
-                                      bins=max(bins // 2, 4), robust=False)
-                if pts.mean.size >= 4:
-                    pair_points.append(pts)
-                    ratios.append(r)
-                continue
-            pp = pixel_pair_statistics(planes[k], planes[k + 1], r, lo, hi,
-                                       *selection_keys(planes, _chain_gains(measured, k), k, lo, hi))
-            first = binned_pairs(pp, pair_bins)
-            if first.mean.size >= 4:
-                used.append(k)
-                pixel_pairs.append(pp)
-                first_points.append(first)
-                ratios.append(r)
-        if pixel_pairs:
-            # a first fit, then without the pixels whose noise the clipping may cut (by the
-            # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
-            # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
-            try:
-                coef = fit_noise_model(VariancePoints.concat(first_points)).coef
-            except HdrMergeError:  # the pairs do not show the gain (read noise swamps it)
-                pixel_pairs, ratios = [], []
-            for pp in pixel_pairs:
-                mu = np.maximum(np.maximum(pp.key, pp.long), 0.0)
-                pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * mu
-                keep = pp.unclipped(coef, lo, hi) & (pp.dsq <= OUTLIER_SIGMAS**2 * pred)
-                pair_points.append(binned_pairs(pp.subset(keep), pair_bins, coef=coef))
-            chi2, dof = 0.0, 0
-            for k in used if pixel_pairs else []:
-                c, n = pair_gradient_test(planes[k], planes[k + 1], measured[k], lo, hi, coef)
-                chi2, dof = chi2 + c, dof + n
-            gradient_p = float(special.chdtrc(dof, chi2)) if dof else 1.0
+        pair_points, ratios, gradient_p = _pair_points(planes, lo, hi, window, bins, pair_bins)
     pooled = WindowStats.concat(local)
     fit = None
     if pair_points:

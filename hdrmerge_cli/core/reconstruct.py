@@ -189,6 +189,34 @@ def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: Noise
     return y * y / (code_variance(y, noise) + (0.0 if code_error is None else code_error))
 
 
+def _code_error(crf: CRF, excess, v: np.ndarray, lin: np.ndarray, y_full: float) -> np.ndarray | None:
+    """(N,) variance (squared code values of ``y``) a camera-processed code adds beyond (17); None for a linear CRF."""
+    # camera-processed codes' own error; a linear sensor's measured read noise already
+    # holds its quantisation
+    if crf.is_linear:
+        return None
+    if excess is not None:
+        return quantisation_variance(lin, y_full) + excess.at(v) * (lin * y_full) ** 2
+    return code_error_variance(lin, y_full)
+
+
+def _weight_and_value(estimator: str, variance: str, cert: np.ndarray, lin: np.ndarray, y_full: float,
+                      exposure: float, noise: NoiseParams | None,
+                      code_error: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) weights of one channel's codes and (N,) the frame's own estimate there (``log E``, or ``E`` for ml)."""
+    if estimator == "ml":
+        y = lin * y_full
+        var_y = code_variance(y, noise) if noise is not None else np.maximum(y, 1.0)
+        if code_error is not None:
+            var_y = var_y + code_error
+        w = cert * (exposure * y_full) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
+        return w, lin / exposure
+    w = cert * inverse_variance(variance, lin, y_full, noise, code_error)
+    with np.errstate(divide="ignore"):
+        value = np.where(lin > 0, np.log(lin) - np.log(exposure), 0.0)  # finite wherever it is used
+    return w, value
+
+
 def exposure_tables(
     n_codes: int,
     black: np.ndarray,
@@ -243,25 +271,8 @@ def exposure_tables(
             cert = np.where((v > 0) & (v < 1), np.maximum(cert, WEIGHT_FLOOR), 0.0)
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
-        # camera-processed codes' own error; a linear sensor's measured read noise already
-        # holds its quantisation
-        if crf.is_linear:
-            code_error = None
-        elif excess is not None:
-            code_error = quantisation_variance(lin, wl - b) + excess.at(v) * (lin * (wl - b)) ** 2
-        else:
-            code_error = code_error_variance(lin, wl - b)
-        if estimator == "ml":
-            y = lin * (wl - b)
-            var_y = code_variance(y, chan_noise) if chan_noise is not None else np.maximum(y, 1.0)
-            if code_error is not None:
-                var_y = var_y + code_error
-            w = cert * (exposure * (wl - b)) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
-            value = lin / exposure
-        else:
-            w = cert * inverse_variance(variance, lin, wl - b, chan_noise, code_error)
-            with np.errstate(divide="ignore"):
-                value = np.where(lin > 0, np.log(lin) - log_h, 0.0)  # finite wherever it is used
+        code_error = _code_error(crf, excess, v, lin, wl - b)
+        w, value = _weight_and_value(estimator, variance, cert, lin, wl - b, exposure, chan_noise, code_error)
         w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
         rows.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
     w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*rows))

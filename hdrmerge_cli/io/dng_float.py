@@ -116,22 +116,10 @@ def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_ne
         starting with the path).
     """
     where = os.fspath(path)
-    try:
-        import tifffile  # noqa: F401  (a missing package is reported like any other failure)
-        import imagecodecs  # noqa: F401
-    except ImportError as exc:
-        raise HdrMergeError(f"{where}: cannot write a DNG: {exc.name} is not installed "
-                            f"(pip install tifffile imagecodecs)") from None
+    _require_codecs(where)
     mosaic, cfa, matrix, neutral, white = _check(where, mosaic, cfa_pattern, xyz_to_camera, as_shot_neutral,
                                                  bits, compression, white_level, orientation)
-    if preview is not None:
-        preview = np.asarray(preview)
-        if preview.ndim != 3 or preview.shape[2] != 3 or preview.dtype != np.uint8 or min(preview.shape[:2]) < 1:
-            raise HdrMergeError(f"{where}: the DNG preview must be an (h, w, 3) uint8 image, "
-                                f"not {preview.dtype} {preview.shape}")
-        thumb = _downscale(preview, _THUMB_SIZE)
-    else:
-        thumb = _rough_thumbnail(mosaic, cfa, matrix, neutral, white, baseline_exposure)
+    preview, thumb = _preview_and_thumbnail(where, preview, mosaic, cfa, matrix, neutral, white, baseline_exposure)
     if software is None:
         from hdrmerge_cli._version import __version__
         software = f"hdrmerge-cli {__version__}"
@@ -148,6 +136,28 @@ def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_ne
     except (ValueError, TypeError, RuntimeError) as exc:  # tifffile/imagecodecs refusing the data
         raise HdrMergeError(f"{where}: cannot write the DNG ({' '.join(str(exc).split())})") from None
 
+
+
+def _require_codecs(where: str) -> None:
+    """Refuse, naming ``where``, to write a DNG when tifffile or imagecodecs is not installed."""
+    try:
+        import tifffile  # noqa: F401  (a missing package is reported like any other failure)
+        import imagecodecs  # noqa: F401
+    except ImportError as exc:
+        raise HdrMergeError(f"{where}: cannot write a DNG: {exc.name} is not installed "
+                            f"(pip install tifffile imagecodecs)") from None
+
+
+def _preview_and_thumbnail(where: str, preview, mosaic: np.ndarray, cfa: str, matrix: np.ndarray,
+                           neutral: np.ndarray, white: int, baseline_exposure: float) -> tuple:
+    """The checked preview ((h, w, 3) uint8, or None) and the IFD0 thumbnail ((h', w', 3) uint8)."""
+    if preview is None:
+        return None, _rough_thumbnail(mosaic, cfa, matrix, neutral, white, baseline_exposure)
+    preview = np.asarray(preview)
+    if preview.ndim != 3 or preview.shape[2] != 3 or preview.dtype != np.uint8 or min(preview.shape[:2]) < 1:
+        raise HdrMergeError(f"{where}: the DNG preview must be an (h, w, 3) uint8 image, "
+                            f"not {preview.dtype} {preview.shape}")
+    return preview, _downscale(preview, _THUMB_SIZE)
 
 def _check(where, mosaic, cfa_pattern, xyz_to_camera, as_shot_neutral, bits, compression, white_level,
            orientation):

@@ -280,8 +280,8 @@ def _calibration_frames(folder: str | None, what: str) -> list[Frame]:
     return frames
 
 
-def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
-    t0 = time.perf_counter()
+def _check_request(paths, opts: CalibrateOptions) -> tuple[Path, bool]:
+    """The profile path to write and whether it updates --profile in place; a request that cannot run is refused."""
     output = opts.output or (Path(opts.profile) if opts.profile else None)
     if output is None:
         raise HdrMergeError("give -o/--output (or --profile to update a profile in place)")
@@ -293,7 +293,11 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
         raise HdrMergeError("give photographs (IMAGES), or calibration frames with --flats (and --darks)")
     if opts.darks and not opts.flats and not paths:
         raise HdrMergeError("--darks measure the read noise only: add --flats or photographs for the gain")
-    base = load_profile(opts.profile) if opts.profile else None
+    return output, updating
+
+
+def _read_inputs(paths, opts: CalibrateOptions, base: dict | None) -> tuple[list[Frame], list[Frame], list[Frame]]:
+    """The photographs, darks and flats, checked to be of one camera (and of the profile's, if any)."""
     images = [read_frame(p) for p in paths]
     darks = _calibration_frames(opts.darks, "darks")
     flats = _calibration_frames(opts.flats, "flats")
@@ -304,56 +308,66 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
             (base["camera"].get("make"), base["camera"].get("model")) != (first.make, first.model):
         raise HdrMergeError(f"{opts.profile}: a profile of {base['camera'].get('make')} {base['camera'].get('model')}, "
                             f"not of {first.camera} ({first.path})")
-    crf = _choose_crf(first, opts, base)
+    return images, darks, flats
 
-    noise: dict[str, dict] = {}
-    reports: list[dict] = []
-    plot_data: dict[str, dict] = {}
-    isos = sorted({iso_key(f.iso) for f in everything})
-    for iso in isos:
-        group = sorted((f for f in images if iso_key(f.iso) == iso), key=lambda f: f.exposure_time or 0.0)
-        _check_sizes([f for f in darks + flats if iso_key(f.iso) == iso], "darks and flats")
-        read = _read_group(group, crf, "images")
-        _check_sizes([f for f, _ in read], "photographs")  # those kept: a black frame is skipped as such
-        if group and not read:
-            raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (the warnings above say why)")
-        fits: dict[str, dict] = {}
-        for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
-            k = [c for c, *_ in read[0][1]].index(name)
-            fits[name] = _fit_entry(fit, ratios, opts.window) | _precision(
-                fit_standard_errors(fit, bool(ratios)), _achievable(read, k, fit))
-            plot_data.setdefault(iso, {})[name] = {"fit": fit}
-        ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f.iso) == iso],
-                                [f for f in flats if iso_key(f.iso) == iso], crf)
-        if not fits and not ptcs:
-            continue
-        if not ptcs:
-            _check_pinned(fits, group)
-        if ptcs and not fits and all(e["dark_offset"] is None for e in ptcs.values()):
-            log.warning("%s: without --darks the read noise is the intercept of the photon-transfer line (%s: %s); "
-                        "darks measure it directly", opts.flats, iso, ", ".join(
-                            f"{c} {e['sigma_o2']:.3g} +/- {e['stderr']['sigma_o2']:.2g}" for c, e in ptcs.items()))
-        noise[iso] = {name: _combine(fits.get(name), ptcs.get(name)) for name in sorted(set(fits) | set(ptcs))}
-        for name, e in noise[iso].items():
-            plot_data.setdefault(iso, {}).setdefault(name, {})["levels"] = e.get("levels")
-            log.info("%s %s: sigma_o2=%.4g alpha=%.4g beta=%.3g (%s; %s)", iso, name, e["sigma_o2"], e["alpha"],
-                     e["beta"], e["model"], ", ".join(f"{k} from {v}" for k, v in e["method"].items()))
-        for f, planes in read:
-            rep = frame_report(f, planes, noise[iso])
-            reports.append(rep)
-            log.info("%s: %s-noise limited (%.0f %% of pixels above the SNR breaking point)", f.name, rep["limited"],
-                     100 * rep["photon_limited_fraction"])
-    if not noise:
-        raise HdrMergeError("no usable frames to calibrate")
 
+def _photograph_fits(read: list[tuple[Frame, list]], iso: str, opts: CalibrateOptions,
+                     plot_data: dict[str, dict]) -> dict[str, dict]:
+    """{channel: profile entry} fitted from the photographs at one ISO (each fit also noted in ``plot_data``)."""
+    fits: dict[str, dict] = {}
+    for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
+        k = [c for c, *_ in read[0][1]].index(name)
+        fits[name] = _fit_entry(fit, ratios, opts.window) | _precision(
+            fit_standard_errors(fit, bool(ratios)), _achievable(read, k, fit))
+        plot_data.setdefault(iso, {})[name] = {"fit": fit}
+    return fits
+
+
+def _calibrate_iso(iso: str, images: list[Frame], darks: list[Frame], flats: list[Frame], crf,
+                   opts: CalibrateOptions, plot_data: dict[str, dict]) -> tuple[dict | None, list[dict]]:
+    """{channel: noise entry} at one ISO (None when nothing there is usable) and its photographs' reports."""
+    group = sorted((f for f in images if iso_key(f.iso) == iso), key=lambda f: f.exposure_time or 0.0)
+    _check_sizes([f for f in darks + flats if iso_key(f.iso) == iso], "darks and flats")
+    read = _read_group(group, crf, "images")
+    _check_sizes([f for f, _ in read], "photographs")  # those kept: a black frame is skipped as such
+    if group and not read:
+        raise HdrMergeError(f"{group[0].path}: no usable frame at {iso} (the warnings above say why)")
+    fits = _photograph_fits(read, iso, opts, plot_data)
+    ptcs = _photon_transfer(iso, [f for f in darks if iso_key(f.iso) == iso],
+                            [f for f in flats if iso_key(f.iso) == iso], crf)
+    if not fits and not ptcs:
+        return None, []
+    if not ptcs:
+        _check_pinned(fits, group)
+    if ptcs and not fits and all(e["dark_offset"] is None for e in ptcs.values()):
+        log.warning("%s: without --darks the read noise is the intercept of the photon-transfer line (%s: %s); "
+                    "darks measure it directly", opts.flats, iso, ", ".join(
+                        f"{c} {e['sigma_o2']:.3g} +/- {e['stderr']['sigma_o2']:.2g}" for c, e in ptcs.items()))
+    entries = {name: _combine(fits.get(name), ptcs.get(name)) for name in sorted(set(fits) | set(ptcs))}
+    for name, e in entries.items():
+        plot_data.setdefault(iso, {}).setdefault(name, {})["levels"] = e.get("levels")
+        log.info("%s %s: sigma_o2=%.4g alpha=%.4g beta=%.3g (%s; %s)", iso, name, e["sigma_o2"], e["alpha"],
+                 e["beta"], e["model"], ", ".join(f"{k} from {v}" for k, v in e["method"].items()))
+    reports = []
+    for f, planes in read:
+        rep = frame_report(f, planes, entries)
+        reports.append(rep)
+        log.info("%s: %s-noise limited (%.0f %% of pixels above the SNR breaking point)", f.name, rep["limited"],
+                 100 * rep["photon_limited_fraction"])
+    return entries, reports
+
+
+def _updated_profile(base: dict | None, noise: dict[str, dict], frames: list[Frame], crf) -> tuple[dict, dict]:
+    """The profile to write (``base`` with ``noise`` merged in, or a new one) and its read-noise split ({} if none)."""
     if base is not None:
         profile = base
         for iso, entries in noise.items():
             profile.setdefault("noise", {}).setdefault(iso, {}).update(entries)
         profile.setdefault("provenance", {})["noise_command"] = "calibrate-noise"
     else:
+        first = frames[0]
         profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
-                              [f.path for f in everything], "calibrate-noise")
+                              [f.path for f in frames], "calibrate-noise")
         profile["noise"] = noise
     profile["noise_units"] = NOISE_UNITS
     split = read_noise_split_entry(profile["noise"])
@@ -361,6 +375,29 @@ def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
         profile["read_noise_split"] = split
     else:
         profile.pop("read_noise_split", None)
+    return profile, split
+
+
+def calibrate_noise(paths, opts: CalibrateOptions) -> dict:
+    t0 = time.perf_counter()
+    output, updating = _check_request(paths, opts)
+    base = load_profile(opts.profile) if opts.profile else None
+    images, darks, flats = _read_inputs(paths, opts, base)
+    everything = images + darks + flats
+    crf = _choose_crf(everything[0], opts, base)
+
+    noise: dict[str, dict] = {}
+    reports: list[dict] = []
+    plot_data: dict[str, dict] = {}
+    for iso in sorted({iso_key(f.iso) for f in everything}):
+        entries, iso_reports = _calibrate_iso(iso, images, darks, flats, crf, opts, plot_data)
+        if entries is not None:
+            noise[iso] = entries
+            reports += iso_reports
+    if not noise:
+        raise HdrMergeError("no usable frames to calibrate")
+
+    profile, split = _updated_profile(base, noise, everything, crf)
     writers = [(output, profile_writer(profile, output))]
     if opts.plot:
         writers.append((opts.plot, figure_writer(noise_figure(noise, plot_data), opts.plot)))

@@ -203,21 +203,9 @@ def frame_isos(iso, times) -> list[int]:
     return isos
 
 
-def simulate(opts: SimulateOptions) -> dict:
-    if opts.fmt not in FORMATS:
-        raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
-    sensor = opts.sensor
-    isos = frame_isos(opts.iso, opts.times)
-    at_iso = {iso: sensor.at_iso(iso) for iso in sorted(set(isos))}
-    crf = CRF("linear") if opts.fmt == "dng" else resolve_crf(opts.crf)
-    out_bits = 8 if opts.fmt == "jpg" else opts.out_bits
-    irradiance, scene_name = load_scene(opts)
-    if opts.fmt == "dng" and min(irradiance.shape[:2]) < MIN_RAW_SIDE:
-        raise HdrMergeError(f"{scene_name}: LibRaw reads DNGs of at least {MIN_RAW_SIDE} x {MIN_RAW_SIDE} pixels; "
-                            + ("use a larger --size or less --downscale" if scene_name in ("builtin", "flat", "dark")
-                               else "use less --downscale or a larger scene"))
-    rng = np.random.default_rng(opts.seed)
-    signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
+def _bracket_times(opts: SimulateOptions, signal: np.ndarray, scene_name: str, at_iso: dict,
+                   isos: list[int]) -> tuple[np.ndarray, list[int]]:
+    """The frames' exposure times ((n,) seconds, camera-rounded, repeated) and ISOs in merge's order, checked."""
     auto = at_iso[isos[0]]  # the automatic times: at the single ISO given
     if opts.times:
         times = np.asarray(opts.times, float)
@@ -234,6 +222,102 @@ def simulate(opts: SimulateOptions) -> dict:
     order = np.argsort(times * isos, kind="stable")  # merge's order: exposure h = t ISO, shortest first
     times, isos = times[order], [int(i) for i in isos[order]]
     check_times(np.sort(times), signal, scene_name, opts, auto)
+    return times, isos
+
+
+def _reference_exposure(times: np.ndarray, isos: list[int]) -> float:
+    """merge's reference exposure (seconds): the geometric mean of ``h_j = t_j ISO_j / ISO_ref`` (first frame's ISO)."""
+    h = times * np.asarray(isos, float) / isos[0]
+    return float(np.exp(np.mean(np.log(h))))
+
+
+def _truth_image(irradiance: np.ndarray, sensor_at_ref: SensorModel, full_scale: float, t_ref: float,
+                 scene_name: str, scale: float) -> np.ndarray:
+    """The ground truth (H, W, 3) float64 in merge's units; refused when float32 cannot hold it."""
+    truth = (np.sqrt(sensor_at_ref.alpha) * t_ref / full_scale) * irradiance
+    if float(truth.max()) > np.finfo(np.float32).max:
+        raise HdrMergeError(f"{scene_name}: its brightest values times --scale {scale:g} exceed what a float "
+                            "EXR holds (truth.exr); lower --scale")
+    return truth
+
+
+def _simulation_metadata(opts: SimulateOptions, scene_name: str, names: list[str], times: np.ndarray, t_ref: float,
+                         at_iso: dict, crf: CRF, out_bits: int, isos: list[int], irradiance: np.ndarray) -> dict:
+    """The contents of simulation.json (without ``saturated_fraction``, known once rendered)."""
+    sensor = opts.sensor
+    return {
+        "tool": f"hdrmerge-cli {__version__}",
+        "scene": scene_name,
+        "format": opts.fmt,
+        "frames": names,
+        "exposure_times": [float(t) for t in times],
+        "reference_exposure": t_ref,
+        "sensor": sensor.as_dict(),
+        "sensor_at_iso": {iso_key(iso): s.as_dict() for iso, s in at_iso.items()},
+        "crf": crf.describe(),
+        "out_bits": out_bits if opts.fmt != "dng" else sensor.bits,
+        "cfa_pattern": CFA_PATTERN if opts.fmt == "dng" else None,
+        "iso": isos[0] if len(set(isos)) == 1 else None,
+        "isos": isos,
+        "reference_iso": isos[0],
+        "seed": opts.seed,
+        "truth": "truth.exr",
+        "truth_units": "1.0 = full-scale signal at reference_exposure seconds at reference_iso (the units of "
+                       "'merge')",
+        "width": int(irradiance.shape[1]),
+        "height": int(irradiance.shape[0]),
+    }
+
+
+def _write_frame(path, y: np.ndarray, exposure_time: float, iso: int, opts: SimulateOptions, crf: CRF,
+                 out_bits: int) -> None:
+    """Write the rendered signal ``y`` as a frame of ``opts.fmt`` (raw DNG, or an image through ``crf``)."""
+    sensor = opts.sensor
+    if opts.fmt == "dng":
+        write_dng(
+            path, quantise_raw(y, sensor), pattern=CFA_PATTERN, black=sensor.black,
+            white=sensor.white, exposure_time=exposure_time, iso=iso, aperture=opts.aperture,
+        )
+    else:
+        write_ldr(path, quantise_crf(y, sensor, crf, out_bits), {
+            "ExposureTime": float(exposure_time), "FNumber": float(opts.aperture),
+            "Exif:PhotographicSensitivity": iso, "Exif:ISOSpeedRatings": iso,
+            "Make": "hdrmerge-cli", "Model": "simulated sensor",
+        })
+
+
+def _check_stored_time(path, name: str, t: float) -> None:
+    """Refuse a written frame whose file does not read back the exposure time ``t`` (seconds)."""
+    stored = read_frame(path).exposure_time
+    if stored is None or abs(stored - t) > 1e-5 * t:
+        raise HdrMergeError(f"{name}: the file stores exposure time {stored}, not {t} (internal error)")
+
+
+def _write_truth(path, truth: np.ndarray, t_ref: float, units: str) -> None:
+    """Write the ground truth (H, W, 3) as a float32 RGB EXR stating its units."""
+    write_exr(path, truth.astype(np.float32), ["R", "G", "B"], {
+        "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
+        "hdrmerge:units": units, "chromaticities": list(REC709_CHROMATICITIES),
+        "ExposureTime": t_ref,
+    })
+
+
+def simulate(opts: SimulateOptions) -> dict:
+    if opts.fmt not in FORMATS:
+        raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
+    sensor = opts.sensor
+    isos = frame_isos(opts.iso, opts.times)
+    at_iso = {iso: sensor.at_iso(iso) for iso in sorted(set(isos))}
+    crf = CRF("linear") if opts.fmt == "dng" else resolve_crf(opts.crf)
+    out_bits = 8 if opts.fmt == "jpg" else opts.out_bits
+    irradiance, scene_name = load_scene(opts)
+    if opts.fmt == "dng" and min(irradiance.shape[:2]) < MIN_RAW_SIDE:
+        raise HdrMergeError(f"{scene_name}: LibRaw reads DNGs of at least {MIN_RAW_SIDE} x {MIN_RAW_SIDE} pixels; "
+                            + ("use a larger --size or less --downscale" if scene_name in ("builtin", "flat", "dark")
+                               else "use less --downscale or a larger scene"))
+    rng = np.random.default_rng(opts.seed)
+    signal = mosaic(irradiance, CFA_PATTERN) if opts.fmt == "dng" else irradiance
+    times, isos = _bracket_times(opts, signal, scene_name, at_iso, isos)
     pattern = gain_pattern(signal.shape, sensor, rng)  # d_i ~ N(0, beta / alpha): the same at every ISO
 
     out = Path(opts.output_dir)
@@ -245,62 +329,19 @@ def simulate(opts: SimulateOptions) -> dict:
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
         hint = "give longer --times" if opts.times else "lower --scale or give --times"
         times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
-        iso_ref = isos[0]  # merge's h_j = t_j ISO_j / ISO of its first frame (io.metadata.exposure_values)
-        h = times * np.asarray(isos, float) / iso_ref
-        t_ref = float(np.exp(np.mean(np.log(h))))
-
-        truth = (np.sqrt(at_iso[iso_ref].alpha) * t_ref / sensor.full_scale) * irradiance
-        if float(truth.max()) > np.finfo(np.float32).max:
-            raise HdrMergeError(f"{scene_name}: its brightest values times --scale {opts.scale:g} exceed what a float "
-                                "EXR holds (truth.exr); lower --scale")
-        meta = {
-            "tool": f"hdrmerge-cli {__version__}",
-            "scene": scene_name,
-            "format": opts.fmt,
-            "frames": names,
-            "exposure_times": [float(t) for t in times],
-            "reference_exposure": t_ref,
-            "sensor": sensor.as_dict(),
-            "sensor_at_iso": {iso_key(iso): s.as_dict() for iso, s in at_iso.items()},
-            "crf": crf.describe(),
-            "out_bits": out_bits if opts.fmt != "dng" else sensor.bits,
-            "cfa_pattern": CFA_PATTERN if opts.fmt == "dng" else None,
-            "iso": isos[0] if len(set(isos)) == 1 else None,
-            "isos": isos,
-            "reference_iso": iso_ref,
-            "seed": opts.seed,
-            "truth": "truth.exr",
-            "truth_units": "1.0 = full-scale signal at reference_exposure seconds at reference_iso (the units of "
-                           "'merge')",
-            "width": int(irradiance.shape[1]),
-            "height": int(irradiance.shape[0]),
-        }
+        t_ref = _reference_exposure(times, isos)
+        truth = _truth_image(irradiance, at_iso[isos[0]], sensor.full_scale, t_ref, scene_name, opts.scale)
+        meta = _simulation_metadata(opts, scene_name, names, times, t_ref, at_iso, crf, out_bits, isos, irradiance)
         saturated = []
         with atomic_paths(paths, opts.overwrite) as tmps:
             for k, t in enumerate(times):
                 y = expose(signal, t, at_iso[isos[k]], rng, pattern)
                 saturated.append(float(np.mean(y >= sensor.full_scale)))
-                if opts.fmt == "dng":
-                    write_dng(
-                        tmps[k], quantise_raw(y, sensor), pattern=CFA_PATTERN, black=sensor.black,
-                        white=sensor.white, exposure_time=requested[k], iso=isos[k], aperture=opts.aperture,
-                    )
-                else:
-                    write_ldr(tmps[k], quantise_crf(y, sensor, crf, out_bits), {
-                        "ExposureTime": float(requested[k]), "FNumber": float(opts.aperture),
-                        "Exif:PhotographicSensitivity": isos[k], "Exif:ISOSpeedRatings": isos[k],
-                        "Make": "hdrmerge-cli", "Model": "simulated sensor",
-                    })
-                stored = read_frame(tmps[k]).exposure_time
-                if stored is None or abs(stored - t) > 1e-5 * t:
-                    raise HdrMergeError(f"{names[k]}: the file stores exposure time {stored}, not {t} (internal error)")
+                _write_frame(tmps[k], y, requested[k], isos[k], opts, crf, out_bits)
+                _check_stored_time(tmps[k], names[k], t)
                 log.info("rendered %s (t = %.6g s, ISO %d, %.1f %% saturated)", names[k], t, isos[k],
                          100 * saturated[-1])
-            write_exr(tmps[-2], truth.astype(np.float32), ["R", "G", "B"], {
-                "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
-                "hdrmerge:units": meta["truth_units"], "chromaticities": list(REC709_CHROMATICITIES),
-                "ExposureTime": t_ref,
-            })
+            _write_truth(tmps[-2], truth, t_ref, meta["truth_units"])
             meta["saturated_fraction"] = saturated
             write_text(tmps[-1], json.dumps(meta, indent=1) + "\n")
         return {"output_dir": str(out), "files": [str(p) for p in paths]} | meta
