@@ -147,15 +147,6 @@ def clipping_safe_range_taylor(p: NoiseParams, y_min: float, y_max: float, k: fl
     return float(bound(y_min, +1.0, exact[0])), float(bound(y_max, -1.0, exact[1]))
 
 
-def snr_frame_db(e, t: float, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
-    """SNR of one frame's log-irradiance estimate, ``20 log10 |log(sqrt(alpha) t E)| /
-    sigma(E, t)`` (below (22)), with the exact variance of (19)."""
-    e = np.asarray(e, dtype=np.float64)
-    _, var = log_moments_exact(e * t, p, y_min, y_max)
-    with np.errstate(divide="ignore"):
-        return 20 * np.log10(np.abs(np.log(np.sqrt(p.alpha) * t * e)) / np.sqrt(var))
-
-
 def snr_hdr_db(e, times, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
     """(13): ``SNR_HDR = 20 log10 |log E| + 10 log10 sum_j sigma^-2(E, t_j)`` [dB], the
     variance of (7) with constant weights being (12).  Below 0 dB the Wyckoff criterion
