@@ -29,16 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import write_result
+from benchmarks import quiet_import, save_figure, write_result
 from benchmarks.core_merge import merge_frames
-from hdrmerge_cli.core.cfa import quiet_import
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, quantise_crf, quantise_raw
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import log_normal_interval
-from hdrmerge_cli.io.plots import pyplot, save_figure
+from hdrmerge_cli.io.plots import pyplot
 
 RESULTS = Path(__file__).parent / "results"
 HDR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdr"
@@ -303,7 +302,7 @@ def plot(case: str, stats: dict, out: Path) -> None:
     ax.legend(fontsize=7)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_figure(fig, out, overwrite=True)
+    save_figure(fig, out)
 
 
 if __name__ == "__main__":

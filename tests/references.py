@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, quiet_import
+from benchmarks import quiet_import
+from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709
 from hdrmerge_cli.core.reconstruct import WEIGHT_FLOOR
 
 

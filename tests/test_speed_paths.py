@@ -283,7 +283,7 @@ def test_cache_location(monkeypatch, tmp_path):
 
 # ------------------------------------------------------------------ sRGB without colour-science
 def test_srgb_transfer_functions_equal_colour_science():
-    from hdrmerge_cli.core.cfa import quiet_import
+    from benchmarks import quiet_import
     from hdrmerge_cli.core.crf import srgb_eotf, srgb_eotf_inverse
 
     models = quiet_import("colour.models")

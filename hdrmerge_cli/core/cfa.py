@@ -3,20 +3,9 @@ demosaic itself is :mod:`hdrmerge_cli.core.cfa_to_rgb`), and camera RGB -> Rec.7
 code)."""
 from __future__ import annotations
 
-import importlib
-import warnings
-
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
-
-
-def quiet_import(name: str):
-    """Import colour-science modules lazily (~1 s) without their optional-dependency
-    warnings (e.g. about matplotlib) reaching the user's stderr."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return importlib.import_module(name)
 
 
 #: CIE xy of the Rec.709 / sRGB primaries (R, G, B) and the D65 white point, in the
