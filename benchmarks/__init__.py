@@ -10,6 +10,26 @@ def write_result(out: Path, lines: list[str]) -> str:
     return text
 
 
+def quiet_import(name: str):
+    """Import colour-science modules lazily (~1 s) without their optional-dependency
+    warnings (e.g. about matplotlib) on stderr."""
+    import importlib
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return importlib.import_module(name)
+
+
+def save_figure(fig, path: Path) -> None:
+    """Write a matplotlib figure (format from the suffix) as the commands' --plot does
+    (atomically; replacing an older one), and close it."""
+    from hdrmerge_cli.io.atomic import write_together
+    from hdrmerge_cli.io.plots import figure_writer
+
+    write_together([(path, figure_writer(fig, path))], True)
+
+
 def revision() -> str:
     """The git revision measured (``-dirty``: uncommitted changes), or "unknown"."""
     import subprocess

@@ -9,7 +9,7 @@ and four scenes (the built-in one and the three of ../shared/data/hdr), 4 frames
 - ``jpeg``: JPEG-like, the 12-bit ADC output through the CRF x^0.4, re-quantised to 8 bits.
 
 Frames are rendered in memory by the sensor model (16)-(18) (:mod:`hdrmerge_cli.core.sensor`)
-and merged in memory: ours with :func:`~hdrmerge_cli.core.reconstruct.merge_frames` (noise
+and merged in memory: ours with :func:`~benchmarks.core_merge.merge_frames` (noise
 and CRF known), OpenCV ``MergeDebevec``/``MergeRobertson`` with the known response (8-bit
 inputs, as OpenCV requires: the RAW case's top 8 bits), colour-hdri ``image_stack_to_HDRI``
 with the known CRF.  Also: IRLS passes, per-pixel evaluation of the weights instead of the
@@ -29,16 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import write_result
-from hdrmerge_cli.core.cfa import quiet_import
+from benchmarks import quiet_import, save_figure, write_result
+from benchmarks.core_merge import merge_frames
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.core.reconstruct import merge_frames
 from hdrmerge_cli.core.scene import procedural_scene
 from hdrmerge_cli.core.sensor import SensorModel, auto_exposure_times, expose, quantise_crf, quantise_raw
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import log_normal_interval
-from hdrmerge_cli.io.plots import pyplot, save_figure
+from hdrmerge_cli.io.plots import pyplot
 
 RESULTS = Path(__file__).parent / "results"
 HDR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdr"
@@ -303,7 +302,7 @@ def plot(case: str, stats: dict, out: Path) -> None:
     ax.legend(fontsize=7)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_figure(fig, out, overwrite=True)
+    save_figure(fig, out)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import numpy as np
 from benchmarks import write_result
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.noise import NoiseParams, log_moments_approx, log_moments_exact
+from hdrmerge_cli.core.noise import NoiseParams, log_moments_exact, noise_variance
 from hdrmerge_cli.core.reconstruct import certainty_table, exposure_tables
 
 TIMES = (0.1, 0.25, 1.0, 2.0)
@@ -29,6 +29,16 @@ GAINS = (0.25, 0.5, 1.0, 2.0, 4.0)
 SIGMAS = (0.001, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 Y_MAX = 255.0
 WEIGHTS = ("triangle", "mann", "deneve", "gaussian", "uniform", "probabilistic", "direct", "optimal", "bounded")
+
+
+def log_moments_approx(x, p: NoiseParams):
+    """The clipping-free approximations (20)-(21) (from (43)-(44) of Appendix 1):
+    ``nu ~ -s(x) / (2 alpha x^2)``, ``sigma^2 ~ s(x) / (alpha x^2)``, i.e.
+    ``sigma^2 ~ sigma_o^2 / (alpha x^2) + 1 / x + beta / alpha``."""
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        rel = noise_variance(x, p.sigma_o2, p.alpha, p.beta) / (p.alpha * x * x)
+    return -0.5 * rel, rel
 
 
 def mse_of(weights: str, gain: float, sigma_o: float, n_e: int = 600) -> np.ndarray:

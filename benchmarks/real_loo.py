@@ -59,7 +59,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     it on the exposure pairs, as merge measures them on an image bracket
     (:mod:`hdrmerge_cli.pipeline.excess`), the latter in the tables in place of the fixed
     tolerance.  Returns (E per second in units of the normalised linear signal, CRF)."""
-    from hdrmerge_cli.core.reconstruct import merge_frames
+    from benchmarks.core_merge import merge_frames
     from hdrmerge_cli.pipeline.response import fit_crf
 
     log_h = np.log(exposures)

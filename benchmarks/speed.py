@@ -2,10 +2,11 @@
 
 Four measurements, all in one run (ratios are what count; absolute times are noisy):
 
-1. Merge core (decoded frames in memory -> float32 result) for 3, 5 and 9 frames of 6, 24
-   and 48 MP: 8-bit RGB frames (JPEG-like, CRF x^0.4) merged with ``triangle`` and the
-   noise-optimal ``probabilistic`` weights, against OpenCV ``MergeDebevec`` on the same
-   frames, colour-hdri ``image_stack_to_HDRI`` (6 MP only: it works in float64 and needs
+1. Merge core (decoded frames in memory -> float32 result, the frames streamed through the
+   fused kernels of the merge's first pass, :func:`benchmarks.core_merge.merge_frames`) for
+   3, 5 and 9 frames of 6, 24 and 48 MP: 8-bit RGB frames (JPEG-like, CRF x^0.4) merged
+   with ``triangle`` and the noise-optimal ``probabilistic`` weights, against OpenCV
+   ``MergeDebevec`` on the same frames, colour-hdri ``image_stack_to_HDRI`` (6 MP only: it works in float64 and needs
    ~30 bytes per sample per frame), and the floor: the time to read every input buffer
    once (a two-thread sum over the bytes) and the lookup floor (one table read per sample).
    Also 14-bit Bayer mosaics (RAW-like, ML).
@@ -35,12 +36,12 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from benchmarks import write_result
+from benchmarks import save_figure, write_result
+from benchmarks.core_merge import merge_frames
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.core.reconstruct import merge_frames
 from hdrmerge_cli.core.scene import procedural_scene
-from hdrmerge_cli.io.plots import pyplot, save_figure
+from hdrmerge_cli.io.plots import pyplot
 
 RESULTS = Path(__file__).parent / "results"
 GAMMA = 2.5  # gamma^-1(v) = v^2.5, the paper's x^0.4 CRF
@@ -160,7 +161,7 @@ def core_speed(mp: float, n_frames: int, with_colour: bool) -> dict:
 
 def colour_merge(frames, times):
     """colour-hdri's Debevec-weighted merge with the known CRF, as its docs show."""
-    from hdrmerge_cli.core.cfa import quiet_import
+    from benchmarks import quiet_import
 
     ch = quiet_import("colour_hdri")
     stack = ch.ImageStack()
@@ -689,7 +690,7 @@ def plot(rows, out: Path) -> None:
     ax.legend()
     ax.set_title("Merge core time against input size")
     fig.tight_layout()
-    save_figure(fig, out, overwrite=True)
+    save_figure(fig, out)
 
 
 if __name__ == "__main__":

@@ -71,6 +71,14 @@ def jpeg_bracket(tmp_path_factory, run):
     return folder, meta
 
 
+def save_profile(path, profile: dict, overwrite: bool) -> None:
+    """Write a profile as the commands do (checked, atomically)."""
+    from hdrmerge_cli.io.atomic import write_together
+    from hdrmerge_cli.io.profile import profile_writer
+
+    write_together([(path, profile_writer(profile, path))], overwrite)
+
+
 def frames_of(folder: Path, meta: dict, which=None) -> list[Path]:
     names = meta["frames"] if which is None else [meta["frames"][k] for k in which]
     return [folder / n for n in names]

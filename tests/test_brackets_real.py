@@ -13,7 +13,7 @@ from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.io.images import read_exr
 from hdrmerge_cli.io.dng_integer import write_dng
-from hdrmerge_cli.pipeline.batch import group_brackets
+from hdrmerge_cli.pipeline.batch import split_brackets
 
 SENSOR = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)
 #: flat patches (fractions of full scale at the burst's exposure), one per band of columns
@@ -116,7 +116,7 @@ def _frame(name, t):
 
 def _sizes(times):
     frames = [_frame(f"f{k:02d}", t) for k, t in enumerate(times)]
-    return [len(g) for g in group_brackets(frames)]
+    return [len(b.frames) for b in split_brackets(frames)]
 
 
 def test_three_aeb_sequences_with_slightly_different_times_are_three_brackets():

@@ -299,7 +299,7 @@ def test_tonemap_is_monotone_srgb_and_black_stays_black():
 def test_reinhard_devlin_equals_colour_hdri():
     """The preview's operator against colour-hdri's tonemapping_operator_Reinhard2004 and
     colour's sRGB encoding (defaults; an HDR image over 8 decades, coloured)."""
-    from hdrmerge_cli.core.cfa import quiet_import
+    from benchmarks import quiet_import
     from hdrmerge_cli.core.preview import reinhard_devlin, tonemap_srgb
 
     rng = np.random.default_rng(2)

@@ -7,7 +7,7 @@ from scipy.sparse.linalg import lsqr
 
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, crf_debevec1997, crf_robertson2003
 from hdrmerge_cli.core.crf_goossens2012 import (
-    comparagram, crf_goossens2012, pair_factor, second_difference, solve_qp, to_knots,
+    comparagram, crf_goossens2012, pair_factor, second_difference, solve_qp_channels, to_knots,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 
@@ -40,7 +40,7 @@ def test_comparagram_qp_equals_a_per_pixel_weighted_least_squares():
     pair = pair_factor(TIMES)
     cg = comparagram(to_knots(z, n_codes, n_codes), n_codes)
     cell_w = cg.count * w[cg.j, cg.a] * w[cg.jp, cg.b] * pair[cg.j, cg.jp]
-    g_qp = solve_qp(cg, cell_w, np.ones(n_codes), log_h, smoothing=0.0)
+    g_qp = solve_qp_channels([cg], [cell_w], [np.ones(n_codes)], log_h, smoothing=0.0)[0]
     rows, cols, vals, rhs = [], [], [], []
     r = 0
     for j in range(len(TIMES)):

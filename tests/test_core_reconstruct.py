@@ -8,6 +8,9 @@ from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_OK, FLAG_SATURATED, LogMerge, exposure_tables
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 
+import references
+from benchmarks.core_merge import merge_frames
+
 CLASSICAL = sorted(set(WEIGHTING_FUNCTIONS) - set(NOISE_MODEL_WEIGHTS))
 
 
@@ -172,19 +175,6 @@ def test_fused_kernel_equals_numpy_reference(layout, estimator, irls):
     np.testing.assert_array_equal(flag, want_flag)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-5)
     assert np.all(acc.den >= 0)
-    if weights is None:  # the tile-major in-memory kernel: same sums in the same order, bit for bit
-        for tile in (8, 4096):
-            for scale in (None, 0.5):
-                with pytest.MonkeyPatch.context() as mp:
-                    mp.setattr(reconstruct, "TILE", tile)
-                    out, flag2, den = reconstruct.merge_in_memory(frames, tables, pattern, estimator == "ml", scale)
-                np.testing.assert_array_equal(flag2, flag)
-                np.testing.assert_array_equal(den, acc.den)
-                expect = got if scale is None else np.exp(got) * np.float32(scale)
-                if scale is None:
-                    np.testing.assert_array_equal(out, expect)
-                else:  # linear: the ML path scales the mean directly instead of exp(log)
-                    np.testing.assert_allclose(out, expect, rtol=1e-6)
 
 
 def test_finish_with_scale_returns_the_linear_image():
@@ -204,7 +194,7 @@ def test_finish_with_scale_returns_the_linear_image():
 def test_merge_frames_equals_direct_eq7_in_linear_units():
     """merge_frames (tables, fused kernels, linear output) against a per-pixel float64
     evaluation of (7) with triangle weights; tolerance: float32 sums."""
-    from hdrmerge_cli.core.reconstruct import merge_frames
+    from benchmarks.core_merge import merge_frames
 
     rng = np.random.default_rng(11)
     crf = CRF("gamma", 2.2)
@@ -226,7 +216,7 @@ def test_merge_frames_equals_direct_eq7_in_linear_units():
 def test_merge_frames_irls_recovers_a_noise_free_irradiance():
     """Closed form: codes round(4095 min(E t, 1)); re-weighted ML and log estimates both
     stay within the quantisation error of the truth."""
-    from hdrmerge_cli.core.reconstruct import merge_frames
+    from benchmarks.core_merge import merge_frames
 
     e = np.geomspace(1e3, 1e7, 1200).reshape(30, 40)  # every pixel >= 100 codes in some frame
     times = [1e-4, 1e-3, 1e-2, 1e-1]
@@ -334,7 +324,7 @@ def test_ml_irls_treats_clipped_readings_as_censored():
     scale' (censored_terms): converged, it solves the censored likelihood equation of an
     independent scipy computation, and on noisy brackets around the clipping level its rms
     log error is lower than the one-pass tables' (which drop the clipped readings)."""
-    from hdrmerge_cli.core.reconstruct import merge_frames
+    from benchmarks.core_merge import merge_frames
 
     full, p = 4095, NoiseParams(sigma_o2=400.0, alpha=16.0)
     times = [1.0, 4.0]
@@ -368,7 +358,8 @@ def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layo
     and iterated passes agree within the tolerance each strip converges to; flags equal.
     With ``adjust`` (a per-pixel factor by the frame's own row, as the merge's coverage and
     ghost weights), each strip's call gets its rows."""
-    from hdrmerge_cli.core.reconstruct import irls, merge_in_memory, noise_rows
+    from benchmarks.core_merge import merge_in_memory
+    from hdrmerge_cli.core.reconstruct import irls, noise_rows
 
     rng = np.random.default_rng(11)
     full, p = 4095, NoiseParams(sigma_o2=30.0, alpha=4.0)
@@ -431,7 +422,7 @@ def test_fused_irls_weights_match_the_reference(shape, pattern, linear):
               for _ in range(rows)]
     per_row = reconstruct.noise_rows(params)
     idx = reconstruct.channel_index(shape, pattern)
-    expected = reconstruct.irls_weights(reconstruct.lookup(certainty.ravel(), 256, codes, pattern), log_e, 0.01, 255.0,
+    expected = references.irls_weights(reconstruct.lookup(certainty.ravel(), 256, codes, pattern), log_e, 0.01, 255.0,
                                         [m[idx] for m in per_row], linear)
     flat = reconstruct._rows_cols(shape)
     out = np.empty(flat, np.float32)
@@ -471,7 +462,7 @@ def test_fused_censored_terms_match_the_reference(use_den, use_factor):
         sd = np.sqrt(sd_full2 + np.where(den > 0, k * k / np.where(den > 0, den, 1.0), np.inf))
         sat &= np.exp(log_e.astype(np.float64)) * k > full - 0.5 - reconstruct.CENSORED_SDS * sd
     assert 0 < sat.sum() < sat.size
-    cw, cv = reconstruct.censored_terms(log_e[sat], h, full, [m[idx][sat] for m in rows])
+    cw, cv = references.censored_terms(log_e[sat], h, full, [m[idx][sat] for m in rows])
     if use_factor:
         cw = cw * factor[sat]
     start_num = rng.uniform(1, 2, shape).astype(np.float32)
@@ -531,7 +522,7 @@ def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
     for k, (z, tab, h) in enumerate(zip(frames, tables, exposures)):
         last = k == len(frames) - 1
         fused.add_irls(z, tab, last, log_e.reshape(reconstruct._rows_cols(shape)), h * y_full, per_row, linear)
-        w = reconstruct.irls_weights(reconstruct.lookup(tab.certainty.ravel(), n, z, pattern), log_e, h, y_full,
+        w = references.irls_weights(reconstruct.lookup(tab.certainty.ravel(), n, z, pattern), log_e, h, y_full,
                                      [m[idx] for m in per_row], linear)
         ref.add(z, tab, last=last, weight=w)
     np.testing.assert_allclose(fused.num, ref.num, rtol=1e-5)
@@ -636,8 +627,8 @@ def test_per_frame_noise_shared_by_every_frame_equals_the_single_noise(irls, est
     noise = [params[0], NoiseParams(40.0, 0.3), NoiseParams(20.0, 0.2)]
     kw = dict(weighting="uniform" if estimator == "ml" else "triangle", variance="model", estimator=estimator,
               pattern=pattern, irls_iterations=irls, with_variance=True)
-    one = reconstruct.merge_frames(codes, h, CRF("linear"), [0.0] * 3, [4095.0] * 3, noise=noise, **kw)
-    per = reconstruct.merge_frames(codes, h, CRF("linear"), [0.0] * 3, [4095.0] * 3, frame_noise=[noise] * 3, **kw)
+    one = merge_frames(codes, h, CRF("linear"), [0.0] * 3, [4095.0] * 3, noise=noise, **kw)
+    per = merge_frames(codes, h, CRF("linear"), [0.0] * 3, [4095.0] * 3, frame_noise=[noise] * 3, **kw)
     for a, b in zip(one, per):
         np.testing.assert_array_equal(a, b)
 
@@ -661,9 +652,9 @@ def test_mixed_iso_bracket_merged_with_each_frames_noise_is_closer_to_the_optimu
     codes, h, params, truth = _mixed_iso_bracket(7, times, gains, alpha=0.25, pre=4.0, post=30.0, shape=(256, 256),
                                                  e_range=(20.0, 450.0))  # the longest frames reach 88 % of full
     kw = dict(weighting="uniform", variance="model", estimator="ml", irls_iterations=irls)
-    per, flags, _ = reconstruct.merge_frames(codes, h, CRF("linear"), 0.0, 4095.0,
+    per, flags, _ = merge_frames(codes, h, CRF("linear"), 0.0, 4095.0,
                                             frame_noise=[[p] for p in params], **kw)
-    first, _, _ = reconstruct.merge_frames(codes, h, CRF("linear"), 0.0, 4095.0, noise=[params[0]], **kw)
+    first, _, _ = merge_frames(codes, h, CRF("linear"), 0.0, 4095.0, noise=[params[0]], **kw)
     # the optimum: every unclipped frame's y / (h full), weighted by the inverse of its true
     # variance at the true mean (no frame clipped: the censored terms play no part)
     full = 4095.0

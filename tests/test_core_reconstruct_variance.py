@@ -22,10 +22,12 @@ from hdrmerge_cli.api import merge_arrays
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams, clipping_safe_range_exact
 from hdrmerge_cli.core.reconstruct import (
-    FLAG_DARK, FLAG_OK, FLAG_SATURATED, UNMEASURED_RELATIVE_VARIANCE, LogMerge, combined_variance,
-    estimate_variance_table, exposure_tables, irls, irls_weights, lookup, merge_frames, noise_rows,
+    FLAG_DARK, FLAG_OK, FLAG_SATURATED, UNMEASURED_RELATIVE_VARIANCE, LogMerge,
+    estimate_variance_table, exposure_tables, irls, lookup, noise_rows,
 )
 from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_crf, quantise_raw
+from benchmarks.core_merge import merge_frames
+from references import combined_variance, irls_weights
 
 REPS, LEVELS = 3000, 96
 TIMES = [1.0, 4.0, 16.0]
@@ -283,7 +285,8 @@ def test_demosaic_variance_is_the_squared_weights(pattern):
     """Away from the edges (2 pixels, where the kernels reflect), the variance of each
     demosaiced value equals sum_k (d out / d sample_k)^2 var_k, the derivatives taken by
     demosaicing impulses."""
-    from hdrmerge_cli.core.cfa import demosaic, demosaic_variance
+    from hdrmerge_cli.core.cfa import demosaic_variance
+    from references import demosaic
 
     rng = np.random.default_rng(5)
     var = rng.uniform(0.5, 2.0, (12, 14))

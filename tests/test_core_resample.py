@@ -6,6 +6,12 @@ import pytest
 from hdrmerge_cli.core import registration, resample
 
 
+def spread_value(code):
+    """The spreads (squared codes, float32) that :func:`resample.spread_code` codes stand
+    for: the table the merge's kernels read."""
+    return resample._spread_table()[code]
+
+
 def _bayer(rgb: np.ndarray, cfa: str) -> np.ndarray:
     out = np.empty(rgb.shape[:2], rgb.dtype)
     for k, colour in enumerate(cfa):
@@ -38,7 +44,7 @@ def _tap_variance_mosaic(codes: np.ndarray, warp: np.ndarray, cfa: str | None = 
 def _resampled_spread(codes: np.ndarray, warp: np.ndarray, cfa: str = "RGGB", black=0.0) -> np.ndarray:
     """The spread resample_mosaic keeps for the merge, decoded (squared codes)."""
 
-    return resample.spread_value(resample.resample_mosaic(codes, warp, 65535, cfa, black, spread=True)[1])
+    return spread_value(resample.resample_mosaic(codes, warp, 65535, cfa, black, spread=True)[1])
 
 
 def _tap_weight_energy(warp: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -175,7 +181,7 @@ def test_resample_mosaic_spread_is_the_taps_spread():
     warp = np.array([[np.cos(a), -np.sin(a), 2.3], [np.sin(a), np.cos(a), -5.6]])
     out, coded = resample.resample_mosaic(codes, warp, 65535, "RGGB", 512.0, spread=True)
     np.testing.assert_array_equal(out, resample.resample_mosaic(codes, warp, 65535, "RGGB", 512.0))
-    got = resample.spread_value(coded).astype(np.float64)
+    got = spread_value(coded).astype(np.float64)
     want = _tap_variance_mosaic(codes, warp, "RGGB", 512.0).astype(np.float64)
     rel = np.abs(got - want) / (want + 1.0)
     assert np.median(rel) <= 2.2e-4 and np.quantile(rel, 0.99) <= 1e-3 and rel.max() <= 0.1
@@ -221,7 +227,7 @@ def test_resampled_weight_mosaic_equals_its_formula_per_colour():
     row = np.tile(pattern, (h // 2, w // 2))
     i = row * n + np.minimum(codes, n - 1)
     e = _tap_weight_energy(warp, h, w)
-    u = slope[i].astype(np.float64) ** 2 * resample.spread_value(resample.spread_code(spread))  # as it is kept
+    u = slope[i].astype(np.float64) ** 2 * spread_value(resample.spread_code(spread))  # as it is kept
     c = cert[i].astype(np.float64)
     den = e * c + np.maximum(wt * u - (1 - e) * c, 0.0)
     want = np.where(den > 0, wt * c / np.where(den > 0, den, 1.0), 0.0)
@@ -246,7 +252,7 @@ def test_spread_code_round_trip():
     u[0, :3] = 0.0, 0.0, 2.0**32
     code = resample.spread_code(u)
     assert code.dtype == np.uint16 and code.shape == u.shape
-    back = resample.spread_value(code).astype(np.float64)
+    back = spread_value(code).astype(np.float64)
     assert back[0, 0] == 0.0
     # half a step, 2^(1/3276) - 1 = 2.116e-4, and float32 round-off
     assert np.max(np.abs(back - u) / (u + resample.SPREAD_FLOOR)) <= 2.2e-4
@@ -324,7 +330,7 @@ def test_filled_green_noise_against_monte_carlo():
     got_e = 1.0 / resample.resampled_weight_mosaic(ones, codes, None, table, table, 256, np.zeros((h, w), np.float32),
                                                 warp, cfa="RGGB")
     u = np.full((h, w), 10.0, np.float32)
-    got_s = 2 * got_e + resample.spread_value(resample.spread_code(u)) - 1.0 / resample.resampled_weight_mosaic(
+    got_s = 2 * got_e + spread_value(resample.spread_code(u)) - 1.0 / resample.resampled_weight_mosaic(
         ones, codes, None, table, table, 256, u, warp, cfa="RGGB")
     np.testing.assert_allclose(got_e[green], e[green], rtol=1e-5)
     np.testing.assert_allclose(got_s[green], s_[green], rtol=1e-4)

@@ -134,7 +134,7 @@ def test_unclipped_codes_never_get_zero_weight_in_the_merge_tables():
         assert np.all(tab.certainty[1:255] > 0) and tab.certainty[0] == 0  # what IRLS re-weights
         assert np.all(np.isfinite(tab.value[1:255])) and np.all(np.diff(tab.value[1:255]) > 0)
         # and on IRLS passes: a far-tail code at the current estimate keeps a weight
-        from hdrmerge_cli.core.reconstruct import irls_weights
+        from references import irls_weights
 
         w = irls_weights(tab.certainty[[1, 254]], np.log(np.array([1e-6, 1e3], np.float32)), 0.1, 255.0,
                          (np.float32(64.0), np.float32(1.0), np.float32(0.0)), False)

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from conftest import SHARED, frames_of, needs_shared
+from conftest import SHARED, frames_of, needs_shared, save_profile
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.atomic import atomic_paths
-from hdrmerge_cli.io.profile import KIND, save_profile
+from hdrmerge_cli.io.profile import KIND
 from hdrmerge_cli.pipeline.lut import check_luts
 
 

@@ -10,7 +10,8 @@ from hdrmerge_cli.io.atomic import UMASK, write_text, write_together
 from hdrmerge_cli.io.crfspec import read_crf_csv, resolve_crf
 from hdrmerge_cli.io.frames import load_codes, read_frame
 from hdrmerge_cli.io.images import read_exr, write_exr
-from hdrmerge_cli.io.profile import SCHEMA_VERSION, dumps, load_profile, new_profile, save_profile
+from conftest import save_profile
+from hdrmerge_cli.io.profile import SCHEMA_VERSION, dumps, load_profile, new_profile
 from hdrmerge_cli.io.dng_integer import write_dng
 from hdrmerge_cli.io.times import parse_seconds, parse_times, read_times_file
 

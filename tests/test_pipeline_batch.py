@@ -10,7 +10,12 @@ import pytest
 
 from conftest import SHARED, frames_of, needs_shared
 from hdrmerge_cli.io.frames import Frame
-from hdrmerge_cli.pipeline.batch import capture_seconds, group_brackets
+from hdrmerge_cli.pipeline.batch import DEFAULT_GAP, capture_seconds, split_brackets
+
+
+def group_brackets(frames, gap=DEFAULT_GAP, thumbnail=None):
+    """The frames of each bracket of :func:`split_brackets`."""
+    return [b.frames for b in split_brackets(frames, gap, thumbnail)]
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -319,7 +319,7 @@ def test_irls_drops_clipped_readings_the_estimate_makes_impossible():
     long frame still counts (the static bracket's result does not move)."""
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.core.noise import NoiseParams
-    from hdrmerge_cli.core.reconstruct import merge_frames
+    from benchmarks.core_merge import merge_frames
 
     noise = [NoiseParams(4.0, 0.5, 0.0)]
     for ghost in (False, True):

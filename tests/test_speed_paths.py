@@ -18,10 +18,11 @@ from click.testing import CliRunner
 
 from conftest import frames_of  # noqa: E402
 from hdrmerge_cli.cli import COMMANDS, SUMMARIES, cli  # noqa: E402
-from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, demosaic  # noqa: E402
+from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709  # noqa: E402
 from hdrmerge_cli.core.cfa_to_rgb import raw_to_rgb_rows  # noqa: E402
 from hdrmerge_cli.io import noisecache  # noqa: E402
 from hdrmerge_cli.io.images import EXR_COMPRESSIONS, exr_compression, read_exr  # noqa: E402
+from references import demosaic, raw_to_rgb_rows as raw_to_rgb_rows_reference  # noqa: E402
 
 #: libraries a command must not import unless its path uses them
 HEAVY = ("cvxpy", "matplotlib", "scipy.stats", "colour", "colour_demosaicing", "colour_hdri", "cv2")
@@ -167,7 +168,7 @@ def test_merge_output_equals_reference_colour_path(tmp_path, dng_frames, monkeyp
     frames = dng_frames
     args = ["merge", *frames, "--noise", "sigma_o2=9,alpha=0.25,beta=0", "-q"]
     assert CliRunner().invoke(cli, args + ["-o", str(tmp_path / "fused.exr")]).exit_code == 0
-    monkeypatch.setattr(pm, "_raw_to_rgb_rows", pm._raw_to_rgb_rows_reference)
+    monkeypatch.setattr(pm, "_raw_to_rgb_rows", raw_to_rgb_rows_reference)
     assert CliRunner().invoke(cli, args + ["-o", str(tmp_path / "ref.exr")]).exit_code == 0
     fused, _ = read_exr(tmp_path / "fused.exr")
     ref, _ = read_exr(tmp_path / "ref.exr")
@@ -283,7 +284,7 @@ def test_cache_location(monkeypatch, tmp_path):
 
 # ------------------------------------------------------------------ sRGB without colour-science
 def test_srgb_transfer_functions_equal_colour_science():
-    from hdrmerge_cli.core.cfa import quiet_import
+    from benchmarks import quiet_import
     from hdrmerge_cli.core.crf import srgb_eotf, srgb_eotf_inverse
 
     models = quiet_import("colour.models")

@@ -77,7 +77,7 @@ def censored_factor(z):
     mean of a normal reading censored above white, relative to an uncensored reading (the
     Tobit model), ``z = (white - mean) / sd``.  1 far below white, 0.82 at white, 0.13 two
     sds above.  The merge's ML estimator takes clipped readings as censored
-    (:func:`~hdrmerge_cli.core.reconstruct.censored_terms`)."""
+    (the censored terms of :func:`~hdrmerge_cli.core.reconstruct.irls`)."""
     from scipy.special import log_ndtr, ndtr
 
     z = np.asarray(z, dtype=np.float64)

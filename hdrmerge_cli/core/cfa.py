@@ -1,21 +1,11 @@
-"""Colour filter arrays: Bayer layouts, mosaic and demosaic (with the variance of a demosaiced
-sample), and camera RGB -> Rec.709 (array code)."""
+"""Colour filter arrays: Bayer layouts, mosaic, the variance of a demosaiced sample (the
+demosaic itself is :mod:`hdrmerge_cli.core.cfa_to_rgb`), and camera RGB -> Rec.709 (array
+code)."""
 from __future__ import annotations
-
-import importlib
-import warnings
 
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
-
-
-def quiet_import(name: str):
-    """Import colour-science modules lazily (~1 s) without their optional-dependency
-    warnings (e.g. about matplotlib) reaching the user's stderr."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return importlib.import_module(name)
 
 
 #: CIE xy of the Rec.709 / sRGB primaries (R, G, B) and the D65 white point, in the
@@ -40,22 +30,6 @@ def mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
     return np.take_along_axis(rgb, idx[..., None].astype(np.intp), axis=-1)[..., 0]
 
 
-def demosaic(cfa: np.ndarray, pattern: str) -> np.ndarray:
-    """Bayer mosaic ``(H, W)`` -> ``(H, W, 3)`` float32 by Malvar, He and Cutler (2004)
-    (colour-demosaicing): linear, edge-aware, and fast enough for large frames."""
-    malvar = quiet_import("colour_demosaicing").demosaicing_CFA_Bayer_Malvar2004
-    # colour computes in its default float dtype (float64); the result is stored as float32
-    # anyway, and float32 arithmetic is faster (differences ~1 ulp).
-    # The default is process-wide, so it is put back (2 ms): colour's other functions in the
-    # same process (a Python API user's, tests against colour-hdri) keep float64.
-    utilities = quiet_import("colour").utilities
-    utilities.set_default_float_dtype(np.float32)
-    try:
-        return np.asarray(malvar(cfa, pattern), dtype=np.float32)
-    finally:
-        utilities.set_default_float_dtype(np.float64)
-
-
 #: Malvar-He-Cutler (2004)'s kernels (x 8, as colour-demosaicing has them): G at R/B sites,
 #: R/B at G sites in an R/B row (``RB_ROW``; transposed: in a B/R row), R at B and B at R
 _G_AT_RB = np.array([[0, 0, -1, 0, 0], [0, 0, 2, 0, 0], [-1, 2, 4, 2, -1], [0, 0, 2, 0, 0], [0, 0, -1, 0, 0]]) / 8
@@ -65,8 +39,9 @@ _RB_AT_BR = np.array([[0, 0, -1.5, 0, 0], [0, 2, 0, 2, 0], [-1.5, 0, 6, 0, -1.5]
 
 
 def demosaic_variance(var: np.ndarray, pattern: str) -> np.ndarray:
-    """The variance of :func:`demosaic`'s ``(H, W, 3)`` output for a mosaic of independent
-    samples whose variances are ``var`` ``(H, W)`` (in the squared units of the mosaic):
+    """The variance of the Malvar-He-Cutler demosaic's ``(H, W, 3)`` output
+    (:mod:`hdrmerge_cli.core.cfa_to_rgb`) for a mosaic of independent samples whose
+    variances are ``var`` ``(H, W)`` (in the squared units of the mosaic):
     the demosaic is linear, so each output's variance is the sum of its kernel's squared
     weights times the samples' variances (the same kernels and sites as colour-demosaicing's
     Malvar 2004, the same ``reflect`` edges, where a sample counted twice is taken as

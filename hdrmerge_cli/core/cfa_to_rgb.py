@@ -1,8 +1,8 @@
 """White balance, Malvar-He-Cutler demosaic and camera matrix in one compiled pass.
 
-The same arithmetic as :func:`hdrmerge_cli.core.cfa.demosaic` (colour-demosaicing's
-``demosaicing_CFA_Bayer_Malvar2004``: scipy ``convolve`` with ``mode="reflect"`` at the
-image border) applied to the white-balanced mosaic and followed by
+The same arithmetic as colour-demosaicing's ``demosaicing_CFA_Bayer_Malvar2004`` (scipy
+``convolve`` with ``mode="reflect"`` at the image border; the tests' reference) applied to
+the white-balanced mosaic and followed by
 :func:`~hdrmerge_cli.core.cfa.camera_to_rec709`, but per output row band and without the
 intermediates (balanced mosaic, four full-size convolutions, the RGB image): each output
 pixel reads its 5 x 5 neighbourhood once.  The kernel releases the GIL, so strips converted

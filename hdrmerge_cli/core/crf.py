@@ -156,13 +156,6 @@ def table_crf(table: np.ndarray, name: str = "table") -> CRF:
     return CRF(name, table=tab / top)
 
 
-def inverse_crf_codes(crf: CRF, z: np.ndarray, z_max: float, channel: int = 0) -> np.ndarray:
-    """Linear signal ``gamma^-1(z / z_max)`` in [0, 1] for code values ``z`` (eq. (2)
-    without the log); codes outside ``[0, z_max]`` are clamped."""
-    v = np.clip(np.asarray(z, dtype=np.float64) / float(z_max), 0.0, 1.0)
-    return crf.inverse(v, channel)
-
-
 def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
     """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
     clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds

@@ -163,17 +163,6 @@ def pair_factor(h: np.ndarray, kind: str = "photon") -> np.ndarray:
     raise ValueError(f"unknown pair weight {kind!r}; choose from {', '.join(PAIR_WEIGHTS)}")
 
 
-def solve_qp(cg: Comparagram, w: np.ndarray, w_smooth: np.ndarray, log_h: np.ndarray, smoothing: float,
-             epsilon: float = EPSILON) -> np.ndarray:
-    """One solve of (37) with cvxpy.
-
-    w : (M,) weight of each comparagram cell (count times ``w_j w_j' f_jj'``)
-    w_smooth : (L,) weight of the smoothness penalty at each knot; log_h : (P,)
-    Returns g : (L,) with ``g[L // 2] = 0``.
-    """
-    return solve_qp_channels([cg], [w], [w_smooth], log_h, smoothing, 0.0, epsilon)[0]
-
-
 def _data_rows(cg: Comparagram, w: np.ndarray, log_h: np.ndarray):
     """The data term of (37) as ``|D g - r ybar|^2``, rows of equal code pairs merged
     (``sum_k w_k (d - y_k)^2 = W (d - ybar)^2 + const``), normalised to a weighted mean."""
@@ -199,7 +188,7 @@ def solve_qp_channels(cgs: list[Comparagram], ws: list[np.ndarray], w_smooths: l
                       smoothing: float, coupling: float = 0.0, epsilon: float = EPSILON, anchor: float = 0.0,
                       prior: np.ndarray | None = None) -> np.ndarray:
     """(37) for ``C`` channels at once, optionally coupled: each channel's data and
-    smoothness terms as in :func:`solve_qp`, plus
+    smoothness terms, plus
     ``coupling * sum_c integral (g_c'(v) - mean_c g_c'(v))^2 dv``, which pulls the slopes of
     the channels' curves together where their own data are weak (a camera applies one tone
     curve to every channel, so a neutral ramp should stay neutral), and leaves them apart
@@ -210,7 +199,10 @@ def solve_qp_channels(cgs: list[Comparagram], ws: list[np.ndarray], w_smooths: l
     pair reaches, the comparametric ambiguity of frames far apart), since the data term is a
     weighted mean of order 1 and the prior spreads ``anchor`` over every knot.
 
-    cgs, ws, w_smooths : per channel, as in :func:`solve_qp` (same ``L``)
+    cgs : per channel, the :class:`Comparagram` (same ``L``)
+    ws : per channel, ``(M,)`` weight of each comparagram cell (count times ``w_j w_j' f_jj'``)
+    w_smooths : per channel, ``(L,)`` weight of the smoothness penalty at each knot
+    log_h : ``(P,)``
     Returns G : (C, L) with ``G[:, L // 2] = 0``.
     """
     import scipy.sparse as sp

@@ -1,4 +1,4 @@
-"""The paper's camera noise model in the log domain: bias, variance, clipping-safe range, SNR.
+"""The paper's camera noise model in the log domain: bias, variance, clipping-safe range.
 
 Units (the same as :mod:`hdrmerge_cli.core.sensor`): ``x = t E`` in photo-electrons, the
 linear signal ``y`` in code values (RAW: above the black level; JPEG/TIFF: ``gamma^-1(z)``
@@ -96,16 +96,6 @@ def log_moments_exact(x, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.
     return nu, var
 
 
-def log_moments_approx(x, p: NoiseParams):
-    """The clipping-free approximations (20)-(21) (from (43)-(44) of Appendix 1):
-    ``nu ~ -s(x) / (2 alpha x^2)``, ``sigma^2 ~ s(x) / (alpha x^2)``, i.e.
-    ``sigma^2 ~ sigma_o^2 / (alpha x^2) + 1 / x + beta / alpha``."""
-    x = np.asarray(x, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        rel = noise_variance(x, p.sigma_o2, p.alpha, p.beta) / (p.alpha * x * x)
-    return -0.5 * rel, rel
-
-
 def clipping_safe_range_exact(p: NoiseParams, y_min: float, y_max: float, k: float = DEFAULT_K):
     """``[y'_min, y'_max]``: the means ``mu`` with ``y_min + k sd(mu) <= mu <= y_max - k sd(mu)``,
     (47) solved exactly (each side is a quadratic in mu).  Returns ``(lo, hi)``; ``lo >= hi``
@@ -128,45 +118,3 @@ def clipping_safe_range_exact(p: NoiseParams, y_min: float, y_max: float, k: flo
     if lo is None or hi is None:
         return y_max, y_min  # empty
     return float(lo), float(hi)
-
-
-def clipping_safe_range_taylor(p: NoiseParams, y_min: float, y_max: float, k: float = DEFAULT_K):
-    """``[y'_min, y'_max]`` of (48): (47) with ``sqrt(v(mu))`` linearised at the clipping
-    points, ``y' = y_0 +- k v_0 / (sqrt(v_0) -+ k v'_0 / 2)``, ``v_0 = v(y_0)``,
-    ``v'_0 = sqrt(alpha) + 2 beta y_0 / alpha``.  Where the linearisation has no solution
-    (denominator <= 0: almost no noise at the clipping point, ``v_0 < (k v'_0 / 2)^2``)
-    the exact root of (47) is used.  Returns ``(lo, hi)``."""
-    exact = clipping_safe_range_exact(p, y_min, y_max, k)
-
-    def bound(y0, sign, fallback):
-        v0 = float(code_variance(y0, p))
-        dv0 = np.sqrt(p.alpha) + 2 * p.beta * y0 / p.alpha
-        den = np.sqrt(v0) - sign * k * dv0 / 2
-        return y0 + sign * k * v0 / den if den > 0 else fallback
-
-    return float(bound(y_min, +1.0, exact[0])), float(bound(y_max, -1.0, exact[1]))
-
-
-def snr_frame_db(e, t: float, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
-    """SNR of one frame's log-irradiance estimate, ``20 log10 |log(sqrt(alpha) t E)| /
-    sigma(E, t)`` (below (22)), with the exact variance of (19)."""
-    e = np.asarray(e, dtype=np.float64)
-    _, var = log_moments_exact(e * t, p, y_min, y_max)
-    with np.errstate(divide="ignore"):
-        return 20 * np.log10(np.abs(np.log(np.sqrt(p.alpha) * t * e)) / np.sqrt(var))
-
-
-def snr_hdr_db(e, times, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):
-    """(13): ``SNR_HDR = 20 log10 |log E| + 10 log10 sum_j sigma^-2(E, t_j)`` [dB], the
-    variance of (7) with constant weights being (12).  Below 0 dB the Wyckoff criterion
-    fails: the bracket cannot recover E."""
-    e = np.asarray(e, dtype=np.float64)
-    info = sum(1.0 / np.maximum(log_moments_exact(e * t, p, y_min, y_max)[1], 1e-300) for t in times)
-    with np.errstate(divide="ignore"):
-        return 20 * np.log10(np.abs(np.log(e))) + 10 * np.log10(info)
-
-
-def snr_breaking_point(t: float, p: NoiseParams) -> float:
-    """Irradiance where photon and offset noise are equal, ``E = sigma_o^2 / (alpha t)``
-    (below (22)): under it a frame is offset-noise limited, above photon-noise limited."""
-    return p.sigma_o2 / (p.alpha * t)

@@ -11,12 +11,12 @@ indexed by the *stored* code, one row per channel, the row of a sample given by 
 periodic pattern), and merging a frame is two gathers and two additions per sample
 (:class:`LogMerge`).  Pixels that no frame measures get a finite, documented value and a
 flag (:meth:`LogMerge.finish`).  On request the noise model's variance of each merged
-value is propagated too (:func:`estimate_variance_table`, :func:`combined_variance`).
+value is propagated too (:func:`estimate_variance_table`, :class:`LogMerge` with ``variance``).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -47,7 +47,7 @@ class ExposureTables:
     above_mid : bool, ``z > z_max / 2``: a pixel above mid-scale in the shortest frame and
         unmeasured everywhere is taken as saturated, otherwise as dark
     saturated : bool, ``z >= z_max``: a reading clipped at full scale (censored), which the
-        ML estimator's re-weighting passes use (:func:`censored_terms`)
+        ML estimator's re-weighting passes use (:func:`_censored_rows`)
     variance : the variance of ``value`` (the frame's own estimate, in the estimator's
         domain: ``log E`` or ``E``) at each code, :func:`estimate_variance_table`; only
         built when asked for (``exposure_tables(..., with_variance=True)``), None otherwise
@@ -339,20 +339,6 @@ def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: floa
     return np.concatenate(rows).astype(np.float32)
 
 
-def combined_variance(weights, variances) -> np.ndarray:
-    """Variance of a weighted mean of independent estimates, the reference formula the
-    streamed accumulators implement: ``Var(sum_j w_j x_j / sum_j w_j) = sum_j w_j^2
-    Var(x_j) / (sum_j w_j)^2`` (weights taken as fixed); for inverse-variance weights
-    ``w_j = 1 / Var(x_j)`` it is ``1 / sum_j w_j``, the inverse of the summed Fisher
-    information.  weights, variances : ``(P, ...)``; returns ``(...)`` float64, NaN where
-    every weight is 0."""
-    w = np.asarray(weights, np.float64)
-    q = np.asarray(variances, np.float64)
-    den = w.sum(axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(den > 0, (w * w * np.where(w > 0, q, 0.0)).sum(axis=0) / (den * den), np.nan)
-
-
 def channel_index(shape: tuple[int, ...], pattern: np.ndarray | None) -> np.ndarray | None:
     """Table row of every sample, ``shape`` intp: ``pattern`` tiled over ``(H, W)``
     (a CFA mosaic) or ``(H, W * C)`` (interleaved channels); None when one row serves all."""
@@ -403,22 +389,6 @@ def _read_only(codes: np.ndarray) -> np.ndarray:
     return view
 
 
-def irls_weights(certainty: np.ndarray, log_e: np.ndarray, exposure: float, y_full: float, noise_maps,
-                 linear: bool) -> np.ndarray:
-    """Per-sample weights of one frame at the current estimate (iteratively re-weighted
-    (7)): ``w(z) sigma^-2(E_i, t_j)`` with ``mu_j = E_i h_j y_full`` and the clipping-free
-    variance (21), ``mu^2 / v(mu)`` (log estimator) or ``(h y_full)^2 / v(mu)`` (ML);
-    a sample with any certainty keeps at least :data:`WEIGHT_FLOOR`, as in the tables.
-
-    noise_maps : (sigma_o2, sqrt_alpha, beta / alpha), each broadcastable to the samples."""
-    s_o2, sqrt_a, b_a = noise_maps
-    mu = np.exp(log_e) * np.float32(exposure * y_full)
-    var = s_o2 + sqrt_a * mu + b_a * mu * mu
-    num = mu * mu if not linear else np.float32((exposure * y_full) ** 2)
-    w = certainty * (num / np.maximum(var, np.float32(1e-12)))
-    return np.where(certainty > 0, np.maximum(w, np.float32(WEIGHT_FLOOR)), np.float32(0.0))
-
-
 def noise_rows(params: list[NoiseParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(sigma_o2, sqrt_alpha, beta / alpha) of (21) per table row, float32 ``(R,)`` each;
     ``params`` one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
@@ -428,8 +398,13 @@ def noise_rows(params: list[NoiseParams]) -> tuple[np.ndarray, np.ndarray, np.nd
 
 @numba.njit(inline="always")
 def _irls_weight(c, le, k, so, sq, ba, linear, floor):  # pragma: no cover
-    """One sample's weight of :func:`irls_weights` (certainty ``c``, current estimate
-    ``le`` = log E, ``k = h y_full``, the row's noise parameters): 0 without certainty."""
+    """One sample's weight on an IRLS pass (iteratively re-weighted (7)) at the current
+    estimate ``le`` = log E: ``w(z) sigma^-2(E, t_j)`` with ``mu = E h y_full`` and the
+    clipping-free variance (21) ``v(mu) = so + sq mu + ba mu^2``, i.e. ``c mu^2 / v(mu)``
+    (log estimator) or ``c k^2 / v(mu)`` (ML, ``linear``); certainty ``c``,
+    ``k = h y_full``, the row's noise parameters (sigma_o2, sqrt_alpha, beta / alpha).
+    0 without certainty; a sample with any certainty keeps at least ``floor``
+    (:data:`WEIGHT_FLOOR`), as in the tables."""
     if not c > 0:
         return np.float32(0.0)
     mu = np.float32(np.exp(le) * k)
@@ -470,7 +445,7 @@ def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_kee
 
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, linear, out):  # pragma: no cover
-    """:func:`irls_weights` fused with the table lookup, per 2-D sample: the row of a
+    """:func:`_irls_weight` fused with the table lookup, per 2-D sample: the row of a
     sample from ``pattern`` tiled, its noise parameters from the per-row arrays."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
@@ -507,12 +482,6 @@ def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, 
                 _add_sample(num, den, i, j, w, w * num_tab[r, z], fb_tab, hi_tab, r, z, mode, _NO_WEIGHT, 1, False)
 
 
-def _rows_of(mask: np.ndarray, pattern: np.ndarray) -> np.ndarray:
-    """The table row of every True sample of a 2-D ``mask`` (row-major order)."""
-    i, j = np.nonzero(mask)
-    return pattern[i % pattern.shape[0], j % pattern.shape[1]]
-
-
 #: IRLS stops when no measured sample's log-irradiance moves more than this
 IRLS_TOLERANCE = 1e-3
 
@@ -520,40 +489,9 @@ IRLS_TOLERANCE = 1e-3
 CENSORED_SDS = 8.0
 
 
-def censored_terms(log_e: np.ndarray, exposure: float, y_full: float, noise_maps) -> tuple[np.ndarray, np.ndarray]:
-    """A reading clipped at full scale in the ML estimator's re-weighting: the censored
-    observation ``y > y_full - 1/2`` (the top code's lower edge) of ``y ~ N(mu, v(mu))``,
-    ``mu = E h y_full``, as a pseudo-observation ``(weight, value)`` of the weighted mean,
-    so that one pass is a Fisher-scoring (Newton) step on the censored likelihood.
-
-    With ``a = (y_full - 1/2 - mu) / sd`` and the inverse Mills ratio
-    ``lam = phi(a) / Phi(-a)``, the censored log-likelihood ``log Phi(-a)`` has score
-    ``k lam / sd`` and observed information ``k^2 lam (lam - a) / sd^2`` in ``E``
-    (``k = h y_full``; the dependence of ``sd`` on ``mu`` is neglected).  Weight = that
-    information, value = ``E + score / information = E + sd / (k (lam - a))``: at a fixed point
-    the weighted mean solves the censored likelihood equation, where dropping the clipped
-    readings (the tables' weight 0) biases a sample near saturation low (its unclipped
-    readings are the truncated lower part of their distribution) and ignores that the
-    clipped frames saw more than full scale.  A reading far above full scale carries no
-    information and gets weight ~0.  Returns float32 ``(weight, value)`` like ``log_e``."""
-    from scipy.special import log_ndtr
-
-    s_o2, sqrt_a, b_a = (np.asarray(m, np.float64) for m in noise_maps)
-    k = float(exposure) * float(y_full)
-    e = np.exp(np.asarray(log_e, np.float64))
-    mu = e * k
-    sd = np.sqrt(np.maximum(s_o2 + sqrt_a * mu + b_a * mu * mu, 1e-12))
-    a = (y_full - 0.5 - mu) / sd
-    lam = np.exp(-0.5 * a * a - 0.5 * np.log(2 * np.pi) - log_ndtr(-a))
-    gap = np.maximum(lam - a, 1e-12)  # > 0 always; lam - a -> 1/a for large a
-    weight = k * k * lam * gap / (sd * sd)
-    value = e + sd / (k * gap)
-    return weight.astype(np.float32), value.astype(np.float32)
-
-
 @numba.njit(cache=True, nogil=True)
 def _inverse_mills(a):  # pragma: no cover
-    """``lam = phi(a) / Phi(-a)`` of :func:`censored_terms` in float64: directly below
+    """``lam = phi(a) / Phi(-a)`` of :func:`_censored_rows` in float64: directly below
     a = 30 (erfc keeps its relative accuracy there), above it by the asymptotic series of
     Mills' ratio ``Phi(-a) / phi(a) = (1 - a^-2 + 3 a^-4 - 15 a^-6 + 105 a^-8) / a``
     (relative error < 1e-12 at a = 30)."""
@@ -566,9 +504,25 @@ def _inverse_mills(a):  # pragma: no cover
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd_full2, log_hi, s_o2, sqrt_a, b_a,
                    factor, use_factor, num_t, den_t, var_t, use_var):  # pragma: no cover
-    """One frame's censored terms (:func:`censored_terms`) added to ``num_t`` (weight times
-    value), ``den_t`` (weight) and, with ``use_var``, ``var_t`` (weight), per 2-D sample,
-    fused with the choice of the readings they apply to (see :func:`irls`): clipped
+    """One frame's censored terms added to ``num_t`` (weight times value), ``den_t``
+    (weight) and, with ``use_var``, ``var_t`` (weight), per 2-D sample.
+
+    A reading clipped at full scale in the ML estimator's re-weighting: the censored
+    observation ``y > y_full - 1/2`` (the top code's lower edge) of ``y ~ N(mu, v(mu))``,
+    ``mu = E h y_full``, as a pseudo-observation ``(weight, value)`` of the weighted mean,
+    so that one pass is a Fisher-scoring (Newton) step on the censored likelihood.
+    With ``a = (y_full - 1/2 - mu) / sd`` and the inverse Mills ratio
+    ``lam = phi(a) / Phi(-a)`` (:func:`_inverse_mills`), the censored log-likelihood
+    ``log Phi(-a)`` has score ``k lam / sd`` and observed information
+    ``k^2 lam (lam - a) / sd^2`` in ``E`` (``k = h y_full``; the dependence of ``sd`` on
+    ``mu`` is neglected).  Weight = that information, value = ``E + score / information =
+    E + sd / (k (lam - a))``: at a fixed point the weighted mean solves the censored
+    likelihood equation, where dropping the clipped readings (the tables' weight 0) biases a
+    sample near saturation low (its unclipped readings are the truncated lower part of
+    their distribution) and ignores that the clipped frames saw more than full scale.  A
+    reading far above full scale carries no information and gets weight ~0.
+
+    Fused with the choice of the readings the terms apply to (see :func:`irls`): clipped
     (``saturated`` table) and an estimate under ``log_hi`` (not :data:`CENSORED_SDS` sds
     above full scale); with ``use_den`` also only where the previous pass measured the
     sample (``den > 0``) and not :data:`CENSORED_SDS` combined sds below full scale.  A
@@ -684,7 +638,7 @@ STRIP_ROWS = 128
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
          den: np.ndarray | None = None):
-    """Iteratively re-weighted (7): each pass weights every frame by :func:`irls_weights`
+    """Iteratively re-weighted (7): each pass weights every frame by :func:`_irls_weight`
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
 
@@ -714,7 +668,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     Notes: each frame's weight ``w_j = w(z) I_j`` is its certainty times its Fisher
     information ``I_j = 1 / Var(x_j)`` at the previous estimate, with the clipping-free
     variance (21), so the weighted mean's variance is ``sum_j w(z_j) w_j / (sum_j w_j)^2``
-    (``1 / sum_j I_j`` for uniform certainty); censored terms (:func:`censored_terms`) add
+    (``1 / sum_j I_j`` for uniform certainty); censored terms (:func:`_censored_rows`) add
     their information to both sums.  ML: ``Var(E) / E^2`` (the delta method);
     unmeasured samples: :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a
     non-linear response (:func:`code_error_variance`) is not part of these weights.
@@ -759,7 +713,7 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
     max_rows = [[float(np.max(m)) for m in r] for r in rows]  # per frame, the largest of each parameter
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern, variance=variance)
-        cen = None  # ML: the clipped readings as censored observations (censored_terms), when held apart
+        cen = None  # ML: the clipped readings as censored observations (_censored_rows), when held apart
         log_e2 = log_e.reshape(shape2)
         for k, (tab, h) in enumerate(zip(tables, exposures)):
             codes = codes_of(k)
@@ -795,104 +749,6 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
     return log_e, flags, den, it, change
 
 
-def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, weighting: str = "triangle",
-                 noise: list[NoiseParams] | None = None, variance: str = "none", estimator: str = "log",
-                 prior_rate: float | None = None, k: float = DEFAULT_K, pattern: np.ndarray | None = None,
-                 scale: float = 1.0, irls_iterations: int = 0, with_variance: bool = False,
-                 variance_tables=None, excess=None, frame_noise: list[list[NoiseParams]] | None = None):
-    """The merge core on decoded frames in memory: (7) (or the ML estimator) with the
-    tables of :func:`exposure_tables`, optionally re-weighted (:func:`irls`).
-
-    with_variance : also return the noise model's variance of ``E * scale`` (streamed
-        with ``LogMerge(variance=True)``, or from :func:`irls`), a fourth element;
-        ``variance_tables`` optional per-frame ``(R * N,)`` tables to use instead of
-        :func:`estimate_variance_table`'s defaults (e.g. with ``tolerance=0``)
-    excess : the variance beyond the noise model measured on the bracket, for the tables
-        (:func:`exposure_tables`)
-
-    codes : P arrays ``(H, W)`` or ``(H, W, C)`` uint8/uint16 in increasing exposure order
-    exposures : (P,) ``h_j`` in seconds
-    black, white : (R,) levels per table row (R = 1, or one per row of ``pattern``)
-    noise : R noise parameter sets (code units), needed by the noise-model weights'
-        exact form, ``variance='model'``, ``estimator='ml'`` and IRLS
-    frame_noise : P lists of R noise parameter sets, frame j's own (frames that differ in
-        ISO: code units of that frame, whose gain ``h_j`` already counts); it replaces
-        ``noise`` in the tables and the IRLS passes
-    Returns ``(E * scale, flags, summed weights)``, float32/int8/float32.
-    """
-    black = np.atleast_1d(np.asarray(black, np.float64))
-    white = np.broadcast_to(np.asarray(white, np.float64), black.shape)
-    n_codes = table_size(white, int(np.iinfo(codes[0].dtype).max) + 1)
-    streamed_var = with_variance and not irls_iterations  # IRLS brings its own variance
-    if frame_noise is not None and len(frame_noise) != len(exposures):
-        raise ValueError(f"frame_noise: {len(frame_noise)} sets for {len(exposures)} frames")
-    noise_of = [noise] * len(exposures) if frame_noise is None else list(frame_noise)
-    tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise_of[j], variance, prior_rate,
-                              tuple(exposures), k, estimator=estimator,
-                              with_variance=streamed_var and variance_tables is None, excess=excess)
-              for j, h in enumerate(exposures)]
-    if streamed_var:
-        if variance_tables is not None:
-            tables = [replace(t, variance=np.asarray(q, np.float32)) for t, q in zip(tables, variance_tables)]
-        acc = LogMerge(codes[0].shape, pattern, variance=True)
-        for j, z in enumerate(codes):
-            acc.add(z, tables[j], last=j == len(codes) - 1)
-        out, flags = acc.finish(estimator == "ml", scale)
-        return out, flags, acc.den, acc.variance
-    if not irls_iterations:
-        return merge_in_memory(codes, tables, pattern, estimator == "ml", scale)
-    log_e, flags, den = merge_in_memory(codes, tables, pattern, estimator == "ml")
-    y_full = [float(white[0] - black[0])] * len(codes)
-    rows = [noise_rows(noise)] * len(codes) if frame_noise is None else [noise_rows(p) for p in frame_noise]
-    log_e, flags, den, *_, var = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, rows,
-                                      estimator == "ml", irls_iterations, variance=with_variance, den=den)
-    out = np.exp(log_e, out=log_e)
-    out *= np.float32(scale)
-    if not with_variance:
-        return out, flags, den
-    var *= out * out  # Var(E scale) = (E scale)^2 Var(log E), the delta method
-    return out, flags, den, np.minimum(var, np.float32(3.4e38), out=var)
-
-
-#: samples per task of :func:`merge_in_memory` (rounded down to whole pattern periods):
-#: its two float32 accumulators stay in the core's L1/L2 cache across all frames
-TILE = 4096
-
-
-def merge_in_memory(codes, tables: list[ExposureTables], pattern: np.ndarray | None = None, linear: bool = False,
-                    scale: float | None = None):
-    """(7) over frames that are all in memory, tile-major: each task accumulates every
-    frame into a cache-resident tile of ``num``/``den`` and finishes it, so per sample the
-    only memory traffic is one read of each frame's code and one write of the result
-    (:class:`LogMerge` streams frames one at a time instead, and reads and writes its
-    full-size accumulators once per frame).  Same arithmetic, same order, same result as
-    :class:`LogMerge` with :meth:`~LogMerge.finish`.
-
-    codes : P arrays of one shape ``(H, W)`` or ``(H, W, C)``, uint8/uint16, shortest
-        exposure first (or one ``(P, ...)`` array)
-    tables : P :class:`ExposureTables`, one per frame
-    Returns ``(result, flag, den)`` as :meth:`LogMerge.finish` with ``den`` the summed weights.
-    """
-    shape = codes[0].shape
-    if any(z.shape != shape for z in codes):
-        raise ValueError("frames of different shapes")
-    rows, cols = _rows_cols(shape)
-    n = tables[0].n_codes
-    pattern = np.zeros((1, 1), np.intp) if pattern is None else np.asarray(pattern, np.intp)
-    ph, pw = pattern.shape
-    tile = max(TILE // pw, 1) * pw
-    # per sample of a tile, the offset of its table row in the flattened (R * N,) tables
-    offsets = np.ascontiguousarray(np.tile(pattern, (1, tile // pw)) * n)
-    stack = lambda name: np.stack([getattr(t, name) for t in tables])  # noqa: E731
-    frames = numba.typed.List([np.ascontiguousarray(z).reshape(rows, cols) for z in codes])
-    out = np.empty((rows, cols), np.float32)
-    flag = np.empty((rows, cols), np.int8)
-    den = np.empty((rows, cols), np.float32)
-    _merge_tiles(frames, offsets, n, stack("weight"), stack("weighted_log"), stack("fallback_log"),
-                 stack("above_mid"), linear, -1.0 if scale is None else float(scale), out, flag, den)
-    return out.reshape(shape), flag.reshape(shape), den.reshape(shape)
-
-
 class LogMerge:
     """Accumulate (7) over frames given in increasing exposure order, in one fused pass per
     frame (numba, both cores): per sample one code read, two table reads and two
@@ -907,7 +763,7 @@ class LogMerge:
         array ``var``, and tables built ``with_variance``): per sample ``var`` sums
         ``w_j^2 Var(x_j)``, the frame's weight squared times the variance of its value
         (:func:`estimate_variance_table`), and :meth:`finish` turns it into the variance of
-        the result, ``sum_j w_j^2 Var(x_j) / (sum_j w_j)^2`` (:func:`combined_variance`;
+        the result, ``sum_j w_j^2 Var(x_j) / (sum_j w_j)^2`` (weights taken as fixed;
         ``1 / sum_j w_j`` for the ML estimator's inverse-variance weights), read from
         :attr:`variance`.  Off (the default): no ``var`` array and no variance kernels.
 
@@ -961,7 +817,7 @@ class LogMerge:
         With ``variance``: ``var += w^2 Var(x_j)`` with the table's ``variance``; or, with
         ``information`` (IRLS), where ``weight = w(z) I_j`` is the certainty times the
         frame's Fisher information ``I_j = 1 / Var(x_j)`` at the current estimate
-        (:func:`irls_weights`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
+        (:func:`_irls_weight`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
         n = tables.n_codes
         mode = 0 if self.frames == 0 else 2 if last else 1
         keep = _NO_WEIGHT if factor is None else np.ascontiguousarray(factor, np.float32).reshape(factor.shape[0], -1)
@@ -996,7 +852,7 @@ class LogMerge:
 
     def add_irls(self, codes: np.ndarray, tables: ExposureTables, last: bool, log_e: np.ndarray, k: float, rows,
                  linear: bool) -> None:
-        """:meth:`add` with the IRLS weights of :func:`irls_weights` computed in the same
+        """:meth:`add` with the IRLS weights of :func:`_irls_weight` computed in the same
         pass (:func:`_accumulate_irls`): ``log_e`` the current estimate (2-D like the
         samples), ``k = h y_full``, ``rows`` :func:`noise_rows`.  Without ``variance``."""
         if self.var is not None:
@@ -1192,61 +1048,3 @@ def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, f
                 num[r, s] = v
                 var[r, s] = q
             flag[r, s] = f
-
-
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _merge_tiles(frames, offsets, n_codes, w_tab, num_tab, fb_tab, hi_tab, linear, scale, out, flag, den_out):  # pragma: no cover
-    """:func:`merge_in_memory`'s kernel: tables ``(P, R * N)``; ``offsets`` ``(ph, T)``
-    the table-row offset of each sample of a tile; the fallbacks and flags as
-    :func:`_accumulate` then :func:`_finish` set them."""
-    n_frames = len(frames)
-    rows, cols = out.shape
-    ph, tile = offsets.shape
-    top = n_codes - 1
-    last = n_frames - 1
-    n_tiles = (cols + tile - 1) // tile
-    for task in numba.prange(rows * n_tiles):
-        r = task // n_tiles
-        s0 = (task % n_tiles) * tile
-        n = min(cols, s0 + tile) - s0
-        off = offsets[r % ph]
-        num = np.zeros(tile, np.float32)
-        den = np.zeros(tile, np.float32)
-        for j in range(n_frames):
-            z_row = frames[j][r, s0:s0 + n]
-            w_j = w_tab[j]
-            num_j = num_tab[j]
-            for i in range(n):
-                z = min(np.intp(z_row[i]), top) + off[i]
-                num[i] += num_j[z]
-                den[i] += w_j[z]
-        z_first = frames[0][r, s0:s0 + n]
-        z_last = frames[last][r, s0:s0 + n]
-        for i in range(n):
-            d = den[i]
-            f = 0
-            if d > 0:
-                v = num[i] / d
-                if linear:
-                    if v > 0:
-                        if scale > 0:
-                            out[r, s0 + i] = v * scale
-                            flag[r, s0 + i] = 0
-                            den_out[r, s0 + i] = d
-                            continue
-                        v = np.log(v)
-                    else:  # every weighted frame read black: the dark floor of the channel
-                        v = fb_tab[last, off[i]]
-                        f = -1
-            else:
-                z = min(np.intp(z_first[i]), top) + off[i]
-                if hi_tab[0, z]:
-                    v = fb_tab[0, z]
-                    f = 1
-                else:
-                    v = fb_tab[last, min(np.intp(z_last[i]), top) + off[i]]
-                    f = -1
-                d = 0.0
-            out[r, s0 + i] = np.exp(v) * scale if scale > 0 else v
-            flag[r, s0 + i] = f
-            den_out[r, s0 + i] = d

@@ -320,7 +320,7 @@ def spread_code(u: np.ndarray) -> np.ndarray:
     """Resampling spreads ``u`` (:func:`resample_mosaic`'s, squared codes, ``(H, W)``
     float32) as uint16 codes ``round(SPREAD_STEPS log2(1 + u / SPREAD_FLOOR))``, up to ``u
     = 2^32`` (a 16-bit range squared); ``u + SPREAD_FLOOR`` within 2.2e-4 (half a step).
-    :func:`spread_value` inverts it.  The spread of a moved frame is kept for every pass of
+    :func:`_spread_table` inverts it.  The spread of a moved frame is kept for every pass of
     the merge, in half the memory of float32."""
     out = np.empty(u.shape, np.uint16)
     _spread_code_rows(np.ascontiguousarray(u, np.float32).reshape(u.shape[0], -1), out.reshape(u.shape[0], -1),
@@ -340,11 +340,6 @@ def _spread_code_rows(u, out, inv_floor, steps):  # pragma: no cover - compiled
 def _spread_table() -> np.ndarray:
     """The spread (squared codes, float32) of each :func:`spread_code` code, ``(65536,)``."""
     return (SPREAD_FLOOR * (np.exp2(np.arange(65536) / SPREAD_STEPS) - 1.0)).astype(np.float32)
-
-
-def spread_value(code: np.ndarray) -> np.ndarray:
-    """The spreads (squared codes, float32) that :func:`spread_code` codes stand for."""
-    return _spread_table()[code]
 
 
 @numba.njit(inline="always")

@@ -165,13 +165,6 @@ def _commit(tmps: list[str], paths: list[Path], overwrite: bool) -> None:
                 os.unlink(backup)
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, overwrite: bool):
-    """One output: :func:`atomic_paths` of one path; yields its temporary path."""
-    with atomic_paths([path], overwrite) as (tmp,):
-        yield tmp
-
-
 def write_text(tmp: str, text: str) -> None:
     """Write ``text`` (UTF-8) to a temporary of :func:`atomic_paths`; an OSError names it
     (one raised by write(), such as a full disk, names no file by itself)."""

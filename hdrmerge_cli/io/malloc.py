@@ -25,21 +25,6 @@ def one_malloc_arena() -> bool:
         return False
 
 
-def return_free_memory() -> bool:
-    """Hand the heap's free pages back to the system (glibc's ``malloc_trim``), at the end
-    of a phase whose temporaries are freed: the heap does not shrink by itself below its
-    top, so what alignment and deghosting freed would otherwise stay in the process under
-    the merge's own peak.  Returns whether it ran (False off glibc)."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim(0)
-        return True
-    except (OSError, AttributeError):
-        return False
-
-
 def available_memory() -> int | None:
     """Bytes of memory available to a new allocation without swapping (Linux's
     ``MemAvailable``; else the physical memory), or None when unknown."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import check_writable, write_together
+from hdrmerge_cli.io.atomic import check_writable
 
 def check_figure_path(path: str | Path, overwrite: bool) -> None:
     """Refuse, before any work is done, a figure that could not be written: a suffix
@@ -36,7 +36,3 @@ def figure_writer(fig, path: str | Path):
         pyplot().close(fig)
 
     return write
-
-
-def save_figure(fig, path: str | Path, overwrite: bool) -> None:
-    write_together([(path, figure_writer(fig, path))], overwrite)

@@ -28,7 +28,7 @@ import numpy as np
 from hdrmerge_cli._version import __version__
 from hdrmerge_cli.core.crf import CRF, gamma_crf, table_crf
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.atomic import write_text, write_together
+from hdrmerge_cli.io.atomic import write_text
 
 SCHEMA_VERSION = 1
 KIND = "hdrmerge-cli camera profile"
@@ -212,7 +212,3 @@ def profile_writer(profile: dict, path: str | os.PathLike):
     validate(profile, str(path))
     text = dumps(profile)
     return lambda tmp: write_text(tmp, text)
-
-
-def save_profile(path: str | os.PathLike, profile: dict, overwrite: bool) -> None:
-    write_together([(path, profile_writer(profile, path))], overwrite)

@@ -73,11 +73,6 @@ class Bracket:
     sequence: int = 0
 
 
-def group_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[list[Frame]]:
-    """The frames of each bracket of :func:`split_brackets`."""
-    return [b.frames for b in split_brackets(frames, gap, thumbnail)]
-
-
 def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[Bracket]:
     """Split frames into brackets, in capture order (timestamp, then file name).
 

@@ -26,7 +26,7 @@ EXTRA_CHANNELS = ("clipped", "weight", "ghost", "variance")
 #: estimator choices: log = the paper's (7), ml = linear inverse-variance (censored)
 ESTIMATORS = ("auto", "log", "ml")
 
-#: registration (:mod:`hdrmerge_cli.pipeline.motion`) and deghosting choices
+#: registration (:mod:`hdrmerge_cli.pipeline.register`) and deghosting (:mod:`hdrmerge_cli.pipeline.ghosts`) choices
 ALIGN_MODES = ("off", "auto", "translation", "similarity")
 DEGHOST_MODES = ("off", "auto", "on")
 
@@ -38,7 +38,7 @@ DEFAULT_GAP = 3.0
 @dataclass(frozen=True)
 class MergeSettings:
     """How a bracket is merged; each ``auto`` is resolved per bracket
-    (:mod:`hdrmerge_cli.pipeline.choices`, :mod:`hdrmerge_cli.pipeline.motion`).
+    (:mod:`hdrmerge_cli.pipeline.choices`, :mod:`hdrmerge_cli.pipeline.register`).
 
     estimator : ``auto``, ``log`` (the paper's (7)) or ``ml`` (linear, censored)
     weights : ``auto`` or a key of :data:`hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`

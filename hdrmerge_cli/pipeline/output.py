@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hdrmerge_cli._version import __version__
-from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, demosaic, demosaic_variance
+from hdrmerge_cli.core.cfa import bayer_channels, camera_to_rec709, demosaic_variance
 from hdrmerge_cli.core.output_colorspace import COLORSPACES, camera_chromaticities, rec709_to
 from hdrmerge_cli.core.cfa_to_rgb import raw_to_rgb_rows
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED
@@ -468,19 +468,7 @@ def _raw_to_rgb_rows(mosaic: np.ndarray, frame: Frame, y0: int, y1: int, matrix=
     """Rows ``y0:y1`` of the output RGB: white balance (green = 1) per CFA colour,
     demosaic (Malvar-He-Cutler, reading the rows around the strip, so strips join
     seamlessly), ``matrix`` (default: the camera matrix, to Rec.709); one compiled pass
-    that releases the GIL (strips run on the prefetch threads, one per core).
-    :func:`_raw_to_rgb_rows_reference` is the same arithmetic through colour-demosaicing
-    (the tests compare the two)."""
+    that releases the GIL (strips run on the prefetch threads, one per core).  The tests
+    compare it with the same arithmetic through colour-demosaicing."""
     matrix = frame.color_matrix if matrix is None else matrix
     return raw_to_rgb_rows(mosaic, frame.cfa_pattern, frame.white_balance, matrix, y0, y1)
-
-
-def _raw_to_rgb_rows_reference(mosaic: np.ndarray, frame: Frame, y0: int, y1: int, matrix=None) -> np.ndarray:
-    """The reference of :func:`_raw_to_rgb_rows`: NumPy white balance, colour-demosaicing's
-    Malvar (2004) on the strip with a halo of rows, the matrix."""
-    a, b = max(0, y0 - STRIP_HALO), min(mosaic.shape[0], y1 + STRIP_HALO)
-    part = mosaic[a:b]
-    colors = bayer_channels(frame.cfa_pattern, part.shape)  # a is even: same CFA phase as row 0
-    balanced = part * frame.white_balance.astype(np.float32)[colors]
-    rgb = demosaic(balanced, frame.cfa_pattern)[y0 - a:y1 - a]
-    return camera_to_rec709(rgb, frame.color_matrix if matrix is None else matrix)
