@@ -666,24 +666,12 @@ def merge_files(paths: Sequence[str | Path], **options) -> Merged:
     ((3456, 5184, 3), (3456, 5184))
     >>> merged.write("out.exr")                                             # doctest: +SKIP
     """
-    import time
+    from hdrmerge_cli.pipeline.run import merge_bracket
 
-    from hdrmerge_cli.pipeline.bracket import read
-    from hdrmerge_cli.pipeline.run import merge_frames
-
-    t0 = time.perf_counter()
     noise = options.pop("noise") if not isinstance(options.get("noise"), (str, type(None))) else None
     crf = options.pop("crf") if isinstance(options.get("crf"), CRF) else None
     opts = _options(options)
-    b = read([str(p) for p in paths], opts.inputs)
-    b.noise = _noise(noise)
-    first = b.frames[0]
-    if crf is not None and first.kind == "image":
-        if crf.table is not None and crf.table.shape[1] != first.n_codes:
-            raise HdrMergeError(f"crf: the inverse table has {crf.table.shape[1]} entries per channel, but "
-                                f"{first.path} has {first.n_codes} code values")
-        b.crf = crf
-    return merge_frames(b, opts, t_start=t0)
+    return merge_bracket([str(p) for p in paths], opts, noise=_noise(noise), crf=crf)
 
 
 def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *, crf: str | CRF = "srgb",

@@ -1,6 +1,7 @@
-"""Each input file is decoded once per merge (default options), whatever the passes that
-read it (samples, response, registration, labels, noise, ghosts, the merge and its
-re-weighting), and a frame's stage results follow the frame, not its position."""
+"""One pass: each input file is decoded once per merge (default options), whatever the
+passes that read it (samples, response, registration, labels, noise, ghosts, the merge and
+its re-weighting); each stage of the runner is called at most once, in reading order; and a
+frame's stage results follow the frame, not its position."""
 from __future__ import annotations
 
 import collections
@@ -64,33 +65,76 @@ def _shifted_dngs(folder, shifts, times=(0.5, 1.0, 2.0), labels=None, seed=1, h=
     return paths
 
 
+#: the runner's stages (hdrmerge_cli.pipeline.run's names), in the order a merge calls them
+STAGES = ("read", "ordered_samples", "measure_response", "estimate_alignment", "resolve_exposures", "bracket_noise",
+          "measure_excess", "choose_models", "find_ghosts", "reconstruct")
+
+
+@pytest.fixture
+def stage_calls(monkeypatch):
+    """The runner's stage calls, in order: each stage function, as the runner calls it,
+    wrapped to record its name."""
+    import hdrmerge_cli.pipeline.run as run_module
+
+    calls: list[str] = []
+    for name in STAGES:
+        fn = getattr(run_module, name)
+
+        def counted(*args, _fn=fn, _name=name, **kwargs):
+            calls.append(_name)
+            return _fn(*args, **kwargs)
+
+        monkeypatch.setattr(run_module, name, counted)
+    return calls
+
+
+def _assert_one_pass(calls: list[str], expected: set[str]) -> None:
+    """Each stage called at most once, those ``expected`` exactly once, in :data:`STAGES` order."""
+    assert sorted(set(calls), key=STAGES.index) == calls, calls  # once each, in reading order
+    assert set(calls) == expected, sorted(set(calls) ^ expected)
+
+
 def _merge(paths, **options):
     from hdrmerge_cli.api import merge_files
 
     return merge_files(paths, **options)
 
 
-def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes):
+#: the stages of a default RAW merge (the noise measured on the bracket; no response, no ghosts)
+RAW_STAGES = {"read", "ordered_samples", "estimate_alignment", "resolve_exposures", "bracket_noise", "choose_models",
+              "reconstruct"}
+
+
+def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes, stage_calls, monkeypatch, tmp_path):
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))  # the noise measured, not cached
     folder, meta = dng_bracket
     paths = [str(p) for p in frames_of(folder, meta)]
     _merge(paths)
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+    _assert_one_pass(stage_calls, RAW_STAGES)
 
 
-def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes):
+def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes, stage_calls, monkeypatch):
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
     paths = _shifted_dngs(tmp_path, (3.0, 0.0, -5.0))
-    merged = _merge(paths)
+    merged = _merge(paths, deghost="auto")
     assert merged.bracket.alignment.applied
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+    _assert_one_pass(stage_calls, RAW_STAGES | {"find_ghosts"})
 
 
 @pytest.mark.parametrize("fixture", ["tiff_bracket", "jpeg_bracket"])
-def test_image_brackets_are_decoded_once(request, fixture, decodes):
-    """16-bit TIFF (response given by nothing: measured) and JPEG (response measured)."""
+def test_image_brackets_are_decoded_once(request, fixture, decodes, stage_calls, monkeypatch, tmp_path):
+    """16-bit TIFF (response given by nothing: measured) and JPEG (response measured); the
+    JPEG's noise is measured to test its excess variance, which picks its estimator."""
+    monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
     folder, meta = request.getfixturevalue(fixture)
     paths = [str(p) for p in frames_of(folder, meta)]
     _merge(paths)
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+    _assert_one_pass(stage_calls, {"read", "ordered_samples", "measure_response", "estimate_alignment",
+                                   "resolve_exposures", "bracket_noise", "measure_excess", "choose_models",
+                                   "reconstruct"})
 
 
 def test_an_8bit_tiff_bracket_is_decoded_once_with_and_without_a_response(run, tmp_path, decodes):

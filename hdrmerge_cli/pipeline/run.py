@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.reconstruct import neutral_bounds
@@ -142,10 +143,20 @@ def check_outputs(paths: list[str], opts: MergeOptions) -> list:
 
 
 # ---------------------------------------------------------------- the stages
-def merge_bracket(paths: list[str], opts: MergeOptions) -> Merged:
-    """The stages on files: :func:`~hdrmerge_cli.pipeline.bracket.read`, then :func:`merge_frames`."""
+def merge_bracket(paths: list[str], opts: MergeOptions, noise: dict | None = None, crf: CRF | None = None) -> Merged:
+    """The stages on files: :func:`~hdrmerge_cli.pipeline.bracket.read`, then
+    :func:`merge_frames`; ``noise`` (per channel ``NoiseParams``) and ``crf`` (image
+    frames' response) in place of what the options' text gives (the Python API's objects)."""
     t0 = time.perf_counter()
-    return merge_frames(read(paths, opts.inputs), opts, t_start=t0)
+    b = read(paths, opts.inputs)
+    b.noise = noise
+    first = b.frames[0]
+    if crf is not None and first.kind == "image":
+        if crf.table is not None and crf.table.shape[1] != first.n_codes:
+            raise HdrMergeError(f"crf: the inverse table has {crf.table.shape[1]} entries per channel, but "
+                                f"{first.path} has {first.n_codes} code values")
+        b.crf = crf
+    return merge_frames(b, opts, t_start=t0)
 
 
 def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -> Merged:
