@@ -69,8 +69,9 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     log_e, flags, den = merge_in_memory(codes, tables, pattern, estimator == "ml")
     y_full = [float(white[0] - black[0])] * len(codes)
     rows = [noise_rows(noise)] * len(codes) if frame_noise is None else [noise_rows(p) for p in frame_noise]
-    log_e, flags, den, *_, var = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, rows,
-                                      estimator == "ml", irls_iterations, variance=with_variance, den=den)
+    it = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, rows, estimator == "ml", irls_iterations,
+              variance=with_variance, den=den)
+    log_e, flags, den, var = it.log_e, it.flags, it.den, it.variance
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)
     if not with_variance:

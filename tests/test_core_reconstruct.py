@@ -390,7 +390,8 @@ def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layo
             out[strip] = irls(codes.__getitem__, tables, pattern, log_e, times, [float(full)] * 3, maps, linear,
                               passes, variance=True, den=den if with_den else None,
                               adjust=adjust if adjusted else None)
-        (a, fa, da, na, _, va), (b, fb, db, nb, _, vb) = out[8], out[1000]
+        (a, fa, da, na, va), (b, fb, db, nb, vb) = ((r.log_e, r.flags, r.den, r.passes, r.variance)
+                                                  for r in (out[8], out[1000]))
         np.testing.assert_array_equal(fa, fb)
         ok = fa == FLAG_OK
         if passes == 1:

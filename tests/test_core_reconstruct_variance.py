@@ -170,7 +170,7 @@ def test_irls_variance_is_certainty_weighted_information(linear):
     log0 = np.log(log0)
     out = irls(frames.__getitem__, tables, None, log0.copy(), times, [full] * 2, [noise_rows([p])] * 2, linear, 1,
                tol=0.0, variance=True)
-    log_e, flags, den, _, _, var = out
+    log_e, flags, den, var = out.log_e, out.flags, out.den, out.variance
     maps = [m[0] for m in noise_rows([p])]
     cert = [lookup(t.certainty, t.n_codes, z, None).astype(np.float64) for z, t in zip(frames, tables)]
     w = [irls_weights(c, log0, h, full, maps, linear).astype(np.float64) for c, h in zip(cert, times)]

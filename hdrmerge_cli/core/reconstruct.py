@@ -635,9 +635,28 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
 STRIP_ROWS = 128
 
 
+@dataclass
+class IRLSResult:
+    """What :func:`irls` returns, per sample like ``log_e``.
+
+    log_e : float32, the estimate of ``log E`` (linear: of ``E``'s log) after the last pass
+    flags : int8, 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
+    den : float32, the summed weights of the last pass
+    passes : the passes run (the most of any strip); change : the largest change of the last
+    variance : float32, the variance of ``log_e`` of the last pass, or None (not asked)
+    """
+
+    log_e: np.ndarray
+    flags: np.ndarray
+    den: np.ndarray
+    passes: int
+    change: float
+    variance: np.ndarray | None = None
+
+
 def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
          linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
-         den: np.ndarray | None = None):
+         den: np.ndarray | None = None) -> IRLSResult:
     """Iteratively re-weighted (7): each pass weights every frame by :func:`_irls_weight`
     at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
     until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
@@ -662,8 +681,7 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
         readings the estimate makes impossible and adds the censored terms straight into
         the sums; later passes use their predecessor's
     variance : also return the variance of ``log E`` of the last pass
-    Returns ``(log_e, flags, den, passes, largest_change)``, and with ``variance`` the
-    variance of ``log_e`` (float32, like ``log_e``) as a sixth element.
+    Returns an :class:`IRLSResult`.
 
     Notes: each frame's weight ``w_j = w(z) I_j`` is its certainty times its Fisher
     information ``I_j = 1 / Var(x_j)`` at the previous estimate, with the clipping-free
@@ -684,21 +702,20 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     passes, change = 0, 0.0
     for r0 in range(0, height, STRIP_ROWS):
         part = slice(r0, min(height, r0 + STRIP_ROWS))
-        le, fl, dn, it, ch, *v = _irls_piece(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures,
-                                             y_full, rows, linear, iterations, tol, variance,
-                                             None if adjust is None else (lambda *a: adjust(*a, part)),
-                                             den[part] if given else None)
-        log_e[part], flags[part], den[part] = le, fl, dn
+        piece = _irls_piece(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures, y_full, rows, linear,
+                            iterations, tol, variance, None if adjust is None else (lambda *a: adjust(*a, part)),
+                            den[part] if given else None)
+        log_e[part], flags[part], den[part] = piece.log_e, piece.flags, piece.den
         if variance:
-            var[part] = v[0]
-        passes, change = max(passes, it), max(change, ch)
-    return (log_e, flags, den, passes, change) + ((var,) if variance else ())
+            var[part] = piece.variance
+        passes, change = max(passes, piece.passes), max(change, piece.change)
+    return IRLSResult(log_e, flags, den, passes, change, var)
 
 
 def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
                 linear: bool, iterations: int, tol: float, variance: bool, adjust, den: np.ndarray | None):
     """:func:`irls` on one strip of rows of every frame (``adjust`` bound to its rows):
-    new arrays."""
+    new arrays, as an :class:`IRLSResult`."""
     flags = None
     prev_den = den if linear else None
     change = np.inf
@@ -744,9 +761,7 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
         log_e = new
         if change < tol:
             break
-    if variance:
-        return log_e, flags, den, it, change, acc.variance
-    return log_e, flags, den, it, change
+    return IRLSResult(log_e, flags, den, it, change, acc.variance if variance else None)
 
 
 class LogMerge:

@@ -68,20 +68,16 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     y_full = [float(f.white[0] - f.black[0]) for f in frames]
     result, den = first.result, first.den  # IRLS makes its own flags; it writes over the estimate and weights
     del first
-    log_e, flags, den, iterations, change, *var = irls(lambda k: load(frames[k]), models.tables, models.pattern,
-                                                       result, exposures, y_full, maps, ml, models.n_irls,
-                                                       variance=with_variance,
-                                                       adjust=None if weights_of is None else weights_of.adjust,
-                                                       den=den)
-    log.info("IRLS: %d passes, largest change of the last %.2e", iterations, change)
-    result = np.exp(log_e, out=log_e)
+    it = irls(lambda k: load(frames[k]), models.tables, models.pattern, result, exposures, y_full, maps, ml,
+              models.n_irls, variance=with_variance, adjust=None if weights_of is None else weights_of.adjust, den=den)
+    log.info("IRLS: %d passes, largest change of the last %.2e", it.passes, it.change)
+    result = np.exp(it.log_e, out=it.log_e)
     result *= np.float32(h_ref)
-    variance = None
-    if with_variance:  # Var(E h_ref) = (E h_ref)^2 Var(log E), the delta method
-        variance = var[0]
+    variance = it.variance
+    if variance is not None:  # Var(E h_ref) = (E h_ref)^2 Var(log E), the delta method
         variance *= result * result
     timings["irls"] = time.perf_counter() - t0
-    return Reconstruction(result, flags, den, variance, iterations)
+    return Reconstruction(result, it.flags, it.den, variance, it.passes)
 
 
 # ---------------------------------------------------------------- per-sample weights
