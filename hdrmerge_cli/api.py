@@ -201,7 +201,8 @@ def _response(response, st: _Stack) -> CRF:
     from hdrmerge_cli.pipeline.response import measure_response
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
-    return measure_response(st.frames, ordered_samples(st.frames, st.load), cache=False) or crf
+    h = st.exposures
+    return measure_response(st.frames, h, ordered_samples(st.frames, h, st.load), cache=False) or crf
 
 
 def _noise(noise) -> dict[str, NoiseParams] | None:
@@ -404,7 +405,7 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     st = _stack(stack, times, None, black, white, bits)
     if len(np.unique(st.exposures)) < 2:
         raise HdrMergeError("a response is measured on two exposures or more")
-    samples = ordered_samples(st.frames, st.load)
+    samples = ordered_samples(st.frames, st.exposures, st.load)
     thin = thin_overlap(samples)
     if thin is not None:
         k, both = thin

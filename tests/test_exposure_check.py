@@ -209,7 +209,7 @@ def test_no_false_alarm_on_real_brackets(name):
     frames = read_bracket(sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")))
     h = exposure_values(frames)
     s = ex.sample_frames(frames, max_samples=1 << 17)
-    ex.check_order(frames, s)
+    ex.check_order(frames, h, s)
     est, _ = estimate_with_response(h, s, CRF("srgb", assumed=True))  # no response given
     assert est.mislabelled() == [], est.difference_ev
 
@@ -314,7 +314,8 @@ def _exposure_log(name, crf, caplog, times_file=None):
         logger.addHandler(caplog.handler)
     try:
         with caplog.at_level(logging.WARNING, logger="hdrmerge_cli"):
-            rep = ex.resolve_exposures(frames, exposure_values(frames), crf, samples=ex.ordered_samples(frames)).report
+            h = exposure_values(frames)
+            rep = ex.resolve_exposures(frames, h, crf, samples=ex.ordered_samples(frames, h)).report
     finally:
         if own:
             logger.removeHandler(caplog.handler)

@@ -97,12 +97,12 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
             codes = list(pool.map(load_codes, frames))
         by_frame = {id(f): c for f, c in zip(frames, codes)}
-        samples = exposure_check.ordered_samples(frames, lambda f: by_frame[id(f)])  # constant borders off
+        labels = exposure_values(frames)
+        samples = exposure_check.ordered_samples(frames, labels, lambda f: by_frame[id(f)])  # constant borders off
         del by_frame
         if first.kind == "raw":
             codes = [c[..., None] for c in codes]
         exposure_check.check_overlap(frames, samples)
-        labels = exposure_values(frames)
         log_h = np.log(labels)
         options = {}
         if method.noise_weighted:

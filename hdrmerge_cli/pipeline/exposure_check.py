@@ -1,10 +1,10 @@
 """Exposure labels checked against the frames (and, on request, replaced by estimates),
 and the order and overlap checks that read real frames.
 
-The numerics are :mod:`hdrmerge_cli.core.samples` and :mod:`hdrmerge_cli.core.comparametric`; here the frames are decoded,
-subsampled (CFA cells kept whole), normalised to ``v = (z - black) / (white - black)``,
-cut to the pixels worth comparing (constant borders off, clipped and noise-floor codes
-off) and linearised through the response in use.  Before a label is called wrong, the pairs that
+The numerics are :mod:`hdrmerge_cli.core.samples` and :mod:`hdrmerge_cli.core.comparametric`;
+here the frames are decoded, subsampled (CFA cells kept whole), normalised to
+``v = (z - black) / (white - black)``, cut to the pixels worth comparing (constant borders
+off, clipped and noise-floor codes off) and linearised through the response in use.  Before a label is called wrong, the pairs that
 decided it are registered on the same samples (:func:`moved_pairs`): frames that moved
 between exposures (a hand-held bracket merged without ``--align``) leave the labels
 unchecked, with a line saying so, instead of a false label warning.
@@ -28,7 +28,7 @@ from hdrmerge_cli.core.samples import (
     response_fits, thin_overlap,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
-from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, exposure_values, fmt_time
+from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, fmt_time
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -78,18 +78,18 @@ def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_S
     return _samples(frames, v, step)
 
 
-def ordered_samples(frames: list[Frame], load=load_codes, also=None) -> Samples:
+def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes, also=None) -> Samples:
     """The exposures stage's one sample set: :func:`sample_frames`, the frames' order then
     checked (:func:`check_order`): everything after it (the response, registration, the
     labels) trusts the order."""
     samples = sample_frames(frames, load, also=also)
     if len(frames) > 1:
-        check_order(frames, samples)
+        check_order(frames, exposures, samples)
     return samples
 
 
 # ---------------------------------------------------------------- checks
-def check_order(frames: list[Frame], s: Samples) -> None:
+def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
     of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels neither clips, off the
     constant borders (frames at the noise floor and equal exposures pass; only a pair
@@ -98,7 +98,7 @@ def check_order(frames: list[Frame], s: Samples) -> None:
     ordered by them: the merge compares them as repeats, and ``--times estimate`` orders
     them by their estimates."""
     margin = max(1.5 * s.codes_step, 0.004)
-    h = exposure_values(frames)
+    h = exposures
     for k in range(1, len(frames)):
         if h[k] <= h[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             continue
@@ -374,7 +374,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         if use_estimates:
             log.warning("--times estimate: a single frame has nothing to compare; its label is used")
         return CheckedExposures(frames, exposures, None, samples)
-    s = samples if samples is not None else ordered_samples(frames, load)
+    s = samples if samples is not None else ordered_samples(frames, exposures, load)
     if alignment is not None and alignment.applied:
         s = s.registered([alignment.warp_of(f) for f in frames])
     est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)

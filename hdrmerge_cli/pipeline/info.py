@@ -77,7 +77,7 @@ def _estimates(frames: list[Frame], s: Samples, crf_spec: str | None) -> dict:
     else:
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
     exposures = exposure_values(frames)
-    exposure_check.check_order(frames, s)
+    exposure_check.check_order(frames, exposures, s)
     est, used = estimate_with_response(exposures, s, crf)
     motion = exposure_check.label_motion(s, exposures, crf, est)
     exposure_check.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates",

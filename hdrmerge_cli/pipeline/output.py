@@ -307,7 +307,8 @@ class Merged:
             return {"output": str(output), "profile": str(profile_out), "dng_baseline_exposure_ev": round(baseline, 2)}
         attrs = self.header(profile_out.name, profile_text)
         extra = opts.io.extra_channels
-        wsum = (self.reconstruction.den if self.reconstruction.den.ndim == 2 else self.reconstruction.den.mean(axis=-1)) if "weight" in extra else None
+        den = self.reconstruction.den
+        wsum = (den if den.ndim == 2 else den.mean(axis=-1)) if "weight" in extra else None
         ghosts = self.bracket.ghosts
         ghost_img = None if "ghost" not in extra else (
             ghosts.image(*self.shape) if ghosts is not None else np.zeros(self.shape, np.float32))
@@ -353,7 +354,8 @@ class Merged:
         white = max(1.0, float(np.ceil(np.max(self.reconstruction.result))))
         baseline = float(np.log2(white))
         preview = tonemap_srgb(cell_rgb(self.reconstruction.result, first, first.color_matrix, DNG_PREVIEW_SIZE))
-        write_float_dng(path, self.reconstruction.result, cfa_pattern=first.cfa_pattern, xyz_to_camera=camera_xyz_matrix(first),
+        write_float_dng(path, self.reconstruction.result, cfa_pattern=first.cfa_pattern,
+                        xyz_to_camera=camera_xyz_matrix(first),
                         as_shot_neutral=1.0 / first.white_balance, make=first.make or "hdrmerge-cli",
                         model=first.model or "merged", exposure_time=self.h_ref, iso=first.iso,
                         aperture=first.aperture, baseline_exposure=baseline,
@@ -363,13 +365,13 @@ class Merged:
 
     def summary(self) -> dict:
         """What ``merge --json`` prints (without the paths written)."""
-        m, first, flags = self.bracket.models, self.first, self.reconstruction.flags
-        estimated, n = m.estimated, flags.size
-        alignment, ghosts = self.bracket.alignment, self.bracket.ghosts
+        b, first, flags = self.bracket, self.first, self.reconstruction.flags
+        m, estimated, n = b.models, b.models.estimated, flags.size
+        alignment, ghosts = b.alignment, b.ghosts
         return {
-            "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(self.bracket.frames, self.bracket.exposures)],
+            "frames": [f.summary() | {"exposure": float(h)} for f, h in zip(b.frames, b.exposures)],
             "reference_exposure": self.h_ref,
-            "exposure_check": self.bracket.exposure_report,
+            "exposure_check": b.exposure_report,
             "orientation": self.orientation,
             **({"equal_exposures": self.repeats} if self.repeats else {}),
             "weights": m.weights,
@@ -377,14 +379,14 @@ class Merged:
             "variance": m.variance,
             "irls_iterations": self.reconstruction.iterations,
             "noise": m.noise_used(first),
-            **({"noise_per_iso": m.noise_per_iso(self.bracket.frames)} if m.frame_noise else {}),
+            **({"noise_per_iso": m.noise_per_iso(b.frames)} if m.frame_noise else {}),
             "noise_source": (f"measured earlier on the same camera and ISO (cache {estimated['cached']['file']})"
                              if estimated and "cached" in estimated
                              else "measured on the bracket (calibrate-noise fast path)" if estimated
                              else "given (--noise or --profile)" if m.noise else None),
             "prior_rate": m.prior,
             "bounds": list(m.bounds) if m.bounds else None,
-            "crf": self.bracket.crf.describe(),
+            "crf": b.crf.describe(),
             "width": first.width,
             "height": first.height,
             **({"crop": {"rows": [self.crop_box[0], self.crop_box[1]], "columns": [self.crop_box[2],
@@ -395,7 +397,7 @@ class Merged:
             "dark_fraction": float(np.count_nonzero(flags == FLAG_DARK) / n),
             **({"alignment": alignment.summary()} if alignment else {}),
             **({"deghost": ghosts.summary()} if ghosts else {}),
-            "timing_seconds": {k: round(v, 4) for k, v in self.bracket.timings.items()},
+            "timing_seconds": {k: round(v, 4) for k, v in b.timings.items()},
         }
 
 

@@ -178,11 +178,12 @@ def meter(paths: list[str], opts: PlanOptions) -> Metering:
     names = list(first.channel_names)
     # each channel's 1.0 is its own full scale at h_ref: code values per second at the reference ISO
     y_full = tuple(float(v) for v in np.broadcast_to(first.white - first.black, (len(names),)))
-    cell = None if merged.reconstruction.result.ndim == 3 else sample_pattern(first)
+    rec = merged.reconstruction
+    cell = None if rec.result.ndim == 3 else sample_pattern(first)
     planes = [[(p * np.float32(y_full[c] / merged.h_ref), f) for p, f in chan]
-              for c, chan in enumerate(channel_planes(merged.reconstruction.result, merged.reconstruction.flags, cell, len(names)))]
+              for c, chan in enumerate(channel_planes(rec.result, rec.flags, cell, len(names)))]
     scene = scene_range(planes, opts.lose_dark, opts.lose_bright, names)
-    clipped = float(np.mean(merged.reconstruction.flags == FLAG_SATURATED))
+    clipped = float(np.mean(rec.flags == FLAG_SATURATED))
     if clipped > 0:
         log.warning("%.3g %% of the photosites are clipped in every metering frame: the plan takes them at the "
                     "clipping level, a lower bound; add a shorter metering frame", 100 * clipped)

@@ -15,7 +15,6 @@ from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, CRFFit, standard_
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.samples import Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap
 from hdrmerge_cli.io.frames import Frame
-from hdrmerge_cli.io.metadata import exposure_values
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -77,7 +76,7 @@ def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: st
     return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
 
 
-def measure_response(frames: list[Frame], samples: Samples, cache: bool = True) -> CRF | None:
+def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Samples, cache: bool = True) -> CRF | None:
     """The response of an image bracket given none, fitted on the samples the merge draws
     (:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`, constant borders off) by
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
@@ -85,12 +84,11 @@ def measure_response(frames: list[Frame], samples: Samples, cache: bool = True) 
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
     two distinct exposures, or neighbours sharing fewer than :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` unclipped
     pixels) the cached response of the same camera and style, unless the frames contradict
-    it (:func:`~hdrmerge_cli.pipeline.response_fits`); else None, with a warning
+    it (:func:`~hdrmerge_cli.core.samples.response_fits`); else None, with a warning
     saying why and that sRGB is assumed."""
     from hdrmerge_cli.io import noisecache
 
     key = noisecache.response_key(frames[0]) if cache else None
-    exposures = exposure_values(frames)
     thin = thin_overlap(samples)
     if len(np.unique(exposures)) < 2:
         why = "one exposure only"

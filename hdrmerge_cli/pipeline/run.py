@@ -171,9 +171,9 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
         b.noise, b.noise_by_iso = resolve_noise_by_iso(b.frames, inputs.noise, inputs.profile, inputs.crf)
     if len(b.frames) > 1 or b.crf.assumed:  # exposures: the frames' order; the response
         t1 = time.perf_counter()
-        b.samples = ordered_samples(b.frames, b.codes)  # a disordered bracket fails first
+        b.samples = ordered_samples(b.frames, b.exposures, b.codes)  # a disordered bracket fails first
         if b.crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
-            b.crf = measure_response(b.frames, b.samples, cache=outputs.noise_cache) or b.crf
+            b.crf = measure_response(b.frames, b.exposures, b.samples, cache=outputs.noise_cache) or b.crf
             timings["response"] = time.perf_counter() - t1
     if settings.align != "off":  # registration
         t1 = time.perf_counter()
