@@ -252,6 +252,28 @@ def _settings(weighting, estimator, variance_model, irls, k, align, deghost, ref
                          align=align, deghost=deghost, reference=reference)
 
 
+def _merge_stack(stack, times, settings: MergeSettings, response, noise, cfa, black, white, bits, demosaic: bool,
+                 return_variance: bool):
+    """:func:`merge` once its settings are checked: the radiance, float32 ``(H, W, 3)`` or
+    ``(H, W)``, and with ``return_variance`` the pair (radiance, variance)."""
+    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.run import check_options, merge_frames
+
+    st = _stack(stack, times, cfa, black, white, bits)
+    crf = _given_response(response, st)
+    params = _noise(noise)
+    opts = MergeOptions(settings, io=OutputOptions(extra_channels=("variance",) if return_variance else (),
+                                                   cfa=st.raw and not demosaic, noise_cache=False))
+    check_options(opts)
+    merged = merge_frames(Bracket(st.frames, crf, st.load, noise=params), opts)
+    image = merged.image
+    variance = merged.variance if return_variance else None
+    if image.shape[-1] == 1:  # a grey image, or a mosaic not demosaiced
+        image = image[..., 0]
+        variance = variance[..., 0] if variance is not None else None
+    return (image, variance) if return_variance else image
+
+
 # ---------------------------------------------------------------- the functions
 def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", estimator: str = "auto",
           variance_model: str = "auto", irls: int | None = None, k: float = DEFAULT_K, align: str = "auto",
@@ -264,26 +286,22 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
     {stack}
     response : CRF, str, float, array or None
         The images' camera response: a :class:`~hdrmerge_cli.core.crf.CRF` (e.g. from
-        :func:`estimate_response`), ``"linear"``, ``"srgb"``, a gamma ``G`` (codes
-        ``v = x**(1/G)``), or the inverse response as a ``(N,)`` or ``(C, N)`` table of the
-        linear signal at each code value.  None: measured on the stack
-        (:func:`estimate_response`; sRGB, with a warning, where the stack cannot pin it).
-        Mosaics are linear.
+        :func:`estimate_response`), ``"linear"``, ``"srgb"``, a gamma ``G`` (``v = x**(1/G)``), or
+        a ``(N,)`` or ``(C, N)`` table of the inverse response, the linear signal per code value.
+        None: measured (:func:`estimate_response`; sRGB, warned, where the stack cannot pin it).
     noise : NoiseParams, dict or None
-        The noise model (17) in code units of the linear signal: a
-        :class:`~hdrmerge_cli.core.noise.NoiseParams`, a dict ``{{"sigma_o2", "alpha",
-        "beta"}}``, or either per channel (``{{"R": ..., "G": ..., "B": ...}}``; mosaics
-        also ``"G2"``).  None: measured on the stack where the merge needs it
-        (:func:`estimate_noise`: mosaics and linear images always).
+        The noise model (17) in code units of the linear signal, as a dict ``{{"sigma_o2",
+        "alpha", "beta"}}`` or a :class:`~hdrmerge_cli.core.noise.NoiseParams`, or either per
+        channel (``{{"R": ..., "G": ..., "B": ...}}``; mosaics also ``"G2"``).  None: measured
+        where the merge needs it (:func:`estimate_noise`: mosaics and linear images always).
     weighting : str
         The weighting function of (7): ``"auto"`` (uniform for ML, triangle for log),
         ``"triangle"``, ``"uniform"``, ``"probabilistic"`` (32), ``"direct"`` (33),
         ``"optimal"`` (29), ``"bounded"``, ``"mann"``, ``"deneve"``, ``"gaussian"``.
     estimator : {{"auto", "log", "ml"}}
-        ``log``: the paper's log-domain (7); ``ml``: linear inverse-variance with clipped
-        readings censored.  auto: ml for mosaics, linear images and images whose exposure
-        pairs the noise model explains (no variance beyond it, a test at a 1e-3 false-alarm
-        rate); log for images whose pairs show more (camera processing).
+        ``log``: the paper's log-domain (7); ``ml``: linear inverse-variance, clipped readings
+        censored.  auto: ml for mosaics, linear images and images whose exposure pairs the noise
+        model explains (a 1e-3 false-alarm test), log for the rest (camera processing).
     variance_model : {{"auto", "model", "codes", "photon", "none"}}
         The variance factor of (7); auto: model for the ML estimator and for mosaics and
         linear images when noise parameters are known, codes for the log estimator of images.
@@ -297,17 +315,15 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
     deghost : {{"off", "auto", "on"}}
         Drop moving objects (:func:`ghost_mask`).
     reference : float or str
-        The exposure (seconds) whose full-scale signal is 1.0 in the result, or
-        ``"geomean"``, ``"shortest"``, ``"longest"``.  The default, 1 s, gives radiance in
-        full scale per second.
+        The exposure (seconds) whose full-scale signal is 1.0 in the result, or ``"geomean"``,
+        ``"shortest"``, ``"longest"``; the default, 1 s, gives radiance in full scale per second.
     cfa : str, optional
-        The mosaics' 2 x 2 colour filter pattern.
+        The mosaics' 2 x 2 colour filter pattern (their data is linear: no ``response``).
     black, white : float
         Code values of no light and of clipping (default 0 and ``2**bits - 1``, ``bits``
         the codes' significant bits, by default the dtype's).
     demosaic : bool
-        Mosaics: False returns the merged ``(H, W)`` mosaic itself (camera-native, before
-        white balance and demosaicing).
+        Mosaics: False returns the merged ``(H, W)`` mosaic (camera-native: no white balance).
     return_variance : bool
         Also return the variance of each value under the noise model.
 
@@ -327,10 +343,8 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
 
     Examples
     --------
-    A gamma-2.2 8-bit stack of a ramp:
-
     >>> import numpy as np, hdrmerge_cli
-    >>> scene = np.geomspace(0.01, 20.0, 60 * 80).reshape(60, 80)          # full scale per s
+    >>> scene = np.geomspace(0.01, 20.0, 60 * 80).reshape(60, 80)          # a ramp, full scale per s
     >>> times = [1 / 16, 1 / 4, 1.0]
     >>> stack = [np.round(255 * np.clip(scene * t, 0, 1) ** (1 / 2.2)).astype(np.uint8) for t in times]
     >>> hdr, var = hdrmerge_cli.merge(stack, times, response=2.2, return_variance=True)
@@ -339,23 +353,8 @@ def merge(stack, times, *, response=None, noise=None, weighting: str = "auto", e
     >>> bool(np.all(np.abs(hdr / scene - 1)[(scene > 0.02) & (scene < 15)] < 0.05))
     True
     """
-    from hdrmerge_cli.pipeline.bracket import Bracket
-    from hdrmerge_cli.pipeline.run import check_options, merge_frames
-
     settings = _settings(weighting, estimator, variance_model, irls, k, align, deghost, reference)
-    st = _stack(stack, times, cfa, black, white, bits)
-    crf = _given_response(response, st)
-    params = _noise(noise)
-    opts = MergeOptions(settings, io=OutputOptions(extra_channels=("variance",) if return_variance else (),
-                                                   cfa=st.raw and not demosaic, noise_cache=False))
-    check_options(opts)
-    merged = merge_frames(Bracket(st.frames, crf, st.load, noise=params), opts)
-    image = merged.image
-    variance = merged.variance if return_variance else None
-    if image.shape[-1] == 1:  # a grey image, or a mosaic not demosaiced
-        image = image[..., 0]
-        variance = variance[..., 0] if variance is not None else None
-    return (image, variance) if return_variance else image
+    return _merge_stack(stack, times, settings, response, noise, cfa, black, white, bits, demosaic, return_variance)
 
 
 def estimate_response(stack, times, *, black: float = 0.0, white: float | None = None,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +70,109 @@ def check_not_flat(crf: CRF, method: str, smoothing: float | None) -> None:
         raise HdrMergeError(f"the {method} fit is flat (less than one stop from code 1 to white): {cause}")
 
 
+@dataclass
+class _Fit:
+    """A bracket's fitted response and what the profile, the figure and the report take from
+    the fit (``fits`` empty, ``points`` and ``exposure_check`` None for the identity CRF of
+    linear data)."""
+
+    crf: CRF
+    fits: list = field(default_factory=list)  # per channel the solver's result
+    changed: bool = False  # whether the fit was made monotone
+    points: tuple | None = None  # (codes, log_h): the frames' (H, W, C) codes and (P,) log exposures
+    exposure_check: dict | None = None  # the labels checked through the response
+
+
+def _solver_options(method, opts: CRFOptions) -> dict:
+    """The noise-weighted solvers' keywords (pair weight, bounds, coupling, anchor,
+    weighting); empty for the others."""
+    if not method.noise_weighted:
+        return {}
+    return dict(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
+                coupling=opts.coupling, anchor=opts.anchor, **({"weighting": opts.weighting} if opts.weighting else {}))
+
+
+def _fit_checked(codes, log_h: np.ndarray, n_codes: int, opts: CRFOptions, smoothing, n_samples,
+                 options: dict) -> tuple[CRF, list, bool]:
+    """:func:`fit_crf` at the log exposures ``log_h`` ``(P,)``, refused when flat
+    (:func:`check_not_flat`): the response, the per-channel fits, whether made monotone."""
+    crf, fits, changed = fit_crf(codes, log_h, n_codes, opts.method, smoothing, n_samples, options,
+                                 np.random.default_rng(opts.seed))
+    check_not_flat(crf, opts.method, smoothing)
+    return crf, fits, changed
+
+
+def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit:
+    """The response fitted to a bracket of images (or of RAW frames under --force), its labels
+    checked through it; under --times estimate refitted with the estimates until they settle."""
+    first = frames[0]
+    if len(frames) < 2:
+        raise HdrMergeError(f"{first.path}: estimating a CRF needs at least two exposures")
+    check_samples(opts.samples, len(frames), first.n_codes, first.width * first.height)
+    with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
+        codes = list(pool.map(load_codes, frames))
+    by_frame = {id(f): c for f, c in zip(frames, codes)}
+    labels = exposure_values(frames)
+    samples = exposure_check.ordered_samples(frames, labels, lambda f: by_frame[id(f)])  # constant borders off
+    if first.kind == "raw":
+        codes = [c[..., None] for c in codes]
+    exposure_check.check_overlap(frames, samples)
+    log_h = np.log(labels)
+    options = _solver_options(method, opts)
+    crf, fits, changed = _fit_checked(codes, log_h, first.n_codes, opts, smoothing, n_samples, options)
+    # the labels checked through the fitted response (the comparagrams the fit used);
+    # --times estimate: refit with the estimates, until they settle (at most 3 rounds)
+    est = estimate(labels, samples, crf)
+    for _ in range(3 if opts.times == ESTIMATE else 0):
+        new_log_h = est.log_h
+        crf, fits, changed = _fit_checked(codes, new_log_h, first.n_codes, opts, smoothing, n_samples, options)
+        est = estimate(labels, samples, crf)
+        moved = float(np.max(np.abs(est.log_h - new_log_h))) / np.log(2)
+        log_h = new_log_h
+        if moved < 0.01:
+            break
+    motion = exposure_check.label_motion(samples, labels, crf, est)
+    exposure_check.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
+                                   else "; estimate-crf --times estimate fits with the estimates", motion=motion,
+                                   crf=crf)
+    report = exposure_check.report(frames, labels, est, "estimates" if opts.times == ESTIMATE else "labels", crf,
+                                   motion=motion)
+    return _Fit(crf, fits, changed, (codes, log_h), report)
+
+
+def _fit_details(first, method, opts: CRFOptions, fit: _Fit, smoothing, n_samples) -> dict:
+    """The profile's ``crf`` details of the fit (method, channels, and for a fit its
+    smoothing, samples, iterations, convergence and the noise-weighted solvers' settings)."""
+    details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}
+    if fit.fits:
+        details |= {"lambda": smoothing, "samples": n_samples or "all",
+                    "iterations": [f.iterations for f in fit.fits], "converged": all(f.converged for f in fit.fits)}
+        if method.noise_weighted:
+            details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
+                        "pair_weight": opts.pair_weight, "coupling": opts.coupling,
+                        "anchor": opts.anchor, "prior": "srgb"}
+    return details
+
+
+def _profile_of(base: dict | None, frames, crf: CRF, details: dict, method_name: str) -> dict:
+    """The profile to write: ``base`` (--profile) with its CRF replaced, or a new one for the
+    bracket's camera; its ``crf`` carrying ``details``."""
+    first = frames[0]
+    command = f"estimate-crf --method {method_name}"
+    if base is not None:
+        profile = base
+        profile["crf"] = crf_to_json(crf)
+        profile.setdefault("provenance", {})["crf_command"] = command
+    else:
+        profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
+                              [f.path for f in frames], command)
+    profile["crf"].update(details)
+    return profile
+
+
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
+    """The estimate-crf command: fit the bracket's response (an identity CRF for linear data
+    unless --force), write it into a profile (and --plot's figure) and return the report."""
     t0 = time.perf_counter()
     method = CRF_ESTIMATORS[opts.method]
     if output is None:
@@ -86,77 +188,23 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     first = frames[0]
     smoothing = method.smoothing if opts.smoothing is None else opts.smoothing
     n_samples = method.samples if opts.samples is None else opts.samples
-    fits, changed, points, label_report = [], False, None, None
     if first.kind in ("raw", "linear") and not opts.force:
         log.info("RAW data is linear: no CRF to estimate; writing an identity (linear) CRF (use --force to fit one)")
-        crf = CRF("linear")
+        fit = _Fit(CRF("linear"))
     else:
-        if len(frames) < 2:
-            raise HdrMergeError(f"{first.path}: estimating a CRF needs at least two exposures")
-        check_samples(opts.samples, len(frames), first.n_codes, first.width * first.height)
-        with ThreadPoolExecutor(2) as pool:  # the decoders release the GIL: both cores
-            codes = list(pool.map(load_codes, frames))
-        by_frame = {id(f): c for f, c in zip(frames, codes)}
-        labels = exposure_values(frames)
-        samples = exposure_check.ordered_samples(frames, labels, lambda f: by_frame[id(f)])  # constant borders off
-        del by_frame
-        if first.kind == "raw":
-            codes = [c[..., None] for c in codes]
-        exposure_check.check_overlap(frames, samples)
-        log_h = np.log(labels)
-        options = {}
-        if method.noise_weighted:
-            options.update(pair_weight=opts.pair_weight, bounds=parse_bounds(opts.bounds) if opts.bounds else None,
-                           coupling=opts.coupling, anchor=opts.anchor,
-                           **({"weighting": opts.weighting} if opts.weighting else {}))
-        crf, fits, changed = fit_crf(codes, log_h, first.n_codes, opts.method, smoothing, n_samples, options,
-                                     np.random.default_rng(opts.seed))
-        check_not_flat(crf, opts.method, smoothing)
-        # the labels checked through the fitted response (the comparagrams the fit used);
-        # --times estimate: refit with the estimates, until they settle (at most 3 rounds)
-        est = estimate(labels, samples, crf)
-        for _ in range(3 if opts.times == ESTIMATE else 0):
-            new_log_h = est.log_h
-            crf, fits, changed = fit_crf(codes, new_log_h, first.n_codes, opts.method, smoothing, n_samples, options,
-                                         np.random.default_rng(opts.seed))
-            check_not_flat(crf, opts.method, smoothing)
-            est = estimate(labels, samples, crf)
-            moved = float(np.max(np.abs(est.log_h - new_log_h))) / np.log(2)
-            log_h = new_log_h
-            if moved < 0.01:
-                break
-        motion = exposure_check.label_motion(samples, labels, crf, est)
-        exposure_check.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
-                                       else "; estimate-crf --times estimate fits with the estimates", motion=motion,
-                                       crf=crf)
-        label_report = exposure_check.report(frames, labels, est,
-                                              "estimates" if opts.times == ESTIMATE else "labels", crf, motion=motion)
-        points = (codes, log_h)
-    details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}
-    if fits:
-        details |= {"lambda": smoothing, "samples": n_samples or "all",
-                    "iterations": [f.iterations for f in fits], "converged": all(f.converged for f in fits)}
-        if method.noise_weighted:
-            details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,
-                        "pair_weight": opts.pair_weight, "coupling": opts.coupling,
-                        "anchor": opts.anchor, "prior": "srgb"}
-    command = f"estimate-crf --method {opts.method}"
-    if base is not None:
-        profile = base
-        profile["crf"] = crf_to_json(crf)
-        profile.setdefault("provenance", {})["crf_command"] = command
-    else:
-        profile = new_profile({"make": first.make, "model": first.model}, first.bits, crf,
-                              [f.path for f in frames], command)
-    profile["crf"].update(details)
+        fit = _fit_bracket(frames, method, opts, smoothing, n_samples)
+    crf = fit.crf
+    details = _fit_details(first, method, opts, fit, smoothing, n_samples)
+    profile = _profile_of(base, frames, crf, details, opts.method)
     writers = [(output, profile_writer(profile, output))]
-    if opts.plot is not None and points is not None:
-        writers.append((opts.plot, figure_writer(crf_figure(np.log(np.maximum(crf.table, 1e-300)), *points, frames,
+    if opts.plot is not None and fit.points is not None:
+        writers.append((opts.plot, figure_writer(crf_figure(np.log(np.maximum(crf.table, 1e-300)), *fit.points, frames,
                                                             opts.seed), opts.plot)))
     write_together(writers, opts.overwrite or updating)
     return {
         "output": str(output), "method": opts.method, "frames": [f.summary() for f in frames],
-        "crf": crf.describe(), "made_monotone": changed, "exposure_check": label_report, **{k: v for k, v in details.items() if k != "method"},
+        "crf": crf.describe(), "made_monotone": fit.changed, "exposure_check": fit.exposure_check,
+        **{k: v for k, v in details.items() if k != "method"},
         "seconds": round(time.perf_counter() - t0, 4),
     }
 

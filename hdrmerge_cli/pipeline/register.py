@@ -135,11 +135,12 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     motion = "similarity" if mode == "auto" else mode
     raw = frames[0].kind == "raw"
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    steps, sides, confidence, judged_still = _register_steps(frames, exposures, crf, mode, motion, ref, load)
+    found = _Registrar(frames, exposures, crf, mode, motion, ref, load).run()
+    steps = found.steps
     warps = [None] * len(frames)
     warps[ref] = identity
     unaligned = []
-    for j in sides[0] + sides[1]:
+    for j in found.sides[0] + found.sides[1]:
         w, why = steps[j]
         if why is not None:
             unaligned.append(frames[j].path)
@@ -163,8 +164,8 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
     resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
     log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
              "applied" if applied else "not needed")
-    out = Alignment(mode, motion, resampling, frames[ref].path, bool(applied), list(frames), warps, confidence,
-                    unaligned, [frames[j].path for j in sorted(judged_still)])
+    out = Alignment(mode, motion, resampling, frames[ref].path, bool(applied), list(frames), warps, found.confidence,
+                    unaligned, [frames[j].path for j in sorted(found.still)])
     if applied:
         share = out.covered_by_every_frame()
         if share < 1:
@@ -185,115 +186,146 @@ def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[f
         return None
 
 
-def _register_steps(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, motion: str, ref: int, load):
-    """The steps of :func:`estimate_alignment`: per frame ``j`` other than the reference,
-    ``(warp from its neighbour towards the reference to it, why it is left unaligned or
-    None)``, the two sides' frame orders, the confidences and the frames found still."""
-    raw = frames[0].kind == "raw"
-    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    confidence = [1.0] * len(frames)
-    judged_still: list[int] = []
+@dataclasses.dataclass
+class _Steps:
+    """What :class:`_Registrar` hands :func:`estimate_alignment`."""
 
-    def step(a: int, b: int, image) -> tuple[np.ndarray, str | None]:
+    #: per frame ``j`` other than the reference: ``(warp, why)``, the ``(2, 3)`` float64 warp
+    #: from its neighbour towards the reference to it, and why it is left unaligned or None
+    steps: dict[int, tuple[np.ndarray, str | None]]
+    #: the frame indices of each side of the reference, outwards (after it, before it)
+    sides: list[list[int]]
+    #: per frame, its registration's correlation to its neighbour (1 for the reference)
+    confidence: list[float]
+    #: the frames found still (coarse test, or a displacement the pair does not pin), as found
+    still: list[int]
+
+
+class _Registrar:
+    """The steps of :func:`estimate_alignment` on one bracket: each frame registered to its
+    neighbour towards the reference, the coarse images made once and shared by the two sides'
+    threads."""
+
+    def __init__(self, frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, motion: str, ref: int,
+                 load):
+        self.frames, self.exposures, self.crf, self.load = frames, exposures, crf, load
+        self.mode, self.motion, self.ref = mode, motion, ref
+        self.raw = frames[0].kind == "raw"
+        self.identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+        self.confidence = [1.0] * len(frames)
+        self.judged_still: list[int] = []
+        self.scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if self.raw else 1)
+        self._small: dict[int, np.ndarray] = {}
+        self._making = {k: threading.Lock() for k in range(len(frames))}
+
+    def image(self, k: int) -> np.ndarray:
+        """Frame k's full-resolution registration image (:func:`_linear`), made again for each
+        pair rather than held: the codes are decoded once (HeldCodes)."""
+        return _linear(self.frames[k], self.load(self.frames[k]), self.crf)
+
+    def coarse(self, k: int) -> np.ndarray:
+        """Frame k's registration image reduced as the texture test reduces it
+        (:func:`_coarse_linear`); made once, the reference's for both sides."""
+        with self._making[k]:
+            if k not in self._small:
+                self._small[k] = _coarse_linear(self.frames[k], self.load(self.frames[k]), self.crf, self.scale)
+            return self._small[k]
+
+    def log_pair(self, a: int, b: int, image) -> tuple[np.ndarray, np.ndarray] | None:
+        """Frames a's and b's ``image`` as log irradiance over the range both expose well
+        (:func:`~hdrmerge_cli.core.registration.log_irradiance`), or None when there is none."""
+        shared = _shared_range(self.frames[a], self.exposures[a], self.exposures[b])
+        if shared is None:
+            return None
+        lo, hi = shared
+        return (registration.log_irradiance(image(a), self.exposures[a], lo, hi),
+                registration.log_irradiance(image(b), self.exposures[b], lo, hi))
+
+    def step(self, a: int, b: int) -> tuple[np.ndarray, str | None]:
         """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
         identity and why they cannot be registered."""
-        shared = _shared_range(frames[a], exposures[a], exposures[b])
-        if shared is None:
-            return identity, "no irradiance range is well exposed in both it and its neighbour"
-        lo, hi = shared
-        ia = registration.log_irradiance(image(a), exposures[a], lo, hi)
-        ib = registration.log_irradiance(image(b), exposures[b], lo, hi)
+        pair = self.log_pair(a, b, self.image)
+        if pair is None:
+            return self.identity, "no irradiance range is well exposed in both it and its neighbour"
+        ia, ib = pair
         why = registration.registrable(ia, ib)
         if why is not None:
-            return identity, f"{why} in the range it shares with its neighbour"
-        w, rho = registration.estimate_warp(ia, ib, motion)
-        confidence[b] = round(rho, 4)
+            return self.identity, f"{why} in the range it shares with its neighbour"
+        w, rho = registration.estimate_warp(ia, ib, self.motion)
+        self.confidence[b] = round(rho, 4)
         if rho < MIN_CONFIDENCE:
-            return identity, f"registration to its neighbour correlates only {rho:.2f}"
-        return (registration.rescale_warp(w, 2, 0.5) if raw else w), None  # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+            return self.identity, f"registration to its neighbour correlates only {rho:.2f}"
+        # RAW: found on 2 x 2 cells (centre 2u + 0.5)
+        return (registration.rescale_warp(w, 2, 0.5) if self.raw else w), None
 
-    def image(k: int) -> np.ndarray:  # made again for each pair rather than held: the codes are
-        # decoded once (HeldCodes)
-        return _linear(frames[k], load(frames[k]), crf)
-
-    scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if raw else 1)
-    small: dict[int, np.ndarray] = {}
-    making = {k: threading.Lock() for k in range(len(frames))}
-
-    def coarse(k: int) -> np.ndarray:  # the registration image reduced as the texture test
-        # reduces it; the reference's made once for both sides
-        with making[k]:
-            if k not in small:
-                small[k] = _coarse_linear(frames[k], load(frames[k]), crf, scale)
-            return small[k]
-
-    def still(a: int, b: int) -> tuple[np.ndarray, str | None] | None:
+    def still(self, a: int, b: int) -> tuple[np.ndarray, str | None] | None:
         """Under ``auto``: the step from frame a to b at coarse resolution when the pair is
         still (:func:`~hdrmerge_cli.core.registration.still_test`, the tolerance
         :data:`AUTO_ALIGN_PX` shared by the steps between b and the reference), else None."""
-        shared = _shared_range(frames[a], exposures[a], exposures[b])
-        if shared is None:
+        pair = self.log_pair(a, b, self.coarse)
+        if pair is None:
             return None
-        lo, hi = shared
-        ia = registration.log_irradiance(coarse(a), exposures[a], lo, hi)
-        ib = registration.log_irradiance(coarse(b), exposures[b], lo, hi)
-        why = registration.registrable(ia, ib, scale // (2 if raw else 1))
+        ia, ib = pair
+        why = registration.registrable(ia, ib, self.scale // (2 if self.raw else 1))
         if why is not None:  # the texture test measures at this level
-            return identity, f"{why} in the range it shares with its neighbour"
-        tol = AUTO_ALIGN_PX / abs(b - ref)
-        is_still, w, bound, rho = registration.still_test(ia, ib, scale, frames[b].height, frames[b].width, tol)
+            return self.identity, f"{why} in the range it shares with its neighbour"
+        frame = self.frames[b]
+        tol = AUTO_ALIGN_PX / abs(b - self.ref)
+        is_still, w, bound, rho = registration.still_test(ia, ib, self.scale, frame.height, frame.width, tol)
         if not is_still:
             log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
-                     "resolution", frames[b].path, tol)
+                     "resolution", frame.path, tol)
             return None
-        confidence[b] = round(rho, 4)
+        self.confidence[b] = round(rho, 4)
         log.info("%s: still against its neighbour (coarse test: displaced at most %.3f px at %g confidence, by "
-                 "(%.3f, %.3f) px as estimated); not registered at full resolution", frames[b].path, bound,
+                 "(%.3f, %.3f) px as estimated); not registered at full resolution", frame.path, bound,
                  1 - registration.STILL_P_MISS, w[0, 2], w[1, 2])
-        judged_still.append(b)
+        self.judged_still.append(b)
         if rho < MIN_CONFIDENCE:
-            return identity, f"its still test correlates only {rho:.2f} with its neighbour"
+            return self.identity, f"its still test correlates only {rho:.2f} with its neighbour"
         # RAW: within the tolerance at the test's confidence the frame stays where its
         # neighbour is: resampling a mosaic colour by colour for an estimate of a few
         # hundredths of a pixel costs more than it corrects (a colour's 2-px pitch, the taps'
         # spread in the weights, clipped taps near white)
-        return (identity if raw else w), None
+        return (self.identity if self.raw else w), None
 
-    def pinned(a: int, b: int, w: np.ndarray) -> bool:
+    def pinned(self, a: int, b: int, w: np.ndarray) -> bool:
         """Under ``auto``: whether the registered step from frame a to b moves b by more than
         the pair can tell from no motion
         (:func:`~hdrmerge_cli.core.registration.displacement_margin` on the coarse images)."""
-        size = registration.warp_size(w, frames[b].height, frames[b].width)
-        lo, hi = _shared_range(frames[a], exposures[a], exposures[b])
-        margin = registration.displacement_margin(registration.log_irradiance(coarse(a), exposures[a], lo, hi),
-                                                  registration.log_irradiance(coarse(b), exposures[b], lo, hi), w,
-                                                  scale, frames[b].height, frames[b].width)
+        frame = self.frames[b]
+        size = registration.warp_size(w, frame.height, frame.width)
+        ia, ib = self.log_pair(a, b, self.coarse)
+        margin = registration.displacement_margin(ia, ib, w, self.scale, frame.height, frame.width)
         if size > margin:
             return True
         log.info("%s: registered %.2f px from its neighbour, within the %.2f px the pair cannot tell from no "
-                 "motion; not moved", frames[b].path, size, margin)
-        judged_still.append(b)
+                 "motion; not moved", frame.path, size, margin)
+        self.judged_still.append(b)
         return False
 
-    def chain(indices: list[int]) -> dict:
-        """The steps of one side of the reference, outwards: under ``auto`` a step found still at
-        coarse resolution is not registered at full resolution, and a registered one is kept
-        only where the pair pins it (:func:`pinned`)."""
+    def chain(self, indices: list[int]) -> dict[int, tuple[np.ndarray, str | None]]:
+        """The steps of one side of the reference, outwards (``{j: (warp, why)}``): under
+        ``auto`` a step found still at coarse resolution is not registered at full resolution,
+        and a registered one is kept only where the pair pins it (:meth:`pinned`)."""
+        auto = self.mode == "auto"
         out = {}
         for j in indices:
-            a = j - 1 if j > ref else j + 1
-            out[j] = (mode == "auto" and still(a, j)) or step(a, j, image)
-            if mode == "auto" and out[j][1] is None and j not in judged_still and not pinned(a, j, out[j][0]):
-                out[j] = identity, None
+            a = j - 1 if j > self.ref else j + 1
+            out[j] = (auto and self.still(a, j)) or self.step(a, j)
+            if auto and out[j][1] is None and j not in self.judged_still and not self.pinned(a, j, out[j][0]):
+                out[j] = self.identity, None
         return out
 
-    # each frame is registered to its neighbour towards the reference (they share the most
-    # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1).  The
-    # two sides of the reference run on two threads (OpenCV's ECC releases the GIL)
-    sides = [list(range(ref + 1, len(frames))), list(range(ref - 1, -1, -1))]
-    with ThreadPoolExecutor(2) as pool:
-        steps = {j: st for side in pool.map(chain, [s for s in sides if s]) for j, st in side.items()}
-    return steps, sides, confidence, judged_still
+    def run(self) -> _Steps:
+        """Every frame's step, both sides of the reference (:class:`_Steps`)."""
+        # each frame is registered to its neighbour towards the reference (they share the most
+        # well-exposed range) and the warps are chained: W_j = step(j -+ 1, j) o W_(j -+ 1).  The
+        # two sides of the reference run on two threads (OpenCV's ECC releases the GIL)
+        sides = [list(range(self.ref + 1, len(self.frames))), list(range(self.ref - 1, -1, -1))]
+        with ThreadPoolExecutor(2) as pool:
+            steps = {j: st for side in pool.map(self.chain, [s for s in sides if s]) for j, st in side.items()}
+        return _Steps(steps, sides, self.confidence, self.judged_still)
 
 
 def whole_periods_suffice(warps) -> bool:
