@@ -74,7 +74,7 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
         params = [found[ch] for ch in frames[0].channel_names] if found else None
     elif noise == "measured":
         from hdrmerge_cli.core.noise import NoiseParams
-        from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+        from hdrmerge_cli.pipeline.noise import estimate_bracket_noise
 
         lookup = {id(f): c for f, c in zip(frames, codes)}
         used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])

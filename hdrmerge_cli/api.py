@@ -463,7 +463,7 @@ def estimate_noise(stack, times, *, response=None, cfa: str | None = None, black
     >>> bool(0.2 < p.alpha < 0.3 and 6 < p.sigma_o2 < 13), p.beta
     (True, 0.0)
     """
-    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+    from hdrmerge_cli.pipeline.noise import estimate_bracket_noise
 
     st = _stack(stack, times, cfa, black, white, bits)
     crf = _response(response, st)

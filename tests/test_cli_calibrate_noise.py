@@ -225,7 +225,7 @@ def test_merge_fast_path_lies_within_its_standard_errors_of_the_truth(run, tmp_p
     codes drawn as the frames are decoded, so the measurement decodes nothing itself."""
     from hdrmerge_cli.io.frames import load_codes, read_frame
     from hdrmerge_cli.pipeline.bracket import choose_crf
-    from hdrmerge_cli.pipeline.calibrate import estimate_bracket_noise
+    from hdrmerge_cli.pipeline.noise import estimate_bracket_noise
     from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
 
     meta = simulate(run, tmp_path / "b", "--frames", "5", "--seed", str(seed), "--alpha", "0.5", "--sigma-o2", "16")

@@ -455,15 +455,15 @@ def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare(
 def test_a_night_frame_with_sparse_lamps_is_not_black():
     """The 'black' rule counts sites above the noise floor: a frame that is dark but for a
     few lamps (99th percentile near black) has signal; one of pure noise has none."""
-    from hdrmerge_cli.pipeline.calibrate import _has_signal
+    from hdrmerge_cli.pipeline.noise import has_signal
 
     rng = np.random.default_rng(0)
     noise = rng.normal(0, 2.0, (600, 800))
-    assert not _has_signal(noise, -64.0, 4000.0)
+    assert not has_signal(noise, -64.0, 4000.0)
     lamps = noise.copy()
     lamps[100:110, 100:110] = 3000
     lamps[400:405, 600:640] = 1500
-    assert np.percentile(lamps, 99) < 10 and _has_signal(lamps, -64.0, 4000.0)
+    assert np.percentile(lamps, 99) < 10 and has_signal(lamps, -64.0, 4000.0)
 
 
 @pytest.mark.parametrize("seed", [31, 32])

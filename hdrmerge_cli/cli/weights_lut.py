@@ -15,13 +15,14 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.atomic import write_together
 from hdrmerge_cli.io.crfspec import resolve_crf
+from hdrmerge_cli.io.luts import luts_writer
+from hdrmerge_cli.io.metadata import exposure_values
 from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer
-from hdrmerge_cli.io.metadata import exposure_values
-from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, luts_figure, luts_writer, weight_luts
-from hdrmerge_cli.pipeline.choices import RAW_HAS_NO_LUT, prior_rate as prior_rate_of
-from hdrmerge_cli.pipeline.noise import resolve_noise
 from hdrmerge_cli.pipeline.bracket import choose_crf, read_bracket
+from hdrmerge_cli.pipeline.choices import RAW_HAS_NO_LUT, prior_rate as prior_rate_of
+from hdrmerge_cli.pipeline.lut import PRIOR_RATE_RANGE, check_luts, luts_figure, weight_luts
+from hdrmerge_cli.pipeline.noise import resolve_noise
 
 
 @click.command("weights-lut")

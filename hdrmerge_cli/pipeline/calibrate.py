@@ -11,9 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.calibrate import (
-    NoiseFit, achievable_errors, estimate_noise, fit_standard_errors, read_noise_split,
-)
+from hdrmerge_cli.core.calibrate import NoiseFit, estimate_noise, fit_standard_errors, read_noise_split
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable, write_together
@@ -22,12 +20,11 @@ from hdrmerge_cli.io.noisespec import iso_key, iso_of_key
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.pipeline.bracket import choose_crf
-from hdrmerge_cli.pipeline.noise_draw import NoiseDraw, channel_codes
+from hdrmerge_cli.pipeline.noise import (
+    achievable, channel_planes, fit_entry, precision_entry, rounded, unusable_reason, usable_frames,
+)
 
 log = logging.getLogger("hdrmerge_cli")
-
-#: a frame with less than this fraction of unclipped pixels is skipped
-MIN_UNCLIPPED = 0.01
 
 NOISE_UNITS = ("code values above black (RAW) or linearised code values at the image's bit depth; "
                "x in photo-electrons, Var[y] = sigma_o2 + alpha x + beta x^2")
@@ -46,71 +43,6 @@ class CalibrateOptions:
     overwrite: bool = False
 
 
-def linear_plane(frame: Frame, k: int, codes: np.ndarray, crf):
-    """(plane of linear values above black (H', W') float64, lo, hi) of channel ``k``'s codes
-    (:func:`channel_codes`): RAW minus its black level, images linearised by ``crf`` at
-    their bit depth; a value ``<= lo`` or ``>= hi`` is clipped."""
-    if frame.kind == "raw":
-        return codes.astype(np.float64) - frame.black[k], -frame.black[k], frame.white[k] - frame.black[k]
-    full = frame.n_codes - 1.0
-    lo, hi = crf.inverse(np.array([0.5 / full, (full - 0.5) / full]), k) * full
-    return crf.inverse(codes / full, k) * full, lo, hi
-
-
-def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None):
-    """(name, plane of linear values above black (H', W') float64, lo, hi) per channel
-    (:func:`channel_codes` through :func:`linear_plane`)."""
-    for name, k, sub in channel_codes(frame, codes, corner):
-        yield (name, *linear_plane(frame, k, sub, crf))
-
-
-def _usable(frame: Frame, planes, sites: int | None = None) -> str | None:
-    """Why a frame cannot be used (all clipped, or black), or None.  planes: as
-    :func:`channel_planes` yields them, whole or an even subsample of planes of ``sites``
-    sites each (see :func:`_has_signal`)."""
-    inside = np.mean([np.mean((p > lo) & (p < hi)) for _, p, lo, hi in planes])
-    if inside < MIN_UNCLIPPED:
-        dark = np.mean([np.mean(p <= lo) for _, p, lo, hi in planes])
-        bright = 1 - inside - dark
-        parts = [f"{100 * v:.1f} % of its pixels {what}" for v, what in ((dark, "read black"),
-                                                                         (bright, "are clipped at white")) if v > 0]
-        return " and ".join(parts)
-    if not any(_has_signal(p, lo, hi, sites) for _, p, lo, hi in planes):
-        if frame.width * frame.height < MIN_SIGNAL_SITES:
-            return (f"it holds {frame.width * frame.height} pixels, too few to measure noise on (at least "
-                    f"{MIN_SIGNAL_SITES})")
-        return "it is black (no signal above its noise floor)"
-    return None
-
-
-#: a frame has signal when at least this many of its sites (and this fraction) lie above the noise floor
-MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION = 64, 1e-4
-#: and, judged on an even subsample, at least this many of the subsample's sites
-MIN_SIGNAL_SAMPLES = 8
-
-
-def _has_signal(plane: np.ndarray, lo: float, hi: float, sites: int | None = None) -> bool:
-    """Whether a plane holds signal: enough sites (:data:`MIN_SIGNAL_SITES`, a fraction
-    :data:`MIN_SIGNAL_FRACTION`) above its noise floor, 6 robust standard deviations of
-    the darker half of the sites (1.4826 times their median absolute deviation) above
-    black and at least 0.2 % of the range.  A count, not a percentile: a night frame whose
-    99th percentile is near black but whose lamps and windows are bright has signal.
-
-    ``sites``: the plane is an even subsample of a plane of that many sites, whose count
-    above the floor is estimated from the subsample's fraction (and at least
-    :data:`MIN_SIGNAL_SAMPLES` of the subsample's sites must lie above it)."""
-    sub = (plane[::2, ::2] if plane.size > 1 << 22 else plane).ravel()
-    med = float(np.median(sub))
-    low = sub[sub <= med]
-    sigma = 1.4826 * float(np.median(np.abs(low - np.median(low)))) if low.size else 0.0
-    floor = max(6 * sigma, 0.002 * (hi - max(lo, 0.0)))
-    above = int(np.count_nonzero(sub > floor))
-    if sites is None or sites <= sub.size:
-        return above >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sub.size)
-    return (above >= MIN_SIGNAL_SAMPLES
-            and above * sites / sub.size >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sites))
-
-
 def _read_group(frames: list[Frame], crf, what: str, load=load_codes) -> list[tuple[Frame, list]]:
     """[(frame, its :func:`channel_planes`)] of the usable frames, in the order of
     ``frames``; photographs that are all clipped or black are skipped with a warning.
@@ -120,23 +52,10 @@ def _read_group(frames: list[Frame], crf, what: str, load=load_codes) -> list[tu
 
     def read(f):
         planes = list(channel_planes(f, load(f), crf, corner))
-        return _usable(f, planes) if what == "images" else None, planes
+        return unusable_reason(f, planes) if what == "images" else None, planes
 
     with ThreadPoolExecutor(2) as pool:
-        return _usable_frames(frames, pool.map(read, frames))
-
-
-def _usable_frames(frames: list[Frame], results, skipped: str = "skipped",
-                   level: int = logging.WARNING) -> list[tuple[Frame, list]]:
-    """[(frame, planes)] of ``results`` (``(why the frame is unusable or None, its planes)``
-    per frame), each unusable frame left out with a message (``skipped``, at ``level``)."""
-    out = []
-    for f, (reason, planes) in zip(frames, results):
-        if reason:
-            log.log(level, "%s: %s, %s", f.path, skipped, reason)
-        else:
-            out.append((f, planes))
-    return out
+        return usable_frames(frames, pool.map(read, frames))
 
 
 def _by_channel(read: list[tuple[Frame, list]]) -> dict[str, list]:
@@ -208,16 +127,6 @@ def _check_pinned(fits: dict[str, dict], frames: list[Frame]) -> None:
     if weak("sigma_o2"):
         log.warning("%s: its local statistics do not pin the read noise (%s); --darks measure it", frames[0].path,
                     "; ".join(weak("sigma_o2")))
-
-
-def _fit_entry(fit: NoiseFit, pairs: list[float], window: int) -> dict:
-    source = "exposure pairs" if pairs else "local statistics"
-    return fit.as_dict() | {
-        "method": {"sigma_o2": source, "alpha": source,
-                   "beta": "not measured: in photographs scene texture and gain FPN look alike (--flats "
-                           "measures beta); 0 is used"},
-        "window": window, "exposure_ratios": [round(r, 5) for r in pairs],
-    }
 
 
 def _ptc_entry(r: PTCResult) -> dict:
@@ -317,8 +226,8 @@ def _photograph_fits(read: list[tuple[Frame, list]], iso: str, opts: CalibrateOp
     fits: dict[str, dict] = {}
     for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
         k = [c for c, *_ in read[0][1]].index(name)
-        fits[name] = _fit_entry(fit, ratios, opts.window) | _precision(
-            fit_standard_errors(fit, bool(ratios)), _achievable(read, k, fit))
+        fits[name] = fit_entry(fit, ratios, opts.window) | precision_entry(
+            fit_standard_errors(fit, bool(ratios)), achievable(read, k, fit))
         plot_data.setdefault(iso, {})[name] = {"fit": fit}
     return fits
 
@@ -436,9 +345,9 @@ def read_noise_split_entry(noise: dict) -> dict:
         except HdrMergeError as exc:
             log.warning("channel %s: no read-noise split (%s)", name, exc)
             continue
-        out[name] = {"pre_amp_electrons2": _rounded(fit.pre), "post_amp_codes2": _rounded(fit.post),
-                     "stderr": {"pre_amp_electrons2": _rounded(fit.pre_stderr),
-                                "post_amp_codes2": _rounded(fit.post_stderr)},
+        out[name] = {"pre_amp_electrons2": rounded(fit.pre), "post_amp_codes2": rounded(fit.post),
+                     "stderr": {"pre_amp_electrons2": rounded(fit.pre_stderr),
+                                "post_amp_codes2": rounded(fit.post_stderr)},
                      "weighted": fit.weighted, "isos": [int(iso) if iso.is_integer() else iso for iso, _ in items]}
         log.info("channel %s: read noise %.4g electrons^2 before the ISO amplifier, %.4g code values^2 after it "
                  "(ISO %s)", name, fit.pre, fit.post, ", ".join(f"{iso:g}" for iso, _ in items))
@@ -570,93 +479,3 @@ def noise_figure(noise: dict, plot_data: dict):
     return fig
 
 
-def _read_drawn(frames: list[Frame], crf, load, draw: NoiseDraw, pool) -> list[tuple[Frame, list]]:
-    """:func:`_read_group`'s list from the drawn codes (frames not yet drawn decoded through
-    ``load``), two frames at a time on ``pool``: each frame's usability judged on its even
-    stride (the rule of :func:`_usable`), its tiles linearised."""
-    def read(f):
-        if f.path not in draw.drawn:
-            draw(f, load(f))
-        channels = draw.drawn[f.path]
-        reason = _usable(f, [(c.name, *linear_plane(f, c.index, c.stride, crf)) for c in channels],
-                         min(c.sites for c in channels))
-        return reason, None if reason else [(c.name, *linear_plane(f, c.index, c.tiles, crf)) for c in channels]
-
-    # merge goes on with such a frame: not a warning
-    return _usable_frames(frames, pool.map(read, frames), "not used to measure the noise", logging.INFO)
-
-
-def _achievable(read: list[tuple[Frame, list]], k: int, fit: NoiseFit) -> tuple[float, float]:
-    """Cramer-Rao standard errors (sigma_o^2, alpha) of channel ``k``'s exposure contrasts on
-    the drawn sites (:func:`~hdrmerge_cli.core.calibrate.achievable_errors`) at the fitted
-    parameters, the frames' exposure ratios from their times (inf with one frame)."""
-    if len(read) < 2:
-        return float("inf"), float("inf")
-    times = [f.exposure_time for f, _ in read]
-    ratios = [b / a if a and b and b > a else None for a, b in zip(times[:-1], times[1:])]
-    _, _, lo, hi = read[0][1][k]
-    return achievable_errors([planes[k][1] for _, planes in read], lo, hi, ratios, fit.coef)
-
-
-def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: NoiseDraw | None = None,
-                           pairs: bool = True) -> tuple[dict, dict]:
-    """merge without noise parameters: (17) per channel from the bracket itself, by the
-    calibrate-noise code on :data:`~hdrmerge_cli.pipeline.noise_draw.FAST_PATH_SITES`
-    sites per channel and frame (:func:`~hdrmerge_cli.pipeline.noise_draw.noise_tiles`;
-    ``draw``: the codes drawn as the merge decoded the frames, else decoded here through
-    ``load``).  Returns ({channel: {"sigma_o2", "alpha", "beta"}},
-    {channel: profile entry}); the entry's ``stderr`` holds the fit's standard errors of
-    sigma_o2 and alpha (:func:`~hdrmerge_cli.core.calibrate.fit_standard_errors`) and
-    ``achievable_stderr`` the Cramer-Rao bound of the drawn sites' exposure contrasts
-    (None where they hold none).
-
-    Photographs do not measure beta (:mod:`hdrmerge_cli.core.calibrate`): it is 0.  ``pairs=False``:
-    each frame's own local statistics alone, not the exposure pairs (a camera-processed
-    bracket, whose pairs also hold what the processing adds, measured apart:
-    :mod:`hdrmerge_cli.pipeline.excess`)."""
-    iso = iso_key(frames[0].iso)
-    draw = draw if draw is not None else NoiseDraw(frames)
-    with ThreadPoolExecutor(2) as pool:  # SciPy's filters and NumPy's sorts release the GIL: both cores
-        read = _read_drawn(sorted(frames, key=lambda f: f.exposure_time or 0.0), crf, load, draw, pool)
-        if not read:
-            raise HdrMergeError("no usable frame (all clipped or black)")
-
-        def fit(k):
-            name, _, lo, hi = read[0][1][k]
-            try:
-                est, ratios = estimate_noise([planes[k][1] for _, planes in read], lo, hi, pairs=pairs)
-            except HdrMergeError as exc:
-                return name, None, f"{read[0][0].path} ({iso}, channel {name}): {exc}", None, None
-            return name, est, ratios, fit_standard_errors(est, bool(ratios)), _achievable(read, k, est)
-
-        fits = list(pool.map(fit, range(len(read[0][1]))))
-    measured = [f for f in fits if f[1] is not None]
-    if not measured:
-        raise HdrMergeError(fits[0][2])
-    used, entries = {}, {}
-    sites = min(c.drawn for c in draw.drawn[read[0][0].path])
-    for name, est, ratios, se, crb in measured:
-        entries[name] = _fit_entry(est, ratios, 7) | {"subsample_sites": sites} | _precision(se, crb)
-        used[name] = {"sigma_o2": est.sigma_o2, "alpha": est.alpha, "beta": 0.0}
-    # a channel the bracket cannot measure (clipped or black nearly everywhere) takes the
-    # median of the measured channels': the same sensor, up to the white balance's gain (the
-    # entry says so; the caller tells the user)
-    stand_in = {p: float(np.median([used[f[0]][p] for f in measured])) for p in ("sigma_o2", "alpha")}
-    for name, est, why, _, _ in fits:
-        if est is None:
-            used[name] = stand_in | {"beta": 0.0}
-            entries[name] = {"stand_in_from": [f[0] for f in measured], "reason": why}
-    return {name: used[name] for name, *_ in fits}, {name: entries[name] for name, *_ in fits}
-
-
-def _precision(se: tuple[float, float], crb: tuple[float, float]) -> dict:
-    """A profile entry's ``stderr`` (the fit's standard errors of sigma_o2 and alpha) and
-    ``achievable_stderr`` (the Cramer-Rao bound of the bracket's exposure contrasts; None
-    where it holds none)."""
-    return {"stderr": {"sigma_o2": _rounded(se[0]), "alpha": _rounded(se[1])},
-            "achievable_stderr": ({"sigma_o2": _rounded(crb[0]), "alpha": _rounded(crb[1])}
-                                  if np.isfinite(crb[0]) and np.isfinite(crb[1]) else None)}
-
-
-def _rounded(x: float) -> float | None:
-    return float(f"{x:.4g}") if np.isfinite(x) else None

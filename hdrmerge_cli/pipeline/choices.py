@@ -17,6 +17,7 @@ from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.reconstruct import exposure_tables, table_size
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.luts import read_luts
 from hdrmerge_cli.io.noisespec import iso_key, parse_bounds, per_channel
 from hdrmerge_cli.io.metadata import sample_pattern
 from hdrmerge_cli.pipeline.options import MergeSettings
@@ -228,8 +229,6 @@ RAW_HAS_NO_LUT = ("a RAW mosaic: weight tables serve image brackets (a code valu
 def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
     """``merge --lut``: each frame's ``(C, N)`` weights from a ``weights-lut`` table whose
     columns follow the exposures in increasing order (one per frame, or per frame and channel)."""
-    from hdrmerge_cli.pipeline.lut import read_luts
-
     first = frames[0]
     if first.kind == "raw":
         raise HdrMergeError(f"{first.path}: {RAW_HAS_NO_LUT}")

@@ -1,7 +1,7 @@
 """The sites merge measures a bracket's noise on, drawn from the integer codes as the
 merge decodes each frame (:class:`NoiseDraw`): tiles spread over each channel
 (:func:`noise_tiles`) and an even stride for the usability test.  The measurement itself
-is :func:`hdrmerge_cli.pipeline.calibrate.estimate_bracket_noise`; this module keeps
+is :func:`hdrmerge_cli.pipeline.noise.estimate_bracket_noise`; this module keeps
 calibrate-noise's imports off a merge's start-up."""
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def draw_codes(frame: Frame, codes: np.ndarray, corner: np.ndarray | None = None
 class NoiseDraw:
     """``(frame, codes) ->`` keeps :func:`draw_codes` of each frame the first time it is
     decoded (the merge's exposure check decodes every frame), for
-    :func:`~hdrmerge_cli.pipeline.calibrate.estimate_bracket_noise`: the noise needs no
+    :func:`~hdrmerge_cli.pipeline.noise.estimate_bracket_noise`: the noise needs no
     decode of its own.  Thread-safe
     (frames are decoded two at a time)."""
 
