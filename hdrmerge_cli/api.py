@@ -678,8 +678,9 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
                  cfa_pattern: str | None = None, black: float = 0.0, white: float | None = None,
                  bits: int | None = None, **options) -> Merged:
     """Decoded frames merged with :func:`merge_files`'s options (the response as the command
-    line's text or a :class:`CRF`), returning the whole :class:`Merged`: its summary, the
-    alignment and ghosts it found, for tests and benchmarks that inspect a merge's stages.
+    line's text or a :class:`CRF`), returning the whole :class:`Merged`: its summary and
+    every stage's result (``.bracket.alignment``, ``.bracket.ghosts``, ``.bracket.models``;
+    ``.reconstruction``), for tests and benchmarks that inspect a merge's stages.
     ``codes``, ``cfa_pattern``, ``black``, ``white``, ``bits`` as :func:`merge`'s ``stack``,
     ``cfa``, ``black``, ``white``, ``bits``."""
     st = _stack(codes, exposure_times, cfa_pattern, black, white, bits)

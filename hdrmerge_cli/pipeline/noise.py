@@ -9,10 +9,10 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hdrmerge_cli.core.calibrate import NoiseFit, achievable_errors, estimate_noise, fit_standard_errors
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
@@ -22,6 +22,9 @@ from hdrmerge_cli.io.profile import load_profile
 from hdrmerge_cli.pipeline.noise_draw import NoiseDraw, channel_codes
 
 log = logging.getLogger("hdrmerge_cli")
+
+if TYPE_CHECKING:
+    from hdrmerge_cli.core.calibrate import NoiseFit
 
 
 def frame_noise_of(frames: list[Frame], noise: dict[str, NoiseParams] | None,
@@ -268,6 +271,8 @@ def achievable(read: list[tuple[Frame, list]], k: int, fit: NoiseFit) -> tuple[f
     """Cramer-Rao standard errors (sigma_o^2, alpha) of channel ``k``'s exposure contrasts on
     the drawn sites (:func:`~hdrmerge_cli.core.calibrate.achievable_errors`) at the fitted
     parameters, the frames' exposure ratios from their times (inf with one frame)."""
+    from hdrmerge_cli.core.calibrate import achievable_errors  # scipy.ndimage: only where the noise is measured
+
     if len(read) < 2:
         return float("inf"), float("inf")
     times = [f.exposure_time for f, _ in read]
@@ -292,6 +297,8 @@ def estimate_bracket_noise(frames: list[Frame], crf, load=load_codes, draw: Nois
     each frame's own local statistics alone, not the exposure pairs (a camera-processed
     bracket, whose pairs also hold what the processing adds, measured apart:
     :mod:`hdrmerge_cli.pipeline.excess`)."""
+    from hdrmerge_cli.core.calibrate import estimate_noise, fit_standard_errors  # scipy.ndimage: only here
+
     iso = iso_key(frames[0].iso)
     draw = draw if draw is not None else NoiseDraw(frames)
     with ThreadPoolExecutor(2) as pool:  # SciPy's filters and NumPy's sorts release the GIL: both cores

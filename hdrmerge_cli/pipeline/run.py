@@ -192,15 +192,15 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     aligned = loader(b.alignment, b.codes)
     if settings.deghost != "off":
         t1 = time.perf_counter()
-        b.ghosts = find_ghosts(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames),
-                                      aligned, settings.deghost)
+        b.ghosts = find_ghosts(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames), aligned,
+                               settings.deghost)
         timings["deghost"] = time.perf_counter() - t1
     h_ref = reference_exposure(settings.reference, b.exposures)
     validity = frame_validity(b.frames, b.alignment)
     load, repeats = watch_repeats(aligned, b.frames, b.exposures)
     rec = reconstruct(b.frames, b.exposures, h_ref, b.models, load,
-                      sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment,
-                                            aligned, validity),
+                      sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment, aligned,
+                                     validity),
                       timings, "variance" in outputs.extra_channels)
     check_range(rec.result, outputs.half, settings.reference, h_ref, b.exposures, b.crf)
     neutral_bounds(rec.result, rec.flags)
