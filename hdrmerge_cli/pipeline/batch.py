@@ -61,7 +61,7 @@ def capture_seconds(stamp: str | None) -> float | None:
 
 
 @dataclass
-class Bracket:
+class FoundBracket:
     """Frames of one bracket in capture order.  ``reason``: why it was cut from the frames
     before it (None for the folder's first frames); ``joined``: the frames it kept across a
     gap longer than ``--gap`` because they show its scene (frame, gap_seconds,
@@ -73,7 +73,7 @@ class Bracket:
     sequence: int = 0
 
 
-def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[Bracket]:
+def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None) -> list[FoundBracket]:
     """Split frames into brackets, in capture order (timestamp, then file name).
 
     Frames of different cameras or image layouts (a RAW + JPEG folder) go to separate
@@ -98,7 +98,7 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
         return (t if t is not None else float("-inf"), Path(f.path).name)
 
     scenes = _SceneTest(thumbnail or _read_thumbnail)
-    brackets: list[Bracket] = []
+    brackets: list[FoundBracket] = []
     open_bracket: dict = {}  # layout -> its current bracket
     previous = None
     for f in sorted(frames, key=key):
@@ -122,7 +122,7 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
                     else:
                         reason = _join_or_cut(current, f, what, after, scenes)
         if current is None or reason is not None:
-            current = open_bracket[f.layout] = Bracket([f], reason)
+            current = open_bracket[f.layout] = FoundBracket([f], reason)
             brackets.append(current)
         else:
             current.frames.append(f)
@@ -130,7 +130,7 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
     return brackets
 
 
-def _join_or_cut(current: Bracket, f: Frame, what: str, after: float | None, scenes) -> str | None:
+def _join_or_cut(current: FoundBracket, f: Frame, what: str, after: float | None, scenes) -> str | None:
     """None when ``f`` joins ``current`` across ``what`` (a long gap, a new camera
     sequence): its exposure is new to the bracket and it shows the bracket's scene; else
     why it starts a new bracket."""
@@ -145,7 +145,7 @@ def _join_or_cut(current: Bracket, f: Frame, what: str, after: float | None, sce
     return None
 
 
-def bracketing_tags(current: Bracket, f: Frame) -> tuple[str, str] | None:
+def bracketing_tags(current: FoundBracket, f: Frame) -> tuple[str, str] | None:
     """What the camera's bracketing tags (EXIF ExposureMode "auto bracket" and
     ExposureBiasValue) say of frame ``f`` after the bracket ``current``, as ``(verdict,
     why)``: ``"continues"`` the camera's sequence; ``"cut"``: its exposure mode changed (an
@@ -347,7 +347,7 @@ def left_out(frame: Frame) -> str | None:
     return None
 
 
-def _single_frame_warning(bracket: Bracket, later: list[Bracket]) -> str:
+def _single_frame_warning(bracket: FoundBracket, later: list[FoundBracket]) -> str:
     """One line: the frame, and why it was cut from the frames before and after it."""
     f = bracket.frames[0]
     nxt = next((b for b in later if b.frames[0].layout == f.layout), None)

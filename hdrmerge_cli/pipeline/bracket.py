@@ -112,7 +112,7 @@ def read_bracket(paths: list[str], times: list[float] | None = None, times_file:
     frames = [frames[i] for i in order]
     exposures = exposures[order]
     # merge averages frames of equal exposure (bursts, repeated brackets: noise variance
-    # / N) and checks that they agree (_check_repeats)
+    # / N) and checks that they agree (pipeline.merge.check_repeats)
     for k in range(1, len(frames)):
         if not equal_ok and exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             raise HdrMergeError(
