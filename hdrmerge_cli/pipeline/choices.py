@@ -100,8 +100,7 @@ def wanted(frames: list[Frame], crf: CRF, settings: MergeSettings, samples, with
 
 def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings: MergeSettings, load=load_codes,
                   noise: dict[str, NoiseParams] | None = None, estimated: dict | None = None, excess=None,
-                  frame_noise: list | None = None, *, with_variance: bool = False,
-                  timings: dict | None = None) -> Models:
+                  frame_noise: list | None = None, *, timings: dict, with_variance: bool = False) -> Models:
     """The estimator, weights, variance mode and re-weighting passes, each option's
     ``auto`` resolved by the defaults below from what the bracket measured: its noise
     (``noise``, given or measured, ``estimated`` saying how; ``frame_noise``: each frame's
@@ -131,8 +130,7 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
                                                    with_variance=with_variance and not n_irls,
                                                    excess=excess if estimator == "ml" else None,
                                                    frame_noise=frame_noise)
-    if timings is not None:
-        timings["tables"] = time.perf_counter() - t0
+    timings["tables"] = time.perf_counter() - t0
     if settings.lut:  # the table's weights are the merge's, whatever --weights says
         if settings.weights != "auto":
             log.warning("--weights %s is not used: --lut %s gives the weights", settings.weights, settings.lut)

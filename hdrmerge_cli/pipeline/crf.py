@@ -11,7 +11,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
-from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_COUPLING, DEFAULT_WEIGHTING, DEFAULT_ANCHOR, knot_levels
+from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_WEIGHTING, knot_levels
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.samples import estimate
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle

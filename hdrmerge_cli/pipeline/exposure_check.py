@@ -4,10 +4,11 @@ and the order and overlap checks that read real frames.
 The numerics are :mod:`hdrmerge_cli.core.samples` and :mod:`hdrmerge_cli.core.comparametric`;
 here the frames are decoded, subsampled (CFA cells kept whole), normalised to
 ``v = (z - black) / (white - black)``, cut to the pixels worth comparing (constant borders
-off, clipped and noise-floor codes off) and linearised through the response in use.  Before a label is called wrong, the pairs that
-decided it are registered on the same samples (:func:`moved_pairs`): frames that moved
-between exposures (a hand-held bracket merged without ``--align``) leave the labels
-unchecked, with a line saying so, instead of a false label warning.
+off, clipped and noise-floor codes off) and linearised through the response in use.
+Before a label is called wrong, the pairs that decided it are registered on the same
+samples (:func:`moved_pairs`): frames that moved between exposures (a hand-held bracket
+merged without ``--align``) leave the labels unchecked, with a line saying so, instead of
+a false label warning.
 """
 from __future__ import annotations
 
@@ -98,9 +99,8 @@ def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
     ordered by them: the merge compares them as repeats, and ``--times estimate`` orders
     them by their estimates."""
     margin = max(1.5 * s.codes_step, 0.004)
-    h = exposures
     for k in range(1, len(frames)):
-        if h[k] <= h[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
+        if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             continue
         a, b = s.v[k - 1], s.v[k]
         usable = (a < 1 - 0.5 * s.codes_step) & (b < 1 - 0.5 * s.codes_step) & s.inside[..., None]

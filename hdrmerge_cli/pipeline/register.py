@@ -346,7 +346,8 @@ def loader(alignment: Alignment | None, load=load_codes):
 class AlignedLoader:
     """``frame -> codes`` brought onto the reference.  A RAW frame resampled per CFA
     colour also leaves the spread of the samples each value was interpolated from
-    (:func:`~hdrmerge_cli.core.resample.resample_mosaic`'s spread) for :class:`SampleWeights`.
+    (:func:`~hdrmerge_cli.core.resample.resample_mosaic`'s spread) for the merge's
+    :class:`~hdrmerge_cli.pipeline.merge.SampleWeights`.
     Each frame is resampled once: its resampled codes (and spread) are kept for every later
     pass (deghosting reads every frame twice, the merge and its re-weighting once each), in
     place of its decoded codes where ``load`` holds them (:class:`~hdrmerge_cli.io.frames.HeldCodes`)."""
