@@ -417,3 +417,16 @@ def test_merge_options_compose_algorithm_inputs_and_outputs():
         MergeOptions(InputOptions())
     with pytest.raises(AttributeError):  # fields are read from their part
         opts.deghost  # noqa: B018
+
+
+def test_merge_files_refuses_a_response_table_of_another_bit_depth(jpeg_bracket):
+    """A CRF object whose table covers 4096 codes, given for 8-bit JPEGs: one error naming
+    both sizes, before any merge."""
+    from hdrmerge_cli.core.crf import table_crf
+
+    folder, meta = jpeg_bracket
+    paths = [str(p) for p in frames_of(folder, meta)]
+    crf = table_crf(np.tile(np.linspace(0.0, 1.0, 4096), (3, 1)))
+    with pytest.raises(HdrMergeError, match=r"crf: the inverse table has 4096 entries per channel, but .* has 256 "
+                                            r"code values"):
+        hdrmerge_cli.merge_files(paths, crf=crf, noise_cache=False)
