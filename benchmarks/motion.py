@@ -249,10 +249,10 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
     import hdrmerge_cli
     from hdrmerge_cli.pipeline import run as pipeline_run  # the runner calls the registration stage
 
-    estimate = pipeline_run.estimate_alignment
+    align = pipeline_run.align
 
     def true_alignment(*args, **kwargs):
-        found = estimate(*args, **kwargs)
+        found = align(*args, **kwargs)
         return dataclasses.replace(found, warps=[np.asarray(w, np.float64) for w in warps], applied=True,
                                    motion="similarity",
                                    resampling="per-colour" if found.resampling != "none" else "none")
@@ -264,11 +264,11 @@ def merge_true_warps(paths, out: Path, warps, extra=()) -> np.ndarray:
             opts["cfa"] = True
         else:
             opts[flag.lstrip("-")] = next(it)
-    pipeline_run.estimate_alignment = true_alignment
+    pipeline_run.align = true_alignment
     try:
         hdrmerge_cli.merge_files([str(p) for p in paths], **opts).write(str(out))
     finally:
-        pipeline_run.estimate_alignment = estimate
+        pipeline_run.align = align
     return read_output(out)["_rgb"]
 
 

@@ -536,15 +536,15 @@ def register(stack, times, *, response=None, motion: str = "auto", cfa: str | No
     >>> reg.reference, np.round(reg.warps[0][:, 2]).tolist(), reg.warps[1].tolist() == [[1, 0, 0], [0, 1, 0]]
     (1, [-3.0, -2.0], True)
     """
-    from hdrmerge_cli.pipeline.register import estimate_alignment
     from hdrmerge_cli.io.metadata import reference_index
+    from hdrmerge_cli.pipeline.run import align
 
     if motion == "off":
         raise HdrMergeError("motion: 'off' registers nothing; choose auto, translation or similarity")
     _choice("motion", motion, ("auto", "translation", "similarity"))
     st = _stack(stack, times, cfa, black, white, bits)
     crf = _response(response, st)
-    alignment = estimate_alignment(st.frames, st.exposures, crf, motion, st.load)
+    alignment = align(st.frames, st.exposures, crf, motion, st.load)
     warps = np.array(st.to_input_order([np.asarray(w, np.float64) for w in alignment.warps]))
     confidence = np.array(st.to_input_order(list(alignment.confidence)), np.float64)
     return Registration(warps, alignment.applied, int(st.order[reference_index(st.frames)]), confidence)
@@ -597,9 +597,10 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
     >>> masks.shape, float(masks[2, 45, 60]), float(masks[2, 5, 5]), float(masks[0].max())
     ((3, 96, 128), 1.0, 0.0, 0.0)
     """
-    from hdrmerge_cli.pipeline.ghosts import find_ghosts, require_noise
+    from hdrmerge_cli.pipeline.ghosts import require_noise
     from hdrmerge_cli.pipeline.options import ALIGN_MODES
-    from hdrmerge_cli.pipeline.register import estimate_alignment, loader
+    from hdrmerge_cli.pipeline.register import loader
+    from hdrmerge_cli.pipeline.run import align as align_frames, deghost
 
     _choice("mode", mode, ("on", "auto"))
     _choice("align", align, ALIGN_MODES)
@@ -610,9 +611,9 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
         from hdrmerge_cli.pipeline.noise import measure_noise
 
         params, _ = measure_noise(st.frames, crf, st.load, cache=False)
-    alignment = estimate_alignment(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
+    alignment = align_frames(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
     load = loader(alignment, st.load)
-    ghosts = find_ghosts(st.frames, st.exposures, crf, require_noise(params, st.frames), load, mode)
+    ghosts = deghost(st.frames, st.exposures, crf, require_noise(params, st.frames), load, mode)
     h, w = st.frames[0].height, st.frames[0].width
     masks = np.zeros((len(st.frames), h, w), np.float32)
     if ghosts.applied:

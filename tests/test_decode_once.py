@@ -65,9 +65,10 @@ def _shifted_dngs(folder, shifts, times=(0.5, 1.0, 2.0), labels=None, seed=1, h=
     return paths
 
 
-#: the runner's stages (hdrmerge_cli.pipeline.run's names), in the order a merge calls them
-STAGES = ("read", "ordered_samples", "measure_response", "estimate_alignment", "resolve_exposures", "bracket_noise",
-          "measure_excess", "choose_models", "find_ghosts", "reconstruct")
+#: the runner's stages and the choices made on them (hdrmerge_cli.pipeline.run's names), in
+#: the order a merge calls them
+STAGES = ("read", "ordered_samples", "measure_response", "estimate_alignment", "choose_alignment", "resolve_exposures",
+          "bracket_noise", "measure_excess", "choose_models", "find_ghosts", "choose_deghost", "reconstruct")
 
 
 @pytest.fixture
@@ -101,8 +102,8 @@ def _merge(paths, **options):
 
 
 #: the stages of a default RAW merge (the noise measured on the bracket; no response, no ghosts)
-RAW_STAGES = {"read", "ordered_samples", "estimate_alignment", "resolve_exposures", "bracket_noise", "choose_models",
-              "reconstruct"}
+RAW_STAGES = {"read", "ordered_samples", "estimate_alignment", "choose_alignment", "resolve_exposures", "bracket_noise",
+              "choose_models", "reconstruct"}
 
 
 def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes, stage_calls, monkeypatch, tmp_path):
@@ -120,7 +121,7 @@ def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes, stage_calls, 
     merged = _merge(paths, deghost="auto")
     assert merged.bracket.alignment.applied
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
-    _assert_one_pass(stage_calls, RAW_STAGES | {"find_ghosts"})
+    _assert_one_pass(stage_calls, RAW_STAGES | {"find_ghosts", "choose_deghost"})
 
 
 @pytest.mark.parametrize("fixture", ["tiff_bracket", "jpeg_bracket"])
@@ -133,7 +134,7 @@ def test_image_brackets_are_decoded_once(request, fixture, decodes, stage_calls,
     _merge(paths)
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
     _assert_one_pass(stage_calls, {"read", "ordered_samples", "measure_response", "estimate_alignment",
-                                   "resolve_exposures", "bracket_noise", "measure_excess", "choose_models",
+                                   "choose_alignment", "resolve_exposures", "bracket_noise", "measure_excess", "choose_models",
                                    "reconstruct"})
 
 

@@ -11,6 +11,7 @@ from conftest import SHARED, frames_of, needs_shared
 from hdrmerge_cli.api import merge_arrays
 from hdrmerge_cli.core import deghost, registration, resample
 from hdrmerge_cli.core.noise import NoiseParams
+from hdrmerge_cli.pipeline.choices import AUTO_DEGHOST_FRACTION
 from hdrmerge_cli.core.scene import procedural_scene
 
 def _bracket_pngs(folder, times, warps, size=(300, 400), seed=2):
@@ -88,11 +89,11 @@ def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None, curve=None):
 
 def _ghosts_of(frames, codes, times, mode="on", crf=None, params=None):
     from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.pipeline.ghosts import find_ghosts
+    from hdrmerge_cli.pipeline.run import deghost
 
     load = {f.path: c for f, c in zip(frames, codes)}
-    return find_ghosts(frames, np.asarray(times), crf or CRF("gamma", 2.2), None, lambda f: load[f.path], mode,
-                       params=params)
+    return deghost(frames, np.asarray(times), crf or CRF("gamma", 2.2), None, lambda f: load[f.path], mode,
+                   params=params)
 
 
 # ---------------------------------------------------------------- static JPEG brackets
@@ -187,14 +188,14 @@ def test_alignment_engages_on_a_dark_short_frame(tmp_path, mode, rotation):
     short frame's narrow shared band limits ECC's rotation to about 0.07 degrees here)."""
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.pipeline.bracket import read_bracket
-    from hdrmerge_cli.pipeline.register import estimate_alignment
+    from hdrmerge_cli.pipeline.run import align
 
     times = [2.0**-2.3, 1.0, 2.0**2.3]
     truth = [_rigid(rotation, 3.0, -2.0), _rigid(0, 0, 0), _rigid(-rotation, -4.0, 5.0)]
     frames = read_bracket([str(p) for p in _bracket_pngs(tmp_path, times, truth)], times)
     short = cv2.imread(str(frames[0].path))
     assert np.mean(short > 60) < 0.3  # mostly dark
-    out = estimate_alignment(frames, np.array(times), CRF("gamma", 2.2), mode)
+    out = align(frames, np.array(times), CRF("gamma", 2.2), mode)
     assert out.applied and not out.unaligned and min(out.confidence) > 0.5
     for est, true in zip(out.warps, truth):
         assert registration.corner_distance(est, true, 300, 400) < (0.6 if rotation else 0.2)
@@ -208,7 +209,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
     ``auto`` (the default) when nothing registered moved."""
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.pipeline.bracket import read_bracket
-    from hdrmerge_cli.pipeline.register import estimate_alignment
+    from hdrmerge_cli.pipeline.run import align
 
     paths = []
     for j, v in enumerate((40, 120, 250)):  # flat grey frames
@@ -222,7 +223,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
     logger.addHandler(handler)
     logger.setLevel(logging.INFO)  # whatever an in-process CLI test left it at
     try:
-        out = estimate_alignment(frames, np.array([0.25, 1.0, 4.0]), CRF("gamma", 2.2), mode)
+        out = align(frames, np.array([0.25, 1.0, 4.0]), CRF("gamma", 2.2), mode)
     finally:
         logger.removeHandler(handler)
         logger.setLevel(old_level)
@@ -233,7 +234,7 @@ def test_static_texture_free_pair_is_left_unaligned_with_a_reason(tmp_path, mode
 
 
 def test_raw_auto_alignment_resamples_only_when_whole_cfa_periods_leave_an_offset():
-    from hdrmerge_cli.pipeline.register import whole_periods_suffice
+    from hdrmerge_cli.pipeline.choices import whole_periods_suffice
 
     def shift(tx, ty):
         return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty]])
@@ -482,7 +483,7 @@ def test_an_image_rolling_off_towards_white_bounds_the_light_from_below(seed, fr
     frames, codes, times = _gamma_bracket(np.random.default_rng(seed), curve={frame: shoulder})
     near_white = (codes[frame].min(axis=-1) >= 0.9 * 255) & (codes[frame].max(axis=-1) < 255)
     assert near_white.mean() > 0.1 and (codes[frame] == 255).all(axis=-1).mean() > 0.02
-    assert max(_ghosts_of(frames, codes, times).rejected_fraction) <= deghost.IMAGE_PARAMS.auto_fraction
+    assert max(_ghosts_of(frames, codes, times).rejected_fraction) <= AUTO_DEGHOST_FRACTION
     cols = slice(150, 170) if frame == 1 else slice(112, 128)
     row_ok = near_white[:, cols].all(axis=1)
     top = next(r for r in range(row_ok.size - 11) if row_ok[r:r + 12].all())
@@ -563,7 +564,7 @@ def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, mon
         return read_exr(str(out))[0][..., 0]
 
     static = run("static", paths["static"])
-    monkeypatch.setattr(pm, "estimate_alignment", given)  # as the runner calls it
+    monkeypatch.setattr(pm, "align", given)  # as the runner calls it
     weighted = run("weighted", paths["moving"])
     monkeypatch.setattr(resample, "spread_code", lambda u: np.zeros(u.shape, np.uint16))  # no spread kept
     unweighted = run("unweighted", paths["moving"])
@@ -598,7 +599,7 @@ def test_static_jpeg_bracket_is_not_deghosted(seed):
     times = [0.25, 1.0, 4.0]
     frames = _jpeg_frames(rng, _jpeg_scene(rng), times)
     m = merge_arrays(frames, times, crf="srgb", deghost="auto")
-    assert max(m.bracket.ghosts.rejected_fraction) <= deghost.IMAGE_PARAMS.auto_fraction
+    assert max(m.bracket.ghosts.rejected_fraction) <= AUTO_DEGHOST_FRACTION
     assert not m.bracket.ghosts.applied
 
 
@@ -731,10 +732,10 @@ def _raw_stack(shifts, seed=1, h=384, w=512):
 
 def _alignment_counting(stack, monkeypatch, coarse=True):
     """The alignment of a RAW stack under ``auto`` (``hdrmerge_cli.api``'s stack, the merge's
-    estimate_alignment) and how many frames were registered at full resolution; ``coarse``
+    alignment) and how many frames were registered at full resolution; ``coarse``
     False: no pair is found still at coarse resolution."""
     from hdrmerge_cli import api
-    from hdrmerge_cli.pipeline.register import estimate_alignment
+    from hdrmerge_cli.pipeline.run import align
 
     calls = []
     full = registration.estimate_warp
@@ -748,7 +749,7 @@ def _alignment_counting(stack, monkeypatch, coarse=True):
         monkeypatch.setattr(registration, "still_test",
                             lambda a, b, *args, **kw: registration.StillTest(False, None, np.inf, -1.0))
     st = api._stack(stack, [0.5, 1.0, 2.0], "RGGB", 512.0, 16383.0, None)
-    out = estimate_alignment(st.frames, st.exposures, api._response(None, st), "auto", st.load)
+    out = align(st.frames, st.exposures, api._response(None, st), "auto", st.load)
     monkeypatch.undo()
     return out, len(calls)
 
@@ -785,7 +786,7 @@ def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path)
     from hdrmerge_cli.io.frames import load_codes
     from hdrmerge_cli.io.metadata import exposure_values
     from hdrmerge_cli.pipeline.bracket import read_bracket
-    from hdrmerge_cli.pipeline.register import estimate_alignment
+    from hdrmerge_cli.pipeline.run import align
 
     run("simulate", "-o", tmp_path, "-q", "--scene", SHARED / "hdr" / "ScanLines_Desk.exr", "--downscale", "2",
         "--scale", "80000", "--frames", "4", "--seed", "4")
@@ -795,7 +796,7 @@ def test_raw_frames_found_still_stay_put_when_another_frame_moved(run, tmp_path)
     write_dng(moved.path, np.roll(load_codes(moved), 2, axis=1), pattern="RGGB", black=int(moved.black[0]),
               white=int(moved.white[0]), exposure_time=moved.exposure_time, iso=int(moved.iso or 100), aperture=8.0)
     frames = read_bracket(paths, None)
-    out = estimate_alignment(frames, exposure_values(frames), CRF("linear"), "auto")
+    out = align(frames, exposure_values(frames), CRF("linear"), "auto")
     assert out.applied, out.summary()
     assert out.still, "no frame was found still"
     for j, f in enumerate(frames):

@@ -74,9 +74,6 @@ class DeghostParams:
     #: distance (pixels) from a clipped region within which it may spread (blooming, the
     #: lens's point-spread core, sharpening halos)
     bloom_px: float = 8.0
-    #: ``auto`` applies the masks when some frame has more than this fraction of its blocks
-    #: rejected
-    auto_fraction: float = 0.002
     #: measure the factor ``lambda`` the noise model leaves out (:func:`level_scale`)
     level_scale: bool = True
 
@@ -921,9 +918,3 @@ def ghost_masks(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: i
         jobs.update({k: pool.submit(test, k) for k in range(len(exposures)) if k not in jobs})
         fractions, masks = (list(v) for v in zip(*(jobs[k].result() for k in range(len(exposures)))))
     return fractions, masks
-
-
-def applies(fractions: list[float], mode: str, params: DeghostParams) -> bool:
-    """Whether the masks are applied: ``on``, or ``auto`` with some frame's rejected fraction
-    above :attr:`DeghostParams.auto_fraction`."""
-    return mode == "on" or max(fractions) > params.auto_fraction

@@ -67,6 +67,16 @@ class Bracket:
         if self.exposures is None:
             self.exposures = exposure_values(self.frames)
 
+    def decisions(self) -> dict[str, dict]:
+        """Every choice made on the bracket by name, as ``merge --json`` and the profile give
+        them (:class:`~hdrmerge_cli.pipeline.choices.Decision`): the models', the alignment's
+        and the deghosting's."""
+        made = dict(self.models.decisions) if self.models else {}
+        for name, result in (("align", self.alignment), ("deghost", self.ghosts)):
+            if result is not None and result.decision is not None:
+                made[name] = result.decision
+        return {name: d.summary() for name, d in made.items()}
+
 
 def read(paths: list[str], inputs: InputOptions) -> Bracket:
     """The read stage of a merge: the frames' metadata, checked and sorted by exposure

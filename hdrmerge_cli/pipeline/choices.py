@@ -1,13 +1,23 @@
-"""The choices stage: every ``auto`` of the merge's models decided from what the bracket
-measured (the estimator, the weights, the variance mode, the re-weighting passes; which
-measurements those need, :func:`wanted`), and the per-frame lookup tables of (7) they
-make (:func:`choose_models`)."""
+"""The choices: every ``auto`` of a merge decided here, from what the stages measured, each
+as a :class:`Decision` that the log lines and ``merge --json``'s ``decisions`` read.
+
+* registration (``--align``): what it measures (:func:`registration_plan`), then whether the
+  warps are applied, with rotation or not, and how a mosaic is moved (:func:`choose_alignment`);
+* the models: the estimator, the weights, the variance mode and the re-weighting passes
+  (which measurements they need, :func:`wanted`), and the per-frame lookup tables of (7)
+  they make (:func:`choose_models`);
+* deghosting (``--deghost``): whether the masks are applied (:func:`choose_deghost`).
+
+The runner (:mod:`hdrmerge_cli.pipeline.run`) calls each after the stage whose results it
+reads; no stage reads an ``auto``."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,7 +32,136 @@ from hdrmerge_cli.io.noisespec import iso_key, parse_bounds, per_channel
 from hdrmerge_cli.io.metadata import sample_pattern
 from hdrmerge_cli.pipeline.options import MergeSettings
 
+if TYPE_CHECKING:
+    from hdrmerge_cli.pipeline.ghosts import Ghosts
+    from hdrmerge_cli.pipeline.register import Alignment
+
 log = logging.getLogger("hdrmerge_cli")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One choice of a merge, as it was made.
+
+    value : what was chosen
+    measured : whether a measurement of the bracket decided it (False: the option was
+        given, or the choice follows from the bracket's kind and the other choices)
+    reason : why, in one line
+    statistic, threshold : the measured number and the value it was held against (one unit)
+    uncertainty : the statistic's standard error, where measured
+    effect_db : the choice's effect on the merge's predicted error (dB), where measured
+    """
+
+    value: object
+    measured: bool
+    reason: str
+    statistic: float | None = None
+    threshold: float | None = None
+    uncertainty: float | None = None
+    effect_db: float | None = None
+
+    def summary(self) -> dict:
+        """``merge --json``'s record: the fields that are set (numbers rounded to 6 digits)."""
+        out = {"value": self.value, "measured": self.measured, "reason": self.reason}
+        for name in ("statistic", "threshold", "uncertainty", "effect_db"):
+            v = getattr(self, name)
+            if v is not None and np.isfinite(v):
+                out[name] = round(float(v), 6)
+        return out
+
+
+def given(name: str, value) -> Decision:
+    """An option set on the command line: nothing decided."""
+    return Decision(value, False, f"--{name} {value} given")
+
+
+# ---------------------------------------------------------------- registration
+#: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
+AUTO_ALIGN_PX = 0.25
+
+
+@dataclass(frozen=True)
+class RegistrationPlan:
+    """What the registration stage measures (:func:`registration_plan`).
+
+    motion : the model fitted, ``translation`` or ``similarity``
+    screen : each pair is tested before its step is kept: a pair found still at coarse
+        resolution (within ``tolerance_px`` shared by the steps to the reference) is not
+        registered in full, and a registered step is kept only where the pair pins it
+    tolerance_px : the displacement below which a frame counts as still (pixels)
+    """
+
+    motion: str
+    screen: bool
+    tolerance_px: float = AUTO_ALIGN_PX
+
+
+def registration_plan(align: str) -> RegistrationPlan:
+    """``--align``: ``auto`` fits a similarity (a rotation is kept only where it beats
+    translation, :func:`choose_alignment`) and screens each pair; a named model is fitted
+    to every pair."""
+    return RegistrationPlan("similarity" if align == "auto" else align, align == "auto")
+
+
+def whole_periods_suffice(warps) -> bool:
+    """RAW: a translation by whole 2 x 2 CFA periods moves codes without resampling them;
+    ``auto`` resamples each colour's sites (``core.resample.resample_mosaic``) instead only
+    when whole periods would leave some frame more than :data:`AUTO_ALIGN_PX` off along
+    either axis."""
+    return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
+
+
+def choose_alignment(found: Alignment, align: str) -> Alignment:
+    """The registration's choices on what it found (``found``, not yet applied): under
+    ``auto`` the warps are applied only when some frame is displaced by more than
+    :data:`AUTO_ALIGN_PX`, and the motion is ``translation`` when no frame's rotation beat
+    its translation; a RAW bracket moved by translation only is moved by whole CFA periods
+    (``translation``, or ``auto`` where :func:`whole_periods_suffice`; applied then only if
+    some period moves), else resampled colour by colour.  Returns ``found`` with
+    ``mode``, ``motion``, ``resampling``, ``applied`` and its ``decision``."""
+    warps, raw, auto = found.warps, found.frames[0].kind == "raw", align == "auto"
+    motion = found.motion
+    if auto and not any(abs(w[1, 0]) > 1e-9 for w in warps):
+        motion = "translation"  # no frame's rotation beat its translation
+    largest = max(found.sizes)
+    applied = not auto or largest > AUTO_ALIGN_PX
+    periods = raw and motion == "translation" and (align == "translation" or whole_periods_suffice(warps))
+    if periods:
+        applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
+    # RAW: moved by whole CFA periods, or resampled colour by colour (core.resample.resample_mosaic)
+    resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
+    if not auto:
+        reason = f"--align {align} given" + ("" if applied else "; no frame moves by a whole CFA period")
+    elif applied:
+        reason = f"a frame is displaced by {largest:.2f} px, more than {AUTO_ALIGN_PX} px"
+    else:
+        reason = (f"every frame is within {AUTO_ALIGN_PX} px of the reference" if largest <= AUTO_ALIGN_PX
+                  else "no frame moves by a whole CFA period")
+    decision = Decision(bool(applied), auto, reason, largest, AUTO_ALIGN_PX if auto else None)
+    return dataclasses.replace(found, mode=align, motion=motion, resampling=resampling, applied=bool(applied),
+                               decision=decision)
+
+
+# ---------------------------------------------------------------- deghosting
+#: ``--deghost auto`` applies the masks when some frame has more than this share of its
+#: blocks rejected
+AUTO_DEGHOST_FRACTION = 0.002
+
+
+def choose_deghost(found: Ghosts, mode: str) -> Ghosts:
+    """``--deghost``: ``on`` applies the masks found; ``auto`` only when some frame has more
+    than :data:`AUTO_DEGHOST_FRACTION` of its blocks rejected (fewer are the test's false
+    alarms at its rate).  Returns ``found`` with ``mode``, ``applied`` and its ``decision``."""
+    largest, auto = found.largest, mode == "auto"
+    applied = not auto or largest > AUTO_DEGHOST_FRACTION
+    reason = ("--deghost on given" if not auto else
+              f"a frame has {100 * largest:.2f} % of its blocks rejected, "
+              f"{'more' if applied else 'no more'} than {100 * AUTO_DEGHOST_FRACTION:g} %")
+    decision = Decision(bool(applied), auto, reason, largest, AUTO_DEGHOST_FRACTION if auto else None)
+    return dataclasses.replace(found, mode=mode, applied=bool(applied), decision=decision)
+
+
+# ---------------------------------------------------------------- the models
 
 
 @dataclass
@@ -54,6 +193,8 @@ class Models:
     table_channels: list[str]
     excess: object = None  # core.excess_variance.ExcessVariance of a camera-processed bracket, or None
     frame_noise: list[dict[str, NoiseParams]] | None = None
+    #: the estimator, weights, variance and irls decisions (:func:`model_decisions`)
+    decisions: dict[str, Decision] = field(default_factory=dict)
 
     def noise_used(self, frame: Frame, noise: dict[str, NoiseParams] | None = None) -> dict | None:
         """The noise parameters per channel name, as the profile and ``--json`` give them
@@ -111,16 +252,13 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
     :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: on the real brackets'
     leave-one-out the measured excess in its place did not lower the error
     (benchmarks/results/real_loo.md).  The tables' seconds go to ``timings["tables"]``."""
-    first = frames[0]
-    estimator = settings.estimator if settings.estimator != "auto" else default_estimator(first, crf, noise, excess)
-    weights = settings.weights if settings.weights != "auto" else default_weights(estimator)
-    variance = settings.variance if settings.variance != "auto" else default_variance(noise, crf, estimator)
+    decisions = model_decisions(settings, frames[0], crf, noise, excess)
+    estimator, weights, variance, n_irls = (decisions[k].value for k in ("estimator", "weights", "variance", "irls"))
     if weights in NOISE_MODEL_WEIGHTS and weights != "bounded" and not noise and not settings.lut:
         log.warning("no noise parameters (--noise or --profile): --weights %s uses the bounded scheme's "
                     "conservative upper bounds", weights)
     if settings.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
-    n_irls = settings.irls if settings.irls is not None else default_irls(estimator, noise, bool(settings.lut))
     t0 = time.perf_counter()
     prior = prior_rate(frames, exposures, crf, load) if weights in NOISE_MODEL_WEIGHTS and not settings.lut else None
     luts = lut_columns(settings.lut, frames) if settings.lut else None
@@ -135,8 +273,49 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
         if settings.weights != "auto":
             log.warning("--weights %s is not used: --lut %s gives the weights", settings.weights, settings.lut)
         weights = f"lut:{Path(settings.lut).name}"
+        decisions["weights"] = Decision(weights, False, f"--lut {settings.lut} gives the weights")
     return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
-                  table_channels, excess, frame_noise)
+                  table_channels, excess, frame_noise, decisions)
+
+
+def model_decisions(settings: MergeSettings, frame: Frame, crf: CRF, noise, excess) -> dict[str, Decision]:
+    """The estimator, weights, variance mode and re-weighting passes (``irls``), each
+    option's ``auto`` (or unset ``irls``) by the defaults below, in that order (each reads
+    the estimator)."""
+    out = {"estimator": given("estimator", settings.estimator) if settings.estimator != "auto"
+           else estimator_decision(frame, crf, noise, excess)}
+    est = out["estimator"].value
+    out["weights"] = (given("weights", settings.weights) if settings.weights != "auto" else
+                      Decision(default_weights(est), False, f"the {est} estimator's weights"))
+    variance = default_variance(noise, crf, est)
+    out["variance"] = (given("variance", settings.variance) if settings.variance != "auto" else
+                       Decision(variance, False, "the noise model (17) with the parameters known" if variance == "model"
+                                else "photon noise of a linear response (no noise parameters)" if variance == "photon"
+                                else "the codes' quantisation through the response, a camera-processed bracket "
+                                + ("under the log estimator" if noise else "without a noise model")))
+    n_irls = default_irls(est, noise, bool(settings.lut))
+    out["irls"] = (given("irls", settings.irls) if settings.irls is not None else
+                   Decision(n_irls, False, "the ML estimator, re-weighted once at the merged estimate" if n_irls
+                            else "a --lut table gives the weights" if settings.lut and est == "ml" and noise
+                            else "no noise model to re-weight with" if est == "ml"
+                            else "the log estimator is not re-weighted"))
+    return out
+
+
+def estimator_decision(frame: Frame, crf: CRF, noise=None, excess=None) -> Decision:
+    """``--estimator auto`` (:func:`default_estimator`) as a :class:`Decision`: measured
+    when the excess variance of a camera-processed bracket decided it (its ``chi_model``,
+    the standard error of that, and the effect on the predicted error)."""
+    value = default_estimator(frame, crf, noise, excess)
+    if frame.kind == "raw" or crf.is_linear:
+        return Decision(value, False, "sensor data: the noise model (17) explains the codes")
+    if not noise or excess is None:
+        return Decision(value, False, "no noise model measured" if not noise else
+                        "the variance beyond the noise model was not measured (one frame, or a --lut table)")
+    reason = ("the exposure pairs show variance beyond the noise model" if excess.kept else
+              "the exposure pairs show no material variance beyond the noise model" if excess.tested else
+              "too few exposure-pair readings to test the noise model: noise dominates")
+    return Decision(value, bool(excess.tested), reason, excess.chi_model, 1.0, excess.chi_stderr, excess.effect_db)
 
 
 def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:

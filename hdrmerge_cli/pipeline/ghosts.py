@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,6 +15,9 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.io.metadata import of_frame, reference_index, sample_pattern
+
+if TYPE_CHECKING:
+    from hdrmerge_cli.pipeline.choices import Decision
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -80,13 +84,14 @@ def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoisePara
 
 
 def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
-                mode: str, p_fa: float | None = None, params: deghost.DeghostParams | None = None) -> Ghosts:
+                p_fa: float | None = None, params: deghost.DeghostParams | None = None) -> Ghosts:
     """Per frame, the blocks inconsistent with the anchor (:func:`~hdrmerge_cli.core.deghost.ghost_masks`),
     cleaned and feathered.  ``noise``: one parameter set per channel (code units), or None
     (the codes' quantisation; :func:`~hdrmerge_cli.core.deghost.level_scale` measures the
     rest); ``params``: :data:`~hdrmerge_cli.core.deghost.RAW_PARAMS` or ``IMAGE_PARAMS`` by
     the frames' kind unless given, ``p_fa`` overriding its false-alarm rate.  Each frame is
-    read twice (anchor, test).  Returns :class:`Ghosts`."""
+    read twice (anchor, test).  Returns :class:`Ghosts` as found, not yet applied
+    (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost` decides that)."""
     first = frames[0]
     raw = first.kind == "raw"
     params = params or (deghost.RAW_PARAMS if raw else deghost.IMAGE_PARAMS)
@@ -112,12 +117,9 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     # estimates); with blocks of one cell a test's temporaries are as large as the frame's samples
     fractions, masks = deghost.ghost_masks(estimate, np.asarray(exposures), reference_index(frames), params,
                                            b * per_px, lin_hi, workers=2 if b > 1 else 1)
-    applied = deghost.applies(fractions, mode, params)
-    log.info("deghosting (blocks of %d px): up to %.2f %% of a frame's blocks move; %s", b * per_px,
-             100 * max(fractions), "applied" if applied else "not needed")
     hb, wb = masks[0].shape
-    return Ghosts(mode, bool(applied), params.p_fa, b, (hb * b * per_px, wb * b * per_px),
-                  [round(f, 6) for f in fractions], list(frames), masks)
+    return Ghosts(None, False, params.p_fa, b, (hb * b * per_px, wb * b * per_px),
+                  [round(f, 6) for f in fractions], list(frames), masks, per_px, max(fractions))
 
 
 @dataclasses.dataclass
@@ -125,7 +127,10 @@ class Ghosts:
     """What :func:`find_ghosts` found: per frame (in the order of ``frames``) a soft mask
     ``(h, w)`` uint8 over blocks of ``block`` x ``block`` pixels (RAW: CFA periods), 255 =
     dropped, covering the first ``covered`` = (rows, cols) samples; :meth:`mask_of` finds a
-    frame's by identity.  ``applied``: whether the merge drops them."""
+    frame's by identity.  ``mode``, ``applied`` (whether the merge drops them) and
+    ``decision`` are set by the choice made on it
+    (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost`); ``largest``: the largest
+    rejected fraction, unrounded; ``per_px``: pixels per block cell side (RAW 2)."""
 
     mode: str
     applied: bool
@@ -135,6 +140,14 @@ class Ghosts:
     rejected_fraction: list[float]
     frames: list[Frame]
     masks: list[np.ndarray]
+    per_px: int = 1
+    largest: float = 0.0
+    decision: Decision | None = None
+
+    def report(self) -> None:
+        """The log line of a chosen deghosting."""
+        log.info("deghosting (blocks of %d px): up to %.2f %% of a frame's blocks move; %s", self.block * self.per_px,
+                 100 * self.largest, "applied" if self.applied else "not needed")
 
     def mask_of(self, frame: Frame) -> np.ndarray:
         return of_frame(frame, self.frames, self.masks)

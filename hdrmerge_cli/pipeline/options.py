@@ -38,7 +38,7 @@ DEFAULT_GAP = 3.0
 @dataclass(frozen=True)
 class MergeSettings:
     """How a bracket is merged; each ``auto`` is resolved per bracket
-    (:mod:`hdrmerge_cli.pipeline.choices`, :mod:`hdrmerge_cli.pipeline.register`).
+    (:mod:`hdrmerge_cli.pipeline.choices`).
 
     estimator : ``auto``, ``log`` (the paper's (7)) or ``ml`` (linear, censored)
     weights : ``auto`` or a key of :data:`hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`

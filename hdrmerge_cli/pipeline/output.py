@@ -237,6 +237,7 @@ class Merged:
         profile = new_profile({"make": first.make, "model": first.model}, first.bits, self.bracket.crf,
                               [f.path for f in self.bracket.frames], "merge")
         profile["weights"] = m.weights
+        profile["decisions"] = self.bracket.decisions()
         if m.noise:
             profile["noise"] = {"used": m.noise_used(first)}
             if m.frame_noise:  # the frames' ISOs differ: "used" is the reference frame's
@@ -378,6 +379,7 @@ class Merged:
             "estimator": m.estimator,
             "variance": m.variance,
             "irls_iterations": self.reconstruction.iterations,
+            "decisions": b.decisions(),
             "noise": m.noise_used(first),
             **({"noise_per_iso": m.noise_per_iso(b.frames)} if m.frame_noise else {}),
             "noise_source": (f"measured earlier on the same camera and ISO (cache {estimated['cached']['file']})"

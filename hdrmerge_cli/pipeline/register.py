@@ -9,6 +9,7 @@ import functools
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,11 +19,10 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes, load_validity
 from hdrmerge_cli.io.metadata import of_frame, reference_index, sample_pattern
 
+if TYPE_CHECKING:
+    from hdrmerge_cli.pipeline.choices import Decision, RegistrationPlan
+
 log = logging.getLogger("hdrmerge_cli")
-
-
-#: ``--align auto`` applies the warps when some frame is displaced by more than this (pixels)
-AUTO_ALIGN_PX = 0.25
 
 
 #: a registration is kept when its correlation coefficient reaches this
@@ -34,13 +34,17 @@ class Alignment:
     """What :func:`estimate_alignment` found: per frame (the lists in the order of
     ``frames``) its warp onto the reference, ``(2, 3)`` float64 in the frame's own sample
     coordinates; :meth:`warp_of` finds a frame's by identity, whatever order the frames are
-    in later (``--times estimate`` may re-sort them).
+    in later (``--times estimate`` may re-sort them).  ``mode``, ``motion``, ``resampling``,
+    ``applied`` and ``decision`` are set by the choice made on it
+    (:func:`~hdrmerge_cli.pipeline.choices.choose_alignment`; as found: the model fitted,
+    nothing applied).
 
-    mode : the ``--align`` mode; motion : ``translation`` or ``similarity`` as found
+    mode : the ``--align`` mode; motion : ``translation`` or ``similarity``
     resampling : RAW ``cfa-periods`` or ``per-colour``; images ``none``
     reference : the reference frame's path; applied : whether the merge moves the frames
     confidence : each registration's correlation to its neighbour (1 for the reference)
     unaligned, still : paths of the frames left unaligned, and found still at coarse resolution
+    left : by frame index, why a frame is left unaligned
     """
 
     mode: str
@@ -53,6 +57,25 @@ class Alignment:
     confidence: list[float]
     unaligned: list[str]
     still: list[str]
+    left: dict[int, str] = dataclasses.field(default_factory=dict)
+    decision: Decision | None = None
+
+    def report(self) -> None:
+        """The log lines of a chosen alignment: each frame left unaligned (a warning when
+        alignment was asked for or the others moved, a hand-held bracket; only logged under
+        ``auto`` on a bracket where nothing registered moved: a tripod, or frames too far apart
+        in exposure to share tones), the largest displacement, and the share of the image
+        outside some moved frame."""
+        say = log.warning if self.applied else log.info
+        for j, why in self.left.items():
+            say("%s: %s; left unaligned", self.frames[j].path, why)
+        log.info("alignment (%s): largest displacement %.2f px; %s", self.motion, max(self.sizes),
+                 "applied" if self.applied else "not needed")
+        if self.applied:
+            share = self.covered_by_every_frame()
+            if share < 1:
+                log.info("alignment: %.1f %% of the image lies outside some moved frame and is measured by fewer frames "
+                         "(its borders)", 100 * (1 - share))
 
     def warp_of(self, frame: Frame) -> np.ndarray:
         return of_frame(frame, self.frames, self.warps)
@@ -112,30 +135,27 @@ def _coarse_linear(frame: Frame, codes: np.ndarray, crf: CRF, f: int) -> np.ndar
                                                   float(np.mean(frame.white)), frame.n_codes, f)
 
 
-def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> Alignment:
-    """Warps bringing every frame onto the reference (``core.registration``).  ``auto`` registers
-    with rotation too and keeps a frame's rotation only where it beats translation, and
-    applies the warps only when some frame is displaced by more than
-    :data:`AUTO_ALIGN_PX`.  A pair is registered when both frames have texture in the
-    irradiance range they share (:func:`~hdrmerge_cli.core.registration.registrable`: a count of
+def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, plan: RegistrationPlan,
+                       load=load_codes) -> Alignment:
+    """Warps bringing every frame onto the reference (``core.registration``), fitting
+    ``plan.motion``.  A pair is registered when both frames have texture in the irradiance
+    range they share (:func:`~hdrmerge_cli.core.registration.registrable`: a count of
     pixels, however small a fraction of the frame), and the result is kept when its
-    correlation reaches :data:`MIN_CONFIDENCE`.  A frame left unaligned is a warning when
-    the mode was asked for or other frames moved; under ``auto`` with nothing applied, an
-    info line.  Under ``auto`` each pair is first tested at coarse resolution (the level the
-    texture test measures at): a pair without texture there is left unaligned, one
-    found still (:func:`~hdrmerge_cli.core.registration.still_test`, at
-    :data:`AUTO_ALIGN_PX` divided by the frame's steps from the reference, so the chained
-    warp stays within it) is not registered at full resolution: an image keeps the coarse
-    translation estimate, a RAW frame its neighbour's warp (no correction below the
-    tolerance is worth resampling a mosaic colour by colour).  A pair registered in full
-    keeps its warp only where its displacement exceeds what the pair can tell from no motion
+    correlation reaches :data:`MIN_CONFIDENCE`.  When the plan screens the pairs
+    (``--align auto``), each pair is first tested at coarse resolution (the level the
+    texture test measures at): a pair without texture there is left unaligned, one found
+    still (:func:`~hdrmerge_cli.core.registration.still_test`, at ``plan.tolerance_px``
+    divided by the frame's steps from the reference, so the chained warp stays within it)
+    is not registered at full resolution: an image keeps the coarse translation estimate, a
+    RAW frame its neighbour's warp (no correction below the tolerance is worth resampling a
+    mosaic colour by colour).  A pair registered in full then keeps its warp only where its
+    displacement exceeds what the pair can tell from no motion
     (:func:`~hdrmerge_cli.core.registration.displacement_margin`): a displacement the
-    bracket does not pin is not applied.  Returns an :class:`Alignment`."""
+    bracket does not pin is not applied.  Returns an :class:`Alignment` as found, not yet
+    applied (:func:`~hdrmerge_cli.pipeline.choices.choose_alignment` decides that)."""
     ref = reference_index(frames)
-    motion = "similarity" if mode == "auto" else mode
-    raw = frames[0].kind == "raw"
     identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    found = _Registrar(frames, exposures, crf, mode, motion, ref, load).run()
+    found = _Registrar(frames, exposures, crf, plan, ref, load).run()
     steps = found.steps
     warps = [None] * len(frames)
     warps[ref] = identity
@@ -145,33 +165,10 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, mod
         if why is not None:
             unaligned.append(frames[j].path)
         warps[j] = registration.compose(w, warps[j - 1 if j > ref else j + 1])
-    rotated = any(abs(w[1, 0]) > 1e-9 for w in warps)
-    if mode == "auto" and not rotated:
-        motion = "translation"  # no frame's rotation beat its translation
-    sizes = [registration.warp_size(w, f.height, f.width) for w, f in zip(warps, frames)]
-    applied = mode != "auto" or max(sizes) > AUTO_ALIGN_PX
-    # a frame left unaligned is a warning when alignment was asked for or the others moved (a
-    # hand-held bracket); under auto on a bracket where nothing registered moved (a tripod, or
-    # frames too far apart in exposure to share tones) it is only logged (-v)
-    say = log.warning if applied else log.info
-    for j in sorted(steps):  # in frame order, whichever side finished first
-        if steps[j][1] is not None:
-            say("%s: %s; left unaligned", frames[j].path, steps[j][1])
-    periods = raw and motion == "translation" and (mode == "translation" or whole_periods_suffice(warps))
-    if periods:
-        applied &= any(np.any(np.rint(w[:, 2] / 2) != 0) for w in warps)
-    # RAW: moved by whole CFA periods, or resampled colour by colour (core.resample.resample_mosaic)
-    resampling = "none" if not raw else "cfa-periods" if periods else "per-colour"
-    log.info("alignment (%s): largest displacement %.2f px; %s", motion, max(sizes),
-             "applied" if applied else "not needed")
-    out = Alignment(mode, motion, resampling, frames[ref].path, bool(applied), list(frames), warps, found.confidence,
-                    unaligned, [frames[j].path for j in sorted(found.still)])
-    if applied:
-        share = out.covered_by_every_frame()
-        if share < 1:
-            log.info("alignment: %.1f %% of the image lies outside some moved frame and is measured by fewer frames "
-                     "(its borders)", 100 * (1 - share))
-    return out
+    left = {j: steps[j][1] for j in sorted(steps) if steps[j][1] is not None}  # in frame order
+    return Alignment(None, plan.motion, "none", frames[ref].path, False, list(frames), warps, found.confidence,
+                     unaligned, [frames[j].path for j in sorted(found.still)], left)
+
 
 
 def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[float, float] | None:
@@ -206,10 +203,10 @@ class _Registrar:
     neighbour towards the reference, the coarse images made once and shared by the two sides'
     threads."""
 
-    def __init__(self, frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, motion: str, ref: int,
+    def __init__(self, frames: list[Frame], exposures: np.ndarray, crf: CRF, plan: RegistrationPlan, ref: int,
                  load):
         self.frames, self.exposures, self.crf, self.load = frames, exposures, crf, load
-        self.mode, self.motion, self.ref = mode, motion, ref
+        self.plan, self.motion, self.ref = plan, plan.motion, ref
         self.raw = frames[0].kind == "raw"
         self.identity = np.hstack([np.eye(2), np.zeros((2, 1))])
         self.confidence = [1.0] * len(frames)
@@ -259,9 +256,9 @@ class _Registrar:
         return (registration.rescale_warp(w, 2, 0.5) if self.raw else w), None
 
     def still(self, a: int, b: int) -> tuple[np.ndarray, str | None] | None:
-        """Under ``auto``: the step from frame a to b at coarse resolution when the pair is
-        still (:func:`~hdrmerge_cli.core.registration.still_test`, the tolerance
-        :data:`AUTO_ALIGN_PX` shared by the steps between b and the reference), else None."""
+        """When screening: the step from frame a to b at coarse resolution when the pair is
+        still (:func:`~hdrmerge_cli.core.registration.still_test`, the plan's tolerance
+        shared by the steps between b and the reference), else None."""
         pair = self.log_pair(a, b, self.coarse)
         if pair is None:
             return None
@@ -270,7 +267,7 @@ class _Registrar:
         if why is not None:  # the texture test measures at this level
             return self.identity, f"{why} in the range it shares with its neighbour"
         frame = self.frames[b]
-        tol = AUTO_ALIGN_PX / abs(b - self.ref)
+        tol = self.plan.tolerance_px / abs(b - self.ref)
         is_still, w, bound, rho = registration.still_test(ia, ib, self.scale, frame.height, frame.width, tol)
         if not is_still:
             log.info("%s: may be displaced from its neighbour by %.3f px or more (coarse test); registered at full "
@@ -290,7 +287,7 @@ class _Registrar:
         return (self.identity if self.raw else w), None
 
     def pinned(self, a: int, b: int, w: np.ndarray) -> bool:
-        """Under ``auto``: whether the registered step from frame a to b moves b by more than
+        """When screening: whether the registered step from frame a to b moves b by more than
         the pair can tell from no motion
         (:func:`~hdrmerge_cli.core.registration.displacement_margin` on the coarse images)."""
         frame = self.frames[b]
@@ -305,10 +302,10 @@ class _Registrar:
         return False
 
     def chain(self, indices: list[int]) -> dict[int, tuple[np.ndarray, str | None]]:
-        """The steps of one side of the reference, outwards (``{j: (warp, why)}``): under
-        ``auto`` a step found still at coarse resolution is not registered at full resolution,
-        and a registered one is kept only where the pair pins it (:meth:`pinned`)."""
-        auto = self.mode == "auto"
+        """The steps of one side of the reference, outwards (``{j: (warp, why)}``): when
+        screening, a step found still at coarse resolution is not registered at full
+        resolution, and a registered one is kept only where the pair pins it (:meth:`pinned`)."""
+        auto = self.plan.screen
         out = {}
         for j in indices:
             a = j - 1 if j > self.ref else j + 1
@@ -326,13 +323,6 @@ class _Registrar:
         with ThreadPoolExecutor(2) as pool:
             steps = {j: st for side in pool.map(self.chain, [s for s in sides if s]) for j, st in side.items()}
         return _Steps(steps, sides, self.confidence, self.judged_still)
-
-
-def whole_periods_suffice(warps) -> bool:
-    """RAW: a translation by whole 2 x 2 CFA periods moves codes without resampling them;
-    ``auto`` resamples each colour's sites (``core.resample.resample_mosaic``) instead only when whole periods would
-    leave some frame more than :data:`AUTO_ALIGN_PX` off along either axis."""
-    return max(float(np.max(np.abs(w[:, 2] - 2 * np.rint(w[:, 2] / 2)))) for w in warps) <= AUTO_ALIGN_PX
 
 
 def loader(alignment: Alignment | None, load=load_codes):

@@ -10,13 +10,13 @@ The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Py
    (:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`);
 3. response: measured on those samples when none was given
    (:func:`~hdrmerge_cli.pipeline.response.measure_response`);
-4. registration: the warps that bring the frames onto the reference
-   (:func:`~hdrmerge_cli.pipeline.register.estimate_alignment`); the exposure labels are then
-   checked on the registered samples (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
+4. registration: the warps that bring the frames onto the reference, and whether they are
+   applied (:func:`align`); the exposure labels are then checked on the registered samples
+   (:func:`~hdrmerge_cli.pipeline.exposure_check.resolve_exposures`);
 5. noise (:mod:`~hdrmerge_cli.pipeline.noise`), the excess variance of camera-processed
    frames (:mod:`~hdrmerge_cli.pipeline.excess`), then the automatic choices and the
    weights' tables (:func:`~hdrmerge_cli.pipeline.choices.choose_models`);
-6. ghosts (:func:`~hdrmerge_cli.pipeline.ghosts.find_ghosts`);
+6. ghosts, and whether they are dropped (:func:`deghost`);
 7. merge: the held codes through (7), then re-weighting in strips
    (:func:`~hdrmerge_cli.pipeline.merge.reconstruct`), and the checks after it;
 8. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
@@ -35,21 +35,24 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.reconstruct import neutral_bounds
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
+from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.metadata import output_orientation, reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline.bracket import Bracket, read
-from hdrmerge_cli.pipeline.choices import Models, choose_models, wanted
+from hdrmerge_cli.pipeline.choices import (
+    Models, choose_alignment, choose_deghost, choose_models, registration_plan, wanted,
+)
 from hdrmerge_cli.pipeline.excess import measure_excess
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
-from hdrmerge_cli.pipeline.ghosts import find_ghosts, require_noise
+from hdrmerge_cli.pipeline.ghosts import Ghosts, find_ghosts, require_noise
 from hdrmerge_cli.pipeline.merge import (
     check_range, check_repeats, reconstruct, sample_weights, warn_unmeasured, watch_repeats,
 )
 from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
-from hdrmerge_cli.pipeline.register import estimate_alignment, frame_validity, loader, output_alpha
+from hdrmerge_cli.pipeline.register import Alignment, estimate_alignment, frame_validity, loader, output_alpha
 from hdrmerge_cli.pipeline.response import measure_response
 
 log = logging.getLogger("hdrmerge_cli")
@@ -177,7 +180,7 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
             timings["response"] = time.perf_counter() - t1
     if settings.align != "off":  # registration
         t1 = time.perf_counter()
-        b.alignment = estimate_alignment(b.frames, b.exposures, b.crf, settings.align, b.codes)
+        b.alignment = align(b.frames, b.exposures, b.crf, settings.align, b.codes)
         timings["align"] = time.perf_counter() - t1
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
     checked = resolve_exposures(b.frames, b.exposures, b.crf, b.codes, inputs.times == ESTIMATE, b.samples,
@@ -192,8 +195,8 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     aligned = loader(b.alignment, b.codes)
     if settings.deghost != "off":
         t1 = time.perf_counter()
-        b.ghosts = find_ghosts(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames), aligned,
-                               settings.deghost)
+        b.ghosts = deghost(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames), aligned,
+                           settings.deghost)
         timings["deghost"] = time.perf_counter() - t1
     h_ref = reference_exposure(settings.reference, b.exposures)
     validity = frame_validity(b.frames, b.alignment)
@@ -207,6 +210,27 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     warn_unmeasured(b.frames, rec.result, rec.flags)
     return Merged(b, rec, opts, h_ref, output_orientation(b.frames), check_repeats(repeats, b.frames, b.crf),
                   output_alpha(b.frames, validity))
+
+
+def align(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=load_codes) -> Alignment:
+    """Registration under ``--align mode`` (not ``off``): the warps found as the mode plans
+    (:func:`~hdrmerge_cli.pipeline.choices.registration_plan`,
+    :func:`~hdrmerge_cli.pipeline.register.estimate_alignment`), whether they are applied
+    (:func:`~hdrmerge_cli.pipeline.choices.choose_alignment`), and its log lines."""
+    alignment = choose_alignment(estimate_alignment(frames, exposures, crf, registration_plan(mode), load), mode)
+    alignment.report()
+    return alignment
+
+
+def deghost(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise, load, mode: str, p_fa: float | None = None,
+            params=None) -> Ghosts:
+    """Deghosting under ``--deghost mode`` (not ``off``): the ghosts found
+    (:func:`~hdrmerge_cli.pipeline.ghosts.find_ghosts`, ``noise`` per channel or None),
+    whether they are applied (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost`), and
+    its log line."""
+    ghosts = choose_deghost(find_ghosts(frames, exposures, crf, noise, load, p_fa, params), mode)
+    ghosts.report()
+    return ghosts
 
 
 def choose(b: Bracket, opts: MergeOptions) -> Models:
