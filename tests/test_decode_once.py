@@ -116,12 +116,25 @@ def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes, stage_calls, 
 
 
 def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes, stage_calls, monkeypatch):
+    """Each file decoded once, each stage called once, and each frame's registration image
+    made once per resolution (the middle frame's full one serves both of its pairs)."""
+    from hdrmerge_cli.pipeline import register
+
     monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
-    paths = _shifted_dngs(tmp_path, (3.0, 0.0, -5.0))
+    made = []
+    for name in ("_linear", "_coarse_linear"):
+        def counted(frame, *args, _fn=getattr(register, name), _name=name):
+            made.append((_name, frame.path))
+            return _fn(frame, *args)
+
+        monkeypatch.setattr(register, name, counted)
+    paths = _shifted_dngs(tmp_path, (3.0, -2.0, 0.0, 4.0), times=(0.25, 0.5, 1.0, 2.0))
     merged = _merge(paths, deghost="auto")
     assert merged.bracket.alignment.applied
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
     _assert_one_pass(stage_calls, RAW_STAGES | {"find_ghosts", "choose_deghost"})
+    assert len(made) == len(set(made)), sorted(made)  # once per frame and resolution
+    assert {p for name, p in made if name == "_linear"} == set(paths)  # every pair registered in full
 
 
 @pytest.mark.parametrize("fixture", ["tiff_bracket", "jpeg_bracket"])

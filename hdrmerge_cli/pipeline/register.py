@@ -200,8 +200,8 @@ class _Steps:
 
 class _Registrar:
     """The steps of :func:`estimate_alignment` on one bracket: each frame registered to its
-    neighbour towards the reference, the coarse images made once and shared by the two sides'
-    threads."""
+    neighbour towards the reference; each frame's registration image made once per
+    resolution (coarse, full) and shared by the pairs and the two sides' threads that read it."""
 
     def __init__(self, frames: list[Frame], exposures: np.ndarray, crf: CRF, plan: RegistrationPlan, ref: int,
                  load):
@@ -213,12 +213,31 @@ class _Registrar:
         self.judged_still: list[int] = []
         self.scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if self.raw else 1)
         self._small: dict[int, np.ndarray] = {}
+        self._full: dict[int, np.ndarray] = {}
         self._making = {k: threading.Lock() for k in range(len(frames))}
+        # the pairs that may read each frame's full-resolution image: its own step and its
+        # outward neighbour's (the reference: each side's first); dropped after the last
+        self._uses = [0] * len(frames)
+        for j in range(len(frames)):
+            if j != ref:
+                self._uses[j] += 1
+                self._uses[j - 1 if j > ref else j + 1] += 1
 
     def image(self, k: int) -> np.ndarray:
-        """Frame k's full-resolution registration image (:func:`_linear`), made again for each
-        pair rather than held: the codes are decoded once (HeldCodes)."""
-        return _linear(self.frames[k], self.load(self.frames[k]), self.crf)
+        """Frame k's full-resolution registration image (:func:`_linear`), made once and held
+        until the last pair that reads it is done (:meth:`done`)."""
+        with self._making[k]:
+            if k not in self._full:
+                self._full[k] = _linear(self.frames[k], self.load(self.frames[k]), self.crf)
+            return self._full[k]
+
+    def done(self, *pair: int) -> None:
+        """The pair's step is found: a full-resolution image no other pair reads is dropped."""
+        for k in pair:
+            with self._making[k]:
+                self._uses[k] -= 1
+                if self._uses[k] == 0:
+                    self._full.pop(k, None)
 
     def coarse(self, k: int) -> np.ndarray:
         """Frame k's registration image reduced as the texture test reduces it
@@ -312,6 +331,7 @@ class _Registrar:
             out[j] = (auto and self.still(a, j)) or self.step(a, j)
             if auto and out[j][1] is None and j not in self.judged_still and not self.pinned(a, j, out[j][0]):
                 out[j] = self.identity, None
+            self.done(a, j)
         return out
 
     def run(self) -> _Steps:
