@@ -14,12 +14,13 @@ Everything here is pure array code: no paths, no printing.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from hdrmerge_cli.core.comparametric import (
-    LABEL_TOLERANCE_EV, ExposureEstimate, PairRatio, chain_pairs, comparagram, estimate_exposures,
+    LABEL_TOLERANCE_EV, MIN_RATIO_PIXELS, ExposureEstimate, PairRatio, chain_pairs, comparagram, estimate_exposures,
     response_from_comparagrams, robust_log_ratio,
 )
 from hdrmerge_cli.core.crf import CRF, linearise, table_crf
@@ -30,9 +31,12 @@ RANGE_LINEAR = (0.01, 0.9)
 RANGE_VERIFIED = (0.04, 0.94)
 #: an unverified named response (sRGB assumed, gamma:G): the mid range only
 RANGE_UNVERIFIED = (0.1, 0.9)
-#: above a frame's own floor (its 0.5th percentile of v, per channel) by at least this:
-#: frames at the noise floor (film fog, a scanner's black) give no ratios
+#: above a frame's floor (:attr:`Samples.floors`) by at least this (v): readings at the floor (film
+#: fog, a scanner's or a sensor's black, a crushed toe) are no evidence of the light
 FLOOR_MARGIN = 0.03
+#: a frame's floor is what it reads on this share of the pixels its longer neighbour
+#: reads below clipping, those it sees darkest
+FLOOR_SHARE = 0.1
 #: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
 MIN_OVERLAP = 50
 
@@ -60,6 +64,38 @@ class Samples:
         """Full-resolution pixels between the samples :func:`registration_image` reads
         (RAW: between CFA cells)."""
         return 2 * self.step if self.raw else self.step
+
+    @functools.cached_property
+    def floors(self) -> list[np.ndarray]:
+        """Per frame, ``(C,)`` the level of ``v`` up to which the frame reads its floor rather
+        than the light, :data:`FLOOR_MARGIN` included: where the response has no slope (film
+        fog, a scanner's or a sensor's black, a crushed toe) a code says nothing of the light,
+        so a frame's codes there are no evidence for a ratio, a label or an order.  The floor is
+        what the frame reads where the light is least: its median over the pixels its longer
+        neighbour sees darkest (:data:`FLOOR_SHARE` of those that neighbour reads below
+        clipping, per channel), or its own 0.5th percentile where that is higher (the
+        longest frame: that alone).  Off the borders."""
+        out, top = [], 1 - 0.5 * self.codes_step
+        for k, v in enumerate(self.v):
+            inside = v[self.inside]  # (N, C)
+            floor = np.percentile(inside, 0.5, axis=0) if inside.size else np.zeros(v.shape[-1])
+            if k + 1 < len(self.v) and inside.size:
+                longer = self.v[k + 1][self.inside]
+                for c in range(inside.shape[1]):
+                    seen = longer[:, c] < top  # the light as the longer frame reads it, where it does
+                    if np.count_nonzero(seen) >= MIN_RATIO_PIXELS:
+                        darkest = longer[:, c] <= np.percentile(longer[seen, c], 100 * FLOOR_SHARE)
+                        floor[c] = max(floor[c], float(np.median(inside[darkest, c])))
+            out.append((floor + FLOOR_MARGIN).astype(np.float32))
+        return out
+
+    def read_nothing(self) -> list[int]:
+        """The frames with fewer than :data:`~hdrmerge_cli.core.comparametric.MIN_RATIO_PIXELS`
+        samples between their floor (:attr:`floors`) and clipping, off the borders: black (or
+        white) frames, which say nothing of the light, their label or their order."""
+        top = 1 - 0.5 * self.codes_step
+        return [k for k, (v, floor) in enumerate(zip(self.v, self.floors))
+                if np.count_nonzero(((v > floor) & (v < top)).any(-1) & self.inside) < MIN_RATIO_PIXELS]
 
     def registered(self, warps: list[np.ndarray]) -> Samples:
         """The samples brought onto the reference by the full-resolution ``warps`` (one
@@ -136,9 +172,7 @@ def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None 
     ``crf`` per channel (RAW: ``v`` itself)."""
     lo, hi = value_range or usable_range(crf)
     masks, lin = [], []
-    for v in s.v:
-        inside = v[s.inside]  # (N, C)
-        floor = np.percentile(inside, 0.5, axis=0) + FLOOR_MARGIN if inside.size else np.zeros(v.shape[-1])
+    for v, floor in zip(s.v, s.floors):
         ok = (v >= np.maximum(lo, floor)) & (v <= hi) & s.inside[..., None]
         masks.append(ok)
         lin.append(linearise(v, crf, s.codes_step))

@@ -92,18 +92,21 @@ def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes,
 # ---------------------------------------------------------------- checks
 def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
-    of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels neither clips, off the
-    constant borders (frames at the noise floor and equal exposures pass; only a pair
-    darker on most changed pixels fails), with a one-line error naming both frames.  Frames
-    whose labels tie (:data:`~hdrmerge_cli.io.metadata.EQUAL_EXPOSURE_RTOL`) are not
-    ordered by them: the merge compares them as repeats, and ``--times estimate`` orders
-    them by their estimates."""
+    of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels both frames read
+    above their floors (:attr:`~hdrmerge_cli.core.samples.Samples.floors`) and neither
+    clips, off the constant borders (frames that read black, at the floor, and equal
+    exposures pass: they neither confirm nor contradict an order; only a pair darker on
+    most changed pixels fails), with a one-line error naming both frames.  Frames whose
+    labels tie (:data:`~hdrmerge_cli.io.metadata.EQUAL_EXPOSURE_RTOL`) are not ordered by
+    them: the merge compares them as repeats, and ``--times estimate`` orders them by
+    their estimates."""
     margin = max(1.5 * s.codes_step, 0.004)
+    top = 1 - 0.5 * s.codes_step
     for k in range(1, len(frames)):
         if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             continue
         a, b = s.v[k - 1], s.v[k]
-        usable = (a < 1 - 0.5 * s.codes_step) & (b < 1 - 0.5 * s.codes_step) & s.inside[..., None]
+        usable = (a > s.floors[k - 1]) & (b > s.floors[k]) & (a < top) & (b < top) & s.inside[..., None]
         t = order_test(a, b, usable, margin)
         if t.disordered:
             raise HdrMergeError(
@@ -390,6 +393,11 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
             for j in sorted(motion.moved()):
                 warn_moved(frames, j + 1, j, motion,
                            "their exposures' ratio is not estimated (their labels' ratio is kept)")
+    nothing = s.read_nothing()
+    if 0 < len(nothing) < len(frames):  # named once, merged with their labels (all: the merge says so)
+        log.warning("%s: nothing but black (the floor) or clipped readings, no evidence for or against %s; "
+                    "merged as labelled", ", ".join(frames[k].path for k in nothing),
+                    "the labels" if len(nothing) > 1 else "the label")
     unmeasured = [k for k, p in enumerate(est.pairs) if not p.measured and not p.moved]
     for k in unmeasured:
         log.info("%s / %s: too few pixels both expose well (%d) to measure their ratio; their labels are kept",
