@@ -213,6 +213,34 @@ def test_the_shared_brackets_in_one_folder_come_back_whole(run, tmp_path):
     assert len(want) >= 10 and got == want
 
 
+def _dry_run(run, folder, tmp_path) -> list[list[str]]:
+    out = json.loads(run("merge", "--batch", folder, "-o", tmp_path / "out", "--dry-run", "--json").stdout)
+    return [[Path(p).name for p in e["frames"]] for e in out["brackets"]]
+
+
+@needs_shared
+def test_three_brackets_shot_by_hand_come_back_whole(run, tmp_path):
+    """Two LX100 brackets shot by hand (3-30 s between frames, one out of file-name order,
+    4 minutes apart) and a Canon one: 3 brackets of 8, 9 and 3.  The scene test across each
+    pause reads 192-pixel thumbnails: at 48 pixels too few gradients were well exposed in
+    neighbours 1 EV apart (19, 1) and the bld bracket came back in four pieces."""
+    groups = _dry_run(run, SHARED / "folders" / "handshot_three_brackets", tmp_path)
+    assert sorted(len(g) for g in groups) == [3, 8, 9], groups
+    assert all(len({name.split("_")[0] for name in g}) == 1 for g in groups), groups
+
+
+@needs_shared
+def test_an_aborted_auto_bracket_is_not_joined_to_the_retake(run, tmp_path):
+    """An RX100 VI folder: single shots, an aborted 2-frame auto bracket, then two whole
+    5-frame ones.  The retake's first frame lies inside the exposures the aborted one spans
+    (a retake, not a sequence extending the range): both 5-frame brackets come back whole
+    and nothing is joined to them."""
+    groups = _dry_run(run, SHARED / "folders" / "rx100m6_autobracket", tmp_path)
+    assert [f"DSC0{n}.JPG" for n in range(8196, 8201)] in groups, groups
+    assert [f"DSC0{n}.JPG" for n in range(8201, 8206)] in groups, groups
+    assert ["DSC08194.JPG", "DSC08195.JPG"] in groups, groups
+
+
 @needs_shared
 def test_two_real_scenes_of_one_camera_seconds_apart_are_two_brackets(run, tmp_path):
     """Two real kitchens written at one size as one camera's frames, the second bracket

@@ -40,8 +40,10 @@ SAME_SETTING_STOPS = 1 / 6
 #: back by this many stops or more has restarted (the next AEB sequence)
 RESTART_FALL_STOPS = 2.0
 RESTART_MIN_FRAMES = 3
-#: longer side (pixels) of the thumbnails compared across a gap
-THUMBNAIL_SIDE = 48
+#: longer side (pixels) of the thumbnails compared across a gap: 192 x 108 for 16:9 frames,
+#: about 40,000 gradients, so that neighbours 1-2 EV apart that share a few per cent of the
+#: frame well exposed still give the scene test hundreds (at 48 px: tens, too few to tell)
+THUMBNAIL_SIDE = 192
 #: thumbnail values (fraction of full scale, camera-encoded) a frame exposes well
 WELL_EXPOSED = (8 / 255, 247 / 255)
 
@@ -80,8 +82,9 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
     brackets.  Within one layout the camera's bracketing tags decide first where they are
     stated (:func:`bracketing_tags`): a frame that continues the camera's auto-bracket
     sequence stays, one whose exposure mode differs starts a new bracket, and one that
-    starts a new sequence joins only with an exposure new to the bracket and the bracket's
-    scene (a photographer extending the range with a second sequence).  Untagged frames: a
+    starts the camera's sequence again joins only where the new sequence extends the
+    bracket's range (:func:`_extends`: a photographer adding exposures with a second
+    sequence, not retaking an aborted one) and shows the bracket's scene.  Untagged frames: a
     new bracket starts where the exposure sequence started again (:func:`restart_reason`,
     on exposures: time x ISO / N^2, so a camera that changes ISO inside a bracket stays
     whole), or at a frame taken more than ``gap`` seconds after the previous frame's
@@ -112,7 +115,7 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
             if tags is not None:
                 verdict, why = tags
                 reason = None if verdict == "continues" else why if verdict == "cut" else \
-                    _join_or_cut(current, f, why, after, scenes)
+                    _extends(current, f, why) or _join_or_cut(current, f, why, after, scenes)
             else:
                 reason = restart_reason(current.frames, f)
                 if reason is None and after is not None and after > gap:
@@ -145,12 +148,25 @@ def _join_or_cut(current: FoundBracket, f: Frame, what: str, after: float | None
     return None
 
 
+def _extends(current: FoundBracket, f: Frame, what: str) -> str | None:
+    """None when ``f``, the first frame of a new camera sequence, lies outside the exposures
+    the bracket spans (by more than :data:`SAME_SETTING_STOPS`): a sequence that extends the
+    range; else why it starts a new bracket (one inside the range retakes it)."""
+    t, spans = exposure_of(f), [exposure_of(g) for g in current.frames]
+    if t is None or any(x is None for x in spans):
+        return None
+    lo, hi = np.log2(min(spans)), np.log2(max(spans))
+    if np.log2(t) < lo - SAME_SETTING_STOPS or np.log2(t) > hi + SAME_SETTING_STOPS:
+        return None
+    return f"{what}, within the exposures the bracket spans ({_describe(f)}: a retake, not an extension)"
+
+
 def bracketing_tags(current: FoundBracket, f: Frame) -> tuple[str, str] | None:
     """What the camera's bracketing tags (EXIF ExposureMode "auto bracket" and
     ExposureBiasValue) say of frame ``f`` after the bracket ``current``, as ``(verdict,
     why)``: ``"continues"`` the camera's sequence; ``"cut"``: its exposure mode changed (an
     auto-bracket frame next to one that is not); ``"restarted"``: ``f``'s compensation
-    repeats one of the current sequence's.  None where they say nothing (neither ``f`` nor
+    repeats one of the current sequence's, the camera's next sequence.  None where they say nothing (neither ``f`` nor
     the bracket's last frame is an auto-bracket frame, or a compensation is not stated)."""
     last = current.frames[-1]
     if not (f.auto_bracket or last.auto_bracket):
