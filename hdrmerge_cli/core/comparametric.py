@@ -157,7 +157,7 @@ class PairRatio:
 
 
 def robust_log_ratio(y_short: np.ndarray, y_long: np.ndarray, k: float = 3.0, iterations: int = 10,
-                     max_pixels: int = 1 << 17) -> PairRatio:
+                     max_pixels: int = 1 << 17, tiles: np.ndarray | None = None) -> PairRatio:
     """Comparametric exposure ratio of two linearised frames: ``log(h_b/h_a)`` from
     ``d_i = log y_b,i - log y_a,i`` over pixels both measure.
 
@@ -170,14 +170,22 @@ def robust_log_ratio(y_short: np.ndarray, y_long: np.ndarray, k: float = 3.0, it
     a clipped channel's processing) fall out; the scale has a floor of 0.005 so that
     quantised data keep their neighbours.
 
+    The standard error is honest about neighbouring pixels sharing their errors (the
+    response's misfit, the camera's processing, motion): with ``tiles``, the cluster-robust
+    (sandwich) variance of the weighted mean over the spatial tiles,
+    ``T / (T - 1) sum_t (sum_{i in t} w_i (d_i - m))^2 / (sum w)^2`` (Liang and Zeger 1986),
+    never below the independent-pixel one; without, the pixels are taken as independent.
+
     y_short, y_long : 1-D positive linear values of the same pixels in both frames (an even
     subsample of at most ``max_pixels`` of them is used)
+    tiles : 1-D int, the spatial tile of each pixel (the same length), or None
     """
     ok = (y_short > 0) & (y_long > 0) & np.isfinite(y_short) & np.isfinite(y_long)
     a, b = y_short[ok], y_long[ok]
     n = int(a.size)
     step = max(1, -(-n // max_pixels))  # an even subsample of at most max_pixels
     a, b = a[::step].astype(np.float64), b[::step].astype(np.float64)
+    tiles = None if tiles is None else tiles[ok][::step]
     if n == 0:
         return PairRatio(float("nan"), float("inf"), float("nan"), 0, 0)
     d = np.log(b) - np.log(a)
@@ -200,7 +208,22 @@ def robust_log_ratio(y_short: np.ndarray, y_long: np.ndarray, k: float = 3.0, it
     wk = w[keep]
     n_eff = float(np.sum(wk) ** 2 / np.sum(wk**2))
     spread = float(np.sqrt(np.sum(wk * (d[keep] - m) ** 2) / np.sum(wk)))
-    return PairRatio(m, spread / np.sqrt(max(n_eff, 1.0)), spread, n, kept, trend=ratio_trend(a[keep], d[keep], wk))
+    stderr = spread / np.sqrt(max(n_eff, 1.0))
+    if tiles is not None:
+        stderr = max(stderr, cluster_stderr(wk * (d[keep] - m), tiles[keep], float(np.sum(wk))))
+    return PairRatio(m, stderr, spread, n, kept, trend=ratio_trend(a[keep], d[keep], wk))
+
+
+def cluster_stderr(scores: np.ndarray, tiles: np.ndarray, total_weight: float) -> float:
+    """The cluster-robust standard error of a weighted mean from its per-pixel scores
+    ``w_i (d_i - m)`` grouped by ``tiles``: ``sqrt(T / (T - 1) sum_t S_t^2) / sum w``,
+    ``S_t`` the scores' sum in tile ``t`` of the ``T`` tiles holding any; infinite with
+    fewer than two tiles (one tile cannot tell its error from the others')."""
+    ids, inverse = np.unique(tiles, return_inverse=True)
+    if ids.size < 2:
+        return float("inf")
+    sums = np.bincount(inverse, weights=scores)
+    return float(np.sqrt(ids.size / (ids.size - 1) * np.sum(sums**2)) / total_weight)
 
 
 def ratio_trend(y: np.ndarray, d: np.ndarray, w: np.ndarray) -> float:

@@ -37,6 +37,8 @@ FLOOR_MARGIN = 0.03
 #: a frame's floor is what it reads on this share of the pixels its longer neighbour
 #: reads below clipping, those it sees darkest
 FLOOR_SHARE = 0.1
+#: tiles per side over which a ratio's standard error is measured (:attr:`Samples.tiles`)
+TILES = 8
 #: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
 MIN_OVERLAP = 50
 
@@ -88,6 +90,16 @@ class Samples:
                         floor[c] = max(floor[c], float(np.median(inside[darkest, c])))
             out.append((floor + FLOOR_MARGIN).astype(np.float32))
         return out
+
+    @functools.cached_property
+    def tiles(self) -> np.ndarray:
+        """``(H', W', C)`` int: each sample's spatial tile, :data:`TILES` x :data:`TILES`
+        over the frame, over which the errors of the pairs' ratios are measured
+        (neighbouring pixels share their errors)."""
+        h, w, c = self.v[0].shape
+        rows = np.arange(h) * TILES // max(h, 1)
+        cols = np.arange(w) * TILES // max(w, 1)
+        return np.broadcast_to((rows[:, None] * TILES + cols[None, :])[..., None], (h, w, c))
 
     def read_nothing(self) -> list[int]:
         """The frames with fewer than :data:`~hdrmerge_cli.core.comparametric.MIN_RATIO_PIXELS`
@@ -177,10 +189,11 @@ def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None 
         masks.append(ok)
         lin.append(linearise(v, crf, s.codes_step))
     total = max(1, int(np.count_nonzero(s.inside)) * s.v[0].shape[-1])
+    tiles = s.tiles
     out = []
     for k in range(1, len(s.v)):
         both = masks[k - 1] & masks[k]
-        r = robust_log_ratio(lin[k - 1][both], lin[k][both])
+        r = robust_log_ratio(lin[k - 1][both], lin[k][both], tiles=tiles[both])
         r.coverage = int(np.count_nonzero(both)) / total
         out.append(r)
     return out
