@@ -6,7 +6,8 @@ brackets against the bound and the peers (cli_defaults), accuracy (every method
 against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), speed
 (merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
 on the DoRF curves, noise calibration, alignment and deghosting, and what each program does
-with each kind of frame (input_kinds), and capture plans against conventional brackets (plan).  Those that need
+with each kind of frame (input_kinds), capture plans against conventional brackets (plan), and every
+automatic choice on the real photographs against their stated answers (decisions).  Those that need
 ../shared/data skip with a note without it; peers that are not installed are skipped with a note.
 """
 from __future__ import annotations
@@ -16,7 +17,7 @@ import importlib
 import time
 
 BENCHMARKS = ("real_loo", "align_loo", "cli_defaults", "accuracy", "speed", "crf_dorf", "noise_calibration", "motion",
-              "input_kinds", "plan")
+              "input_kinds", "plan", "decisions")
 
 
 def main() -> None:

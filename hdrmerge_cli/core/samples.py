@@ -37,6 +37,9 @@ FLOOR_MARGIN = 0.03
 #: a frame's floor is what it reads on this share of the pixels its longer neighbour
 #: reads below clipping, those it sees darkest
 FLOOR_SHARE = 0.1
+#: standard deviations of the floor's noise a single reading must stand above the floor to
+#: count for an order (:attr:`Samples.noise_floors`)
+FLOOR_SIGMAS = 3.0
 #: tiles per side over which a ratio's standard error is measured (:attr:`Samples.tiles`)
 TILES = 8
 #: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
@@ -72,23 +75,41 @@ class Samples:
         """Per frame, ``(C,)`` the level of ``v`` up to which the frame reads its floor rather
         than the light, :data:`FLOOR_MARGIN` included: where the response has no slope (film
         fog, a scanner's or a sensor's black, a crushed toe) a code says nothing of the light,
-        so a frame's codes there are no evidence for a ratio, a label or an order.  The floor is
-        what the frame reads where the light is least: its median over the pixels its longer
-        neighbour sees darkest (:data:`FLOOR_SHARE` of those that neighbour reads below
-        clipping, per channel), or its own 0.5th percentile where that is higher (the
-        longest frame: that alone).  Off the borders."""
+        so a frame's codes there are no evidence for a ratio.  The floor is what the frame
+        reads where the light is least: its median over the pixels its longer neighbour sees
+        darkest (:data:`FLOOR_SHARE` of those that neighbour reads below clipping, per
+        channel), or its own 0.5th percentile where that is higher (the longest frame: that
+        alone).  Off the borders."""
+        return [level + FLOOR_MARGIN for level, _ in self._floor_readings]
+
+    @functools.cached_property
+    def noise_floors(self) -> list[np.ndarray]:
+        """:attr:`floors` with the margin raised to :data:`FLOOR_SIGMAS` times the noise of
+        the frame's readings at its floor where that is more (the upper standard deviation,
+        median to 84th percentile, as readings at black are clipped at zero): a single
+        reading below it may be the floor's noise, so it is no evidence for an order or for
+        a frame reading anything.  (Not for the ratios: where frames moved, the readings
+        under the neighbour's darkest pixels are not the floor's, and the ratios' own outlier
+        rejection handles the floor's noise.)"""
+        return [level + np.maximum(FLOOR_MARGIN, FLOOR_SIGMAS * noise) for level, noise in self._floor_readings]
+
+    @functools.cached_property
+    def _floor_readings(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per frame, ``(C,)`` float32 its floor's level and noise (:attr:`floors`)."""
         out, top = [], 1 - 0.5 * self.codes_step
         for k, v in enumerate(self.v):
             inside = v[self.inside]  # (N, C)
-            floor = np.percentile(inside, 0.5, axis=0) if inside.size else np.zeros(v.shape[-1])
+            level = np.percentile(inside, 0.5, axis=0) if inside.size else np.zeros(v.shape[-1])
+            noise = np.zeros(v.shape[-1])
             if k + 1 < len(self.v) and inside.size:
                 longer = self.v[k + 1][self.inside]
                 for c in range(inside.shape[1]):
                     seen = longer[:, c] < top  # the light as the longer frame reads it, where it does
                     if np.count_nonzero(seen) >= MIN_RATIO_PIXELS:
                         darkest = longer[:, c] <= np.percentile(longer[seen, c], 100 * FLOOR_SHARE)
-                        floor[c] = max(floor[c], float(np.median(inside[darkest, c])))
-            out.append((floor + FLOOR_MARGIN).astype(np.float32))
+                        median, upper = np.percentile(inside[darkest, c], [50, 84.13])
+                        level[c], noise[c] = max(level[c], median), upper - median
+            out.append((level.astype(np.float32), noise.astype(np.float32)))
         return out
 
     @functools.cached_property
@@ -103,10 +124,11 @@ class Samples:
 
     def read_nothing(self) -> list[int]:
         """The frames with fewer than :data:`~hdrmerge_cli.core.comparametric.MIN_RATIO_PIXELS`
-        samples between their floor (:attr:`floors`) and clipping, off the borders: black (or
-        white) frames, which say nothing of the light, their label or their order."""
+        samples between their floor and its noise (:attr:`noise_floors`) and clipping, off the
+        borders: black (or white) frames, which say nothing of the light, their label or
+        their order."""
         top = 1 - 0.5 * self.codes_step
-        return [k for k, (v, floor) in enumerate(zip(self.v, self.floors))
+        return [k for k, (v, floor) in enumerate(zip(self.v, self.noise_floors))
                 if np.count_nonzero(((v > floor) & (v < top)).any(-1) & self.inside) < MIN_RATIO_PIXELS]
 
     def registered(self, warps: list[np.ndarray]) -> Samples:

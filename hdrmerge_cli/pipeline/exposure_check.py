@@ -93,7 +93,7 @@ def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes,
 def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
     of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels both frames read
-    above their floors (:attr:`~hdrmerge_cli.core.samples.Samples.floors`) and neither
+    above their floors and its noise (:attr:`~hdrmerge_cli.core.samples.Samples.noise_floors`) and neither
     clips, off the constant borders (frames that read black, at the floor, and equal
     exposures pass: they neither confirm nor contradict an order; only a pair darker on
     most changed pixels fails), with a one-line error naming both frames.  Frames whose
@@ -106,7 +106,7 @@ def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
         if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             continue
         a, b = s.v[k - 1], s.v[k]
-        usable = (a > s.floors[k - 1]) & (b > s.floors[k]) & (a < top) & (b < top) & s.inside[..., None]
+        usable = (a > s.noise_floors[k - 1]) & (b > s.noise_floors[k]) & (a < top) & (b < top) & s.inside[..., None]
         t = order_test(a, b, usable, margin)
         if t.disordered:
             raise HdrMergeError(
