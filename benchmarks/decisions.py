@@ -11,9 +11,9 @@ answer their sources state.
   EXIF times linked into one folder, against the brackets the data's README states.
 - **Leave-one-out**: on the brackets the decisions were tuned on and on two more, the
   plain ``merge`` (no option; ``--align off``) with the middle frame left out, its codes
-  predicted through the response the profile records, against OpenCV's Debevec and
-  colour-hdri's (benchmarks.peers) on the same frames, RMSE in code values over the
-  left-out frame's pixels within [10, 245].
+  predicted through the response the profile records, against every installed peer of
+  benchmarks.peers on the same frames, RMSE in code values over the left-out frame's
+  pixels within [10, 245].
 
 The rules were tuned on the brackets marked *tuned* (the film scan for the floor of the
 evidence; the two folders and the EOS 350D's three auto-bracket sequences for the
@@ -173,7 +173,7 @@ def loo_rows(quick: bool) -> list[dict]:
     from hdrmerge_cli.pipeline.bracket import read_bracket
 
     available = peers.available()
-    names = [n for n in ("opencv-debevec", "colour-hdri") if available[n] is None]
+    names = [n for n in peers.PEERS if available[n] is None]
     wanted = {"memorial_film_scan_png", "handshot_three_brackets/fro", "handshot_three_brackets/shop",
               "eos350d_lamps_night_jpg", "stack_jpg"}
     rows = []
@@ -240,7 +240,7 @@ def main(quick: bool = False) -> str:
     for r in rows:
         lines.append(f"| {r['bracket']} | {r['left_out']} | {r['merge (no option)']:.2f} | "
                      + " | ".join(f"{r[n]:.2f}" for n in names) + " |")
-    skipped = [f"{n}: {why}" for n, why in available.items() if why and n in ("opencv-debevec", "colour-hdri")]
+    skipped = [f"{n}: {why}" for n, why in available.items() if why]
     if skipped:
         lines.append("\nSkipped: " + "; ".join(skipped))
     return write_result(RESULTS / f"decisions{'_quick' if quick else ''}.md", lines)

@@ -352,6 +352,9 @@ class ExposureEstimate:
 
     log_h : (P,) estimated ``log h`` (natural log), anchored at the reference's label
     difference_ev : (P,) label minus estimate, in EV (log2); positive: labelled too long
+    model_slope : where the response is a model (sRGB, gamma) checked against a fit on the
+        bracket, the slope of the estimates read through the model itself against the
+        labels (1 where the model reads the frames' ratios right); else None
     """
 
     log_h: np.ndarray
@@ -359,6 +362,7 @@ class ExposureEstimate:
     pairs: list[PairRatio]
     reference: int
     slope: float
+    model_slope: float | None = None
 
     def stderr_ev(self) -> np.ndarray:
         """Per frame: the standard error of its estimate (EV), the pair ratios' errors summed

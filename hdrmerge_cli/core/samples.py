@@ -189,10 +189,12 @@ def thin_overlap(s: Samples) -> tuple[int, int] | None:
 
 
 def crf_verified(crf: CRF) -> bool:
-    """Linear data, measured response tables and a response the user named are trusted;
-    sRGB assumed for want of one is not: its ratios are read in the mid range and up to a
-    power."""
-    return not crf.assumed
+    """Linear data and measured response tables (a profile's, a CSV, one fitted on the
+    bracket) are trusted; a model (sRGB or ``gamma:G``, assumed for want of a response or
+    named by the user) is not: it is a guess at this camera's curve, so its ratios are read
+    in the mid range, up to a power, and a label is judged only where the bracket's own
+    fitted response agrees."""
+    return crf.is_linear or (crf.table is not None and not crf.assumed)
 
 
 def usable_range(crf: CRF) -> tuple[float, float]:
@@ -277,10 +279,11 @@ def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: 
     # a label is called wrong only where the assumed response agrees (same sign; the smaller
     # of the two differences): a fit on pairs that barely overlap, or a camera curve far
     # from the assumed one, each alone makes false alarms
-    assumed = estimate(exposures, s, crf, moved=moved).difference_ev
+    model = estimate(exposures, s, crf, moved=moved)
+    assumed = model.difference_ev
     agree = np.sign(assumed) == np.sign(est.difference_ev)
     diff = np.where(agree, np.sign(assumed) * np.minimum(np.abs(assumed), np.abs(est.difference_ev)), 0.0)
-    return replace(est, difference_ev=diff), fitted
+    return replace(est, difference_ev=diff, model_slope=model.slope), fitted
 
 
 def label_at_fault(est: ExposureEstimate, k: int) -> bool:
@@ -313,6 +316,18 @@ def response_fits(est: ExposureEstimate) -> bool:
     common to every frame, so where it bends most pairs no label can be judged through it."""
     trends = [abs(p.trend) for p in est.pairs if p.measured]
     return not trends or float(np.median(trends)) / np.log(2) < LABEL_TOLERANCE_EV
+
+
+def model_power_error_ev(est: ExposureEstimate) -> float:
+    """Where the response is a model checked against the bracket's own fit
+    (:func:`estimate_with_response`): how far the model's reading of the ratios puts the
+    bracket's outermost frame from its label (EV), ``|slope - 1|`` times its distance from
+    the reference; 0 otherwise.  A response of another power than the camera's scales
+    every log ratio alike."""
+    if est.model_slope is None:
+        return 0.0
+    span = np.abs(est.log_h - est.log_h[est.reference]) / np.log(2)
+    return float(abs(est.model_slope - 1.0) * np.max(span))
 
 
 def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:

@@ -25,8 +25,8 @@ from hdrmerge_cli.core.comparametric import (
     normalised_samples, order_test, pair_displacement,
 )
 from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, crf_verified, estimate_with_response, label_at_fault, power_explains, ratio_bend_ev,
-    response_fits, thin_overlap,
+    MIN_OVERLAP, Samples, crf_verified, estimate_with_response, label_at_fault, model_power_error_ev, power_explains,
+    ratio_bend_ev, response_fits, thin_overlap,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, fmt_time
@@ -393,6 +393,13 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
             for j in sorted(motion.moved()):
                 warn_moved(frames, j + 1, j, motion,
                            "their exposures' ratio is not estimated (their labels' ratio is kept)")
+    power = model_power_error_ev(est)
+    if power > LABEL_TOLERANCE_EV and not crf.assumed:  # a model the user named, of another power than the camera's
+        log.warning("%s: read through the response given (%s) the frames' ratios are %.0f %% %s than their labels', "
+                    "%.2f EV at the ends of the bracket: it does not fit the frames (the labels are judged where a "
+                    "response fitted on the bracket agrees); measure the response on the bracket (no --crf) or with "
+                    "'hdrmerge-cli estimate-crf'", frames[0].path, crf.describe(), 100 * abs(est.model_slope - 1),
+                    "larger" if est.model_slope > 1 else "smaller", power)
     nothing = s.read_nothing()
     if 0 < len(nothing) < len(frames):  # named once, merged with their labels (all: the merge says so)
         log.warning("%s: nothing but black (the floor) or clipped readings, no evidence for or against %s; "
