@@ -93,8 +93,6 @@ def label_rows(quick: bool) -> list[dict]:
 def simulated_rows() -> list[dict]:
     """A frame labelled 1 EV off must be named; a bracket whose shortest frames read black
     must merge with its labels."""
-    import cv2
-
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, HDRMERGE_CLI_CACHE_DIR=f"{tmp}/cache")
@@ -113,22 +111,32 @@ def simulated_rows() -> list[dict]:
                 if p.returncode == 0 else []
             rows.append({"case": "simulated JPEG, frame 2 labelled 1 EV long", "expected": sim[1].name,
                          "got": ", ".join(named) or "none", "right": named == [sim[1].name]})
-        rng = np.random.default_rng(5)
-        e = np.clip(np.exp(cv2.GaussianBlur(rng.standard_normal((240, 320)), (0, 0), 3) * 4), 0, None)
-        e = np.clip(e / np.percentile(e, 99.9), 0, 4)
-        ts = [1 / 4000, 1 / 2000, 1 / 1000, 1 / 500, 1 / 125, 1 / 30, 1 / 8, 1 / 2, 2, 8]
-        noise = [0.002, 0.0012, 0.0006, 0.0004] + [0.0004] * 6
-        paths = []
-        for k, (t, sd) in enumerate(zip(ts, noise)):
-            x = np.clip(e * t / 2.5 + rng.normal(0, sd, e.shape), 0, 1)
-            z = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-            paths.append(f"{tmp}/b{k}.jpg")
-            cv2.imwrite(paths[-1], np.repeat(np.rint(255 * z).astype(np.uint8)[..., None], 3, -1))
+        paths, ts = black_frames_bracket(Path(tmp))
         p = _cli("merge", *paths, "--times", ",".join(repr(t) for t in ts), "-o", f"{tmp}/b.exr", "-q", env=env)
         rows.append({"case": "simulated phone bracket, 4 shortest frames black", "expected": "merged",
                      "got": "merged" if p.returncode == 0 else f"refused: {p.stderr.strip()[:90]}",
                      "right": p.returncode == 0})
     return rows
+
+
+def black_frames_bracket(folder: Path, shape=(240, 320), seed: int = 5) -> tuple[list[str], list[float]]:
+    """A phone-like 8-bit bracket, 1/4000 s to 8 s in 10 JPEGs, whose four shortest frames
+    read black (mean codes 1-3), their noise falling frame to frame as noise reduction makes
+    it (so each black frame reads darker than the one before): the paths and the times."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    e = np.clip(np.exp(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 3) * 4), 0, None)
+    e = np.clip(e / np.percentile(e, 99.9), 0, 4)
+    times = [1 / 4000, 1 / 2000, 1 / 1000, 1 / 500, 1 / 125, 1 / 30, 1 / 8, 1 / 2, 2, 8]
+    noise = [0.002, 0.0012, 0.0006, 0.0004] + [0.0004] * 6
+    paths = []
+    for k, (t, sd) in enumerate(zip(times, noise)):
+        x = np.clip(e * t / 2.5 + rng.normal(0, sd, e.shape), 0, 1)
+        z = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+        paths.append(str(folder / f"f{k}.jpg"))
+        cv2.imwrite(paths[-1], np.repeat(np.rint(255 * z).astype(np.uint8)[..., None], 3, -1))
+    return paths, times
 
 
 def grouping_rows() -> list[dict]:

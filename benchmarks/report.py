@@ -30,6 +30,7 @@ START, END = "<!-- headline:start -->", "<!-- headline:end -->"
 #: result files in the order the page shows them, with a one-line summary each
 SECTIONS = (
     ("real_loo", "Real JPEG brackets: responses and merges by leave-one-out, against the peers"),
+    ("decisions", "Automatic choices on the real photographs, against their stated answers"),
     ("align_loo", "Alignment on the real brackets by leave-one-out, against Hugin and OpenCV"),
     ("motion", "Alignment and ghost removal on randomised moving brackets"),
     ("cli_defaults", "The command line's defaults on simulated brackets, against the Cramer-Rao bound and the peers"),

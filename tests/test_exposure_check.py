@@ -512,24 +512,16 @@ def test_the_floor_is_what_a_frame_reads_where_the_light_is_least_not_its_dust()
 
 
 def test_frames_that_read_black_are_named_not_refused(run, tmp_path):
-    """A 10-frame bracket, 1/4000 s to 8 s, whose four shortest frames read black (mean codes
-    about 1-3, their noise falling frame to frame as a phone's noise reduction makes it, so
-    the later black frames read darker; the noise at the floor sets its margin): it merges
-    with its labels, one warning names the black frames, and no label is blamed.  Before, the order check refused it ('darker than
-    ... though labelled a longer exposure')."""
+    """A phone-like 10-frame bracket, 1/4000 s to 8 s, whose four shortest frames read black
+    and each darker than the one before (benchmarks.decisions.black_frames_bracket; the
+    noise at the floor sets the order check's margin): it merges with its labels, one
+    warning names the black frames, and no label is blamed.  Before, the order check
+    refused it ('darker than ... though labelled a longer exposure')."""
     import cv2
 
-    rng = np.random.default_rng(5)
-    e = np.clip(np.exp(cv2.GaussianBlur(rng.standard_normal((240, 320)), (0, 0), 3) * 4), 0, None)
-    e = np.clip(e / np.percentile(e, 99.9), 0, 4)
-    times = [1 / 4000, 1 / 2000, 1 / 1000, 1 / 500, 1 / 125, 1 / 30, 1 / 8, 1 / 2, 2, 8]
-    noise = [0.002, 0.0012, 0.0006, 0.0004] + [0.0004] * 6
-    paths = []
-    for k, (t, sd) in enumerate(zip(times, noise)):
-        x = np.clip(e * t / 2.5 + rng.normal(0, sd, e.shape), 0, 1)
-        z = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-        paths.append(tmp_path / f"f{k}.jpg")
-        cv2.imwrite(str(paths[-1]), np.repeat(np.rint(255 * z).astype(np.uint8)[..., None], 3, -1))
+    from benchmarks.decisions import black_frames_bracket
+
+    paths, times = black_frames_bracket(tmp_path)
     assert np.mean(cv2.imread(str(paths[2]))) < np.mean(cv2.imread(str(paths[1])))  # darker, labelled longer
     proc = run("merge", *paths, "--times", ",".join(repr(t) for t in times), "-o", tmp_path / "m.exr", "--json",
                check=False)

@@ -74,8 +74,8 @@ class Alignment:
         if self.applied:
             share = self.covered_by_every_frame()
             if share < 1:
-                log.info("alignment: %.1f %% of the image lies outside some moved frame and is measured by fewer frames "
-                         "(its borders)", 100 * (1 - share))
+                log.info("alignment: %.1f %% of the image lies outside some moved frame and is measured by fewer "
+                         "frames (its borders)", 100 * (1 - share))
 
     def warp_of(self, frame: Frame) -> np.ndarray:
         return of_frame(frame, self.frames, self.warps)
