@@ -85,12 +85,11 @@ class Samples:
     @functools.cached_property
     def noise_floors(self) -> list[np.ndarray]:
         """:attr:`floors` with the margin raised to :data:`FLOOR_SIGMAS` times the noise of
-        the frame's readings at its floor where that is more (the upper standard deviation,
-        median to 84th percentile, as readings at black are clipped at zero): a single
-        reading below it may be the floor's noise, so it is no evidence for an order or for
-        a frame reading anything.  (Not for the ratios: where frames moved, the readings
-        under the neighbour's darkest pixels are not the floor's, and the ratios' own outlier
-        rejection handles the floor's noise.)"""
+        the frame's readings at its floor where that is more (from the differences of
+        neighbouring samples of one colour there: their 84th percentile over sqrt 2, as
+        readings at black are clipped at zero): a single reading below it may be the
+        floor's noise, so it is no evidence for an order or for a frame reading anything.
+        (The ratios keep :attr:`floors`: their own outlier rejection handles that noise.)"""
         return [level + np.maximum(FLOOR_MARGIN, FLOOR_SIGMAS * noise) for level, noise in self._floor_readings]
 
     @functools.cached_property
@@ -102,13 +101,20 @@ class Samples:
             level = np.percentile(inside, 0.5, axis=0) if inside.size else np.zeros(v.shape[-1])
             noise = np.zeros(v.shape[-1])
             if k + 1 < len(self.v) and inside.size:
-                longer = self.v[k + 1][self.inside]
-                for c in range(inside.shape[1]):
-                    seen = longer[:, c] < top  # the light as the longer frame reads it, where it does
-                    if np.count_nonzero(seen) >= MIN_RATIO_PIXELS:
-                        darkest = longer[:, c] <= np.percentile(longer[seen, c], 100 * FLOOR_SHARE)
-                        median, upper = np.percentile(inside[darkest, c], [50, 84.13])
-                        level[c], noise[c] = max(level[c], median), upper - median
+                longer = self.v[k + 1]
+                for c in range(v.shape[-1]):
+                    seen = (longer[..., c] < top) & self.inside  # the light as the longer frame reads it
+                    if np.count_nonzero(seen) < MIN_RATIO_PIXELS:
+                        continue
+                    darkest = (longer[..., c] <= np.percentile(longer[..., c][seen], 100 * FLOOR_SHARE)) & self.inside
+                    level[c] = max(level[c], float(np.median(v[..., c][darkest])))
+                    # the noise there from neighbouring samples of one colour (they share their
+                    # light), so that frames that moved (whose darkest pixels differ) still agree
+                    n = 2 if self.raw else 1  # a mosaic's samples alternate colours along a row
+                    pair = darkest[:, :-n] & darkest[:, n:]
+                    if np.count_nonzero(pair) >= MIN_RATIO_PIXELS:
+                        d = np.abs(v[:, n:, c][pair] - v[:, :-n, c][pair])
+                        noise[c] = float(np.percentile(d, 84.13)) / np.sqrt(2)
             out.append((level.astype(np.float32), noise.astype(np.float32)))
         return out
 
