@@ -515,8 +515,8 @@ def test_frames_that_read_black_are_named_not_refused(run, tmp_path):
     """A phone-like 10-frame bracket, 1/4000 s to 8 s, whose four shortest frames read black
     and each darker than the one before (benchmarks.decisions.black_frames_bracket; the
     noise at the floor sets the order check's margin): it merges with its labels, one
-    warning names the black frames, and no label is blamed.  Before, the order check
-    refused it ('darker than ... though labelled a longer exposure')."""
+    warning names the black frames, and no label is blamed (the order check does not
+    refuse it as 'darker than ... though labelled a longer exposure')."""
     import cv2
 
     from benchmarks.decisions import black_frames_bracket
@@ -539,8 +539,8 @@ def test_frames_that_read_black_are_named_not_refused(run, tmp_path):
 def test_the_film_scans_correct_labels_are_not_blamed(run, tmp_path, crf, brightest):
     """Debevec and Malik's Memorial Church scan (correct published times; its darkest frames
     mostly read the film's fog): no label is blamed, with the response measured or sRGB
-    given, on all 16 frames and on the 13 brightest.  Before, six (seven with sRGB) were
-    'measured' at about one value, the fog speaking."""
+    given, on all 16 frames and on the 13 brightest: the darkest frames' readings of the
+    fog are no evidence."""
     folder = SHARED / "brackets" / "memorial_film_scan_png"
     paths = sorted(folder.glob("*.png"))[:brightest]  # memorial0061 (32 s) onwards
     proc = run("merge", *paths, "--times-file", folder / "exposure_times_seconds.txt", "-o", tmp_path / "m.exr",

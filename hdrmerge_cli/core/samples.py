@@ -65,6 +65,11 @@ class Samples:
     levels: tuple[np.ndarray, np.ndarray, int] | None = None
 
     @property
+    def top(self) -> float:
+        """Half a code below full scale (``v``): a sample at or above it reads the top code, clipped."""
+        return 1 - 0.5 * self.codes_step
+
+    @property
     def pitch(self) -> int:
         """Full-resolution pixels between the samples :func:`registration_image` reads
         (RAW: between CFA cells)."""
@@ -95,7 +100,7 @@ class Samples:
     @functools.cached_property
     def _floor_readings(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per frame, ``(C,)`` float32 its floor's level and noise (:attr:`floors`)."""
-        out, top = [], 1 - 0.5 * self.codes_step
+        out, top = [], self.top
         for k, v in enumerate(self.v):
             inside = v[self.inside]  # (N, C)
             level = np.percentile(inside, 0.5, axis=0) if inside.size else np.zeros(v.shape[-1])
@@ -133,7 +138,7 @@ class Samples:
         samples between their floor and its noise (:attr:`noise_floors`) and clipping, off the
         borders: black (or white) frames, which say nothing of the light, their label or
         their order."""
-        top = 1 - 0.5 * self.codes_step
+        top = self.top
         return [k for k, (v, floor) in enumerate(zip(self.v, self.noise_floors))
                 if np.count_nonzero(((v > floor) & (v < top)).any(-1) & self.inside) < MIN_RATIO_PIXELS]
 
@@ -185,7 +190,7 @@ def thin_overlap(s: Samples) -> tuple[int, int] | None:
     """The first neighbour pair sharing fewer than :data:`MIN_OVERLAP` pixels that neither
     frame clips (0 < z < max; constant borders excluded), as ``(k, pixels)`` with ``k`` the
     pair's longer frame, or None: a response cannot be chained across such a pair."""
-    lo, hi = 0.5 * s.codes_step, 1 - 0.5 * s.codes_step
+    lo, hi = 0.5 * s.codes_step, s.top
     for k in range(1, len(s.v)):
         a, b = s.v[k - 1], s.v[k]
         both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2

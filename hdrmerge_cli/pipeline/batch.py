@@ -42,7 +42,7 @@ RESTART_FALL_STOPS = 2.0
 RESTART_MIN_FRAMES = 3
 #: longer side (pixels) of the thumbnails compared across a gap: 192 x 108 for 16:9 frames,
 #: about 40,000 gradients, so that neighbours 1-2 EV apart that share a few per cent of the
-#: frame well exposed still give the scene test hundreds (at 48 px: tens, too few to tell)
+#: frame well exposed still give the scene test hundreds (a quarter of the side: tens, too few)
 THUMBNAIL_SIDE = 192
 #: thumbnail values (fraction of full scale, camera-encoded) a frame exposes well
 WELL_EXPOSED = (8 / 255, 247 / 255)
@@ -166,8 +166,9 @@ def bracketing_tags(current: FoundBracket, f: Frame) -> tuple[str, str] | None:
     ExposureBiasValue) say of frame ``f`` after the bracket ``current``, as ``(verdict,
     why)``: ``"continues"`` the camera's sequence; ``"cut"``: its exposure mode changed (an
     auto-bracket frame next to one that is not); ``"restarted"``: ``f``'s compensation
-    repeats one of the current sequence's, the camera's next sequence.  None where they say nothing (neither ``f`` nor
-    the bracket's last frame is an auto-bracket frame, or a compensation is not stated)."""
+    repeats one of the current sequence's, the camera's next sequence.  None where they say
+    nothing (neither ``f`` nor the bracket's last frame is an auto-bracket frame, or a
+    compensation is not stated)."""
     last = current.frames[-1]
     if not (f.auto_bracket or last.auto_bracket):
         return None

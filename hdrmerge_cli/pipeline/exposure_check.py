@@ -93,15 +93,15 @@ def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes,
 def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
     of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels both frames read
-    above their floors and its noise (:attr:`~hdrmerge_cli.core.samples.Samples.noise_floors`) and neither
-    clips, off the constant borders (frames that read black, at the floor, and equal
+    above their floors and its noise (:attr:`~hdrmerge_cli.core.samples.Samples.noise_floors`)
+    and neither clips, off the constant borders (frames that read black, at the floor, and equal
     exposures pass: they neither confirm nor contradict an order; only a pair darker on
     most changed pixels fails), with a one-line error naming both frames.  Frames whose
     labels tie (:data:`~hdrmerge_cli.io.metadata.EQUAL_EXPOSURE_RTOL`) are not ordered by
     them: the merge compares them as repeats, and ``--times estimate`` orders them by
     their estimates."""
     margin = max(1.5 * s.codes_step, 0.004)
-    top = 1 - 0.5 * s.codes_step
+    top = s.top
     for k in range(1, len(frames)):
         if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
             continue
@@ -131,7 +131,7 @@ def check_overlap(frames: list[Frame], s: Samples) -> None:
 def _clipped_alone(frames: list[Frame], s: Samples, k: int) -> str | None:
     """Why the pair ending at frame ``k`` shares too few unclipped pixels when one frame
     alone has too few (black or white), else None."""
-    lo, hi = 0.5 * s.codes_step, 1 - 0.5 * s.codes_step
+    lo, hi = 0.5 * s.codes_step, s.top
     for j in (k - 1, k):
         v = s.v[j][s.inside]
         if np.count_nonzero(((v > lo) & (v < hi)).all(-1)) * s.step ** 2 < MIN_OVERLAP:
