@@ -6,6 +6,7 @@ import pytest
 from dataclasses import replace
 
 from hdrmerge_cli.core import deghost
+from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams
 
 #: the per-cell chi-square test alone: a cubic tone match, the gradient registration
@@ -299,13 +300,14 @@ def test_ghost_tables_with_footroom_read_codes_below_black_linearly():
     through black with the same slope), only clipped codes are not; without footroom (an
     image) every code at or below black is censored."""
     noise = NoiseParams(9.0, 0.25, 0.0)
-    x, s, ok = deghost.ghost_tables(1024, 64.0, 1000.0, lambda v: v, 2.0, noise, footroom=True)
+    lin = CRF("linear").codes_table(1024, 64.0, 1000.0)[0]
+    x, s, ok = deghost.ghost_tables(1024, 64.0, 1000.0, lin, 2.0, noise, footroom=True)
     slope = 1.0 / (936.0 * 2.0)
     np.testing.assert_allclose(x[[1, 32, 63, 64, 65, 500]], (np.array([1, 32, 63, 64, 65, 500]) - 64) * slope, rtol=1e-12)
     assert ok[:1000].all() and not ok[1000:].any()
     # below black the variance is the read noise's (9 codes^2) plus quantisation, in x units
     np.testing.assert_allclose(s[10], (9.0 + 1 / 12) * slope**2, rtol=1e-6)
-    _, _, ok_img = deghost.ghost_tables(1024, 64.0, 1000.0, lambda v: v, 2.0, noise)
+    _, _, ok_img = deghost.ghost_tables(1024, 64.0, 1000.0, lin, 2.0, noise)
     assert not ok_img[:65].any() and ok_img[65:1000].all()
 
 

@@ -89,6 +89,44 @@ def stage_calls(monkeypatch):
     return calls
 
 
+@pytest.fixture
+def linearisations(monkeypatch):
+    """Every evaluation of a response's inverse during the test: ``(id of the response,
+    number of values, made by CRF.codes_table)``, and each table ``codes_table`` built."""
+    from hdrmerge_cli.core.crf import CRF
+
+    inverse, table = CRF.inverse, CRF.codes_table
+    calls, built, building = [], [], threading.local()
+
+    def counted_inverse(self, v, channel=0):
+        calls.append((id(self), np.size(v), getattr(building, "on", False)))
+        return inverse(self, v, channel)
+
+    def counted_table(self, n_codes, black=0.0, white=None):
+        before = len(self._tables)
+        building.on = True
+        try:
+            out = table(self, n_codes, black, white)
+        finally:
+            building.on = False
+        if len(self._tables) > before:
+            built.append((id(self), n_codes))
+        return out
+
+    monkeypatch.setattr(CRF, "inverse", counted_inverse)
+    monkeypatch.setattr(CRF, "codes_table", counted_table)
+    return calls, built
+
+
+def _assert_linearised_once(linearisations) -> None:
+    """Stored codes reach a response only through its one table per code grid: no other
+    evaluation is on more than two values (the half-code limits of a range), and no
+    response builds a second table of the same number of codes."""
+    calls, built = linearisations
+    assert all(table or n <= 2 for _, n, table in calls), sorted({n for _, n, table in calls if not table})
+    assert len(built) == len(set(built)), built
+
+
 def _assert_one_pass(calls: list[str], expected: set[str]) -> None:
     """Each stage called at most once, those ``expected`` exactly once, in :data:`STAGES` order."""
     assert sorted(set(calls), key=STAGES.index) == calls, calls  # once each, in reading order
@@ -106,16 +144,18 @@ RAW_STAGES = {"read", "ordered_samples", "estimate_alignment", "choose_alignment
               "choose_models", "reconstruct"}
 
 
-def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes, stage_calls, monkeypatch, tmp_path):
+def test_a_still_raw_bracket_is_decoded_once(dng_bracket, decodes, stage_calls, linearisations, monkeypatch,
+                                             tmp_path):
     monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))  # the noise measured, not cached
     folder, meta = dng_bracket
     paths = [str(p) for p in frames_of(folder, meta)]
     _merge(paths)
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
     _assert_one_pass(stage_calls, RAW_STAGES)
+    _assert_linearised_once(linearisations)
 
 
-def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes, stage_calls, monkeypatch):
+def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes, stage_calls, linearisations, monkeypatch):
     """Each file decoded once, each stage called once, and each frame's registration image
     made once per resolution (the middle frame's full one serves both of its pairs)."""
     from hdrmerge_cli.pipeline import register
@@ -135,10 +175,11 @@ def test_a_handheld_raw_bracket_is_decoded_once(tmp_path, decodes, stage_calls, 
     _assert_one_pass(stage_calls, RAW_STAGES | {"find_ghosts", "choose_deghost"})
     assert len(made) == len(set(made)), sorted(made)  # once per frame and resolution
     assert {p for name, p in made if name == "_linear"} == set(paths)  # every pair registered in full
+    _assert_linearised_once(linearisations)
 
 
 @pytest.mark.parametrize("fixture", ["tiff_bracket", "jpeg_bracket"])
-def test_image_brackets_are_decoded_once(request, fixture, decodes, stage_calls, monkeypatch, tmp_path):
+def test_image_brackets_are_decoded_once(request, fixture, decodes, stage_calls, linearisations, monkeypatch, tmp_path):
     """16-bit TIFF (response given by nothing: measured) and JPEG (response measured); the
     JPEG's noise is measured to test its excess variance, which picks its estimator."""
     monkeypatch.setenv("HDRMERGE_CLI_CACHE_DIR", str(tmp_path / "cache"))
@@ -149,6 +190,7 @@ def test_image_brackets_are_decoded_once(request, fixture, decodes, stage_calls,
     _assert_one_pass(stage_calls, {"read", "ordered_samples", "measure_response", "estimate_alignment",
                                    "choose_alignment", "resolve_exposures", "bracket_noise", "measure_excess", "choose_models",
                                    "reconstruct"})
+    _assert_linearised_once(linearisations)
 
 
 def test_an_8bit_tiff_bracket_is_decoded_once_with_and_without_a_response(run, tmp_path, decodes):

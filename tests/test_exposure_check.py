@@ -486,6 +486,26 @@ def test_linearise_through_a_code_table_equals_the_inverse_response():
     np.testing.assert_array_equal(linearise(np.array([[-0.1, 0.5, 1.2]]), CRF("linear"), 1 / 255), [[0.0, 0.5, 1.0]])
 
 
+def test_the_codes_table_is_the_inverse_response_at_each_stored_code_built_once():
+    """CRF.codes_table: row c is gamma^-1 of (r - black_c) / (white_c - black_c), clipped to
+    [0, 1], written out here by hand for a measured two-channel table and for sRGB (IEC
+    61966-2-1); CRF.linear reads whole codes through it; one grid's table is built once."""
+    from hdrmerge_cli.core.crf import table_crf
+
+    tab = np.array([[0.0, 0.1, 0.3, 0.6, 1.0], [0.0, 0.2, 0.4, 0.7, 1.0]])
+    crf = table_crf(tab)
+    got = crf.codes_table(6, black=[1.0, 0.0], white=[5.0, 4.0])
+    # channel 0: codes 0..5 -> v = (r - 1) / 4 = -0.25 (clipped to 0), 0, .25, .5, .75, 1 -> the table's entries
+    np.testing.assert_allclose(got[0], [0.0, 0.0, 0.1, 0.3, 0.6, 1.0], atol=1e-15)
+    np.testing.assert_allclose(got[1], [0.0, 0.2, 0.4, 0.7, 1.0, 1.0], atol=1e-15)
+    assert crf.codes_table(6, black=[1.0, 0.0], white=[5.0, 4.0]) is got
+    r = np.arange(256) / 255.0
+    srgb = np.where(r <= 0.04045, r / 12.92, ((r + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(CRF("srgb").codes_table(256)[0], srgb, rtol=1e-12)
+    codes = np.random.default_rng(5).integers(0, 256, (7, 9, 3)).astype(np.uint8)
+    np.testing.assert_allclose(CRF("srgb").linear(codes, 256), srgb[codes], rtol=1e-12)
+
+
 # ---------------------------------------------------------------- the floor: no evidence
 def _samples(frames_v):
     """A Samples of ``(H, W, 1)`` float32 frames (every sample off the borders, 8-bit)."""

@@ -77,6 +77,8 @@ class CRF:
     param: float | None = None
     table: np.ndarray | None = field(default=None, compare=False, repr=False)
     assumed: bool = field(default=False, compare=False)
+    #: :meth:`codes_table` by grid, each built once per response
+    _tables: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
     @property
     def is_linear(self) -> bool:
@@ -94,6 +96,28 @@ class CRF:
             grid = np.linspace(0.0, 1.0, tab.size)
             return np.interp(v, grid, tab)
         return CRF_MODELS[self.name][1](v, self.param)
+
+    def codes_table(self, n_codes: int, black=0.0, white=None) -> np.ndarray:
+        """The paper's ``gamma^-1`` of (2) at every stored code ``r = 0..N-1``: ``(C, N)``
+        float64, row ``c`` = :meth:`inverse` of ``clip((r - black_c) / (white_c - black_c),
+        0, 1)`` through channel ``c``'s curve.  ``black``, ``white``: scalars or ``(C,)``
+        (``white`` default ``N - 1``; ``C`` their length).  The one linearisation of stored
+        codes: frames (:meth:`linear`), sample sets (:func:`linearise`) and weight tables
+        read their linear values from it; built once per response and grid."""
+        black = np.atleast_1d(np.asarray(black, dtype=np.float64))
+        white = np.broadcast_to(np.asarray(n_codes - 1.0 if white is None else white, dtype=np.float64), black.shape)
+        key = (int(n_codes), black.tobytes(), white.tobytes())
+        if key not in self._tables:
+            r = np.arange(n_codes, dtype=np.float64)
+            self._tables[key] = np.stack([self.inverse(np.clip((r - b) / float(w - b), 0.0, 1.0), c)
+                                          for c, (b, w) in enumerate(zip(black, white))])
+        return self._tables[key]
+
+    def linear(self, codes: np.ndarray, n_codes: int, black=0.0, white=None) -> np.ndarray:
+        """Linear values (full scale 1, float64 ``(..., C)``) of whole codes ``(..., C)``
+        (integers below ``n_codes``) through :meth:`codes_table`."""
+        tab = self.codes_table(n_codes, np.broadcast_to(black, codes.shape[-1:]), white)
+        return np.stack([tab[c][codes[..., c]] for c in range(codes.shape[-1])], axis=-1)
 
     def forward(self, x: np.ndarray, channel: int = 0) -> np.ndarray:
         """``gamma``: linear ``x`` in [0, 1] -> normalised code value ``v``."""
@@ -160,13 +184,13 @@ def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
     """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
     clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds
     whole codes (``codes_step``: one code as a fraction of full scale, at most 2^16 codes)
-    through a float32 table over them, else evaluated per value."""
+    through :meth:`CRF.codes_table` in float32, else evaluated per value."""
     vc = np.clip(v, 0.0, 1.0)
     if crf.is_linear:
         return vc
     n = int(round(1.0 / codes_step)) + 1
     if n > 1 << 16:
         return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
-    grid = np.linspace(0.0, 1.0, n)
+    tab = crf.codes_table(n, np.zeros(v.shape[-1])).astype(np.float32)
     z = np.rint(vc * (n - 1)).astype(np.int64)
-    return np.stack([crf.inverse(grid, c).astype(np.float32)[z[..., c]] for c in range(v.shape[-1])], -1)
+    return np.stack([tab[c][z[..., c]] for c in range(v.shape[-1])], -1)

@@ -98,7 +98,7 @@ def standard_prior(n_codes: int) -> np.ndarray:
     ``log`` is finite at code 0."""
     from hdrmerge_cli.core.crf import CRF
 
-    x = CRF("srgb").inverse(np.arange(n_codes) / (n_codes - 1.0))
+    x = CRF("srgb").codes_table(n_codes)[0]
     return np.log(np.maximum(x, 0.5 * x[1]))
 
 

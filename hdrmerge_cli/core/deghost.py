@@ -118,11 +118,12 @@ GLARE_REACH = 0.05
 GLARE_FRACTION = 0.1
 
 
-def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: float,
+def ghost_tables(n_codes: int, black: float, white: float, lin: np.ndarray, exposure: float,
                  noise: NoiseParams, footroom: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per stored code ``r = 0..N-1`` of one channel: ``x`` (exposure-normalised linear
     value), its predicted variance ``s`` and whether it measures (strictly between black
-    and white).  ``lin_of(v)``: the inverse CRF on the normalised code ``v``.  With
+    and white).  ``lin``: the inverse CRF at each code (a row of
+    :meth:`~hdrmerge_cli.core.crf.CRF.codes_table`), ``(N,)``.  With
     ``footroom`` (a linear RAW) every code below white is a reading, ``x <= 0`` at and below
     black: read noise spreads a dark signal's codes to both sides of black, so dropping
     those at or below it would bias the mean of a dark region upwards (by more in the
@@ -132,7 +133,6 @@ def ghost_tables(n_codes: int, black: float, white: float, lin_of, exposure: flo
     y_full = white - black
     v = (np.arange(n_codes, dtype=np.float64) - black) / y_full
     valid = ((v >= -black / y_full) if footroom else (v > 0)) & (v < 1)
-    lin = lin_of(np.clip(v, 0.0, 1.0))
     if footroom:
         lin = np.where(v < 0, v, lin)  # a linear response continues below black
     step = np.gradient(lin)  # linear value per code step

@@ -135,7 +135,7 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
     rows = []
     for c, (b, wl) in enumerate(zip(black, white)):
         v = code_grid(n_codes, b, wl)
-        lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
+        lin = crf.codes_table(n_codes, black, white)[c]
         ctx = _context(weighting, wl - b, exposure, None if noise is None else noise[min(c, len(noise) - 1)],
                        prior_rate, exposures, k, bounds)
         rows.append(WEIGHTING_FUNCTIONS[weighting](v, lin, ctx))
@@ -264,7 +264,7 @@ def exposure_tables(
     rows = []
     for c, (b, wl) in enumerate(zip(black, white)):
         v = code_grid(n_codes, b, wl)
-        lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
+        lin = crf.codes_table(n_codes, black, white)[c]
         chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
         cert = certainty[min(c, certainty.shape[0] - 1)]
         if weighting in NOISE_MODEL_WEIGHTS:  # underflowed weights of unclipped codes still count
@@ -320,8 +320,7 @@ def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: floa
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
     rows = []
     for c, (b, wl) in enumerate(zip(black, white)):
-        v = code_grid(n_codes, b, wl)
-        lin = crf.inverse(np.clip(v, 0.0, 1.0), c)
+        lin = crf.codes_table(n_codes, black, white)[c]
         y_full = wl - b
         y = np.clip(lin, 0.0, 1.0) * y_full
         chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]

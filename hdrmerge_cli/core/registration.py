@@ -803,9 +803,7 @@ def registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white
             strip /= scale
             out[r // 2:(r + strip.shape[0]) // 2] = block_mean(strip, 2)
         return out
-    # the inverse response as a table over the stored codes
-    v = np.arange(n_codes) / (n_codes - 1.0)
-    lut = np.stack([crf.inverse(v, c) for c in range(codes.shape[-1])], axis=-1).astype(np.float32)
+    lut = crf.codes_table(n_codes, np.zeros(codes.shape[-1])).T.astype(np.float32)  # (N, C)
     if codes.shape[-1] == 1:  # monochrome: the table lookup is the image
         return lut[codes[..., 0], 0]
     if codes.dtype == np.uint8:  # OpenCV's table lookup, all channels in one pass

@@ -388,9 +388,8 @@ def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float
     """
     full = white - black
     step = max(1, codes.shape[0] * codes.shape[1] // PRIOR_SAMPLES)
-    sub = codes.reshape(codes.shape[0] * codes.shape[1], -1)[::step].astype(np.float64)
-    v = np.clip((sub - black) / full, 0, 1)
-    lin = crf.inverse(v) if raw else np.stack([crf.inverse(v[:, c], c) for c in range(v.shape[1])], axis=-1)
+    sub = codes.reshape(codes.shape[0] * codes.shape[1], -1)[::step]
+    lin = np.clip((sub - black) / full, 0, 1) if raw else crf.linear(sub, int(white) + 1, black, white)
     ok = (lin > 0) & (lin < 1)
     if not np.any(ok):
         what = "black" if np.all(lin <= 0) else "clipped" if np.all(lin >= 1) else "black or clipped"

@@ -26,16 +26,14 @@ MAX_MODEL_SD = 0.15
 MAX_SAMPLES = 1 << 17
 
 
-def _log_tables(crf: CRF, c: int, codes_step: float, noise: NoiseParams | None):
-    """Per code value of channel ``c`` (``(N,)`` each, ``N = 1 / codes_step + 1``): ``g(z)``
+def _log_tables(lin: np.ndarray, noise: NoiseParams | None):
+    """Per code value of one channel (``lin``: its row of
+    :meth:`~hdrmerge_cli.core.crf.CRF.codes_table`, ``(N,)``; the results ``(N,)`` each): ``g(z)``
     less its bias and the model's variance of it, from the relative variance ``s^2 = v(y) / y^2`` of the noise (17) and
     the quantisation through the response to second order (``-s^2 / 2``, ``s^2 + 2.5 s^4``);
     NaN where ``g`` is undefined or the reading lies outside the clipping-safe range of (47)
     (``k = 3`` standard deviations from black and full scale)."""
-    n = int(round(1.0 / codes_step)) + 1
-    grid = np.linspace(0.0, 1.0, n)
-    lin = crf.inverse(grid, c)
-    y_full = n - 1.0
+    y_full = lin.size - 1.0
     y = lin * y_full
     var = quantisation_variance(lin, y_full) + (code_variance(y, noise) if noise is not None else 0.0)
     # inside the clipping-safe range of (47): a reading within k standard deviations of
@@ -65,7 +63,8 @@ def measure_excess(samples, exposures: np.ndarray, crf: CRF, noise: dict[str, No
     rng = np.random.default_rng(seed)
     params = per_channel(noise, channel_names) if noise else [None] * len(channel_names)
     channels = samples.v[0].shape[-1]
-    tables = [_log_tables(crf, c, samples.codes_step, params[min(c, len(params) - 1)]) for c in range(channels)]
+    lin = crf.codes_table(int(round(1.0 / samples.codes_step)) + 1, np.zeros(channels))
+    tables = [_log_tables(lin[c], params[min(c, len(params) - 1)]) for c in range(channels)]
     terms = []
     for k, v in enumerate(samples.v):
         flat = v[samples.inside]

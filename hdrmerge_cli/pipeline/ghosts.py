@@ -77,8 +77,8 @@ def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoisePara
         nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
             (0.5 * float(frame.white[c] - frame.black[c]) / 255.0) ** 2, 1e-12, 0.0)
         x_t, s_t, ok_t = deghost.ghost_tables(frame.n_codes, frame.black[c], frame.white[c],
-                                              lambda v, c=c: crf.inverse(v, 0 if linear else c), exposure, nz,
-                                              footroom=linear)
+                                              crf.codes_table(frame.n_codes, frame.black, frame.white)[c], exposure,
+                                              nz, footroom=linear)
         out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
     return out
 

@@ -239,8 +239,7 @@ def _linear_sample(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
     if frame.kind == "raw":
         black = float(np.mean(frame.black))
         return (codes.astype(np.float64) - black) / (float(np.max(frame.white)) - black)
-    full = frame.n_codes - 1.0
-    return np.stack([crf.inverse(codes[..., c] / full, c) for c in range(codes.shape[-1])], axis=-1)
+    return crf.linear(codes, frame.n_codes)
 
 
 def check_repeats(repeats: Repeats, frames: list[Frame], crf: CRF) -> list[dict]:

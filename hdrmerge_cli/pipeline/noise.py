@@ -169,7 +169,7 @@ def linear_plane(frame: Frame, k: int, codes: np.ndarray, crf):
         return codes.astype(np.float64) - frame.black[k], -frame.black[k], frame.white[k] - frame.black[k]
     full = frame.n_codes - 1.0
     lo, hi = crf.inverse(np.array([0.5 / full, (full - 0.5) / full]), k) * full
-    return crf.inverse(codes / full, k) * full, lo, hi
+    return crf.codes_table(frame.n_codes, np.zeros(len(frame.black)))[k][codes] * full, lo, hi
 
 
 def channel_planes(frame: Frame, codes: np.ndarray, crf, corner: np.ndarray | None = None):
