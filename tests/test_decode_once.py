@@ -239,3 +239,32 @@ def test_info_decodes_each_frame_once(tiff_bracket, decodes):
     assert len(out["frames"]) == len(paths) and "exposure_estimates" in out
     assert [r["path"] for r in out["frames"]] == sorted(paths, key=lambda p: meta["exposure_times"][paths.index(p)])
     assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+
+
+@pytest.mark.parametrize("shift", [0, 3])
+def test_frames_with_alpha_are_decoded_once(run, tmp_path, decodes, shift):
+    """RGBA PNGs, transparent over a left stripe (still, and moved ``shift`` px so that the
+    registered frames' codes are resampled): the colour and the alpha come from one decode,
+    and the output's alpha is the most any frame measured (all of it where another frame
+    is opaque)."""
+    import OpenImageIO as oiio
+
+    run("simulate", "-o", tmp_path, "-q", "--format", "png", "--size", "160x120", "--frames", "3", "--seed", "3",
+        "--times", "0.01,0.04,0.16")
+    paths = []
+    for k, src in enumerate(sorted(tmp_path.glob("frame_*.png"))):
+        px = oiio.ImageBuf(str(src)).get_pixels(oiio.UINT8)
+        px = np.roll(px, shift * k, axis=1)
+        alpha = np.full(px.shape[:2] + (1,), 255, np.uint8)
+        alpha[:, : 10 * (k + 1)] = 0
+        spec = oiio.ImageSpec(px.shape[1], px.shape[0], 4, oiio.UINT8)
+        spec.alpha_channel = 3
+        path = str(tmp_path / f"rgba{k}.png")
+        out = oiio.ImageOutput.create(path)
+        assert out.open(path, spec) and out.write_image(np.ascontiguousarray(np.concatenate([px, alpha], -1)))
+        out.close()
+        paths.append(path)
+    decodes.clear()
+    merged = _merge(paths, times="0.01,0.04,0.16", align="auto" if shift else "off")
+    assert {p: decodes[p] for p in paths} == {p: 1 for p in paths}
+    assert merged.alpha is not None and merged.alpha[:, :10].max() == 0 and merged.alpha[:, 40:].min() == 1

@@ -70,7 +70,7 @@ class Frame:
     #: index does not repeat with a 2 x 2 cell (:func:`cfa_corner` then reads the file)
     cfa_cell: np.ndarray | None = None
     #: images: the index of the file's alpha channel (gray+alpha, RGBA), else None; alpha is
-    #: the share of a pixel the frame measured (:func:`load_validity`), 0 none
+    #: the share of a pixel the frame measured (:func:`decode`), 0 none
     alpha_channel: int | None = None
     #: images: the file stores colour multiplied by alpha (associated alpha: TIFF
     #: ExtraSamples 1); PNG and unassociated TIFF store it straight
@@ -478,10 +478,19 @@ def _oiio_reason(message: str) -> str:
 def load_codes(frame: Frame) -> np.ndarray:
     """Decode the stored code values: ``(H, W)`` uint16 for RAW (visible area, before
     black-level subtraction), ``(H, W, C)`` uint8/uint16 for images (colour only; 0 where
-    the alpha channel is 0, see :func:`load_validity`) and for linear RAW
+    the alpha channel is 0, see :func:`decode`) and for linear RAW
     data, whose codes are returned with the file's black level subtracted and scaled to
     0..65535 at its white level (so the linear frame reads like a linear 16-bit TIFF:
     black 0, clipping at 65535)."""
+    return decode(frame)[0]
+
+
+def decode(frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
+    """One decode of a frame: ``(codes, validity)``, the codes of :func:`load_codes` and how
+    much of each pixel a frame with an alpha channel measured: ``(H, W)`` float32 in [0, 1],
+    its alpha over full scale (0 outside a remapped or masked frame, as Hugin's ``nona``
+    and image editors write them; partial at a feathered edge); None where every pixel is
+    opaque or the frame has no alpha."""
     if frame.kind in ("raw", "linear"):
         import rawpy
 
@@ -490,9 +499,7 @@ def load_codes(frame: Frame) -> np.ndarray:
                 codes = _visible(rawpy.imread(frame.path))
         except rawpy.LibRawError as exc:
             raise HdrMergeError(f"{frame.path}: not a readable RAW file ({_libraw_reason(exc, frame.path)})") from None
-        if frame.kind == "linear":
-            return linear_codes(codes, frame)
-        return codes
+        return (linear_codes(codes, frame) if frame.kind == "linear" else codes), None
     alpha = frame.alpha_channel
     pixels = _read_channels(frame, 0, frame.channels if alpha is None else max(alpha + 1, frame.channels))
     if alpha is not None:
@@ -504,66 +511,67 @@ def load_codes(frame: Frame) -> np.ndarray:
             straight = colour[partial].astype(np.float32) * (top / a[partial, None].astype(np.float32))
             colour[partial] = np.clip(np.rint(straight), 0, top).astype(colour.dtype)
         colour[a == 0] = 0  # transparent pixels read black, below every statistic's dark floor
-        return colour
-    return pixels
+        top = frame.n_codes - 1
+        return colour, None if np.all(a == top) else a.astype(np.float32) / np.float32(top)
+    return pixels, None
 
 
 class HeldCodes:
-    """``frame -> codes``: each frame of a bracket decoded once (``load``) and held,
-    read-only, for every later pass (the samples, registration, noise, ghosts, the merge and
-    its re-weighting); keyed by the frame object itself, not its path or position.  Safe to
-    call from several threads: two threads asking for one frame share one decode.  A RAW
-    frame's codes can be handed over by :func:`read_frame`, from the open that read its
-    metadata (:meth:`hold`)."""
+    """``frame -> codes``: each frame of a bracket decoded once and held, read-only, with
+    its alpha's validity (:func:`decode`), for every later pass (the samples, registration,
+    noise, ghosts, the merge and its re-weighting, the output's alpha); keyed by the frame
+    object itself, not its path or position.  Safe to call from several threads: two
+    threads asking for one frame share one decode.  A RAW frame's codes can be handed over
+    by :func:`read_frame`, from the open that read its metadata (:meth:`hold`).  ``load``:
+    a ``frame -> codes`` decoder in place of :func:`decode` (its frames fully valid)."""
 
-    def __init__(self, load=load_codes):
-        self.load = load
-        self._codes: dict[int, tuple[Frame, np.ndarray]] = {}  # id -> (the frame, kept alive: its id stays its own)
-        self._lock = threading.Lock()
+    def __init__(self, load=None):
+        self.decode = decode if load is None else (lambda frame: (load(frame), None))
+        self._codes: dict[int, tuple[Frame, np.ndarray, np.ndarray | None]] = {}  # id -> (the frame, kept alive: its
+        self._lock = threading.Lock()                                             # id stays its own), codes, validity
         self._decoding: dict[int, threading.Lock] = {}
+        self._dropped: dict[int, tuple[Frame, np.ndarray | None]] = {}  # id -> (the frame, validity)
 
-    def hold(self, frame: Frame, codes: np.ndarray) -> None:
-        """Keep ``codes`` as ``frame``'s, handed out as a read-only view (the caller's
-        array keeps its own flags)."""
+    def hold(self, frame: Frame, codes: np.ndarray, validity: np.ndarray | None = None) -> None:
+        """Keep ``codes`` (and ``validity``) as ``frame``'s, handed out as a read-only view
+        (the caller's array keeps its own flags)."""
         codes = codes.view()
         codes.flags.writeable = False
         with self._lock:
-            self._codes[id(frame)] = (frame, codes)
+            self._codes[id(frame)] = (frame, codes, validity)
 
     def drop(self, frame: Frame) -> None:
         """Forget ``frame``'s codes (a caller that keeps what it made of them instead); a later
-        call decodes again."""
+        call decodes again.  Its validity is kept."""
         with self._lock:
-            self._codes.pop(id(frame), None)
+            entry = self._codes.pop(id(frame), None)
+            if entry is not None:
+                self._dropped[id(frame)] = (frame, entry[2])
 
-    def _held(self, frame: Frame) -> np.ndarray | None:
+    def _entry(self, frame: Frame) -> tuple:
         with self._lock:
             entry = self._codes.get(id(frame))
-        return None if entry is None else entry[1]
-
-    def __call__(self, frame: Frame) -> np.ndarray:
-        codes = self._held(frame)
-        if codes is not None:
-            return codes
+        if entry is not None:
+            return entry
         with self._lock:
             one = self._decoding.setdefault(id(frame), threading.Lock())
         with one:  # two threads asking for one frame: one decode
-            if self._held(frame) is None:
-                self.hold(frame, self.load(frame))
-            return self._held(frame)
+            with self._lock:
+                entry = self._codes.get(id(frame))
+            if entry is None:
+                self.hold(frame, *self.decode(frame))
+                with self._lock:
+                    entry = self._codes[id(frame)]
+            return entry
 
+    def __call__(self, frame: Frame) -> np.ndarray:
+        return self._entry(frame)[1]
 
-def load_validity(frame: Frame) -> np.ndarray | None:
-    """How much of each pixel a frame with an alpha channel measured: ``(H, W)`` float32 in
-    [0, 1], its alpha over full scale (0 outside a remapped or masked frame, as Hugin's
-    ``nona`` and image editors write them; partial at a feathered edge); None where every
-    pixel is opaque or the frame has no alpha."""
-    if frame.alpha_channel is None:
-        return None
-    a = frame.alpha_channel
-    alpha = _read_channels(frame, a, a + 1)[..., 0]
-    top = frame.n_codes - 1
-    return None if np.all(alpha == top) else alpha.astype(np.float32) / np.float32(top)
+    def validity(self, frame: Frame) -> np.ndarray | None:
+        """The frame's alpha as :func:`decode` gives it (from the decode that gave its codes)."""
+        with self._lock:
+            dropped = self._dropped.get(id(frame))
+        return dropped[1] if dropped is not None else self._entry(frame)[2]
 
 
 def _read_channels(frame: Frame, begin: int, end: int) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 from hdrmerge_cli.core import registration, resample
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes, load_validity
+from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes
 from hdrmerge_cli.io.metadata import of_frame, reference_index, sample_pattern
 
 if TYPE_CHECKING:
@@ -422,18 +422,17 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = 
     return resample.covered_mask(warp, h, w, rows)
 
 
-def frame_validity(frames: list[Frame], alignment: Alignment | None) -> list:
-    """Per frame, :func:`valid_pixels` in the reference's coordinates (by the alignment
-    where it is applied)."""
+def frame_validity(frames: list[Frame], alignment: Alignment | None, codes: HeldCodes) -> list:
+    """Per frame, :func:`valid_pixels` of its alpha (``codes.validity``) in the reference's
+    coordinates (by the alignment where it is applied)."""
     alignment = alignment if alignment is not None and alignment.applied else None
-    return [valid_pixels(f, alignment.warp_of(f) if alignment else None) for f in frames]
+    return [valid_pixels(f, codes.validity(f), alignment.warp_of(f) if alignment else None) for f in frames]
 
 
-def valid_pixels(frame: Frame, warp: np.ndarray | None) -> np.ndarray | None:
-    """How much of each pixel frame's alpha says it measured (:func:`load_validity`), in
-    the reference frame's coordinates (brought there by ``warp``, nearest neighbour),
+def valid_pixels(frame: Frame, valid: np.ndarray | None, warp: np.ndarray | None) -> np.ndarray | None:
+    """How much of each pixel the frame's alpha says it measured (``valid``, :func:`~hdrmerge_cli.io.frames.decode`),
+    in the reference frame's coordinates (brought there by ``warp``, nearest neighbour),
     ``(H, W)`` float32 in [0, 1], a weight of its readings; None: all of every pixel."""
-    valid = load_validity(frame)
     if valid is None:
         return None
     log.info("%s: %.1f %% of its pixels are transparent (alpha 0) and carry no weight, %.1f %% partly", frame.path,

@@ -199,7 +199,7 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
                            settings.deghost)
         timings["deghost"] = time.perf_counter() - t1
     h_ref = reference_exposure(settings.reference, b.exposures)
-    validity = frame_validity(b.frames, b.alignment)
+    validity = frame_validity(b.frames, b.alignment, b.codes)
     load, repeats = watch_repeats(aligned, b.frames, b.exposures)
     rec = reconstruct(b.frames, b.exposures, h_ref, b.models, load,
                       sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment, aligned,
