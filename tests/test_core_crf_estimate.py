@@ -21,3 +21,26 @@ def test_sample_pixels_spreads_over_intensities():
     img = np.arange(10000).reshape(100, 100) % 256
     idx = sample_pixels(img, 256, np.random.default_rng(0))
     assert len(np.unique(img.ravel()[idx])) > 200
+
+
+def test_histogram_correspondences_match_colour_hdris_grossberg_samples():
+    """core.crf_estimate.histogram_correspondences against colour-hdri's
+    samples_Grossberg2003 (an independent implementation of Grossberg & Nayar 2003: the
+    code nearest each cumulative-histogram level): within one code at every level away
+    from the ends, and monotone; the pixels' order does not matter."""
+    import colour_hdri
+
+    from hdrmerge_cli.core.crf_estimate import histogram_correspondences
+
+    rng = np.random.default_rng(3)
+    e = rng.lognormal(0.0, 1.0, (4000, 3))
+    frames = [np.clip(np.rint(255 * np.clip(e * t, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.int64) for t in (0.1, 0.4)]
+    ours = histogram_correspondences(frames, 256, rows=200)
+    assert all(o.shape == (200, 3) and np.all(np.diff(o, axis=0) >= 0) for o in ours)
+    shuffled = histogram_correspondences([f[rng.permutation(len(f))] for f in frames], 256, rows=200)
+    assert all(np.array_equal(a, b) for a, b in zip(ours, shuffled))
+    stack = np.stack([f.reshape(40, 100, 3) / 255.0 for f in frames], axis=-1)  # (H, W, C, P)
+    theirs = colour_hdri.samples_Grossberg2003(stack, samples=401, n=256)[1::2]  # levels j/400, j odd: ours
+    mid = slice(10, 190)
+    for k in range(2):
+        np.testing.assert_allclose(ours[k][mid], theirs[mid, k, :], atol=1)

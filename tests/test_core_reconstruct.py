@@ -679,15 +679,20 @@ def test_mixed_iso_bracket_merged_with_each_frames_noise_is_closer_to_the_optimu
 
 
 def test_neutral_bounds_give_a_bound_no_colour():
-    """A pixel clipped in every channel of every frame holds lower bounds: all its channels
-    take the largest (each still bounded from below); a pixel with one measured channel,
-    and a mosaic, are left as they are."""
-    from hdrmerge_cli.core.reconstruct import FLAG_OK, FLAG_SATURATED, neutral_bounds
+    """An image pixel with a channel clipped in every frame holds a lower bound: all its
+    channels take the largest and the saturated flag (a clipped channel's frames measured
+    none of the pixel's colour); a pixel measured in every channel, and a mosaic, are left
+    as they are."""
+    from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_OK, FLAG_SATURATED, neutral_bounds
 
-    result = np.array([[[0.60, 0.88, 0.63], [0.60, 0.88, 0.63]]], dtype=np.float32)
-    flags = np.array([[[FLAG_SATURATED] * 3, [FLAG_SATURATED, FLAG_OK, FLAG_SATURATED]]], dtype=np.int8)
-    assert neutral_bounds(result, flags) == 1
-    np.testing.assert_array_equal(result[0, 0], np.float32([0.88, 0.88, 0.88]))
-    np.testing.assert_array_equal(result[0, 1], np.float32([0.60, 0.88, 0.63]))
+    result = np.array([[[0.60, 0.88, 0.63], [0.60, 0.88, 0.63], [0.60, 0.88, 0.63], [0.1, 0.2, 0.3]]],
+                      dtype=np.float32)
+    flags = np.array([[[FLAG_SATURATED] * 3, [FLAG_OK, FLAG_SATURATED, FLAG_OK], [FLAG_DARK, FLAG_OK, FLAG_OK],
+                       [FLAG_OK] * 3]], dtype=np.int8)
+    assert neutral_bounds(result, flags) == 2
+    np.testing.assert_array_equal(result[0, :2], np.float32([[0.88, 0.88, 0.88]] * 2))
+    np.testing.assert_array_equal(flags[0, :2], FLAG_SATURATED)
+    np.testing.assert_array_equal(result[0, 2:], np.float32([[0.60, 0.88, 0.63], [0.1, 0.2, 0.3]]))
+    np.testing.assert_array_equal(flags[0, 2], [FLAG_DARK, FLAG_OK, FLAG_OK])
     mosaic = np.ones((2, 2), np.float32)
     assert neutral_bounds(mosaic, np.full((2, 2), FLAG_SATURATED, np.int8)) == 0

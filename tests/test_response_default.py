@@ -10,7 +10,7 @@ import pytest
 
 from conftest import _simulate, frames_of, log_rmse
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.pipeline.response import MEASURED
+from hdrmerge_cli.pipeline.response import MEASURED, MEASURED_HISTOGRAMS
 
 
 @pytest.fixture(scope="module")
@@ -119,3 +119,50 @@ def test_the_response_is_cached_per_camera_and_style(run, tmp_path, monkeypatch,
     other = _as_camera(files[1], tmp_path / "styled.tif", contrast=1)
     styled = run("merge", other, "-o", tmp_path / "styled.exr", "--json")
     assert "assuming sRGB" in styled.stderr and json.loads(styled.stdout)["crf"] == "srgb"
+
+
+def test_two_frames_sharing_no_well_exposed_pixels_are_fitted_on_their_histograms(run, tmp_path, s_curve_bracket):
+    """Two frames through the S curve 11 EV apart (its codes 0.1-0.9 span about 9.5 stops:
+    no pixel is well exposed in both): the response is measured on their histograms, the
+    profile says so, and predicting a middle frame through it (the leave-one-out of the
+    real brackets) errs less than through the fit on their pixel pairs.  The S-curve
+    bracket's frames 1.5 EV apart are fitted on pixel pairs."""
+    from hdrmerge_cli.io.profile import crf_from_json
+
+    folder, meta = s_curve_bracket
+    three = run("merge", *frames_of(folder, meta)[::2], "-o", tmp_path / "three.exr", "--json", "--no-cache")
+    assert json.loads(three.stdout)["crf"] == MEASURED  # neighbours 3 EV apart share well-exposed pixels
+    times = [0.0005, 0.0226, 1.024]
+    meta = _simulate(run, tmp_path / "far", "--format", "jpg", "--size", "320x240", "--crf",
+                     folder.parent / "curve.csv", "--seed", "9", "--times", ",".join(map(str, times)))
+    files = frames_of(tmp_path / "far", meta)
+    out = run("merge", files[0], files[-1], "-o", tmp_path / "two.exr", "--json", "--no-cache")
+    assert json.loads(out.stdout)["crf"] == MEASURED_HISTOGRAMS
+
+    import OpenImageIO as oiio
+
+    middle = oiio.ImageBuf(str(files[1])).get_pixels(oiio.UINT8).astype(np.float64)
+    ok = np.all((middle >= 10) & (middle <= 245), axis=-1)
+
+    def predicted_error(exr):
+        pixels, header = read_exr(str(exr))
+        crf = crf_from_json(json.loads(exr.with_suffix(".profile.json").read_text())["crf"])
+        e = pixels[..., :3] / float(header["hdrmerge:referenceExposure"]) * times[1]
+        pred = np.stack([crf.forward(np.clip(e[..., c], 0, 1), c) * 255 for c in range(3)], -1)
+        return float(np.sqrt(np.mean((pred[ok] - middle[ok]) ** 2)))
+
+    from hdrmerge_cli.pipeline.bracket import read_bracket
+    from hdrmerge_cli.pipeline.exposure_check import ordered_samples
+    from hdrmerge_cli.pipeline.response import fit_with_labels
+    from hdrmerge_cli.io.frames import HeldCodes
+    from hdrmerge_cli.io.metadata import exposure_values
+
+    frames = read_bracket([str(files[0]), str(files[-1])])
+    exposures = exposure_values(frames)
+    pairs = fit_with_labels(frames, exposures, ordered_samples(frames, exposures, HeldCodes()), histograms=False)
+    table = tmp_path / "pairs.csv"
+    table.write_text("".join(f"{z}," + ",".join(f"{pairs.table[c, z]:.12g}" for c in range(3)) + "\n"
+                             for z in range(256)))
+    run("merge", files[0], files[-1], "-o", tmp_path / "pairs.exr", "--crf", table)
+    errors = predicted_error(tmp_path / "two.exr"), predicted_error(tmp_path / "pairs.exr")
+    assert errors[0] < 0.8 * errors[1], errors

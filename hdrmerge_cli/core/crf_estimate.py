@@ -32,6 +32,33 @@ def sample_pixels(middle: np.ndarray, samples: int, rng: np.random.Generator) ->
     return order[np.clip(picks + jitter, 0, flat.size - 1)]
 
 
+#: rows of :func:`histogram_correspondences` (colour-hdri's default for the same method)
+HISTOGRAM_ROWS = 1000
+
+
+def histogram_correspondences(codes: list[np.ndarray], n_codes: int, rows: int = HISTOGRAM_ROWS) -> list[np.ndarray]:
+    """Grossberg & Nayar (2003)'s correspondences: for a monotone response the frames of
+    one scene rank its pixels alike, so the code at which each frame's cumulative
+    histogram reaches a fraction ``u`` is one scene irradiance seen at each exposure
+    (their brightness transfer function), with no pixel-to-pixel match: motion,
+    misregistration and pixels at the floor of one frame beside those of another do not
+    enter it.  ``u`` runs over ``rows`` even steps strictly inside (0, 1).
+
+    codes : P arrays ``(N, C)`` of integer codes (below ``n_codes``), one per frame, the
+        same pixels' in each (their order is not used)
+    Returns P arrays ``(rows, C)`` int64: row ``i`` the code of each frame at ``u_i``, per
+    channel (monotone in ``i``), as :func:`fit_crf`'s samples."""
+    u = (np.arange(rows) + 0.5) / rows
+    out = []
+    for z in codes:
+        cols = []
+        for c in range(z.shape[-1]):
+            cdf = np.cumsum(np.bincount(z[..., c].ravel(), minlength=n_codes)) / z[..., c].size
+            cols.append(np.searchsorted(cdf, u))
+        out.append(np.stack(cols, axis=-1).clip(0, n_codes - 1).astype(np.int64))
+    return out
+
+
 def crf_debevec1997(
     codes: np.ndarray, log_exposures: np.ndarray, n_codes: int, smoothing: float = DEBEVEC_LAMBDA
 ) -> CRFFit:

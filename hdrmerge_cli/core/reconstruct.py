@@ -65,16 +65,21 @@ class ExposureTables:
 
 
 def neutral_bounds(result: np.ndarray, flags: np.ndarray) -> int:
-    """Where every channel of a pixel is only a lower bound (clipped in every frame that
-    covers it, ``FLAG_SATURATED``), give all its channels the largest: a bound carries no
-    colour, and the largest still bounds each channel from below (the channels' own bounds
-    differ where their responses or white levels do, a colour cast the scene does not
-    have).  ``result``, ``flags``: ``(H, W, C)``, changed in place.  Returns the pixels set."""
+    """Where some channel of an image pixel is only a lower bound (clipped in every frame
+    that covers it, ``FLAG_SATURATED``), give all its channels the largest, flagged so.  A
+    camera-processed pixel's channels are mixed from one another (demosaicing, the colour
+    matrix, the camera's highlight handling), so where one clipped in every covering frame,
+    the others of those frames' readings are no measurement either (a sky whose green
+    clipped reads green, not white); a bound carries no colour, and the largest bounds
+    each channel from below as the clipped one's did.  ``result``, ``flags``: ``(H, W,
+    C)``, changed in place (a mosaic's sites are measured apart: left as they are).
+    Returns the pixels set."""
     if result.ndim != 3 or result.shape[-1] < 2:
         return 0
-    bound = np.all(flags == FLAG_SATURATED, axis=-1)
+    bound = np.any(flags == FLAG_SATURATED, axis=-1)
     if bound.any():
         result[bound] = result[bound].max(axis=-1, keepdims=True)
+        flags[bound] = FLAG_SATURATED
     return int(np.count_nonzero(bound))
 
 

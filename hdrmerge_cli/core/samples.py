@@ -199,6 +199,18 @@ def thin_overlap(s: Samples) -> tuple[int, int] | None:
     return None
 
 
+def well_exposed_overlap(s: Samples) -> list[int]:
+    """Per neighbour pair ``(k - 1, k)``, the pixels (off the borders, at full resolution)
+    both frames expose well in every channel: within :data:`RANGE_UNVERIFIED`, where any
+    camera's response has slope, and above each frame's floor (:attr:`Samples.floors`).
+    Pixel pairs pin a response only through such pixels; elsewhere one of the two codes is
+    at a floor or a shoulder, and its noise there biases a fit on pairs (errors in the
+    variables)."""
+    lo, hi = RANGE_UNVERIFIED
+    ok = [((v >= np.maximum(lo, floor)) & (v <= hi)).all(-1) & s.inside for v, floor in zip(s.v, s.floors)]
+    return [int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2 for k in range(1, len(ok))]
+
+
 def crf_verified(crf: CRF) -> bool:
     """Linear data and measured response tables (a profile's, a CSV, one fitted on the
     bracket) are trusted; a model (sRGB or ``gamma:G``, assumed for want of a response or

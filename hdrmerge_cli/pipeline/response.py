@@ -10,10 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
-from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, inverse_from_log, sample_pixels
+from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_correspondences, inverse_from_log, sample_pixels
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, CRFFit, standard_prior
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.samples import Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap
+from hdrmerge_cli.core.samples import (
+    MIN_OVERLAP, Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap, well_exposed_overlap,
+)
 from hdrmerge_cli.io.frames import Frame
 
 log = logging.getLogger("hdrmerge_cli")
@@ -80,7 +82,11 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
     """The response of an image bracket given none, fitted on the samples the merge draws
     (:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`, constant borders off) by
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
-    the curve open, and stored in the per-camera cache (``cache``,
+    the curve open: on the samples' pixel pairs where some neighbour pair shares
+    :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` well-exposed pixels
+    (:func:`~hdrmerge_cli.core.samples.well_exposed_overlap`), else on the frames'
+    histograms (Grossberg & Nayar 2003), which link frames with no such pixels through
+    the scene's ranking; stored in the per-camera cache (``cache``,
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
     two distinct exposures, or neighbours sharing fewer than :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` unclipped
     pixels) the cached response of the same camera and style, unless the frames contradict
@@ -96,11 +102,16 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
         k, both = thin
         why = f"{frames[k - 1].name} and {frames[k].name} share {both} unclipped pixels"
     else:
-        crf = fit_with_labels(frames, exposures, samples)
+        shared = well_exposed_overlap(samples)
+        histograms = max(shared) < MIN_OVERLAP  # no pair of neighbours pins any of the curve
+        if histograms:
+            log.info("no two neighbouring frames share %d well-exposed pixels (at most %d): the response is measured "
+                     "on the frames' histograms", MIN_OVERLAP, max(shared))
+        crf = fit_with_labels(frames, exposures, samples, histograms)
         if not is_flat(crf):
             if noisecache.store_response(key, crf.table, [f.path for f in frames]):
                 log.debug("response of %s stored in %s", key, noisecache.response_file())
-            return CRF(MEASURED, table=crf.table)
+            return CRF(MEASURED_HISTOGRAMS if histograms else MEASURED, table=crf.table)
         why = "the fit is flat"
     cached = _cached_response(frames, exposures, samples, key)
     if cached is not None:
@@ -135,8 +146,10 @@ def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
     return crf
 
 
-def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples) -> CRF:
-    """The response and the labels judged together: fit with the labels, check them through
+def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples, histograms: bool = False) -> CRF:
+    """The response and the labels judged together: fit with the labels (on the samples'
+    pixels, or with ``histograms`` on their histograms'
+    :func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), check them through
     the fit (:func:`~hdrmerge_cli.core.samples.estimate`), and while a frame's label
     is off by more than the tolerance in a way a label explains (its ratios do not change
     with brightness, :func:`~hdrmerge_cli.pipeline.label_at_fault`), refit with
@@ -144,6 +157,8 @@ def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples
     the frames.  A wrong label then does not bend the curve; the labels are judged (and
     warned about) afterwards against the response returned."""
     codes = samples_codes(samples)
+    if histograms:
+        codes = histogram_correspondences(codes, frames[0].n_codes)
     log_h = np.log(np.asarray(exposures, np.float64))
     crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
     replaced: list[int] = []
@@ -155,7 +170,8 @@ def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples
         k = max(off, key=lambda j: abs(est.difference_ev[j]))
         log_h[k], replaced = est.log_h[k], replaced + [k]
         crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
-    log.info("camera response measured on the bracket (goossens, %d samples per frame%s)", codes[0].shape[0],
+    log.info("camera response measured on the bracket (goossens, %d %s per frame%s)", codes[0].shape[0],
+             "histogram levels" if histograms else "samples",
              f"; fitted with the measured exposures of {', '.join(frames[k].name for k in replaced)}" if replaced
              else "")
     return crf
@@ -163,5 +179,7 @@ def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples
 
 #: the name of a response :func:`measure_response` fitted on the bracket being merged
 MEASURED = "measured on the bracket (estimate-crf defaults)"
+#: ... fitted on the frames' histograms: no neighbour pair shares enough well-exposed pixels
+MEASURED_HISTOGRAMS = "measured on the bracket's histograms (no neighbours share enough well-exposed pixels)"
 #: the name of a response :func:`measure_response` read from the per-camera cache
 CACHED = "measured earlier on this camera (cache)"
