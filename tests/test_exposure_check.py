@@ -587,3 +587,17 @@ def test_a_ratios_standard_error_counts_the_tiles_not_the_pixels():
     spread = float(np.std(estimates))
     assert np.mean(errors) == pytest.approx(spread, rel=0.15)
     assert np.mean(naive) < spread / 5
+
+
+@needs_shared
+def test_the_json_blames_what_the_messages_blame(run, tmp_path):
+    """One judgement per frame (label_verdicts) for the warnings and --json: on a real
+    bracket whose long frames' ratios differ from their correct labels as a response of the
+    wrong power makes (eos70d_kitchen_jpg, EXIF times), no warning, no frame mislabelled in
+    --json, and those frames carry the reason the response is blamed instead."""
+    folder = SHARED / "brackets" / "eos70d_kitchen_jpg"
+    proc = run("merge", *sorted(folder.glob("*.jpg")), "-o", tmp_path / "m.exr", "--json", "--no-cache")
+    frames = json.loads(proc.stdout)["exposure_check"]["frames"]
+    assert "warning" not in proc.stderr, proc.stderr
+    assert not any(f["mislabelled"] for f in frames)
+    assert [f["name"] for f in frames if f["response_at_fault"]] == ["9.jpg", "10.jpg"]

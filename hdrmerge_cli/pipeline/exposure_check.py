@@ -256,22 +256,24 @@ def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, us
     seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV,
     the estimate's standard error, the share of well-exposed pixels it rests on and whether
     it is measured (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.measured`),
-    whether the label is off (``mislabelled``) or could not be checked because the frames
-    moved (``moved``); per neighbour pair the measured ratio and, where registered
+    and :func:`label_verdicts`: whether its label is blamed (``mislabelled``), could not be
+    checked because the frames moved (``moved``), or the response is blamed instead
+    (``response_at_fault``: why); per neighbour pair the measured ratio and, where registered
     (:func:`moved_pairs`), ``moved_px`` (null: not registered: no label in question, or too
     little texture); which exposures the merge used."""
     est_h = np.exp(est.log_h)
-    bad = est.mislabelled(tol_ev)
+    verdicts = label_verdicts(frames, est, tol_ev, motion)
     se, share, measured = est.stderr_ev(), est.share(), est.measured()
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
-        by_motion = motion is not None and k in bad and motion.decided_by_motion(k, est.reference) is not None
+        verdict, why = verdicts.get(k, (None, None))
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
                      "stderr_ev": round(float(se[k]), 4), "share": round(float(share[k]), 4),
                      "measured": bool(measured[k]),
-                     "mislabelled": k in bad and not by_motion, "moved": by_motion})
+                     "mislabelled": verdict in ("pair", "given", "label"), "moved": verdict == "moved",
+                     "response_at_fault": why if verdict == "response" else None})
     px = motion.px if motion is not None else {}
     pairs = [{"frames": [frames[k].name, frames[k + 1].name],
               "label_ev": round(float(np.log2(exposures[k + 1] / exposures[k])), 4),
@@ -302,36 +304,52 @@ def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLER
     return None
 
 
-def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, hint: str,
-                     tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None,
-                     crf: CRF | None = None) -> list[int]:
-    """One warning per frame whose label is more than ``tol_ev`` from its estimate; with
-    ``motion`` (:func:`moved_pairs` of the pairs the frame's estimate chains through), a
-    frame whose estimate went through a pair that moved gets a line saying its label cannot
-    be checked instead, and a frame whose difference the response explains better than its
-    label (:func:`label_at_fault`) a line naming the response (``crf``: the one in use).
-    Returns the frames called mislabelled."""
+def label_verdicts(frames: list[Frame], est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV,
+                   motion: Motion | None = None) -> dict[int, tuple[str, str | None]]:
+    """Per frame whose estimate is off its label (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.mislabelled`),
+    what is blamed, and why: ``"moved"`` (its estimate chains through a pair that moved:
+    ``motion``, :func:`moved_pairs`), ``"pair"`` (two frames: neither label outvotes the
+    other), ``"given"`` (the user's time, the first suspect whatever the ratios say),
+    ``"response"`` (the response explains the difference better than the label,
+    :func:`response_at_fault`, the reason beside it) or ``"label"``.  The one judgement
+    the warnings (:func:`warn_mislabelled`) and ``--json`` (:func:`report`) both read."""
     ref = frames[est.reference]
-    called = []
+    out = {}
     for k in est.mislabelled(tol_ev):
         f = frames[k]
-        j = motion.decided_by_motion(k, est.reference) if motion is not None else None
-        if j is not None:
-            warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
+        if motion is not None and motion.decided_by_motion(k, est.reference) is not None:
+            out[k] = ("moved", None)
             continue
-        given = next((g.time_source for g in (f, ref) if g.time_source != "its metadata"), None)
+        given = any(g.time_source != "its metadata" for g in (f, ref))
         why = response_at_fault(est, k, tol_ev)
-        if len(frames) == 2 and (why is None or given):  # a ratio: neither label outvotes the other
+        out[k] = (("pair" if len(frames) == 2 and (why is None or given) else
+                   "given" if why is not None and given else "response" if why is not None else "label"), why)
+    return out
+
+
+def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, hint: str,
+                     tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None,
+                     crf: CRF | None = None) -> None:
+    """One line per frame of :func:`label_verdicts`: a warning naming the label (or both of
+    two frames, or the user's time), a frame that moved saying its label cannot be checked,
+    and a frame whose difference the response explains naming the response (``crf``: the
+    one in use; at info level for a response measured on the bracket, which leaves the
+    user nothing to change)."""
+    ref = frames[est.reference]
+    for k, (verdict, why) in label_verdicts(frames, est, tol_ev, motion).items():
+        f = frames[k]
+        given = next((g.time_source for g in (f, ref) if g.time_source != "its metadata"), None)
+        if verdict == "moved":
+            j = motion.decided_by_motion(k, est.reference)
+            warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
+        elif verdict == "pair":
             log.warning("%s and %s: labelled %s and %s%s, but the frames' ratio is %+.2f EV from theirs; two frames "
                         "cannot tell which label is wrong (check both)%s", ref.path, f.path, fmt_time(ref.exposure_time),
                         fmt_time(f.exposure_time), f" by {given}" if given else "", -est.difference_ev[k], hint)
-            called.append(k)
-            continue
-        if why is not None and given:  # the user's times are the first suspect, whatever the ratios say
+        elif verdict == "given":
             log.warning("%s: %+.2f EV from the time %s gives it (%s), and %s; check %s", f.path,
                         -est.difference_ev[k], given, fmt_time(f.exposure_time), why, given)
-            continue
-        if why is not None:  # a response measured on the bracket leaves the user nothing to change: -v only
+        elif verdict == "response":
             measured = crf is not None and crf.name.startswith(("measured", "estimate-crf"))
             (log.info if measured else log.warning)(
                 "%s: %+.2f EV from its label, but %s: the %s does not fit the frames, and the label is not at fault%s",
@@ -339,14 +357,12 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
                 "response measured on the bracket" if measured else "camera response in use",
                 " (the camera processed this frame differently, or the light changed)" if measured else
                 "; measure the response on the bracket (no --crf) or with 'hdrmerge-cli estimate-crf'")
-            continue
-        t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
-        log.warning("%s: labelled %s%s, but the frames say %s (%+.2f EV, alike in shadows and highlights, as a wrong "
-                    "label makes; measured against %s, labelled %s)%s", f.path, fmt_time(f.exposure_time),
-                    f" by {f.time_source}" if f.time_source != "its metadata" else "", fmt_time(t_est),
-                    -est.difference_ev[k], ref.name, fmt_time(ref.exposure_time), hint)
-        called.append(k)
-    return called
+        else:
+            t_est = float(np.exp(est.log_h[k]) * f.exposure_time / exposures[k])
+            log.warning("%s: labelled %s%s, but the frames say %s (%+.2f EV, alike in shadows and highlights, as a "
+                        "wrong label makes; measured against %s, labelled %s)%s", f.path, fmt_time(f.exposure_time),
+                        f" by {f.time_source}" if f.time_source != "its metadata" else "", fmt_time(t_est),
+                        -est.difference_ev[k], ref.name, fmt_time(ref.exposure_time), hint)
 
 
 @dataclass
