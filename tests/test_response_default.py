@@ -125,8 +125,9 @@ def test_two_frames_sharing_no_well_exposed_pixels_are_fitted_on_their_histogram
     """Two frames through the S curve 11 EV apart (its codes 0.1-0.9 span about 9.5 stops:
     no pixel is well exposed in both): the response is measured on their histograms, the
     profile says so, and predicting a middle frame through it (the leave-one-out of the
-    real brackets) errs less than through the fit on their pixel pairs.  The S-curve
-    bracket's frames 1.5 EV apart are fitted on pixel pairs."""
+    real brackets) errs less than through the fit on their pixel pairs; estimate-crf
+    decides alike and its profile says so.  The S-curve bracket's frames 3 EV apart are
+    fitted on pixel pairs."""
     from hdrmerge_cli.io.profile import crf_from_json
 
     folder, meta = s_curve_bracket
@@ -166,3 +167,9 @@ def test_two_frames_sharing_no_well_exposed_pixels_are_fitted_on_their_histogram
     run("merge", files[0], files[-1], "-o", tmp_path / "pairs.exr", "--crf", table)
     errors = predicted_error(tmp_path / "two.exr"), predicted_error(tmp_path / "pairs.exr")
     assert errors[0] < 0.8 * errors[1], errors
+    # estimate-crf decides alike, and says so in the profile; merge --crf with it predicts as well
+    run("estimate-crf", files[0], files[-1], "-o", tmp_path / "est.json", "-q")
+    est = json.loads((tmp_path / "est.json").read_text())["crf"]
+    assert est["correspondences"].startswith("the frames' histograms")
+    run("merge", files[0], files[-1], "--crf", tmp_path / "est.json", "-o", tmp_path / "est.exr")
+    assert predicted_error(tmp_path / "est.exr") < 0.8 * errors[1]

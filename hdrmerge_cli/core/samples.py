@@ -211,6 +211,13 @@ def well_exposed_overlap(s: Samples) -> list[int]:
     return [int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2 for k in range(1, len(ok))]
 
 
+def pairs_pin_response(s: Samples) -> bool:
+    """Whether some neighbour pair shares :data:`MIN_OVERLAP` well-exposed pixels
+    (:func:`well_exposed_overlap`): else a response is fitted on the frames' histograms
+    (:func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), not on pixel pairs."""
+    return len(s.v) < 2 or max(well_exposed_overlap(s)) >= MIN_OVERLAP
+
+
 def crf_verified(crf: CRF) -> bool:
     """Linear data and measured response tables (a profile's, a CSV, one fitted on the
     bracket) are trusted; a model (sRGB or ``gamma:G``, assumed for want of a response or

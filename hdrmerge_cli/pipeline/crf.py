@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
+from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_correspondences
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_WEIGHTING, knot_levels
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.samples import estimate
+from hdrmerge_cli.core.samples import MIN_OVERLAP, estimate, pairs_pin_response
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import load_codes
@@ -81,6 +81,7 @@ class _Fit:
     changed: bool = False  # whether the fit was made monotone
     points: tuple | None = None  # (codes, log_h): the frames' (H, W, C) codes and (P,) log exposures
     exposure_check: dict | None = None  # the labels checked through the response
+    histograms: bool = False  # fitted on the frames' histograms (no neighbour pair pins it on pixels)
 
 
 def _solver_options(method, opts: CRFOptions) -> dict:
@@ -117,6 +118,12 @@ def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit
     if first.kind == "raw":
         codes = [c[..., None] for c in codes]
     exposure_check.check_overlap(frames, samples)
+    histograms = opts.method == "goossens" and first.kind == "image" and not pairs_pin_response(samples)
+    if histograms:
+        log.info("no two neighbouring frames share %d well-exposed pixels: the response is fitted on the frames' "
+                 "histograms", MIN_OVERLAP)
+        codes = [h[:, None, :] for h in histogram_correspondences([c.reshape(-1, c.shape[-1]) for c in codes],
+                                                                  first.n_codes)]
     log_h = np.log(labels)
     options = _solver_options(method, opts)
     crf, fits, changed = _fit_checked(codes, log_h, first.n_codes, opts, smoothing, n_samples, options)
@@ -137,7 +144,7 @@ def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit
                                    crf=crf)
     report = exposure_check.report(frames, labels, est, "estimates" if opts.times == ESTIMATE else "labels", crf,
                                    motion=motion)
-    return _Fit(crf, fits, changed, (codes, log_h), report)
+    return _Fit(crf, fits, changed, (codes, log_h), report, histograms)
 
 
 def _fit_details(first, method, opts: CRFOptions, fit: _Fit, smoothing, n_samples) -> dict:
@@ -146,6 +153,8 @@ def _fit_details(first, method, opts: CRFOptions, fit: _Fit, smoothing, n_sample
     details = {"method": opts.method, "channels": first.channel_colors if first.kind == "image" else "linear"}
     if fit.fits:
         details |= {"lambda": smoothing, "samples": n_samples or "all",
+                    "correspondences": ("the frames' histograms (no neighbour pair shares well-exposed pixels)"
+                                        if fit.histograms else "pixels"),
                     "iterations": [f.iterations for f in fit.fits], "converged": all(f.converged for f in fit.fits)}
         if method.noise_weighted:
             details |= {"weighting": opts.weighting or DEFAULT_WEIGHTING,

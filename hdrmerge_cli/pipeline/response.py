@@ -14,7 +14,7 @@ from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_corresponde
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, CRFFit, standard_prior
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, estimate, label_at_fault, response_fits, samples_codes, thin_overlap, well_exposed_overlap,
+    MIN_OVERLAP, Samples, estimate, label_at_fault, pairs_pin_response, response_fits, samples_codes, thin_overlap,
 )
 from hdrmerge_cli.io.frames import Frame
 
@@ -84,7 +84,7 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
     the curve open: on the samples' pixel pairs where some neighbour pair shares
     :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` well-exposed pixels
-    (:func:`~hdrmerge_cli.core.samples.well_exposed_overlap`), else on the frames'
+    (:func:`~hdrmerge_cli.core.samples.pairs_pin_response`), else on the frames'
     histograms (Grossberg & Nayar 2003), which link frames with no such pixels through
     the scene's ranking; stored in the per-camera cache (``cache``,
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
@@ -102,11 +102,10 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
         k, both = thin
         why = f"{frames[k - 1].name} and {frames[k].name} share {both} unclipped pixels"
     else:
-        shared = well_exposed_overlap(samples)
-        histograms = max(shared) < MIN_OVERLAP  # no pair of neighbours pins any of the curve
+        histograms = not pairs_pin_response(samples)
         if histograms:
-            log.info("no two neighbouring frames share %d well-exposed pixels (at most %d): the response is measured "
-                     "on the frames' histograms", MIN_OVERLAP, max(shared))
+            log.info("no two neighbouring frames share %d well-exposed pixels: the response is measured on the "
+                     "frames' histograms", MIN_OVERLAP)
         crf = fit_with_labels(frames, exposures, samples, histograms)
         if not is_flat(crf):
             if noisecache.store_response(key, crf.table, [f.path for f in frames]):
