@@ -220,3 +220,21 @@ def test_dng_closing_line_gives_the_baseline_exposure(merged_dng, run, dng_brack
     proc = run("merge", *frames_of(folder, meta), "-o", tmp_path / "m.dng", *NOISE)
     ev = _baseline_ev(merged_dng)
     assert ev > 5 and f"BaselineExposure is {ev:+.2f} EV" in proc.stderr and f"by {ev:.2f} EV" in proc.stderr
+
+
+def test_bounds_at_a_moved_brackets_borders_carry_no_colour(tmp_path, run):
+    """pi_ov5647_moved_jpg (frames moved up to 30 px, a bright neutral sky): along the
+    borders only one frame covers, and where its green clipped the pixel is one neutral
+    bound (neutral_bounds): the flagged pixels' median max/min channel is near 1, not the
+    green cast of a clipped channel beside two measured ones (2.36 channel by channel)."""
+    from conftest import SHARED
+
+    folder = SHARED / "brackets" / "pi_ov5647_moved_jpg"
+    if not folder.is_dir():
+        pytest.skip(f"shared test data not found at {SHARED}")
+    run("merge", *sorted(folder.glob("*.jpg")), "-o", tmp_path / "m.exr", "--extra-channels", "clipped", "--no-cache")
+    pixels, header = read_exr(str(tmp_path / "m.exr"))
+    flagged = pixels[..., 3] > 0  # saturated: a lower bound
+    assert flagged.sum() > 1000
+    rgb = pixels[..., :3][flagged]
+    assert np.median(rgb.max(-1) / rgb.min(-1)) <= 1.15
