@@ -184,13 +184,11 @@ def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
     """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
     clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds
     whole codes (``codes_step``: one code as a fraction of full scale, at most 2^16 codes)
-    through :meth:`CRF.codes_table` in float32, else evaluated per value."""
+    through :meth:`CRF.linear` in float32, else evaluated per value."""
     vc = np.clip(v, 0.0, 1.0)
     if crf.is_linear:
         return vc
     n = int(round(1.0 / codes_step)) + 1
     if n > 1 << 16:
         return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
-    tab = crf.codes_table(n, np.zeros(v.shape[-1])).astype(np.float32)
-    z = np.rint(vc * (n - 1)).astype(np.int64)
-    return np.stack([tab[c][z[..., c]] for c in range(v.shape[-1])], -1)
+    return crf.linear(np.rint(vc * (n - 1)).astype(np.int64), n).astype(np.float32)
