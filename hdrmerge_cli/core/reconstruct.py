@@ -137,10 +137,10 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
     ``bounded`` on the normalised scale (default: the paper's JPEG values)."""
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
-    rows = []
+    rows, lins = [], crf.codes_table(n_codes, black, white)
     for c, (b, wl) in enumerate(zip(black, white)):
         v = code_grid(n_codes, b, wl)
-        lin = crf.codes_table(n_codes, black, white)[c]
+        lin = lins[c]
         ctx = _context(weighting, wl - b, exposure, None if noise is None else noise[min(c, len(noise) - 1)],
                        prior_rate, exposures, k, bounds)
         rows.append(WEIGHTING_FUNCTIONS[weighting](v, lin, ctx))
@@ -266,10 +266,10 @@ def exposure_tables(
         certainty = certainty_table(n_codes, black, white, crf, weighting, exposure, noise, prior_rate, exposures, k,
                                     bounds)
     log_h = np.log(exposure)
-    rows = []
+    rows, lins = [], crf.codes_table(n_codes, black, white)
     for c, (b, wl) in enumerate(zip(black, white)):
         v = code_grid(n_codes, b, wl)
-        lin = crf.codes_table(n_codes, black, white)[c]
+        lin = lins[c]
         chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
         cert = certainty[min(c, certainty.shape[0] - 1)]
         if weighting in NOISE_MODEL_WEIGHTS:  # underflowed weights of unclipped codes still count
@@ -323,9 +323,9 @@ def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: floa
     """
     black = np.atleast_1d(np.asarray(black, dtype=np.float64))
     white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
-    rows = []
+    rows, lins = [], crf.codes_table(n_codes, black, white)
     for c, (b, wl) in enumerate(zip(black, white)):
-        lin = crf.codes_table(n_codes, black, white)[c]
+        lin = lins[c]
         y_full = wl - b
         y = np.clip(lin, 0.0, 1.0) * y_full
         chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]

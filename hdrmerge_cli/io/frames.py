@@ -527,10 +527,10 @@ class HeldCodes:
 
     def __init__(self, load=None):
         self.decode = decode if load is None else (lambda frame: (load(frame), None))
-        self._codes: dict[int, tuple[Frame, np.ndarray, np.ndarray | None]] = {}  # id -> (the frame, kept alive: its
-        self._lock = threading.Lock()                                             # id stays its own), codes, validity
+        self._codes: dict[int, tuple[Frame, np.ndarray]] = {}  # id -> (the frame, kept alive: its id stays its own)
+        self._validity: dict[int, np.ndarray | None] = {}  # id -> validity, kept when the codes are dropped
+        self._lock = threading.Lock()
         self._decoding: dict[int, threading.Lock] = {}
-        self._dropped: dict[int, tuple[Frame, np.ndarray | None]] = {}  # id -> (the frame, validity)
 
     def hold(self, frame: Frame, codes: np.ndarray, validity: np.ndarray | None = None) -> None:
         """Keep ``codes`` (and ``validity``) as ``frame``'s, handed out as a read-only view
@@ -538,40 +538,38 @@ class HeldCodes:
         codes = codes.view()
         codes.flags.writeable = False
         with self._lock:
-            self._codes[id(frame)] = (frame, codes, validity)
+            self._codes[id(frame)] = (frame, codes)
+            self._validity[id(frame)] = validity
 
     def drop(self, frame: Frame) -> None:
         """Forget ``frame``'s codes (a caller that keeps what it made of them instead); a later
         call decodes again.  Its validity is kept."""
         with self._lock:
-            entry = self._codes.pop(id(frame), None)
-            if entry is not None:
-                self._dropped[id(frame)] = (frame, entry[2])
+            self._codes.pop(id(frame), None)
 
-    def _entry(self, frame: Frame) -> tuple:
+    def _held(self, frame: Frame) -> np.ndarray | None:
         with self._lock:
             entry = self._codes.get(id(frame))
-        if entry is not None:
-            return entry
+        return None if entry is None else entry[1]
+
+    def __call__(self, frame: Frame) -> np.ndarray:
+        codes = self._held(frame)
+        if codes is not None:
+            return codes
         with self._lock:
             one = self._decoding.setdefault(id(frame), threading.Lock())
         with one:  # two threads asking for one frame: one decode
-            with self._lock:
-                entry = self._codes.get(id(frame))
-            if entry is None:
+            if self._held(frame) is None:
                 self.hold(frame, *self.decode(frame))
-                with self._lock:
-                    entry = self._codes[id(frame)]
-            return entry
-
-    def __call__(self, frame: Frame) -> np.ndarray:
-        return self._entry(frame)[1]
+            return self._held(frame)
 
     def validity(self, frame: Frame) -> np.ndarray | None:
         """The frame's alpha as :func:`decode` gives it (from the decode that gave its codes)."""
         with self._lock:
-            dropped = self._dropped.get(id(frame))
-        return dropped[1] if dropped is not None else self._entry(frame)[2]
+            if id(frame) in self._validity:
+                return self._validity[id(frame)]
+        self(frame)
+        return self._validity[id(frame)]
 
 
 def _read_channels(frame: Frame, begin: int, end: int) -> np.ndarray:
