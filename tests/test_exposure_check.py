@@ -251,7 +251,8 @@ def moving_bracket(tmp_path_factory, run):
 
 def test_moved_threshold_and_displacement_on_samples():
     from hdrmerge_cli.core.registration import log_irradiance
-    from hdrmerge_cli.core.comparametric import MOVED_PITCHES, moved_threshold_px, pair_displacement
+    from hdrmerge_cli.core.registration import pair_displacement
+    from hdrmerge_cli.core.samples import MOVED_PITCHES, moved_threshold_px
 
     assert moved_threshold_px(1) == 1.5 and moved_threshold_px(0.5) == 1.0
     assert moved_threshold_px(6) == pytest.approx(6 * MOVED_PITCHES)
@@ -425,29 +426,17 @@ def test_samples_registered_by_the_alignment_warps_line_up(raw):
 
 
 def test_label_motion_comes_from_the_alignment():
-    """``alignment_motion``: applied warps leave no displacement between registered frames
-    and none is known for a frame left unaligned; warps not applied give the distance
-    between where the pair's warps take a corner."""
-    from hdrmerge_cli.core.samples import Samples
-    from hdrmerge_cli.pipeline.exposure_check import alignment_motion
+    """``warp_motion``: applied warps leave no displacement between registered frames and
+    none is known for a frame left unaligned; warps not applied give the distance between
+    where the pair's warps take a corner (of a 100 x 200 frame, samples 2 px apart)."""
+    from hdrmerge_cli.core.samples import warp_motion
 
-    class F:
-        def __init__(self, path):
-            self.path, self.height, self.width = path, 100, 200
-
-    frames = [F("a"), F("b"), F("c")]
-    s = Samples([np.zeros((50, 100, 3), np.float32)] * 3, np.ones((50, 100), bool), (0, 0, 0, 0), 2, 1 / 255)
     warps = [np.array([[1.0, 0, 0.1], [0, 1, 0]]), np.eye(2, 3), np.array([[1.0, 0, 0], [0, 1, -0.2]])]
-    from hdrmerge_cli.pipeline.register import Alignment
-
-    def found(unaligned, applied):
-        return Alignment("auto", "translation", "none", "b", applied, frames, warps, [1.0] * 3, unaligned, [])
-
-    m = alignment_motion(frames[::-1], found(["c"], True), s)  # the warps follow their frames
-    assert m.px == {0: None, 1: 0.0} and m.threshold_px == 3.0
-    m = alignment_motion(frames, found(["c"], True), s)
-    assert m.px == {0: 0.0, 1: None}
-    m = alignment_motion(frames, found([], False), s)
+    m = warp_motion(warps, [True, True, False], True, 100, 200, 2)
+    assert m.px == {0: 0.0, 1: None} and m.threshold_px == 3.0
+    m = warp_motion(warps[::-1], [False, True, True], True, 100, 200, 2)
+    assert m.px == {0: None, 1: 0.0}
+    m = warp_motion(warps, [True] * 3, False, 100, 200, 2)
     assert m.px[0] == pytest.approx(0.1) and m.px[1] == pytest.approx(0.2) and not m.moved()
 
 

@@ -14,8 +14,8 @@ outlier rejection, Cerman & Hlavac 2006), made robust here by a median/MAD start
 A hand-held bracket merged without alignment breaks the premise (the same pixels in both
 frames): a pair's ratio is then read across edges that moved, and a label can look wrong
 when only the camera moved.  Before a label is called wrong, the pairs its estimate chains
-through are registered on the same samples (:func:`pair_displacement`, OpenCV through
-:mod:`hdrmerge_cli.core.registration`); past :func:`moved_threshold_px` the label is reported as
+through are registered on the same samples (:func:`~hdrmerge_cli.core.samples.moved_pairs`, OpenCV through
+:mod:`hdrmerge_cli.core.registration`); past :func:`~hdrmerge_cli.core.samples.moved_threshold_px` the label is reported as
 unchecked instead.
 
 Everything here is pure array code: no paths, no printing.
@@ -40,13 +40,6 @@ WEAK_COVERAGE = 0.05
 LABEL_SIGMAS = 3.0
 #: ... and at least this many pixels changed by more than the margin
 ORDER_MIN_CHANGED = 100
-#: a pair registered on the samples counts as moved when displaced by more than this many
-#: sample pitches (:func:`moved_threshold_px`)
-MOVED_PITCHES = 1.5
-#: ... and by more than this many full-resolution pixels
-MOVED_MIN_PX = 1.0
-#: a registration is trusted when its correlation coefficient reaches this (as ``--align``'s)
-MOVED_MIN_CONFIDENCE = 0.3
 
 
 # ---------------------------------------------------------------- constant borders
@@ -243,45 +236,6 @@ def ratio_trend(y: np.ndarray, d: np.ndarray, w: np.ndarray) -> float:
     slope = np.sum(w * (u - um) * d) / var
     lo, hi = np.percentile(u, [5, 95])
     return float(slope * (hi - lo))
-
-
-def moved_threshold_px(pitch: float) -> float:
-    """Displacement (full-resolution pixels) beyond which a pair registered on samples
-    ``pitch`` pixels apart counts as moved: :data:`MOVED_PITCHES` pitches, at least
-    :data:`MOVED_MIN_PX`.
-
-    The samples are a strided subsample (no prefilter: aliased), so their registration
-    resolves about one pitch, not one full-resolution pixel: on the static real brackets
-    of the test data (pitch 2 to 4) neighbour pairs registered on the samples at up to
-    0.87 pitch (1.7 px), where full-resolution alignment found up to 1.9 px of real
-    (tripod) movement and differed from the samples' registration by up to 0.7 pitch; the
-    hand-held ones registered at 7 to 12 pitches (14 to 26 px).  A displacement under a
-    pitch also barely reaches the ratio, which is read on the same samples: it moves the
-    pixels next to edges by a fraction of a sample, and the ratio's 3-sigma rejection drops
-    them."""
-    return max(MOVED_MIN_PX, MOVED_PITCHES * float(pitch))
-
-
-def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
-    """How far (in pixels of the images) ``b`` sits from ``a``: the length of the
-    translation registering them (:func:`hdrmerge_cli.core.registration.estimate_warp`: phase
-    correlation against no motion by the vote of the pixels, refined by ECC), or None when
-    the pair cannot be registered (too little texture in either,
-    :func:`hdrmerge_cli.core.registration.registrable`, or a correlation under
-    :data:`MOVED_MIN_CONFIDENCE`).
-
-    a, b : (H, W) float32 exposure-invariant images of the same pixels (see
-    :func:`hdrmerge_cli.core.registration.log_irradiance`)
-    """
-    from hdrmerge_cli.core import registration
-
-    a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
-    if min(a.shape) < 16 or registration.registrable(a, b) is not None:
-        return None
-    warp, rho = registration.estimate_warp(a, b, "translation")
-    if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
-        return None
-    return float(np.hypot(warp[0, 2], warp[1, 2]))
 
 
 def chain_pairs(k: int, reference: int) -> range:

@@ -56,6 +56,8 @@ MAX_REFINE_PX = 3.0
 #: a rotation is kept when it moves some corner of the frame by more than this (pixels): a
 #: smaller one is not worth resampling for
 ROTATION_PX = 0.25
+#: a registration is trusted when its correlation coefficient reaches this (as ``--align``'s)
+MOVED_MIN_CONFIDENCE = 0.3
 
 
 def _cv2():
@@ -570,6 +572,26 @@ def compose(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
     out = outer[:, :2] @ inner
     out[:, 2] += outer[:, 2]
     return out
+
+
+def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
+    """How far (in pixels of the images) ``b`` sits from ``a``: the length of the
+    translation registering them (:func:`hdrmerge_cli.core.estimate_warp`: phase
+    correlation against no motion by the vote of the pixels, refined by ECC), or None when
+    the pair cannot be registered (too little texture in either,
+    :func:`hdrmerge_cli.core.registrable`, or a correlation under
+    :data:`MOVED_MIN_CONFIDENCE`).
+
+    a, b : (H, W) float32 exposure-invariant images of the same pixels (see
+    :func:`log_irradiance`)
+    """
+    a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
+    if min(a.shape) < 16 or registrable(a, b) is not None:
+        return None
+    warp, rho = estimate_warp(a, b, "translation")
+    if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
+        return None
+    return float(np.hypot(warp[0, 2], warp[1, 2]))
 
 
 def corner_distance(a: np.ndarray, b: np.ndarray, height: int, width: int) -> float:

@@ -138,12 +138,9 @@ def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit
         log_h = new_log_h
         if moved < 0.01:
             break
-    motion = exposure_check.label_motion(samples, labels, crf, est)
-    exposure_check.warn_mislabelled(frames, labels, est, "" if opts.times == ESTIMATE
-                                   else "; estimate-crf --times estimate fits with the estimates", motion=motion,
-                                   crf=crf)
-    report = exposure_check.report(frames, labels, est, "estimates" if opts.times == ESTIMATE else "labels", crf,
-                                   motion=motion)
+    report = exposure_check.check_labels(frames, labels, est, samples, crf, crf, "" if opts.times == ESTIMATE
+                                         else "; estimate-crf --times estimate fits with the estimates",
+                                         opts.times == ESTIMATE)
     return _Fit(crf, fits, changed, (codes, log_h), report, histograms)
 
 

@@ -6,7 +6,7 @@ here the frames are decoded, subsampled (CFA cells kept whole), normalised to
 ``v = (z - black) / (white - black)``, cut to the pixels worth comparing (constant borders
 off, clipped and noise-floor codes off) and linearised through the response in use.
 Before a label is called wrong, the pairs that decided it are registered on the same
-samples (:func:`moved_pairs`): frames that moved between exposures (a hand-held bracket
+samples (:func:`~hdrmerge_cli.core.samples.moved_pairs`): frames that moved between exposures (a hand-held bracket
 merged without ``--align``) leave the labels unchecked, with a line saying so, instead of
 a false label warning.
 """
@@ -15,18 +15,18 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF, linearise
+from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.comparametric import (
-    LABEL_TOLERANCE_EV, ExposureEstimate, border_mask, chain_pairs, constant_border, moved_threshold_px,
-    normalised_samples, order_test, pair_displacement,
+    LABEL_TOLERANCE_EV, ExposureEstimate, border_mask, constant_border, normalised_samples, order_test,
 )
 from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, crf_verified, estimate_with_response, label_at_fault, model_power_error_ev, power_explains,
-    ratio_bend_ev, response_fits, thin_overlap,
+    MIN_OVERLAP, Motion, Samples, crf_verified, estimate_with_response, label_at_fault, label_motion,
+    model_power_error_ev, moved_pairs, power_explains, ratio_bend_ev, response_fits, thin_overlap, warp_motion,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, fmt_time
@@ -142,103 +142,31 @@ def _clipped_alone(frames: list[Frame], s: Samples, k: int) -> str | None:
 
 
 # ---------------------------------------------------------------- motion between exposures
-@dataclass
-class Motion:
-    """Neighbour pairs registered on the samples (:func:`moved_pairs`): ``px`` per pair
-    index (frames ``j``, ``j + 1``) the displacement in full-resolution pixels, None where
-    the pair could not be registered (too little texture in the range both expose, a weak
-    correlation); pairs not asked about are absent.  ``threshold_px``: beyond it a pair
-    moved (:func:`~hdrmerge_cli.core.comparametric.moved_threshold_px` of the samples' pitch)."""
+class Verdict(NamedTuple):
+    """What :func:`label_verdicts` blames for a frame off its label: ``kind`` one of
+    ``"moved"``, ``"pair"``, ``"given"``, ``"response"``, ``"label"``; ``why``: the
+    response's fault (:func:`response_at_fault`) or None; ``pair``: for ``"moved"``, the
+    pair that moved most on the frame's chain."""
 
-    px: dict[int, float | None]
-    threshold_px: float
-
-    def moved(self) -> frozenset[int]:
-        return frozenset(j for j, d in self.px.items() if d is not None and d > self.threshold_px)
-
-    def decided_by_motion(self, k: int, reference: int) -> int | None:
-        """The pair that moved most among those frame ``k``'s estimate chains through from
-        the reference (:func:`~hdrmerge_cli.core.comparametric.chain_pairs`), or None when none
-        of them moved."""
-        moved = [j for j in chain_pairs(k, reference) if j in self.moved()]
-        return max(moved, key=lambda j: self.px[j]) if moved else None
+    kind: str
+    why: str | None = None
+    pair: int | None = None
 
 
-def registration_image(s: Samples, k: int, crf: CRF, exposure: float, lo: float, hi: float,
-                       lin: np.ndarray | None = None) -> np.ndarray:
-    """Frame ``k``'s samples as an exposure-invariant image for registration
-    (:func:`~hdrmerge_cli.core.registration.log_irradiance` of the linearised channels' mean over
-    ``exposure``, within ``[lo, hi]``), the constant borders cut off; RAW: the mean of each
-    2 x 2 CFA cell.  ``lin``: :func:`_registration_linear` of the frame when already made."""
-    from hdrmerge_cli.core import registration
-
-    lin = _registration_linear(s, k, crf) if lin is None else lin
-    return registration.log_irradiance(lin, exposure, lo, hi)
-
-
-def _registration_linear(s: Samples, k: int, crf: CRF) -> np.ndarray:
-    from hdrmerge_cli.core import registration
-
-    top, bottom, left, right = s.border
-    v = s.v[k]
-    if s.raw:  # whole cells: start on an even sample row and column
-        top, left = top + top % 2, left + left % 2
-    v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
-    lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
-    return registration.block_mean(lin, 2) if s.raw else lin
-
-
-def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
-    """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
-    the samples (:func:`~hdrmerge_cli.core.comparametric.pair_displacement` of their
-    :func:`registration_image` over the irradiance range both expose, exposure-normalised by
-    ``exposures``, the labels: registration is invariant to the gain a wrong label makes),
-    in full-resolution pixels (the samples' pitch).  A few tens of milliseconds a pair on
-    the default :data:`MAX_SAMPLES`; only the pairs asked about are registered."""
-    from hdrmerge_cli.core import registration
-
-    lin: dict[int, np.ndarray] = {}
-    px: dict[int, float | None] = {}
-    for j in sorted(set(pairs)):
-        try:
-            lo, hi = registration.common_range([exposures[j], exposures[j + 1]],
-                                               lo_code=registration.dark_floor(s.codes_step if s.raw else None))
-        except HdrMergeError:
-            px[j] = None
-            continue
-        for k in (j, j + 1):
-            if k not in lin:
-                lin[k] = _registration_linear(s, k, crf)
-        d = pair_displacement(registration_image(s, j, crf, exposures[j], lo, hi, lin[j]),
-                              registration_image(s, j + 1, crf, exposures[j + 1], lo, hi, lin[j + 1]))
-        px[j] = None if d is None else d * s.pitch
-        lin.pop(j, None)  # pairs in order: frame j is not needed again
-    return Motion(px, moved_threshold_px(s.pitch))
-
-
-def alignment_motion(frames: list[Frame], alignment, s: Samples) -> Motion:
-    """The neighbour pairs' displacement as the merge's registration measured it
-    (:func:`~hdrmerge_cli.pipeline.register.estimate_alignment`), for samples brought onto the
-    reference with its warps when it applies them (:meth:`Samples.registered`): 0 left
-    between two registered frames, unknown (None) where either was left unaligned;
-    otherwise the largest distance between where the two frames' warps take a corner."""
-    from hdrmerge_cli.core.registration import corner_distance
-
-    warps, unaligned = [alignment.warp_of(f) for f in frames], set(alignment.unaligned)
-    px: dict[int, float | None] = {}
-    for j in range(len(frames) - 1):
-        if {frames[j].path, frames[j + 1].path} & unaligned:
-            px[j] = None
-        else:
-            px[j] = 0.0 if alignment.applied else corner_distance(warps[j], warps[j + 1], frames[j].height,
-                                                                   frames[j].width)
-    return Motion(px, moved_threshold_px(s.pitch))
-
-
-def label_motion(s: Samples, exposures: np.ndarray, crf: CRF, est: ExposureEstimate) -> Motion:
-    """:func:`moved_pairs` of only the pairs that decided a label in question (none: no
-    cost), for :func:`warn_mislabelled` and :func:`report`."""
-    return moved_pairs(s, exposures, crf, {j for k in est.mislabelled() for j in chain_pairs(k, est.reference)})
+def check_labels(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, s: Samples, crf: CRF,
+                 used: CRF, hint: str, estimates: bool = False, motion: Motion | None = None,
+                 named_moved: bool = False) -> dict:
+    """The labels judged once on the exposures ``est`` measured through ``used`` (the
+    response the estimate read): ``motion`` as measured (the alignment's, or every pair
+    registered), else the pairs that decided a label in question registered on the samples
+    through ``crf`` (:func:`~hdrmerge_cli.core.samples.moved_pairs`; none: no cost); then
+    :func:`label_verdicts`, their warnings (:func:`warn_mislabelled`; ``named_moved``: the
+    pairs that moved were named already) and the ``--json`` record (:func:`report`, of the
+    ``estimates`` used or the labels)."""
+    motion = label_motion(s, exposures, crf, est) if motion is None else motion
+    verdicts = label_verdicts(frames, est, motion=motion)
+    warn_mislabelled(frames, exposures, est, verdicts, hint, motion, used, named_moved)
+    return report(frames, exposures, est, verdicts, "estimates" if estimates else "labels", used, motion=motion)
 
 
 def _fmt_px(d: float) -> str:
@@ -250,24 +178,23 @@ def warn_moved(frames: list[Frame], k: int, j: int, motion: Motion, consequence:
                 frames[k].path, _fmt_px(motion.px[j]), frames[j].name, frames[j + 1].name, consequence)
 
 
-def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, used: str,
-           crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> dict:
+def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, verdicts: dict[int, Verdict],
+           used: str, crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> dict:
     """The ``--json`` record of the estimates: per frame the label and the estimate (in
     seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV,
     the estimate's standard error, the share of well-exposed pixels it rests on and whether
     it is measured (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.measured`),
-    and :func:`label_verdicts`: whether its label is blamed (``mislabelled``), could not be
-    checked because the frames moved (``moved``), or the response is blamed instead
+    and its :func:`label_verdicts` entry: whether its label is blamed (``mislabelled``), could
+    not be checked because the frames moved (``moved``), or the response is blamed instead
     (``response_at_fault``: why); per neighbour pair the measured ratio and, where registered
-    (:func:`moved_pairs`), ``moved_px`` (null: not registered: no label in question, or too
-    little texture); which exposures the merge used."""
+    (:func:`~hdrmerge_cli.core.samples.moved_pairs`), ``moved_px`` (null: not registered: no
+    label in question, or too little texture); which exposures the merge used."""
     est_h = np.exp(est.log_h)
-    verdicts = label_verdicts(frames, est, tol_ev, motion)
     se, share, measured = est.stderr_ev(), est.share(), est.measured()
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
-        verdict, why = verdicts.get(k, (None, None))
+        verdict, why, _ = verdicts.get(k, Verdict(None))
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
                      "stderr_ev": round(float(se[k]), 4), "share": round(float(share[k]), 4),
@@ -305,43 +232,44 @@ def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLER
 
 
 def label_verdicts(frames: list[Frame], est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV,
-                   motion: Motion | None = None) -> dict[int, tuple[str, str | None]]:
+                   motion: Motion | None = None) -> dict[int, Verdict]:
     """Per frame whose estimate is off its label (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.mislabelled`),
     what is blamed, and why: ``"moved"`` (its estimate chains through a pair that moved:
-    ``motion``, :func:`moved_pairs`), ``"pair"`` (two frames: neither label outvotes the
-    other), ``"given"`` (the user's time, the first suspect whatever the ratios say),
-    ``"response"`` (the response explains the difference better than the label,
-    :func:`response_at_fault`, the reason beside it) or ``"label"``.  The one judgement
-    the warnings (:func:`warn_mislabelled`) and ``--json`` (:func:`report`) both read."""
+    ``motion``, :func:`~hdrmerge_cli.core.samples.moved_pairs`), ``"pair"`` (two frames:
+    neither label outvotes the other), ``"given"`` (the user's time, the first suspect
+    whatever the ratios say), ``"response"`` (the response explains the difference better
+    than the label, :func:`response_at_fault`, the reason beside it) or ``"label"``.  The
+    one judgement the warnings (:func:`warn_mislabelled`) and ``--json`` (:func:`report`)
+    both read."""
     ref = frames[est.reference]
     out = {}
     for k in est.mislabelled(tol_ev):
-        f = frames[k]
-        if motion is not None and motion.decided_by_motion(k, est.reference) is not None:
-            out[k] = ("moved", None)
+        j = motion.decided_by_motion(k, est.reference) if motion is not None else None
+        if j is not None:
+            out[k] = Verdict("moved", None, j)
             continue
-        given = any(g.time_source != "its metadata" for g in (f, ref))
+        given = any(g.time_source != "its metadata" for g in (frames[k], ref))
         why = response_at_fault(est, k, tol_ev)
-        out[k] = (("pair" if len(frames) == 2 and (why is None or given) else
-                   "given" if why is not None and given else "response" if why is not None else "label"), why)
+        out[k] = Verdict("pair" if len(frames) == 2 and (why is None or given) else
+                         "given" if why is not None and given else "response" if why is not None else "label", why)
     return out
 
 
-def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, hint: str,
-                     tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None,
-                     crf: CRF | None = None) -> None:
+def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, verdicts: dict[int, Verdict],
+                     hint: str, motion: Motion | None = None, crf: CRF | None = None,
+                     named_moved: bool = False) -> None:
     """One line per frame of :func:`label_verdicts`: a warning naming the label (or both of
-    two frames, or the user's time), a frame that moved saying its label cannot be checked,
-    and a frame whose difference the response explains naming the response (``crf``: the
-    one in use; at info level for a response measured on the bracket, which leaves the
-    user nothing to change)."""
+    two frames, or the user's time), a frame that moved saying its label cannot be checked
+    (unless ``named_moved``: said already), and a frame whose difference the response
+    explains naming the response (``crf``: the one in use; at info level for a response
+    measured on the bracket, which leaves the user nothing to change)."""
     ref = frames[est.reference]
-    for k, (verdict, why) in label_verdicts(frames, est, tol_ev, motion).items():
+    for k, (verdict, why, j) in verdicts.items():
         f = frames[k]
         given = next((g.time_source for g in (f, ref) if g.time_source != "its metadata"), None)
         if verdict == "moved":
-            j = motion.decided_by_motion(k, est.reference)
-            warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
+            if not named_moved:
+                warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
         elif verdict == "pair":
             log.warning("%s and %s: labelled %s and %s%s, but the frames' ratio is %+.2f EV from theirs; two frames "
                         "cannot tell which label is wrong (check both)%s", ref.path, f.path, fmt_time(ref.exposure_time),
@@ -385,8 +313,10 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
     instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
     merge's ``alignment``, the samples are brought onto the reference by its warps where it
-    applies them and the pairs' motion is what it measured (:func:`alignment_motion`);
-    without, the pairs in question are registered on the samples (:func:`moved_pairs`).
+    applies them and the pairs' motion is what it measured
+    (:func:`~hdrmerge_cli.core.samples.warp_motion`);
+    without, the pairs in question are registered on the samples
+    (:func:`~hdrmerge_cli.core.samples.label_motion`).
 
     A single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:
@@ -397,8 +327,9 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     if alignment is not None and alignment.applied:
         s = s.registered([alignment.warp_of(f) for f in frames])
     est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)
-    if alignment is not None:
-        motion = alignment_motion(frames, alignment, s)
+    if alignment is not None:  # the pairs' motion as the merge's registration measured it
+        motion = warp_motion([alignment.warp_of(f) for f in frames], [f.path not in alignment.unaligned for f in frames],
+                             alignment.applied, frames[0].height, frames[0].width, s.pitch)
     elif use_estimates:  # every estimate is used: every pair registered
         motion = moved_pairs(s, exposures, crf, range(len(frames) - 1))
     else:
@@ -430,10 +361,9 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
                 else f"{d:.2f} px apart ({'moved' if d > motion.threshold_px else 'still'}: threshold "
                      f"{motion.threshold_px:.1f} px)")
         log.info("%s / %s: on the samples, %s", frames[j].name, frames[j + 1].name, what)
-    hint = "" if use_estimates else "; merge with --times estimate to use the estimates"
-    # --times estimate: the pairs that moved are out of the estimates already (warned above)
-    warn_mislabelled(frames, exposures, est, hint, motion=None if use_estimates else motion, crf=used)
-    rep = report(frames, exposures, est, "estimates" if use_estimates else "labels", used, motion=motion)
+    # --times estimate: the pairs that moved are out of the estimates already (named above)
+    rep = check_labels(frames, exposures, est, s, crf, used, "" if use_estimates else
+                       "; merge with --times estimate to use the estimates", use_estimates, motion, use_estimates)
     if not use_estimates:
         return CheckedExposures(frames, exposures, rep, s)
     est_h = np.exp(est.log_h)

@@ -79,10 +79,8 @@ def _estimates(frames: list[Frame], s: Samples, crf_spec: str | None) -> dict:
     exposures = exposure_values(frames)
     exposure_check.check_order(frames, exposures, s)
     est, used = estimate_with_response(exposures, s, crf)
-    motion = exposure_check.label_motion(s, exposures, crf, est)
-    exposure_check.warn_mislabelled(frames, exposures, est, "; merge with --times estimate to use the estimates",
-                                   motion=motion)
-    return exposure_check.report(frames, exposures, est, "labels", used, motion=motion)
+    return exposure_check.check_labels(frames, exposures, est, s, crf, used,
+                                       "; merge with --times estimate to use the estimates")
 
 
 def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:

@@ -168,6 +168,7 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     t0 = time.perf_counter() if t_start is None else t_start
     settings, inputs, outputs = opts.algorithm, opts.inputs, opts.io
     timings = b.timings
+    warn_unused_options(b, opts)
     if len(b.frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", b.frames[0].path)
     if b.noise is None:  # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
@@ -188,7 +189,6 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     b.frames, b.exposures, b.exposure_report, b.samples = (checked.frames, checked.exposures, checked.report,
                                                            checked.samples)
     timings["exposure_check"] = time.perf_counter() - t1
-    warn_unused_options(b, opts)
     b.models = choose(b, opts)
     b.samples = None  # no stage reads the samples after the choices
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
