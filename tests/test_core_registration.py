@@ -94,8 +94,8 @@ def test_euclidean_fit_matches_opencv_without_scale():
 @pytest.mark.parametrize("motion, rotation", [("translation", 0.0), ("similarity", 0.4)])
 def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
     """A flat object in one frame only (6 % of the frame, hard edges) over a textured
-    scene pulls whole-image ECC away even from the true warp; the full-resolution similarity
-    step refuses the jump (beyond FINE_REACH pixels of the pyramid's finest level), and the
+    scene pulls whole-image ECC away even from the true warp (by more than a pixel); the
+    full-resolution similarity step refuses the run (a jump or a run that does not settle), and the
     tile consensus (tiles registered on their own, a least-median fit) recovers the true
     warp within 0.1 px at every corner."""
     from scipy import ndimage as ndi
@@ -113,9 +113,8 @@ def test_a_moving_object_does_not_bias_the_registration(motion, rotation):
     warp, _ = registration.estimate_warp(ia, ib, motion)
     assert registration.corner_distance(warp, true, *size) < 0.1, (warp, true)
     pulled = registration._ecc(ia, ib, true, motion)
-    assert registration.corner_distance(pulled, true, *size) > 0.1
+    assert registration.corner_distance(pulled, true, *size) > 1.0  # 14.6 px (translation), 7.3 (similarity) on OpenCV 5.1
     if motion == "similarity":
-        assert registration.corner_distance(pulled, true, *size) > registration.FINE_REACH * registration._finest_level(size)
         assert registration._fine_ecc(ia, ib, true, motion) is None
 
 
