@@ -96,7 +96,7 @@ def linearisations(monkeypatch):
     from hdrmerge_cli.core.crf import CRF
 
     inverse, table = CRF.inverse, CRF.codes_table
-    calls, built, building = [], [], threading.local()
+    calls, built, alive, building = [], [], [], threading.local()
 
     def counted_inverse(self, v, channel=0):
         calls.append((id(self), np.size(v), getattr(building, "on", False)))
@@ -111,6 +111,7 @@ def linearisations(monkeypatch):
             building.on = False
         if len(self._tables) > before:
             built.append((id(self), n_codes))
+            alive.append(self)  # an id is unique only while its object lives
         return out
 
     monkeypatch.setattr(CRF, "inverse", counted_inverse)
