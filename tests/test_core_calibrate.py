@@ -165,12 +165,12 @@ def test_pair_bins_are_unbiased_when_binned_by_an_independent_key():
     mu = rng.exponential(300.0, 400_000)
     long = mu + rng.normal(0, np.sqrt(c0 + c1 * mu))
     short = mu / r + rng.normal(0, np.sqrt(c0 + c1 * mu / r))
-    dsq = (long - r * short) ** 2
+    d = long - r * short
     key = mu + rng.normal(0, np.sqrt(c0 + c1 * mu))
     rows = np.stack([np.full_like(mu, 1 + r * r), (1 + r) * mu]) / (c0 * (1 + r * r) + c1 * (1 + r) * mu)
     se = np.sqrt(np.diag(np.linalg.inv(rows @ rows.T / 2)))
     for kind, k in (("fair", key), ("own", long)):
-        fit = fit_noise_model(binned_pairs(PixelPairs(long, dsq, k, r), 128))
+        fit = fit_noise_model(binned_pairs(PixelPairs(long, d, k, r), 128))
         z = ((fit.sigma_o2 - c0) / se[0], (np.sqrt(fit.alpha) - c1) / se[1])
         if kind == "fair":
             assert abs(z[0]) <= 5 and abs(z[1]) <= 5, z

@@ -134,7 +134,7 @@ _NEIGHBOURS = np.array([[1.0, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.0]]) / 8.
 
 
 def exposure_ratio(short: np.ndarray, long: np.ndarray, lo: float, hi: float,
-                   black_clipped: bool | None = None) -> float:
+                   black_clipped: bool | None = None, precise: bool = True) -> float:
     """Exposure ratio ``r = E[y_long] / E[y_short]`` of two frames of one static scene,
     measured (not taken from EXIF, whose times are nominal): the ratio of sums over pixels
     well exposed in both frames, the short frame above 2 % and the long one below 70 % of
@@ -157,7 +157,9 @@ def exposure_ratio(short: np.ndarray, long: np.ndarray, lo: float, hi: float,
     count itself when all are equal).  A choice of pixels is used when its ``n_eff``
     reaches :data:`RATIO_PIXELS`; raises :class:`HdrMergeError` when neither does (the
     ratio's error would add more than 0.1 % to the pairs' variances, or the short frame
-    holds no signal there)."""
+    holds no signal there).  ``precise=False`` returns the last choice's ratio whatever its
+    ``n_eff`` (a start for :func:`weighted_ratio`); it raises only where the short frame
+    holds no signal."""
     s = np.asarray(short, np.float64)
     g = np.asarray(long, np.float64)
     base = max(lo, 0.0)
@@ -168,9 +170,10 @@ def exposure_ratio(short: np.ndarray, long: np.ndarray, lo: float, hi: float,
     choices = [unclipped & (ns > base + 0.02 * (hi - base))]
     if not (np.mean(s <= lo) >= BLACK_CLIPPED if black_clipped is None else black_clipped):
         choices.append(unclipped)
-    for use in choices:
+    for i, use in enumerate(choices):
         total = float(np.sum(s[use]))
-        if total > 0 and total * total >= RATIO_PIXELS * float(np.sum(s[use] ** 2)):
+        if total > 0 and (total * total >= RATIO_PIXELS * float(np.sum(s[use] ** 2))
+                          or not precise and i == len(choices) - 1):
             return float(np.sum(g[use]) / total)
     raise HdrMergeError("the frames share too few well-exposed pixels")
 
@@ -197,24 +200,46 @@ def pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo: float
 class PixelPairs:
     """Per-pixel exposure-pair measurements of one pair (ratio ``ratio``), each (N,):
     ``long`` (the pixel's value in the longer frame, an unbiased estimate of its mean),
-    ``dsq`` (the squared difference ``(long - ratio * short)^2``, an unbiased estimate of
-    its variance) and ``key``, an estimate of the pixel's mean whose noise is independent
+    ``d`` (the difference ``long - ratio * short``, zero-mean noise when ``ratio`` is exact;
+    a ratio off by ``e`` leaves a mean ``e * short``, which :func:`binned_pairs` takes out
+    bin by bin) and ``key``, an estimate of the pixel's mean whose noise is independent
     of both frames' (another frame of the bracket, or the neighbours), used to bin
     (binning by the pair's own noisy values would shift each bin's mean by about the noise
     variance times the log-slope of the scene's histogram, an error the fit multiplies
     into sigma_o^2 when photon noise dominates);
     ``key_scale`` the factor ``s`` by which the key's variance is ``s^2 c0 + s c1 key``
-    (a frame scaled by ``s``; the 8-neighbour mean has ``s^2 = s = 1/8`` nearly)."""
+    (a frame scaled by ``s``; the 8-neighbour mean has ``s^2 = s = 1/8`` nearly);
+    ``ratio_var`` the variance of the measured ratio (:func:`weighted_ratio`), whose error
+    adds ``ratio_var * short^2`` to each ``E[d^2]`` (taken out by :func:`binned_pairs`)."""
 
     long: np.ndarray
-    dsq: np.ndarray
+    d: np.ndarray
     key: np.ndarray
     ratio: float
     key_scale: np.ndarray | None = None
+    ratio_var: float = 0.0
+
+    @property
+    def dsq(self) -> np.ndarray:
+        return self.d * self.d
 
     def subset(self, keep: np.ndarray) -> "PixelPairs":
-        return PixelPairs(self.long[keep], self.dsq[keep], self.key[keep], self.ratio,
-                          None if self.key_scale is None else self.key_scale[keep])
+        return PixelPairs(self.long[keep], self.d[keep], self.key[keep], self.ratio,
+                          None if self.key_scale is None else self.key_scale[keep], self.ratio_var)
+
+    def at_ratio(self, ratio: float, ratio_var: float = 0.0) -> "PixelPairs":
+        """The same pixels with ``d`` taken at another exposure ratio (``short`` is
+        ``(long - d) / self.ratio``) of variance ``ratio_var``."""
+        d = self.long - ratio * (self.long - self.d) / self.ratio
+        return PixelPairs(self.long, d, self.key, float(ratio), self.key_scale, float(ratio_var))
+
+    def usable(self, coef, lo: float, hi: float) -> np.ndarray:
+        """Pixels :meth:`unclipped` and within :data:`OUTLIER_SIGMAS` predicted standard
+        deviations of 0 under the model ``coef`` (hot pixels, motion; Gaussian noise loses
+        1e-13 of its variance there)."""
+        mu = np.maximum(np.maximum(self.key, self.long), 0.0)
+        pred = coef[0] * (1 + self.ratio**2) + coef[1] * (1 + self.ratio) * mu
+        return self.unclipped(coef, lo, hi) & (self.dsq <= OUTLIER_SIGMAS**2 * pred)
 
     def unclipped(self, coef, lo: float, hi: float, sigmas: float = 4.0) -> np.ndarray:
         """Pixels whose mean in both frames (from the key, give or take ``sigmas`` of its
@@ -253,9 +278,12 @@ def selection_keys(planes: list[np.ndarray], gains: np.ndarray, k: int, lo: floa
     """For the pair of frames ``k`` and ``k + 1`` of ``planes`` (sorted by exposure,
     ``gains[j]`` the exposure of frame ``j`` relative to frame 0): per pixel, an estimate
     of the mean of frame ``k + 1`` whose noise is independent of both frames': the longest
-    other frame unclipped there if longer than ``k + 1`` (scaled down, its noise shrinks),
-    else the nearest shorter one unclipped there, scaled up, else the mean of the pixel's
-    8 neighbours in frame ``k + 1``.
+    frame unclipped there of those longer than ``k + 1`` (scaled down by ``s``, its noise
+    shrinks), else the mean of the pixel's 8 neighbours in frame ``k + 1``.  A shorter
+    frame scaled up by ``s > 1`` is never the less noisy (variance ``s^2 c0 + s c1 mu``
+    against about ``(c0 + c1 mu) / 8``): on a dark bracket, the shortest frame scaled up
+    16 times made a key so noisy that the clipping test (:meth:`PixelPairs.unclipped`)
+    kept 15 of 65,000 pixels of the next pair.
 
     Binning by a noisy estimate of the mean and using the same estimate as the bin's
     abscissa biases the abscissa (regression to the mean of the scene's histogram, by
@@ -266,9 +294,7 @@ def selection_keys(planes: list[np.ndarray], gains: np.ndarray, k: int, lo: floa
     key = ndimage.correlate(np.asarray(planes[k + 1], np.float64), _NEIGHBOURS, mode="reflect")
     scale = np.full(key.shape, 1.0 / 8.0)
     found = np.zeros(key.shape, bool)
-    # the least noisy first: longer frames scaled down (the longest unclipped), then shorter
-    others = list(range(len(planes) - 1, k + 1, -1)) + list(range(k - 1, -1, -1))
-    for j in others:
+    for j in range(len(planes) - 1, k + 1, -1):  # the longest unclipped first: the least noisy
         if not np.isfinite(gains[j]):
             continue
         y = np.asarray(planes[j], np.float64)
@@ -292,9 +318,32 @@ def pixel_pair_statistics(short: np.ndarray, long: np.ndarray, ratio: float, lo:
     g = np.asarray(long, np.float64)
     top = max(lo, 0.0) + 0.9 * (hi - max(lo, 0.0))
     ok = (s > lo) & (g < hi) & (g > lo) & (s < hi) & (key < top)
-    d = g[ok] - ratio * s[ok]
-    return PixelPairs(g[ok], d * d, np.asarray(key, np.float64)[ok], float(ratio),
+    return PixelPairs(g[ok], g[ok] - ratio * s[ok], np.asarray(key, np.float64)[ok], float(ratio),
                       None if key_scale is None else np.asarray(key_scale, np.float64)[ok])
+
+
+def weighted_ratio(pp: PixelPairs, coef, lo: float, hi: float) -> tuple[float, float]:
+    """The pair's exposure ratio by generalised least squares under the noise model
+    ``coef``: ``r = sum w y_long / sum w y_short`` over the pixels :meth:`PixelPairs.usable`
+    keeps, each weighted by what it tells of the ratio, ``w = (mu / r) / Var[d]`` (``mu``
+    from the key, whose noise is independent of both frames', so the sums stay unbiased;
+    ``Var[d]`` by (17)), and its variance ``sum w^2 Var[d] / (sum w y_short)^2``.
+
+    The first measurement (:func:`exposure_ratio`) weighs every pixel alike; on a dark
+    pair, where most pixels hold read noise and no signal, its error (1-2 % at ratio 4)
+    leaves ``e * y_short`` in each difference, a term that grows with the brightness and
+    reads as gain.  Weighted, the bright pixels that carry that term also fix the ratio."""
+    c0, c1, r = float(coef[0]), float(coef[1]), pp.ratio
+    keep = pp.usable(coef, lo, hi)
+    mu = np.maximum(pp.key[keep], 0.0)
+    var = np.maximum(c0 * (1 + r * r) + c1 * (1 + r) * mu, 1e-12)
+    w = (mu / r) / var
+    long = pp.long[keep]
+    short = (long - pp.d[keep]) / r
+    total = float(np.sum(w * short))
+    if not total > 0:
+        return r, float("inf")
+    return float(np.sum(w * long) / total), float(np.sum(w * w * var)) / total**2
 
 
 def pair_gradient_test(short: np.ndarray, long: np.ndarray, ratio: float, lo: float, hi: float, coef,
@@ -379,8 +428,15 @@ def pair_gradient_test(short: np.ndarray, long: np.ndarray, ratio: float, lo: fl
 
 def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None) -> VariancePoints:
     """Exposure-pair rows ``[1 + r^2, mu (1 + r), 0]``: pixels binned by ``pp.key``, per
-    bin the mean of ``long`` (mu) and of ``dsq`` (the variance; each pixel one degree of
-    freedom, so ``count`` is the bin's degrees of freedom).  The bins hold equal counts,
+    bin the mean of ``long`` (mu) and the sample variance of ``d`` about the bin's own mean
+    (``count`` its degrees of freedom, the bin's pixels less one).  Centred per bin, the
+    variance holds none of the mean ``e * short`` that an exposure ratio off by ``e``
+    leaves in ``d``: that mean grows with the scene's brightness, so its square, left in,
+    would add ``e^2 mu^2 / r^2`` to the bright bins and read as gain (on a dark bracket,
+    whose darkest pair's ratio is measured to 1-2 %, alpha came out up to 3 times too
+    large); within a bin of nearly one brightness it is nearly constant.  What the
+    ratio's own uncertainty still adds within a bin, ``pp.ratio_var`` times the bin's
+    ``sum (key / r)^2``, is taken out too.  The bins hold equal counts,
     which suits the gain (each pixel tells about as much of it); given a noise model
     ``coef``, half of them instead hold equal shares of the information about sigma_o^2
     (each pixel's ``1 / Var[d]^2``), so that the few dark pixels that fix the read noise
@@ -404,9 +460,12 @@ def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None)
     which = np.clip(np.searchsorted(edges, pp.key, side="right") - 1, 0, edges.size - 2)
     cnt = np.bincount(which, minlength=edges.size - 1).astype(np.float64)
     mu = np.bincount(which, pp.long, minlength=edges.size - 1)
-    v = np.bincount(which, pp.dsq, minlength=edges.size - 1)
-    use = cnt >= min_count
-    return variance_points(mu[use] / cnt[use], v[use] / cnt[use], cnt[use], pp.ratio)
+    s1 = np.bincount(which, pp.d, minlength=edges.size - 1)
+    s2 = np.bincount(which, pp.dsq, minlength=edges.size - 1)
+    leak = pp.ratio_var * np.bincount(which, (np.maximum(pp.key, 0.0) / pp.ratio) ** 2, minlength=edges.size - 1)
+    use = cnt >= max(min_count, 2)
+    n = cnt[use]
+    return variance_points(mu[use] / n, (s2[use] - s1[use] ** 2 / n - leak[use]) / (n - 1), n - 1, pp.ratio)
 
 
 def texture_limit(mean: np.ndarray, coef: np.ndarray) -> np.ndarray:
@@ -680,15 +739,22 @@ def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
     return pairs.sigma_o2 + pairs.alpha * level > PAIR_EXCESS * (alone.sigma_o2 + alone.alpha * level)
 
 
-def _measured_ratios(planes: list[np.ndarray], lo: float, hi: float, per_pixel: bool) -> list[float | None]:
-    """The exposure ratio of each pair of consecutive frames (len(planes) - 1), None where it cannot be measured."""
-    measured = []
+def _measured_ratios(planes: list[np.ndarray], lo: float, hi: float,
+                     per_pixel: bool) -> tuple[list[float | None], list[float | None]]:
+    """The exposure ratio of each pair of consecutive frames (len(planes) - 1) as
+    :func:`exposure_ratio` measures it, None where it cannot; and where it cannot, the
+    provisional ratio of its ``precise=False`` (else the same)."""
+    measured, provisional = [], []
     for s, g in zip(planes[:-1], planes[1:]):
-        try:
-            measured.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel))
-        except HdrMergeError:
-            measured.append(None)
-    return measured
+        for precise, out in ((True, measured), (False, provisional)):
+            try:
+                out.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel, precise=precise))
+            except HdrMergeError:
+                out.append(None)
+            if out[-1] is not None:
+                break
+        provisional.extend(measured[len(provisional):])
+    return measured, provisional
 
 
 def _window_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi: float, window: int,
@@ -708,51 +774,54 @@ def _window_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi:
 
 def _refined_pair_points(pp: PixelPairs, coef, lo: float, hi: float, pair_bins: int) -> VariancePoints:
     """Binned points of one pixel pair without the pixels the clipping or outliers affect (by the model ``coef``)."""
-    mu = np.maximum(np.maximum(pp.key, pp.long), 0.0)
-    pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * mu
-    keep = pp.unclipped(coef, lo, hi) & (pp.dsq <= OUTLIER_SIGMAS**2 * pred)
-    return binned_pairs(pp.subset(keep), pair_bins, coef=coef)
+    return binned_pairs(pp.subset(pp.usable(coef, lo, hi)), pair_bins, coef=coef)
 
 
-def _pixel_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi: float,
+def _pixel_pair_points(planes: list[np.ndarray], measured: list, provisional: list, lo: float, hi: float,
                        pair_bins: int) -> tuple[list[VariancePoints], list[float], float]:
-    """Per-pixel variance points of the exposure pairs, their ratios and the p-value of :func:`pair_gradient_test`."""
-    pixel_pairs, first_points, used, ratios = [], [], [], []
-    for k, r in enumerate(measured):
+    """Per-pixel variance points of the exposure pairs, their ratios and the p-value of
+    :func:`pair_gradient_test`.  The pairs whose ratio is ``measured`` give a first fit;
+    then every pair's ratio, ``measured`` or only ``provisional`` (:func:`exposure_ratio`'s
+    ``precise=False``), is measured again under it (:func:`weighted_ratio`), and the pairs
+    are binned again without the pixels the fit calls clipped or outliers."""
+    ratios = [m if m is not None else p for m, p in zip(measured, provisional)]
+    pixel_pairs, first_points, used = [], [], []
+    for k, r in enumerate(ratios):
         if r is None or r <= 1.05:
             continue
         pp = pixel_pair_statistics(planes[k], planes[k + 1], r, lo, hi,
-                                   *selection_keys(planes, _chain_gains(measured, k), k, lo, hi))
+                                   *selection_keys(planes, _chain_gains(ratios, k), k, lo, hi))
         first = binned_pairs(pp, pair_bins)
         if first.mean.size >= 4:
             used.append(k)
             pixel_pairs.append(pp)
-            first_points.append(first)
-            ratios.append(r)
-    if not pixel_pairs:
+            if measured[k] is not None:
+                first_points.append(first)
+    if not first_points:
         return [], [], 1.0
-    # a first fit, then without the pixels whose noise the clipping may cut (by the
-    # fitted model) and those beyond OUTLIER_SIGMAS predicted standard deviations
-    # (hot pixels, motion; Gaussian noise loses 1e-13 of its variance there)
     try:
         coef = fit_noise_model(VariancePoints.concat(first_points)).coef
     except HdrMergeError:  # the pairs do not show the gain (read noise swamps it)
         return [], [], 1.0
+    pixel_pairs = [pp.at_ratio(*weighted_ratio(pp, coef, lo, hi)) for pp in pixel_pairs]
+    keep = [np.isfinite(pp.ratio_var) for pp in pixel_pairs]
+    used = [k for k, ok in zip(used, keep) if ok]
+    pixel_pairs = [pp for pp, ok in zip(pixel_pairs, keep) if ok]
     points = [_refined_pair_points(pp, coef, lo, hi, pair_bins) for pp in pixel_pairs]
     chi2, dof = 0.0, 0
-    for k in used:
-        c, n = pair_gradient_test(planes[k], planes[k + 1], measured[k], lo, hi, coef)
+    for k, pp in zip(used, pixel_pairs):
+        c, n = pair_gradient_test(planes[k], planes[k + 1], pp.ratio, lo, hi, coef)
         chi2, dof = chi2 + c, dof + n
-    return points, ratios, float(special.chdtrc(dof, chi2)) if dof else 1.0
+    return points, [pp.ratio for pp in pixel_pairs], float(special.chdtrc(dof, chi2)) if dof else 1.0
 
 
 def _pair_points(planes: list[np.ndarray], lo: float, hi: float, window: int, bins: int,
                  pair_bins: int) -> tuple[list[VariancePoints], list[float], float]:
     """The exposure pairs' variance points, the ratios of the pairs used and the gradient test's p-value (1 if none)."""
     per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
-    measured = _measured_ratios(planes, lo, hi, per_pixel)
+    measured, provisional = _measured_ratios(planes, lo, hi, per_pixel)
     if per_pixel:
-        return _pixel_pair_points(planes, measured, lo, hi, pair_bins)
+        return _pixel_pair_points(planes, measured, provisional, lo, hi, pair_bins)
     return (*_window_pair_points(planes, measured, lo, hi, window, bins), 1.0)
 
 
