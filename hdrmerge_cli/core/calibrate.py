@@ -429,43 +429,51 @@ def pair_gradient_test(short: np.ndarray, long: np.ndarray, ratio: float, lo: fl
 def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None) -> VariancePoints:
     """Exposure-pair rows ``[1 + r^2, mu (1 + r), 0]``: pixels binned by ``pp.key``, per
     bin the mean of ``long`` (mu) and the sample variance of ``d`` about the bin's own mean
-    (``count`` its degrees of freedom, the bin's pixels less one).  Centred per bin, the
-    variance holds none of the mean ``e * short`` that an exposure ratio off by ``e``
-    leaves in ``d``: that mean grows with the scene's brightness, so its square, left in,
-    would add ``e^2 mu^2 / r^2`` to the bright bins and read as gain (on a dark bracket,
-    whose darkest pair's ratio is measured to 1-2 %, alpha came out up to 3 times too
-    large); within a bin of nearly one brightness it is nearly constant.  What the
-    ratio's own uncertainty still adds within a bin, ``pp.ratio_var`` times the bin's
-    ``sum (key / r)^2``, is taken out too.  The bins hold equal counts,
-    which suits the gain (each pixel tells about as much of it); given a noise model
-    ``coef``, half of them instead hold equal shares of the information about sigma_o^2
-    (each pixel's ``1 / Var[d]^2``), so that the few dark pixels that fix the read noise
-    under strong photon noise keep their own bins instead of being pooled with brighter
-    ones (which loses their leverage, not their mean)."""
+    (``count`` its degrees of freedom).  Centred per bin, the variance holds none of the
+    mean ``e * short`` that an exposure ratio off by ``e`` leaves in ``d``: that mean grows
+    with the scene's brightness, so its square, left in, would add ``e^2 mu^2 / r^2`` to
+    the bright bins and read as gain (on a dark bracket, whose darkest pair's ratio is
+    measured to 1-2 %, alpha came out up to 3 times too large); within a bin of nearly one
+    brightness it is nearly constant.  A ratio fitted to these pixels
+    (:func:`weighted_ratio`) shrinks each difference's expected square by ``Var[r]
+    short^2``; ``pp.ratio_var`` times the bin's ``sum (key / r)^2`` adds it back.
+
+    Without a noise model the bins hold equal counts.  Given one (``coef``), a third hold
+    equal counts, a third equal shares of the information about sigma_o^2 (each pixel's
+    ``1 / Var[d]^2``: the few dark pixels that fix the read noise under strong photon
+    noise keep their own bins) and a third equal shares of that about the gain (``mu^2 /
+    Var[d]^2``: the few bright pixels of a dark scene, which carry most of it, are not
+    pooled with a thousand dimmer ones); and each bin's degrees of freedom are those of
+    its pixels' unequal variances under the model, ``(sum V)^2 / sum V^2`` less one, so
+    that a bin whose mean rests on a few noisy pixels is weighed as such."""
     n = pp.key.size
     if n < bins * min_count:
         bins = max(n // min_count, 0)
     if bins < 1:
         return variance_points([], [], [], pp.ratio)
+    key = np.maximum(pp.key, 0.0)
+    pred = None if coef is None else np.maximum(coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * key, 1e-12)
     if coef is None:
         edges = np.quantile(pp.key, np.linspace(0, 1, bins + 1))
     else:
         order = np.argsort(pp.key)
-        ks = pp.key[order]
-        pred = coef[0] * (1 + pp.ratio**2) + coef[1] * (1 + pp.ratio) * np.maximum(ks, 0.0)
-        cw = np.cumsum(1.0 / np.maximum(pred, 1e-12) ** 2)
-        at = np.searchsorted(cw, cw[-1] * np.linspace(0, 1, bins // 2 + 1)[1:-1])
-        edges = np.concatenate([np.quantile(pp.key, np.linspace(0, 1, bins - bins // 2 + 1)), ks[at]])
+        parts = [np.quantile(pp.key, np.linspace(0, 1, bins - 2 * (bins // 3) + 1))]
+        for info in (1.0 / pred[order] ** 2, (key[order] / pred[order]) ** 2):
+            cw = np.cumsum(info)
+            parts.append(pp.key[order][np.searchsorted(cw, cw[-1] * np.linspace(0, 1, bins // 3 + 1)[1:-1])])
+        edges = np.concatenate(parts)
     edges = np.unique(edges)
     which = np.clip(np.searchsorted(edges, pp.key, side="right") - 1, 0, edges.size - 2)
-    cnt = np.bincount(which, minlength=edges.size - 1).astype(np.float64)
-    mu = np.bincount(which, pp.long, minlength=edges.size - 1)
-    s1 = np.bincount(which, pp.d, minlength=edges.size - 1)
-    s2 = np.bincount(which, pp.dsq, minlength=edges.size - 1)
-    leak = pp.ratio_var * np.bincount(which, (np.maximum(pp.key, 0.0) / pp.ratio) ** 2, minlength=edges.size - 1)
+
+    def total(x=None):
+        return np.bincount(which, x, minlength=edges.size - 1).astype(np.float64)
+
+    cnt, mu, s1, s2 = total(), total(pp.long), total(pp.d), total(pp.dsq)
     use = cnt >= max(min_count, 2)
     n = cnt[use]
-    return variance_points(mu[use] / n, (s2[use] - s1[use] ** 2 / n - leak[use]) / (n - 1), n - 1, pp.ratio)
+    var = (s2[use] - s1[use] ** 2 / n + pp.ratio_var * total((key / pp.ratio) ** 2)[use]) / (n - 1)
+    dof = n - 1 if pred is None else (total(pred)[use] ** 2 / total(pred * pred)[use]) * (n - 1) / n
+    return variance_points(mu[use] / n, var, dof, pp.ratio)
 
 
 def texture_limit(mean: np.ndarray, coef: np.ndarray) -> np.ndarray:
