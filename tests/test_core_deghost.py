@@ -78,8 +78,10 @@ def test_block_statistics_match_table_lookups_and_block_means(dtype, n_codes, b)
     ok_t = np.zeros(n_codes - 10, bool)
     ok_t[3:-5] = True
     lo, hi = 3, n_codes - 16
-    xs, ss, ok, bound = deghost.block_statistics(plane, x_t, s_t, ok_t, b)
     h, w = plane.shape[0] // b, plane.shape[1] // b
+    xs, ss, ok, bound = out = (np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), bool),
+                               np.empty((h, w), np.float32))
+    deghost.block_statistics(plane, deghost.CodeTable(x_t, s_t, ok_t), b, out)
     z = np.minimum(plane[:h * b, :w * b].astype(np.int64), x_t.size - 1).reshape(h, b, w, b)
     np.testing.assert_allclose(xs, x_t[z].astype(np.float64).mean(axis=(1, 3)), rtol=1e-6)
     np.testing.assert_allclose(ss, s_t[z].astype(np.float64).mean(axis=(1, 3)) / b**2, rtol=1e-6)
