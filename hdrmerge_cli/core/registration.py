@@ -56,8 +56,8 @@ MAX_REFINE_PX = 3.0
 #: a rotation is kept when it moves some corner of the frame by more than this (pixels): a
 #: smaller one is not worth resampling for
 ROTATION_PX = 0.25
-#: a registration is trusted when its correlation coefficient reaches this (as ``--align``'s)
-MOVED_MIN_CONFIDENCE = 0.3
+#: a registration is trusted (``--align`` keeps it) when its correlation coefficient reaches this
+MIN_CONFIDENCE = 0.3
 
 
 def _cv2():
@@ -389,7 +389,7 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
     h, w = reference.shape
     f = max(1, -(-max(h, w) // PHASE_SIDE))
     ref_c, img_c = block_mean(reference, f), block_mean(image, f)
-    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
+    candidates = [np.eye(2, 3), _phase_shift(ref_c, img_c)]
     return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
 
 
@@ -580,7 +580,7 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     correlation against no motion by the vote of the pixels, refined by ECC), or None when
     the pair cannot be registered (too little texture in either,
     :func:`hdrmerge_cli.core.registrable`, or a correlation under
-    :data:`MOVED_MIN_CONFIDENCE`).
+    :data:`MIN_CONFIDENCE`).
 
     a, b : (H, W) float32 exposure-invariant images of the same pixels (see
     :func:`log_irradiance`)
@@ -589,7 +589,7 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     if min(a.shape) < 16 or registrable(a, b) is not None:
         return None
     warp, rho = estimate_warp(a, b, "translation")
-    if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
+    if not np.isfinite(rho) or rho < MIN_CONFIDENCE:
         return None
     return float(np.hypot(warp[0, 2], warp[1, 2]))
 
@@ -602,7 +602,7 @@ def corner_distance(a: np.ndarray, b: np.ndarray, height: int, width: int) -> fl
 
 def warp_size(warp: np.ndarray, height: int, width: int) -> float:
     """Largest displacement (pixels) the warp causes anywhere in the frame."""
-    return corner_distance(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), height, width)
+    return corner_distance(warp, np.eye(2, 3), height, width)
 
 
 #: the still test's error rate (:func:`still_test`): a pair displaced by its tolerance or
@@ -664,7 +664,7 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     from statistics import NormalDist
 
     cv2 = _cv2()
-    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+    identity = np.eye(2, 3)
     k = max(1, -(-max(reference.shape) // PHASE_SIDE))
     a, b = block_mean(reference, k), block_mean(image, k)
     h, w = _dft_side(a.shape[0]), _dft_side(a.shape[1])  # even (OpenCV's phase correlation is biased on odd
@@ -838,13 +838,11 @@ def registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white
     return lin.mean(axis=-1, dtype=np.float32)
 
 
-def coarse_registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white: float, n_codes: int,
-                              f: int) -> np.ndarray:
-    """:func:`registration_image` reduced to blocks of ``f`` x ``f`` frame pixels (block
-    means; a mosaic's ``f`` even, whole CFA cells; coarse pixel ``u`` centred on frame pixel
-    ``f u + (f - 1) / 2``), float32 ``(H // f, W // f)``."""
-    if not mosaic:
-        return block_mean(registration_image(codes, crf, mosaic, black, white, n_codes), f)
+def coarse_mosaic_image(codes: np.ndarray, black: float, white: float, f: int) -> np.ndarray:
+    """A Bayer mosaic's :func:`registration_image` reduced to blocks of ``f`` x ``f`` frame
+    pixels (block means of whole CFA cells, ``f`` even; coarse pixel ``u`` centred on frame
+    pixel ``f u + (f - 1) / 2``), float32 ``(H // f, W // f)``, from its codes in strips (an
+    image's is the block mean of its registration image)."""
     cv2 = _cv2()
     h, w = codes.shape[0] // f * f, codes.shape[1] // f * f
     out = np.empty((h // f, w // f), np.float32)
