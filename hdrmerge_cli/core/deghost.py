@@ -581,29 +581,29 @@ def _log_change(x: np.ndarray, xa: np.ndarray, var: np.ndarray, both: np.ndarray
 
 
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
-                       valid_a: np.ndarray, grad2: np.ndarray | None, cell: tuple[int, int], params: DeghostParams,
+                       valid_a: np.ndarray, grad2: np.ndarray | None, nc: int, params: DeghostParams,
                        excuse: np.ndarray | None = None, steady: np.ndarray | None = None) -> np.ndarray:
     """Cells where a frame disagrees with the anchor, by the chi-square test at ``params.p_fa``.
 
     ``x, s, valid`` (frame) and ``xa, sa, valid_a`` (anchor): readings, variances and
     whether they measure, ``(H, W')`` float32 / bool per sample (``W' = W * C``, channels
     interleaved); ``grad2``: the anchor's squared gradient times the squared registration
-    tolerance (used when ``params.envelope_reach`` is 0); ``cell = (ph, pw)`` samples per
-    cell; ``excuse``: per cell, the sign of change that is not motion (:func:`glare_excuse`,
+    tolerance (used when ``params.envelope_reach`` is 0); ``nc`` channels, a cell's
+    samples; ``excuse``: per cell, the sign of change that is not motion (:func:`glare_excuse`,
     :func:`shoulder_excuse`; 2 either); ``steady``: the samples the tone match and the
-    region test read (None: all).  Returns ``(H // ph, W' // pw)`` bool.
+    region test read (None: all).  Returns ``(H, W)`` bool, a cell per pixel.
     Notes: the variance of a difference is both readings' noise, ``params.model_tolerance``
     and the registration tolerance, times :func:`level_scale`'s ``lambda``; a cell is kept
     only where its mean log change exceeds ``params.min_log_change``."""
     p = params
     both = valid & valid_a
     use = both if steady is None else both & steady
-    x = match_channels(x, xa, use, cell[1], p.match_degree)
+    x = match_channels(x, xa, use, nc, p.match_degree)
     r = None
     if p.smooth_field or p.min_log_change > 0 or excuse is not None:
         r, pos, xaf = _log_change(x, xa, s + sa, both)
         if p.smooth_field:
-            f = smooth_ratio_field(r, pos, cell[1])
+            f = smooth_ratio_field(r, pos, nc)
             r = np.where(pos, r - f, 0.0).astype(np.float32)
             x = x * np.exp(-f).astype(np.float32)
             del f
@@ -613,7 +613,7 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     var += tol
     del tol
     if p.envelope_reach:
-        d = envelope_residual(x, xa, cell[1], p.envelope_reach)
+        d = envelope_residual(x, xa, nc, p.envelope_reach)
         if r is not None:  # the log change beyond what a shift within reach explains
             with np.errstate(divide="ignore", invalid="ignore"):
                 r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xaf, 1e-30))),
@@ -633,17 +633,17 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         if p.coarse_scales:  # the region test's variances
             var *= lam
         del lam
-    stat = cell_sums(t, *cell)
-    k = cell_sums(both.astype(np.int32), *cell)
-    bad = stat > chi2_thresholds(cell[0] * cell[1], p.p_fa)[k]
-    if cell[0] == 1 and p.coarse_scales:
+    stat = cell_sums(t, 1, nc)
+    k = cell_sums(both.astype(np.int32), 1, nc)
+    bad = stat > chi2_thresholds(nc, p.p_fa)[k]
+    if p.coarse_scales:
         bad |= region_shifts(np.where(use, d, 0.0), np.where(use, var, 0.0),
-                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), cell[1], p.p_fa,
+                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), nc, p.p_fa,
                              p.coarse_scales)
     if r is not None and (p.min_log_change > 0 or excuse is not None):
-        rm = cell_sums(r, *cell) / np.maximum(cell_sums(pos.astype(np.int32), *cell), 1)
+        rm = cell_sums(r, 1, nc) / np.maximum(cell_sums(pos.astype(np.int32), 1, nc), 1)
         if p.coarse_scales:  # a region's change is its mean change (a noisy cell's own mean may not pass)
-            rm = np.where(np.abs(rm) > p.min_log_change, rm, region_mean(r, pos, cell[1], p.coarse_scales))
+            rm = np.where(np.abs(rm) > p.min_log_change, rm, region_mean(r, pos, nc, p.coarse_scales))
         if p.min_log_change > 0:
             bad &= np.abs(rm) > p.min_log_change
         if excuse is not None:
@@ -913,7 +913,7 @@ def frame_mask(a: Anchor, k: int, blocks: Blocks) -> FrameMask:
         frame_near = near_white(x, ok, np.float32(a.exposures[k]), a.lin_hi)
         excuse = either_excuse(excuse, shoulder_excuse(a.near, frame_near))
     bad = inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(a.x), _samples(a.s),
-                             _samples(a.valid), a.grad2, (1, x.shape[-1]), p, excuse=excuse,
+                             _samples(a.valid), a.grad2, x.shape[-1], p, excuse=excuse,
                              steady=_samples(steady & a.steady) if p.linear else None)
     bad |= any_channel(a.beyond.pop(k)) | impossible
     del x, s, ok, steady

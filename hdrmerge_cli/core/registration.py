@@ -66,6 +66,11 @@ def _cv2():
     return cv2
 
 
+def _reduction(shape, side: int) -> int:
+    """The least integer factor that brings the longest of ``shape`` to at most ``side``."""
+    return max(1, -(-max(shape) // side))
+
+
 def log_irradiance(lin: np.ndarray, exposure: float, lo: float, hi: float) -> np.ndarray:
     """``log(clip(lin / exposure, 0, hi) + lo)`` as float32: ``lin`` the linearised signal
     (full scale 1), ``[lo, hi]`` the irradiance range both frames of a pair measure (see
@@ -179,7 +184,7 @@ def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD, scale: int = 1) -> 
     side; ``scale``: full-resolution pixels per pixel of ``img`` (counts and gradients are per
     full-resolution pixel)."""
     cv2 = _cv2()
-    f = max(1, -(-max(img.shape) // COARSE_SIDE))
+    f = _reduction(img.shape, COARSE_SIDE)
     small = block_mean(img, f)
     smooth = cv2.blur(small, (3, 3))
     inside = off_plateau(small) > 0
@@ -387,7 +392,7 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
     averaged images against no motion, the one matching more pixels kept (a bright object
     crossing a still scene can win the correlation peak, but not the vote of the pixels)."""
     h, w = reference.shape
-    f = max(1, -(-max(h, w) // PHASE_SIDE))
+    f = _reduction((h, w), PHASE_SIDE)
     ref_c, img_c = block_mean(reference, f), block_mean(image, f)
     candidates = [np.eye(2, 3), _phase_shift(ref_c, img_c)]
     return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
@@ -611,13 +616,22 @@ STILL_P_MISS = 1e-3
 #: side (coarse pixels) of the tiles whose scores :func:`still_test`'s covariance sums
 #: (residuals correlated within a tile are allowed for)
 STILL_TILE = 16
+#: the least side (pixels) of :func:`linear_step`'s images
+STILL_MIN_SIDE = 2 * STILL_TILE + 4
+
+
+def _quantile(p_miss: float) -> float:
+    """``z(1 - p_miss)``, the standard normal's upper ``p_miss`` quantile."""
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(1.0 - p_miss)
 
 
 def coarse_factor(height: int, width: int, cell: int = 1) -> int:
     """Frame pixels per coarse pixel: ``cell`` (a registration image's pixel: 2 for a RAW
     frame's CFA cells) times the reduction :func:`texture` makes of the registration image
     (at most :data:`COARSE_SIDE` on a side)."""
-    return cell * max(1, -(-max(height // cell, width // cell) // COARSE_SIDE))
+    return cell * _reduction((height // cell, width // cell), COARSE_SIDE)
 
 
 def _dft_side(n: int) -> int:
@@ -661,18 +675,15 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     ``p_miss`` (the linear step's range: a phase correlation a pixel or more off is never
     still).  A still pair needs no registration; any other is registered in full.
     Returns a :class:`StillTest`."""
-    from statistics import NormalDist
-
     cv2 = _cv2()
     identity = np.eye(2, 3)
-    k = max(1, -(-max(reference.shape) // PHASE_SIDE))
+    k = _reduction(reference.shape, PHASE_SIDE)
     a, b = block_mean(reference, k), block_mean(image, k)
     h, w = _dft_side(a.shape[0]), _dft_side(a.shape[1])  # even (OpenCV's phase correlation is biased on odd
     # sides) and fast to transform
     a, b = np.ascontiguousarray(a[:h, :w], np.float32), np.ascontiguousarray(b[:h, :w], np.float32)
     scale *= k
-    t = STILL_TILE
-    if min(h, w) < 2 * t + 4:
+    if min(h, w) < STILL_MIN_SIDE:
         return StillTest(False, identity, float("inf"), -1.0)
     rho = correlation(a, b)
     (px, py), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64),
@@ -683,7 +694,7 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     if step is None:
         return StillTest(False, identity, float("inf"), rho)
     theta, cov = step
-    z = NormalDist().inv_cdf(1.0 - p_miss)
+    z = _quantile(p_miss)
     bound = max(float(np.hypot(*(lin @ theta))) + z * _spread(lin, cov)
                 for lin in _corner_maps((h, w), scale, height, width))
     warp = identity.copy()
@@ -719,14 +730,12 @@ def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarr
     (frame pixels; the images as in :func:`still_test`, reduced to at most
     :data:`PHASE_SIDE` on a side).  A registered displacement below it is one the pair does
     not pin.  inf where the step is singular or the images too small."""
-    from statistics import NormalDist
-
     cv2 = _cv2()
-    k = max(1, -(-max(reference.shape) // PHASE_SIDE))
+    k = _reduction(reference.shape, PHASE_SIDE)
     f, c = scale * k, (scale * k - 1) / 2
     a = np.ascontiguousarray(block_mean(reference, k), np.float32)
     h, w = a.shape
-    if min(h, w) < 2 * STILL_TILE + 4:
+    if min(h, w) < STILL_MIN_SIDE:
         return float("inf")
     coarse = rescale_warp(np.asarray(warp, np.float64), 1.0 / f, -c / f)  # frame -> test pixels: x = f u + c
     b = cv2.warpAffine(np.ascontiguousarray(block_mean(image, k), np.float32), coarse.astype(np.float32), (w, h),
@@ -734,13 +743,13 @@ def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarr
     step = linear_step(a, b)
     if step is None:
         return float("inf")
-    z = NormalDist().inv_cdf(1.0 - p_miss)
+    z = _quantile(p_miss)
     return z * max(_spread(lin, step[1]) for lin in _corner_maps((h, w), f, height, width))
 
 
 def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The motion of ``image`` against ``reference`` (``(h, w)`` float32, at least
-    ``2 STILL_TILE + 4`` on a side) by one linearised step from no motion: ``(theta, cov)``,
+    :data:`STILL_MIN_SIDE` on a side) by one linearised step from no motion: ``(theta, cov)``,
     ``theta`` = (x, y translation in pixels, rotation about the centre in radians times half
     the longer side, gain, offset), or None when the step is singular.  Instrumental
     variables: ``reference``'s gradients are the regressors, ``image``'s the instruments

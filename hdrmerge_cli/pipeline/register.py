@@ -417,7 +417,7 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = 
     CFA periods."""
     h, w = frame.height, frame.width
     if frame.kind == "raw" and periods:  # whole CFA periods
-        tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
+        tx, ty = resample.period_shift(warp)
         inside = ((np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1))[rows or slice(None)]
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
         return inside[:, None] & cols[None, :]
