@@ -130,11 +130,10 @@ def shift_warp(warp: np.ndarray, origin) -> np.ndarray:
 MATCH_TOL = 0.25
 
 
-def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> tuple[np.ndarray, float]:
-    """Pixels of the reference that ``image`` (brought onto it by ``warp``) matches to
-    :data:`MATCH_TOL` (plateaus included), and the fraction matched among the pixels the
-    warped image covers off the plateaus.  Moving objects and misregistered texture are
-    the unmatched ones."""
+def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> float:
+    """The fraction of the reference's pixels that ``image`` (brought onto it by ``warp``)
+    matches to :data:`MATCH_TOL`, among those the warped image covers off the plateaus.
+    Moving objects and misregistered texture are the unmatched ones."""
     cv2 = _cv2()
     h, w = reference.shape
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
@@ -144,7 +143,7 @@ def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> tuple
     # pixels on the clipping plateaus of the common range match trivially: they do not vote
     inside = np.isfinite(moved) & (reference > lo + 1e-4) & (reference < hi - 1e-4)
     ok = inside & (np.abs(np.where(inside, moved, 0) - reference) < MATCH_TOL)
-    return ok | ~inside, float(ok.sum() / max(inside.sum(), 1))
+    return float(ok.sum() / max(inside.sum(), 1))
 
 
 def _phase_shift(template: np.ndarray, image: np.ndarray) -> np.ndarray:
@@ -395,7 +394,7 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
     f = _reduction((h, w), PHASE_SIDE)
     ref_c, img_c = block_mean(reference, f), block_mean(image, f)
     candidates = [np.eye(2, 3), _phase_shift(ref_c, img_c)]
-    return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
+    return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)), f, (f - 1) / 2)
 
 
 #: tiles per side of the robust consensus (:func:`_tile_consensus`)
@@ -487,12 +486,19 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
     return compose(warp, correction.astype(np.float64)), True
 
 
-def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> tuple[np.ndarray, float]:
+class Registered(NamedTuple):
+    """:func:`estimate_warp`'s result: the ``(2, 3)`` float64 warp and its correlation ``rho``."""
+
+    warp: np.ndarray
+    rho: float
+
+
+def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> Registered:
     """The warp bringing ``image`` onto ``reference`` and its confidence.
 
     ``reference``, ``image``: ``(H, W)`` float32 exposure-invariant images
-    (:func:`log_irradiance`); ``motion``: one of :data:`MOTIONS`.  Returns ``(warp, rho)``:
-    ``(2, 3)`` float64 (reference to image coordinates) and the enhanced correlation
+    (:func:`log_irradiance`); ``motion``: one of :data:`MOTIONS`.  Returns the
+    :class:`Registered` warp (reference to image coordinates) and the enhanced correlation
     coefficient of the registered pair off the plateaus (:func:`ecc_score`).
     Phase correlation (:func:`_translation`) starts ECC (Evangelidis and Psarakis 2008) on
     a pyramid (:func:`_pyramid_ecc`) and the central full-resolution window
@@ -553,7 +559,7 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
         robust = _masked_fine_ecc(reference, image, best, "similarity" if turned else "translation")
     if robust is not None:
         best, rho = robust, score(robust)
-    return best, rho
+    return Registered(best, rho)
 
 
 def _turned(rotated: np.ndarray, warp: np.ndarray, shape: tuple[int, ...]) -> bool:
@@ -744,12 +750,19 @@ def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarr
     if step is None:
         return float("inf")
     z = _quantile(p_miss)
-    return z * max(_spread(lin, step[1]) for lin in _corner_maps((h, w), f, height, width))
+    return z * max(_spread(lin, step.cov) for lin in _corner_maps((h, w), f, height, width))
 
 
-def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+class LinearStep(NamedTuple):
+    """:func:`linear_step`'s estimate ``theta`` ``(5,)`` and its covariance ``cov`` ``(5, 5)``."""
+
+    theta: np.ndarray
+    cov: np.ndarray
+
+
+def linear_step(reference: np.ndarray, image: np.ndarray) -> LinearStep | None:
     """The motion of ``image`` against ``reference`` (``(h, w)`` float32, at least
-    :data:`STILL_MIN_SIDE` on a side) by one linearised step from no motion: ``(theta, cov)``,
+    :data:`STILL_MIN_SIDE` on a side) by one linearised step from no motion (:class:`LinearStep`),
     ``theta`` = (x, y translation in pixels, rotation about the centre in radians times half
     the longer side, gain, offset), or None when the step is singular.  Instrumental
     variables: ``reference``'s gradients are the regressors, ``image``'s the instruments
@@ -798,7 +811,7 @@ def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, n
     scores = z_ins.reshape(5, ny // t, t, nx // t, t).sum(axis=(2, 4), dtype=np.float64).reshape(5, -1)
     g = scores.shape[1]
     cov = inv @ (scores @ scores.T) @ inv.T * (g / max(g - 1, 1))
-    return theta, cov
+    return LinearStep(theta, cov)
 
 
 def correlation(reference: np.ndarray, image: np.ndarray) -> float:
