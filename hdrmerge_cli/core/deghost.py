@@ -600,14 +600,14 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
     use = both if steady is None else both & steady
     x = match_channels(x, xa, use, nc, p.match_degree)
     r = None
+    var = s + sa
     if p.smooth_field or p.min_log_change > 0 or excuse is not None:
-        r, pos, xaf = _log_change(x, xa, s + sa, both)
+        r, pos, xaf = _log_change(x, xa, var, both)
         if p.smooth_field:
             f = smooth_ratio_field(r, pos, nc)
             r = np.where(pos, r - f, 0.0).astype(np.float32)
             x = x * np.exp(-f).astype(np.float32)
             del f
-    var = s + sa
     tol = p.model_tolerance * xa
     tol *= tol
     var += tol
@@ -685,13 +685,15 @@ def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_
             continue
         where = np.flatnonzero(has)
         where = where[:: max(1, where.size // NULL_SAMPLES)]  # the null's medians from a subsample
-        c, centre, cnt = _binned_median(key.ravel()[where], z.ravel()[where], bins)
+        keys = key.ravel()[where]
+        c, centre, cnt = _binned_median(keys, z.ravel()[where], bins)
         coef = robust_poly(c, centre, cnt, degree=2)
         kk = np.clip(key, c[0], c[-1])
         dz = z - np.polyval(coef, kk)
-        c2, spread, cnt2 = _binned_median(key.ravel()[where], np.abs(dz.ravel()[where]), bins)
-        coef2 = robust_poly(c2, np.log(np.maximum(spread * 1.4826, 1.0)), cnt2, degree=2)
-        top = _inlier_range(coef2, c2, np.log(np.maximum(spread * 1.4826, 1.0)))[1]
+        c2, spread, cnt2 = _binned_median(keys, np.abs(dz.ravel()[where]), bins)
+        log_spread = np.log(np.maximum(spread * 1.4826, 1.0))
+        coef2 = robust_poly(c2, log_spread, cnt2, degree=2)
+        top = _inlier_range(coef2, c2, log_spread)[1]
         s = np.exp(np.clip(np.polyval(coef2, np.clip(key, c2[0], c2[-1])), 0.0, top))
         stat = np.where(has, (dz / s) ** 2, 0.0).sum(axis=-1)
         hit = stat > chi2_thresholds(nc, p_fa / (m * m))[has.sum(axis=-1)]
