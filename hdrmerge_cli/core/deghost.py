@@ -836,8 +836,9 @@ def build_anchor(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: 
             s_r = s.copy() if p.linear else None
             beyond = violates_bound(x, s, bound, p.p_fa, s_bound=s_r) & ok
             ok = ok & ~beyond
-            a = Anchor(x, s, ok, steady & ok, np.where(ok, k, -1).astype(np.int16), bound, s_r, {}, {k: beyond},
-                       exposures, ref, p, block_px, lin_hi)
+            a = Anchor(x=x, s=s, valid=ok, steady=steady & ok, source=np.where(ok, k, -1).astype(np.int16),
+                       bound=bound, s_bound=s_r, clipped={}, beyond={k: beyond}, exposures=exposures, ref=ref,
+                       params=p, block_px=block_px, lin_hi=lin_hi)
             a.clipped[k] = any_channel(bound < 0)
             continue
         a.clipped[k] = any_channel(bound < 0)

@@ -159,8 +159,9 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, pla
             unaligned.append(frames[j].path)
         warps[j] = registration.compose(steps[j].warp, warps[j - 1 if j > ref else j + 1])
     left = {j: steps[j].why for j in sorted(steps) if steps[j].why is not None}  # in frame order
-    return Alignment(None, plan.motion, "none", frames[ref].path, False, list(frames), warps, found.confidence,
-                     unaligned, [frames[j].path for j in sorted(found.still)], left)
+    return Alignment(mode=None, motion=plan.motion, resampling="none", reference=frames[ref].path, applied=False,
+                     frames=list(frames), warps=warps, confidence=found.confidence, unaligned=unaligned,
+                     still=[frames[j].path for j in sorted(found.still)], left=left)
 
 
 
