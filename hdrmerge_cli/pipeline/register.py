@@ -277,11 +277,11 @@ class _Registrar:
         # RAW: found on 2 x 2 cells (centre 2u + 0.5)
         return Step(registration.rescale_warp(w, 2, 0.5) if self.raw else w, None)
 
-    def still(self, a: int, b: int) -> Step | None:
-        """When screening: the step from frame a to b at coarse resolution when the pair is
-        still (:func:`~hdrmerge_cli.core.registration.still_test`, the plan's tolerance
-        shared by the steps between b and the reference), else None."""
-        pair = self.log_pair(a, b, self.coarse)
+    def still(self, a: int, b: int, pair: tuple[np.ndarray, np.ndarray] | None) -> Step | None:
+        """When screening: the step from frame a to b at coarse resolution (``pair``, their
+        :meth:`coarse` :meth:`log_pair`) when the pair is still
+        (:func:`~hdrmerge_cli.core.registration.still_test`, the plan's tolerance shared by
+        the steps between b and the reference), else None."""
         if pair is None:
             return None
         ia, ib = pair
@@ -308,13 +308,13 @@ class _Registrar:
         # spread in the weights, clipped taps near white)
         return Step(self.identity if self.raw else w, None)
 
-    def pinned(self, a: int, b: int, w: np.ndarray) -> bool:
-        """When screening: whether the registered step from frame a to b moves b by more than
-        the pair can tell from no motion
-        (:func:`~hdrmerge_cli.core.registration.displacement_margin` on the coarse images)."""
+    def pinned(self, b: int, w: np.ndarray, pair: tuple[np.ndarray, np.ndarray]) -> bool:
+        """When screening: whether the registered step to frame b moves it by more than the
+        pair can tell from no motion (:func:`~hdrmerge_cli.core.registration.displacement_margin`
+        on the coarse ``pair``, as :meth:`still` read it)."""
         frame = self.frames[b]
         size = registration.warp_size(w, frame.height, frame.width)
-        ia, ib = self.log_pair(a, b, self.coarse)
+        ia, ib = pair
         margin = registration.displacement_margin(ia, ib, w, self.scale, frame.height, frame.width)
         if size > margin:
             return True
@@ -331,8 +331,9 @@ class _Registrar:
         out = {}
         for j in indices:
             a = j - 1 if j > self.ref else j + 1
-            out[j] = (auto and self.still(a, j)) or self.step(a, j)
-            if auto and out[j].why is None and j not in self.judged_still and not self.pinned(a, j, out[j].warp):
+            coarse = self.log_pair(a, j, self.coarse) if auto else None  # read by the still test and the margin
+            out[j] = (auto and self.still(a, j, coarse)) or self.step(a, j)
+            if auto and out[j].why is None and j not in self.judged_still and not self.pinned(j, out[j].warp, coarse):
                 out[j] = Step(self.identity, None)
             self.done(a, j)
         return out
