@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.resample import covered_mask
+from hdrmerge_cli.core.resample import _cv2, covered_mask
 
 #: longest side of the coarse registration level
 COARSE_SIDE = 1024
@@ -58,12 +58,6 @@ MAX_REFINE_PX = 3.0
 ROTATION_PX = 0.25
 #: a registration is trusted (``--align`` keeps it) when its correlation coefficient reaches this
 MIN_CONFIDENCE = 0.3
-
-
-def _cv2():
-    import cv2
-
-    return cv2
 
 
 def _reduction(shape, side: int) -> int:

@@ -17,6 +17,7 @@ import numpy as np
 
 
 def _cv2():
+    """OpenCV, imported when first used (here and in :mod:`hdrmerge_cli.core.registration`)."""
     import cv2
 
     return cv2
