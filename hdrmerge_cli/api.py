@@ -687,17 +687,12 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
     st = _stack(codes, exposure_times, cfa_pattern, black, white, bits)
     options.setdefault("noise_cache", False)  # no camera to key a cache entry by
     opts = _options(options)
-    if st.raw:
-        response = CRF("linear")
-    elif isinstance(crf, CRF):
-        response = crf
-    else:
-        from hdrmerge_cli.pipeline.bracket import choose_crf
-
-        response = choose_crf(st.frames, crf, warn=False)  # none given: merge_frames measures it
-    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.bracket import Bracket, choose_crf
     from hdrmerge_cli.pipeline.run import merge_frames
 
+    # a mosaic is linear whatever is given; an image's text as --crf's (none: merge_frames measures it)
+    response = crf if isinstance(crf, CRF) and not st.raw else choose_crf(st.frames, None if st.raw else crf,
+                                                                            warn=False)
     return merge_frames(Bracket(st.frames, response, st.load), opts)
 
 

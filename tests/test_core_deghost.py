@@ -47,10 +47,10 @@ def test_ghost_test_false_alarm_rate_and_detection():
     ok = np.ones(shape, bool)
     flat = np.zeros(shape, np.float32)
     exact = replace(CELL, model_tolerance=0.0)
-    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), replace(exact, p_fa=0.01))
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3, replace(exact, p_fa=0.01))
     assert 0.007 < bad.mean() < 0.013
     x[100:150, 300:390] *= 1.5
-    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), replace(exact, p_fa=0.001))
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3, replace(exact, p_fa=0.001))
     cleaned = deghost.clean(bad, 64)
     assert cleaned[100:150, 100:130].mean() > 0.95 and cleaned[:80].mean() == 0
 
@@ -78,8 +78,10 @@ def test_block_statistics_match_table_lookups_and_block_means(dtype, n_codes, b)
     ok_t = np.zeros(n_codes - 10, bool)
     ok_t[3:-5] = True
     lo, hi = 3, n_codes - 16
-    xs, ss, ok, bound = deghost.block_statistics(plane, x_t, s_t, ok_t, b)
     h, w = plane.shape[0] // b, plane.shape[1] // b
+    xs, ss, ok, bound = out = (np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), bool),
+                               np.empty((h, w), np.float32))
+    deghost.block_statistics(plane, deghost.CodeTable(x_t, s_t, ok_t), b, out)
     z = np.minimum(plane[:h * b, :w * b].astype(np.int64), x_t.size - 1).reshape(h, b, w, b)
     np.testing.assert_allclose(xs, x_t[z].astype(np.float64).mean(axis=(1, 3)), rtol=1e-6)
     np.testing.assert_allclose(ss, s_t[z].astype(np.float64).mean(axis=(1, 3)) / b**2, rtol=1e-6)
@@ -102,8 +104,8 @@ def test_level_scale_keeps_the_false_alarm_rate_when_the_model_underestimates_th
     ok = np.ones(shape, bool)
     flat = np.zeros(shape, np.float32)
     exact = replace(CELL, model_tolerance=0.0, p_fa=0.01)
-    raw = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), replace(exact, level_scale=False))
-    scaled = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), exact)
+    raw = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3, replace(exact, level_scale=False))
+    scaled = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3, exact)
     assert raw.mean() > 0.3
     assert 0.005 < scaled.mean() < 0.015
 
@@ -172,13 +174,13 @@ def test_smooth_gain_field_is_not_motion_but_a_compact_object_over_it_is():
     change nothing is rejected.  A compact object over the same field still is."""
     rng = np.random.default_rng(21)
     x, s, ok, xa, flat = _gain_field_case(rng, ghost=False)
-    plain = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3),
+    plain = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3,
                                                      replace(CELL, level_scale=False)), 64)
     assert plain.mean() > 0.05  # the noise model alone calls the gain motion
-    new = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), GATED)
+    new = deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3, GATED)
     assert deghost.clean(new, 64).mean() <= 0.002
     x, s, ok, xa, flat = _gain_field_case(np.random.default_rng(22), ghost=True)
-    new = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, (1, 3), GATED), 64)
+    new = deghost.clean(deghost.inconsistent_cells(x, s, ok, xa, s, ok, flat, 3, GATED), 64)
     assert new[125:155, 205:235].mean() > 0.95
     outside = np.ones(new.shape, bool)
     outside[110:170, 190:250] = False
@@ -201,7 +203,7 @@ def test_glare_near_the_clipped_highlights_of_the_longer_frame_is_not_motion():
     x[36:40, 126:174] *= 2.0  # brighter next to the highlight: glare
     x[60:64, 126:174] *= 0.3  # darker next to it: an object
     x[80:84, 126:174] *= 2.0  # brighter, but beyond the glare's reach
-    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros_like(xa), (1, 3),
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros_like(xa), 3,
                                      replace(CELL, min_log_change=GATED.min_log_change), excuse=e)
     assert not bad[36:40, 42:58].any() and bad[60:64, 42:58].all() and bad[80:84, 42:58].all()
 
@@ -389,7 +391,7 @@ def test_the_log_change_of_a_reading_at_zero_is_bounded_by_the_noise_not_undefin
     x = np.where(np.arange(shape[1]) < 128, 5.0, 0.0).astype(np.float32) + rng.normal(0, 0.01, shape).astype(np.float32)
     s = np.full(shape, 1e-4, np.float32)
     ok = np.ones(shape, bool)
-    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros(shape, np.float32), (1, 4),
+    bad = deghost.inconsistent_cells(x, s, ok, xa, s, ok, np.zeros(shape, np.float32), 4,
                                      replace(CELL, level_scale=False, min_log_change=GATED.min_log_change))
     assert bad[:, :32].all() and not bad[:, 32:].any()
 

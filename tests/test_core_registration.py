@@ -399,14 +399,14 @@ def test_registration_images_against_direct_means():
     half a code); an
     image's the channels' mean through the inverse response, for 8 and 16 bits."""
     from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.core.registration import coarse_registration_image, registration_image
+    from hdrmerge_cli.core.registration import coarse_mosaic_image, registration_image
 
     rng = np.random.default_rng(5)
     mosaic = rng.integers(500, 16000, (96, 128)).astype(np.uint16)
     fine = registration_image(mosaic, CRF("linear"), True, 512.0, 16383.0, 65536)
     direct = (mosaic.astype(np.float64).reshape(48, 2, 64, 2).mean(axis=(1, 3)) - 512.0) / (16383.0 - 512.0)
     np.testing.assert_allclose(fine, direct, atol=1e-6)
-    coarse = coarse_registration_image(mosaic, CRF("linear"), True, 512.0, 16383.0, 65536, 8)
+    coarse = coarse_mosaic_image(mosaic, 512.0, 16383.0, 8)
     # its 2 x 2 cell means are taken in whole codes (OpenCV's area resize of uint16): half a code
     np.testing.assert_allclose(coarse, direct.reshape(12, 4, 16, 4).mean(axis=(1, 3)), atol=0.5 / (16383 - 512))
     crf = CRF("gamma", 2.2)
@@ -414,5 +414,3 @@ def test_registration_images_against_direct_means():
         image = rng.integers(0, n, (40, 60, 3)).astype(dtype)
         lin = registration_image(image, crf, False, 0.0, n - 1.0, n)
         np.testing.assert_allclose(lin, ((image / (n - 1.0)) ** 2.2).mean(axis=-1), atol=1e-5)
-        np.testing.assert_allclose(coarse_registration_image(image, crf, False, 0.0, n - 1.0, n, 4),
-                                   lin.astype(np.float64).reshape(10, 4, 15, 4).mean(axis=(1, 3)), atol=1e-5)

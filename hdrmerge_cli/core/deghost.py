@@ -118,18 +118,30 @@ GLARE_REACH = 0.05
 GLARE_FRACTION = 0.1
 
 
+class CodeTable(NamedTuple):
+    """Per stored code ``r = 0..N-1`` of one channel (:func:`ghost_tables`): ``x`` the
+    exposure-normalised linear value, ``s`` its predicted variance, ``ok`` whether it measures."""
+
+    x: np.ndarray
+    s: np.ndarray
+    ok: np.ndarray
+
+    def measuring(self) -> tuple[int, int]:
+        """The lowest and the highest measuring code, ``(N, -1)`` when none measures."""
+        valid = np.flatnonzero(self.ok)
+        return (int(valid[0]), int(valid[-1])) if valid.size else (self.x.size, -1)
+
+
 def ghost_tables(n_codes: int, black: float, white: float, lin: np.ndarray, exposure: float,
-                 noise: NoiseParams, footroom: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per stored code ``r = 0..N-1`` of one channel: ``x`` (exposure-normalised linear
-    value), its predicted variance ``s`` and whether it measures (strictly between black
-    and white).  ``lin``: the inverse CRF at each code (a row of
+                 noise: NoiseParams, footroom: bool = False) -> CodeTable:
+    """One channel's :class:`CodeTable`: ``x``, ``s`` (float64) and whether a code measures
+    (strictly between black and white).  ``lin``: the inverse CRF at each code (a row of
     :meth:`~hdrmerge_cli.core.crf.CRF.codes_table`), ``(N,)``.  With
     ``footroom`` (a linear RAW) every code below white is a reading, ``x <= 0`` at and below
     black: read noise spreads a dark signal's codes to both sides of black, so dropping
     those at or below it would bias the mean of a dark region upwards (by more in the
     noisier frame).  A camera that clips at black reads the lower half as black itself;
-    as readings of 0 those stay comparable between frames too.  Returns three ``(N,)``
-    arrays: float64 ``x``, float64 ``s``, bool."""
+    as readings of 0 those stay comparable between frames too."""
     y_full = white - black
     v = (np.arange(n_codes, dtype=np.float64) - black) / y_full
     valid = ((v >= -black / y_full) if footroom else (v > 0)) & (v < 1)
@@ -137,7 +149,7 @@ def ghost_tables(n_codes: int, black: float, white: float, lin: np.ndarray, expo
         lin = np.where(v < 0, v, lin)  # a linear response continues below black
     step = np.gradient(lin)  # linear value per code step
     var = code_variance(np.maximum(lin, 0.0) * y_full, noise) / y_full**2 + step * step / 12.0
-    return lin / exposure, var / exposure**2, valid
+    return CodeTable(lin / exposure, var / exposure**2, valid)
 
 
 def near_white(x: np.ndarray, valid: np.ndarray, exposure: np.ndarray | float, lin_hi: np.ndarray) -> np.ndarray:
@@ -180,28 +192,21 @@ def either_excuse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(a == 0, b, np.where((b == 0) | (a == b), a, np.int8(2))).astype(np.int8)
 
 
-def block_statistics(plane: np.ndarray, x_t: np.ndarray, s_t: np.ndarray, ok_t: np.ndarray, b: int, out=None):
+def block_statistics(plane: np.ndarray, table: CodeTable, b: int, out: tuple) -> None:
     """One channel's block estimates from its codes in one compiled pass (the readings
     ``x_j = g(z) / h_j`` of (7) before the weighting and their variance (17)/(21) plus
     quantisation, as tabulated by :func:`ghost_tables`, averaged over blocks): ``plane`` ``(H, W)``
-    integer codes (any strides), per code the tables of :func:`ghost_tables` (codes beyond
-    them read the last entry).  Per ``b x b`` block (partial blocks dropped), float32/bool
-    ``(H // b, W // b)``: the mean of ``x``, the mean of ``s`` over ``b^2`` (the variance of
-    a mean of ``b^2`` independent readings), whether every code measures, and the bound a
-    block sets where the frame does not measure it: the ``x`` of the lowest measuring code
-    where every code lies below it (dark), minus the ``x`` of the highest where every code
-    lies above it (clipped), 0 elsewhere (see :func:`violates_bound`).  ``out``: the four
-    arrays to write (e.g. one channel of ``(h, w, C)`` arrays), else new ones."""
-    valid = np.flatnonzero(ok_t)
-    lo, hi = (int(valid[0]), int(valid[-1])) if valid.size else (x_t.size, -1)
-    if out is None:
-        shape = (plane.shape[0] // b, plane.shape[1] // b)
-        out = (np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.bool_),
-               np.empty(shape, np.float32))
-    xs, ss, ok, bound = out
-    _block_statistics(plane, np.ascontiguousarray(x_t, np.float32), np.ascontiguousarray(s_t, np.float32),
-                      np.ascontiguousarray(ok_t, np.bool_), lo, hi, b, xs, ss, ok, bound)
-    return xs, ss, ok, bound
+    integer codes (any strides), per code its :class:`CodeTable` (codes beyond it read the
+    last entry).  Per ``b x b`` block (partial blocks dropped), written to ``out``, four
+    float32/bool ``(H // b, W // b)`` arrays (e.g. one channel of ``(h, w, C)`` ones): the
+    mean of ``x``, the mean of ``s`` over ``b^2`` (the variance of a mean of ``b^2``
+    independent readings), whether every code measures, and the bound a block sets where
+    the frame does not measure it: the ``x`` of the lowest measuring code where every code
+    lies below it (dark), minus the ``x`` of the highest where every code lies above it
+    (clipped), 0 elsewhere (see :func:`violates_bound`)."""
+    lo, hi = table.measuring()
+    _block_statistics(plane, np.ascontiguousarray(table.x, np.float32), np.ascontiguousarray(table.s, np.float32),
+                      np.ascontiguousarray(table.ok, np.bool_), lo, hi, b, *out)
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -243,8 +248,16 @@ def _level_bins(values: np.ndarray, bins: int) -> np.ndarray:
     return np.unique(np.quantile(values, np.linspace(0.0, 1.0, bins + 1)))
 
 
-def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(centres, medians, counts)`` of ``val`` in equal-count bins of ``key`` (bins with at
+class Binned(NamedTuple):
+    """Per bin of :func:`_binned_median`: the median key, the median value and the count."""
+
+    centres: np.ndarray
+    medians: np.ndarray
+    counts: np.ndarray
+
+
+def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> Binned:
+    """The :class:`Binned` medians of ``val`` in equal-count bins of ``key`` (bins with at
     least 10 samples; bin ``j`` holds ``edges[j] <= key < edges[j + 1]``, the last one its
     upper edge too, the edges from :func:`_level_bins`).  One sort of ``key`` makes each bin
     a run of the sorted samples."""
@@ -258,7 +271,7 @@ def _binned_median(key: np.ndarray, val: np.ndarray, bins: int) -> tuple[np.ndar
             c.append(np.median(ks[lo:hi]))
             m.append(np.median(vs[lo:hi]))
             n.append(hi - lo)
-    return np.asarray(c), np.asarray(m), np.asarray(n, float)
+    return Binned(np.asarray(c), np.asarray(m), np.asarray(n, float))
 
 
 def robust_poly(c: np.ndarray, d: np.ndarray, n: np.ndarray, degree: int) -> np.ndarray:
@@ -438,17 +451,9 @@ def chi2_thresholds(k_max: int, p_fa: float) -> np.ndarray:
     return np.concatenate([[np.inf], chdtri(np.arange(1, k_max + 1), p_fa)])
 
 
-def squared_gradient(xa: np.ndarray, layout: str) -> np.ndarray:
-    """``|grad x|^2`` per sample (per pixel squared), from same-colour neighbours:
-    ``layout`` "mosaic" (``(H, W)`` Bayer, neighbours 2 apart) or "rgb" (``(H, W, C)``)."""
-    if layout == "mosaic":
-        out = np.empty(xa.shape, np.float32)
-        for dy in (0, 1):
-            for dx in (0, 1):
-                sub = xa[dy::2, dx::2]
-                gy, gx = (np.gradient(sub, 2.0, axis=a) if sub.shape[a] > 1 else np.zeros_like(sub) for a in (0, 1))
-                out[dy::2, dx::2] = gy * gy + gx * gx
-        return out
+def squared_gradient(xa: np.ndarray) -> np.ndarray:
+    """``|grad x|^2`` per sample of ``(H, W, C)`` (per pixel squared), from neighbours along
+    both axes."""
     gy, gx = (np.gradient(xa, axis=a) if xa.shape[a] > 1 else np.zeros_like(xa) for a in (0, 1))
     return (gy * gy + gx * gx).astype(np.float32)
 
@@ -552,8 +557,17 @@ def envelope_residual(x: np.ndarray, xa: np.ndarray, nc: int, reach: int) -> np.
     return np.where(np.abs(d1) < np.abs(d2), d1, d2).astype(np.float32)
 
 
-def _log_change(x: np.ndarray, xa: np.ndarray, var: np.ndarray, both: np.ndarray):
-    """``(r, pos, xaf)``: the log change ``log(xf / xaf)`` of each sample where both readings,
+class LogChange(NamedTuple):
+    """What :func:`_log_change` finds per sample: the log change ``r``, where it is measured
+    (``pos``) and the anchor's reading raised to the noise (``xaf``)."""
+
+    r: np.ndarray
+    pos: np.ndarray
+    xaf: np.ndarray
+
+
+def _log_change(x: np.ndarray, xa: np.ndarray, var: np.ndarray, both: np.ndarray) -> LogChange:
+    """The :class:`LogChange` ``r = log(xf / xaf)`` of each sample where both readings,
     each raised to at least the pair's noise deviation ``sqrt(var)``, are positive
     (``pos``; 0 elsewhere), float32; a reading within its noise of zero is about that
     dark, so the change of a dark object over a bright surround is large, not undefined."""
@@ -563,43 +577,43 @@ def _log_change(x: np.ndarray, xa: np.ndarray, var: np.ndarray, both: np.ndarray
     pos = both & (xf > 0) & (xaf > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(pos, np.log(np.maximum(xf, 1e-30) / np.maximum(xaf, 1e-30)), 0.0).astype(np.float32)
-    return r, pos, xaf
+    return LogChange(r, pos, xaf)
 
 
 def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.ndarray, sa: np.ndarray,
-                       valid_a: np.ndarray, grad2: np.ndarray | None, cell: tuple[int, int], params: DeghostParams,
+                       valid_a: np.ndarray, grad2: np.ndarray | None, nc: int, params: DeghostParams,
                        excuse: np.ndarray | None = None, steady: np.ndarray | None = None) -> np.ndarray:
     """Cells where a frame disagrees with the anchor, by the chi-square test at ``params.p_fa``.
 
     ``x, s, valid`` (frame) and ``xa, sa, valid_a`` (anchor): readings, variances and
     whether they measure, ``(H, W')`` float32 / bool per sample (``W' = W * C``, channels
     interleaved); ``grad2``: the anchor's squared gradient times the squared registration
-    tolerance (used when ``params.envelope_reach`` is 0); ``cell = (ph, pw)`` samples per
-    cell; ``excuse``: per cell, the sign of change that is not motion (:func:`glare_excuse`,
+    tolerance (used when ``params.envelope_reach`` is 0); ``nc`` channels, a cell's
+    samples; ``excuse``: per cell, the sign of change that is not motion (:func:`glare_excuse`,
     :func:`shoulder_excuse`; 2 either); ``steady``: the samples the tone match and the
-    region test read (None: all).  Returns ``(H // ph, W' // pw)`` bool.
+    region test read (None: all).  Returns ``(H, W)`` bool, a cell per pixel.
     Notes: the variance of a difference is both readings' noise, ``params.model_tolerance``
     and the registration tolerance, times :func:`level_scale`'s ``lambda``; a cell is kept
     only where its mean log change exceeds ``params.min_log_change``."""
     p = params
     both = valid & valid_a
     use = both if steady is None else both & steady
-    x = match_channels(x, xa, use, cell[1], p.match_degree)
+    x = match_channels(x, xa, use, nc, p.match_degree)
     r = None
+    var = s + sa
     if p.smooth_field or p.min_log_change > 0 or excuse is not None:
-        r, pos, xaf = _log_change(x, xa, s + sa, both)
+        r, pos, xaf = _log_change(x, xa, var, both)
         if p.smooth_field:
-            f = smooth_ratio_field(r, pos, cell[1])
+            f = smooth_ratio_field(r, pos, nc)
             r = np.where(pos, r - f, 0.0).astype(np.float32)
             x = x * np.exp(-f).astype(np.float32)
             del f
-    var = s + sa
     tol = p.model_tolerance * xa
     tol *= tol
     var += tol
     del tol
     if p.envelope_reach:
-        d = envelope_residual(x, xa, cell[1], p.envelope_reach)
+        d = envelope_residual(x, xa, nc, p.envelope_reach)
         if r is not None:  # the log change beyond what a shift within reach explains
             with np.errstate(divide="ignore", invalid="ignore"):
                 r = np.where(pos, np.sign(d) * np.minimum(np.abs(r), np.log1p(np.abs(d) / np.maximum(xaf, 1e-30))),
@@ -619,17 +633,17 @@ def inconsistent_cells(x: np.ndarray, s: np.ndarray, valid: np.ndarray, xa: np.n
         if p.coarse_scales:  # the region test's variances
             var *= lam
         del lam
-    stat = cell_sums(t, *cell)
-    k = cell_sums(both.astype(np.int32), *cell)
-    bad = stat > chi2_thresholds(cell[0] * cell[1], p.p_fa)[k]
-    if cell[0] == 1 and p.coarse_scales:
+    stat = cell_sums(t, 1, nc)
+    k = cell_sums(both.astype(np.int32), 1, nc)
+    bad = stat > chi2_thresholds(nc, p.p_fa)[k]
+    if p.coarse_scales:
         bad |= region_shifts(np.where(use, d, 0.0), np.where(use, var, 0.0),
-                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), cell[1], p.p_fa,
+                             np.where(use, np.maximum(np.minimum(x, xa), 0.0), 0.0), nc, p.p_fa,
                              p.coarse_scales)
     if r is not None and (p.min_log_change > 0 or excuse is not None):
-        rm = cell_sums(r, *cell) / np.maximum(cell_sums(pos.astype(np.int32), *cell), 1)
+        rm = cell_sums(r, 1, nc) / np.maximum(cell_sums(pos.astype(np.int32), 1, nc), 1)
         if p.coarse_scales:  # a region's change is its mean change (a noisy cell's own mean may not pass)
-            rm = np.where(np.abs(rm) > p.min_log_change, rm, region_mean(r, pos, cell[1], p.coarse_scales))
+            rm = np.where(np.abs(rm) > p.min_log_change, rm, region_mean(r, pos, nc, p.coarse_scales))
         if p.min_log_change > 0:
             bad &= np.abs(rm) > p.min_log_change
         if excuse is not None:
@@ -671,13 +685,15 @@ def region_shifts(d: np.ndarray, var: np.ndarray, level: np.ndarray, nc: int, p_
             continue
         where = np.flatnonzero(has)
         where = where[:: max(1, where.size // NULL_SAMPLES)]  # the null's medians from a subsample
-        c, centre, cnt = _binned_median(key.ravel()[where], z.ravel()[where], bins)
+        keys = key.ravel()[where]
+        c, centre, cnt = _binned_median(keys, z.ravel()[where], bins)
         coef = robust_poly(c, centre, cnt, degree=2)
         kk = np.clip(key, c[0], c[-1])
         dz = z - np.polyval(coef, kk)
-        c2, spread, cnt2 = _binned_median(key.ravel()[where], np.abs(dz.ravel()[where]), bins)
-        coef2 = robust_poly(c2, np.log(np.maximum(spread * 1.4826, 1.0)), cnt2, degree=2)
-        top = _inlier_range(coef2, c2, np.log(np.maximum(spread * 1.4826, 1.0)))[1]
+        c2, spread, cnt2 = _binned_median(keys, np.abs(dz.ravel()[where]), bins)
+        log_spread = np.log(np.maximum(spread * 1.4826, 1.0))
+        coef2 = robust_poly(c2, log_spread, cnt2, degree=2)
+        top = _inlier_range(coef2, c2, log_spread)[1]
         s = np.exp(np.clip(np.polyval(coef2, np.clip(key, c2[0], c2[-1])), 0.0, top))
         stat = np.where(has, (dz / s) ** 2, 0.0).sum(axis=-1)
         hit = stat > chi2_thresholds(nc, p_fa / (m * m))[has.sum(axis=-1)]
@@ -773,7 +789,8 @@ class Anchor:
     ``(h, w)`` its brightest channel (inf where clipped in every frame; images); ``near``
     ``(h, w)`` its readings near white (images); ``grad2`` ``(h, w * C)`` the registration
     tolerance's variance; and the test's setting: the frames' ``exposures``, the reference
-    ``ref``, the ``params``, a block's side ``block_px`` and ``lin_hi``."""
+    ``ref``, the ``params``, a block's side ``block_px`` and ``lin_hi``; ``last`` the frame
+    read last and ``last_blocks`` its :class:`Blocks` (its test reuses them)."""
 
     x: np.ndarray
     s: np.ndarray
@@ -792,6 +809,8 @@ class Anchor:
     level: np.ndarray | None = None
     near: np.ndarray | None = None
     grad2: np.ndarray | None = None
+    last: int = -1
+    last_blocks: Blocks | None = None
 
 
 def anchor_order(exposures: np.ndarray, ref: int) -> list[int]:
@@ -801,13 +820,12 @@ def anchor_order(exposures: np.ndarray, ref: int) -> list[int]:
 
 
 def build_anchor(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: int, params: DeghostParams,
-                 block_px: float, lin_hi: np.ndarray | None = None) -> tuple[Anchor, tuple[int, Blocks]]:
+                 block_px: float, lin_hi: np.ndarray | None = None) -> Anchor:
     """The anchor: the reference where it measures, else the nearest frame in exposure that
     measures and is not beyond the reference's bound (:func:`violates_bound`; for images the
     dark bound adapts to each frame).  ``estimate(k)``: frame ``k``'s :class:`Blocks`, called
     once per frame; ``block_px``: a block's side in pixels; ``lin_hi``: per channel the
-    linear value of :attr:`DeghostParams.shoulder_code` (images).  Returns the
-    :class:`Anchor` and ``(k, blocks)`` of the last frame read (its test may reuse them)."""
+    linear value of :attr:`DeghostParams.shoulder_code` (images)."""
     p = params
     order = anchor_order(exposures, ref)
     a = None
@@ -818,8 +836,9 @@ def build_anchor(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: 
             s_r = s.copy() if p.linear else None
             beyond = violates_bound(x, s, bound, p.p_fa, s_bound=s_r) & ok
             ok = ok & ~beyond
-            a = Anchor(x, s, ok, steady & ok, np.where(ok, k, -1).astype(np.int16), bound, s_r, {}, {k: beyond},
-                       exposures, ref, p, block_px, lin_hi)
+            a = Anchor(x=x, s=s, valid=ok, steady=steady & ok, source=np.where(ok, k, -1).astype(np.int16),
+                       bound=bound, s_bound=s_r, clipped={}, beyond={k: beyond}, exposures=exposures, ref=ref,
+                       params=p, block_px=block_px, lin_hi=lin_hi)
             a.clipped[k] = any_channel(bound < 0)
             continue
         a.clipped[k] = any_channel(bound < 0)
@@ -835,10 +854,11 @@ def build_anchor(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: 
                                                                                np.float32(0.0))))
     if not p.envelope_reach:  # the anchor's contrast along the registration tolerance
         reg = (p.align_tolerance_px / block_px) ** 2
-        a.grad2 = _samples(squared_gradient(a.x, "rgb") * np.float32(reg))
+        a.grad2 = _samples(squared_gradient(a.x) * np.float32(reg))
     if p.shoulder_code is not None and lin_hi is not None:
         a.near = near_white(a.x, a.valid, exposures[np.maximum(a.source, 0)].astype(np.float32), lin_hi)
-    return a, (order[-1], blocks)
+    a.last, a.last_blocks = order[-1], blocks
+    return a
 
 
 def _samples(a: np.ndarray) -> np.ndarray:
@@ -869,9 +889,16 @@ def _glare(a: Anchor, need: np.ndarray | None) -> dict:
     return {} if need is None else dict(source=a.level, need=need, bloom=bloom)
 
 
-def frame_mask(a: Anchor, k: int, blocks: Blocks) -> tuple[float, np.ndarray]:
-    """Frame ``k`` (its :class:`Blocks`) tested against the anchor: ``(fraction of its
-    blocks rejected, (h, w) uint8 feathered mask, 255 = dropped)``.  Rejected are the cells
+class FrameMask(NamedTuple):
+    """One frame's verdict (:func:`frame_mask`): the fraction of its blocks rejected and its
+    feathered mask, ``(h, w)`` uint8, 255 = dropped."""
+
+    fraction: float
+    mask: np.ndarray
+
+
+def frame_mask(a: Anchor, k: int, blocks: Blocks) -> FrameMask:
+    """Frame ``k`` (its :class:`Blocks`) tested against the anchor (:class:`FrameMask`).  Rejected are the cells
     :func:`inconsistent_cells` finds (excused where glare or a reading near white explains
     the sign of the change), the blocks beyond the reference's bound and, for the longer
     exposure of the pair, its clipped readings the anchor makes impossible; cleaned
@@ -889,7 +916,7 @@ def frame_mask(a: Anchor, k: int, blocks: Blocks) -> tuple[float, np.ndarray]:
         frame_near = near_white(x, ok, np.float32(a.exposures[k]), a.lin_hi)
         excuse = either_excuse(excuse, shoulder_excuse(a.near, frame_near))
     bad = inconsistent_cells(_samples(x), _samples(s), _samples(ok), _samples(a.x), _samples(a.s),
-                             _samples(a.valid), a.grad2, (1, x.shape[-1]), p, excuse=excuse,
+                             _samples(a.valid), a.grad2, x.shape[-1], p, excuse=excuse,
                              steady=_samples(steady & a.steady) if p.linear else None)
     bad |= any_channel(a.beyond.pop(k)) | impossible
     del x, s, ok, steady
@@ -898,23 +925,24 @@ def frame_mask(a: Anchor, k: int, blocks: Blocks) -> tuple[float, np.ndarray]:
     bad &= ~own
     soft = feather(bad, max(1.5, p.feather_px / a.block_px))
     soft[own] = 0.0
-    return float(bad.mean()), np.rint(soft * 255).astype(np.uint8)
+    return FrameMask(float(bad.mean()), np.rint(soft * 255).astype(np.uint8))
 
 
 def ghost_masks(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: int, params: DeghostParams,
-                block_px: float, lin_hi: np.ndarray | None = None, workers: int = 1) -> tuple[list[float], list]:
+                block_px: float, lin_hi: np.ndarray | None = None, workers: int = 1) -> list[FrameMask]:
     """Every frame's :func:`frame_mask` against one anchor (:func:`build_anchor`, whose
-    arguments these are): ``(fractions, masks)`` in frame order.  ``estimate(k)`` is called
-    twice per frame (for the anchor, then for the test; once for the anchor's last frame),
-    so that only the anchor's estimates are held; ``workers`` frames are tested at a time."""
-    anchor, held = build_anchor(estimate, exposures, ref, params, block_px, lin_hi)
+    arguments these are), in frame order.  ``estimate(k)`` is called twice per frame (for
+    the anchor, then for the test; once for the anchor's last frame), so that only the
+    anchor's estimates are held; ``workers`` frames are tested at a time."""
+    anchor = build_anchor(estimate, exposures, ref, params, block_px, lin_hi)
+    last, blocks = anchor.last, anchor.last_blocks
+    anchor.last_blocks = None  # handed over: its memory goes with its test
 
-    def test(k: int, blocks: Blocks | None = None):
+    def test(k: int, blocks: Blocks | None = None) -> FrameMask:
         return frame_mask(anchor, k, blocks if blocks is not None else estimate(k))
 
     with ThreadPoolExecutor(workers) as pool:
-        jobs = {held[0]: pool.submit(test, *held)}
-        held = None  # handed over: its memory goes with its test
+        jobs = {last: pool.submit(test, last, blocks)}
+        del blocks
         jobs.update({k: pool.submit(test, k) for k in range(len(exposures)) if k not in jobs})
-        fractions, masks = (list(v) for v in zip(*(jobs[k].result() for k in range(len(exposures)))))
-    return fractions, masks
+        return [jobs[k].result() for k in range(len(exposures))]

@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.resample import covered_mask
+from hdrmerge_cli.core.resample import _cv2, covered_mask
 
 #: longest side of the coarse registration level
 COARSE_SIDE = 1024
@@ -56,14 +56,13 @@ MAX_REFINE_PX = 3.0
 #: a rotation is kept when it moves some corner of the frame by more than this (pixels): a
 #: smaller one is not worth resampling for
 ROTATION_PX = 0.25
-#: a registration is trusted when its correlation coefficient reaches this (as ``--align``'s)
-MOVED_MIN_CONFIDENCE = 0.3
+#: a registration is trusted (``--align`` keeps it) when its correlation coefficient reaches this
+MIN_CONFIDENCE = 0.3
 
 
-def _cv2():
-    import cv2
-
-    return cv2
+def _reduction(shape, side: int) -> int:
+    """The least integer factor that brings the longest of ``shape`` to at most ``side``."""
+    return max(1, -(-max(shape) // side))
 
 
 def log_irradiance(lin: np.ndarray, exposure: float, lo: float, hi: float) -> np.ndarray:
@@ -125,11 +124,10 @@ def shift_warp(warp: np.ndarray, origin) -> np.ndarray:
 MATCH_TOL = 0.25
 
 
-def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> tuple[np.ndarray, float]:
-    """Pixels of the reference that ``image`` (brought onto it by ``warp``) matches to
-    :data:`MATCH_TOL` (plateaus included), and the fraction matched among the pixels the
-    warped image covers off the plateaus.  Moving objects and misregistered texture are
-    the unmatched ones."""
+def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> float:
+    """The fraction of the reference's pixels that ``image`` (brought onto it by ``warp``)
+    matches to :data:`MATCH_TOL`, among those the warped image covers off the plateaus.
+    Moving objects and misregistered texture are the unmatched ones."""
     cv2 = _cv2()
     h, w = reference.shape
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
@@ -139,7 +137,7 @@ def matched(reference: np.ndarray, image: np.ndarray, warp: np.ndarray) -> tuple
     # pixels on the clipping plateaus of the common range match trivially: they do not vote
     inside = np.isfinite(moved) & (reference > lo + 1e-4) & (reference < hi - 1e-4)
     ok = inside & (np.abs(np.where(inside, moved, 0) - reference) < MATCH_TOL)
-    return ok | ~inside, float(ok.sum() / max(inside.sum(), 1))
+    return float(ok.sum() / max(inside.sum(), 1))
 
 
 def _phase_shift(template: np.ndarray, image: np.ndarray) -> np.ndarray:
@@ -179,7 +177,7 @@ def texture(img: np.ndarray, grad: float = TEXTURE_LOG_GRAD, scale: int = 1) -> 
     side; ``scale``: full-resolution pixels per pixel of ``img`` (counts and gradients are per
     full-resolution pixel)."""
     cv2 = _cv2()
-    f = max(1, -(-max(img.shape) // COARSE_SIDE))
+    f = _reduction(img.shape, COARSE_SIDE)
     small = block_mean(img, f)
     smooth = cv2.blur(small, (3, 3))
     inside = off_plateau(small) > 0
@@ -387,10 +385,10 @@ def _translation(reference: np.ndarray, image: np.ndarray) -> np.ndarray:
     averaged images against no motion, the one matching more pixels kept (a bright object
     crossing a still scene can win the correlation peak, but not the vote of the pixels)."""
     h, w = reference.shape
-    f = max(1, -(-max(h, w) // PHASE_SIDE))
+    f = _reduction((h, w), PHASE_SIDE)
     ref_c, img_c = block_mean(reference, f), block_mean(image, f)
-    candidates = [np.hstack([np.eye(2), np.zeros((2, 1))]), _phase_shift(ref_c, img_c)]
-    return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)[1]), f, (f - 1) / 2)
+    candidates = [np.eye(2, 3), _phase_shift(ref_c, img_c)]
+    return rescale_warp(max(candidates, key=lambda c: matched(ref_c, img_c, c)), f, (f - 1) / 2)
 
 
 #: tiles per side of the robust consensus (:func:`_tile_consensus`)
@@ -482,12 +480,19 @@ def _tile_consensus(reference: np.ndarray, image: np.ndarray, warp: np.ndarray, 
     return compose(warp, correction.astype(np.float64)), True
 
 
-def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> tuple[np.ndarray, float]:
+class Registered(NamedTuple):
+    """:func:`estimate_warp`'s result: the ``(2, 3)`` float64 warp and its correlation ``rho``."""
+
+    warp: np.ndarray
+    rho: float
+
+
+def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "translation") -> Registered:
     """The warp bringing ``image`` onto ``reference`` and its confidence.
 
     ``reference``, ``image``: ``(H, W)`` float32 exposure-invariant images
-    (:func:`log_irradiance`); ``motion``: one of :data:`MOTIONS`.  Returns ``(warp, rho)``:
-    ``(2, 3)`` float64 (reference to image coordinates) and the enhanced correlation
+    (:func:`log_irradiance`); ``motion``: one of :data:`MOTIONS`.  Returns the
+    :class:`Registered` warp (reference to image coordinates) and the enhanced correlation
     coefficient of the registered pair off the plateaus (:func:`ecc_score`).
     Phase correlation (:func:`_translation`) starts ECC (Evangelidis and Psarakis 2008) on
     a pyramid (:func:`_pyramid_ecc`) and the central full-resolution window
@@ -548,7 +553,7 @@ def estimate_warp(reference: np.ndarray, image: np.ndarray, motion: str = "trans
         robust = _masked_fine_ecc(reference, image, best, "similarity" if turned else "translation")
     if robust is not None:
         best, rho = robust, score(robust)
-    return best, rho
+    return Registered(best, rho)
 
 
 def _turned(rotated: np.ndarray, warp: np.ndarray, shape: tuple[int, ...]) -> bool:
@@ -580,7 +585,7 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     correlation against no motion by the vote of the pixels, refined by ECC), or None when
     the pair cannot be registered (too little texture in either,
     :func:`hdrmerge_cli.core.registrable`, or a correlation under
-    :data:`MOVED_MIN_CONFIDENCE`).
+    :data:`MIN_CONFIDENCE`).
 
     a, b : (H, W) float32 exposure-invariant images of the same pixels (see
     :func:`log_irradiance`)
@@ -589,7 +594,7 @@ def pair_displacement(a: np.ndarray, b: np.ndarray) -> float | None:
     if min(a.shape) < 16 or registrable(a, b) is not None:
         return None
     warp, rho = estimate_warp(a, b, "translation")
-    if not np.isfinite(rho) or rho < MOVED_MIN_CONFIDENCE:
+    if not np.isfinite(rho) or rho < MIN_CONFIDENCE:
         return None
     return float(np.hypot(warp[0, 2], warp[1, 2]))
 
@@ -602,7 +607,7 @@ def corner_distance(a: np.ndarray, b: np.ndarray, height: int, width: int) -> fl
 
 def warp_size(warp: np.ndarray, height: int, width: int) -> float:
     """Largest displacement (pixels) the warp causes anywhere in the frame."""
-    return corner_distance(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), height, width)
+    return corner_distance(warp, np.eye(2, 3), height, width)
 
 
 #: the still test's error rate (:func:`still_test`): a pair displaced by its tolerance or
@@ -611,13 +616,22 @@ STILL_P_MISS = 1e-3
 #: side (coarse pixels) of the tiles whose scores :func:`still_test`'s covariance sums
 #: (residuals correlated within a tile are allowed for)
 STILL_TILE = 16
+#: the least side (pixels) of :func:`linear_step`'s images
+STILL_MIN_SIDE = 2 * STILL_TILE + 4
+
+
+def _quantile(p_miss: float) -> float:
+    """``z(1 - p_miss)``, the standard normal's upper ``p_miss`` quantile."""
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(1.0 - p_miss)
 
 
 def coarse_factor(height: int, width: int, cell: int = 1) -> int:
     """Frame pixels per coarse pixel: ``cell`` (a registration image's pixel: 2 for a RAW
     frame's CFA cells) times the reduction :func:`texture` makes of the registration image
     (at most :data:`COARSE_SIDE` on a side)."""
-    return cell * max(1, -(-max(height // cell, width // cell) // COARSE_SIDE))
+    return cell * _reduction((height // cell, width // cell), COARSE_SIDE)
 
 
 def _dft_side(n: int) -> int:
@@ -661,18 +675,15 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     ``p_miss`` (the linear step's range: a phase correlation a pixel or more off is never
     still).  A still pair needs no registration; any other is registered in full.
     Returns a :class:`StillTest`."""
-    from statistics import NormalDist
-
     cv2 = _cv2()
-    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
-    k = max(1, -(-max(reference.shape) // PHASE_SIDE))
+    identity = np.eye(2, 3)
+    k = _reduction(reference.shape, PHASE_SIDE)
     a, b = block_mean(reference, k), block_mean(image, k)
     h, w = _dft_side(a.shape[0]), _dft_side(a.shape[1])  # even (OpenCV's phase correlation is biased on odd
     # sides) and fast to transform
     a, b = np.ascontiguousarray(a[:h, :w], np.float32), np.ascontiguousarray(b[:h, :w], np.float32)
     scale *= k
-    t = STILL_TILE
-    if min(h, w) < 2 * t + 4:
+    if min(h, w) < STILL_MIN_SIDE:
         return StillTest(False, identity, float("inf"), -1.0)
     rho = correlation(a, b)
     (px, py), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64),
@@ -683,7 +694,7 @@ def still_test(reference: np.ndarray, image: np.ndarray, scale: int, height: int
     if step is None:
         return StillTest(False, identity, float("inf"), rho)
     theta, cov = step
-    z = NormalDist().inv_cdf(1.0 - p_miss)
+    z = _quantile(p_miss)
     bound = max(float(np.hypot(*(lin @ theta))) + z * _spread(lin, cov)
                 for lin in _corner_maps((h, w), scale, height, width))
     warp = identity.copy()
@@ -719,14 +730,12 @@ def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarr
     (frame pixels; the images as in :func:`still_test`, reduced to at most
     :data:`PHASE_SIDE` on a side).  A registered displacement below it is one the pair does
     not pin.  inf where the step is singular or the images too small."""
-    from statistics import NormalDist
-
     cv2 = _cv2()
-    k = max(1, -(-max(reference.shape) // PHASE_SIDE))
+    k = _reduction(reference.shape, PHASE_SIDE)
     f, c = scale * k, (scale * k - 1) / 2
     a = np.ascontiguousarray(block_mean(reference, k), np.float32)
     h, w = a.shape
-    if min(h, w) < 2 * STILL_TILE + 4:
+    if min(h, w) < STILL_MIN_SIDE:
         return float("inf")
     coarse = rescale_warp(np.asarray(warp, np.float64), 1.0 / f, -c / f)  # frame -> test pixels: x = f u + c
     b = cv2.warpAffine(np.ascontiguousarray(block_mean(image, k), np.float32), coarse.astype(np.float32), (w, h),
@@ -734,13 +743,20 @@ def displacement_margin(reference: np.ndarray, image: np.ndarray, warp: np.ndarr
     step = linear_step(a, b)
     if step is None:
         return float("inf")
-    z = NormalDist().inv_cdf(1.0 - p_miss)
-    return z * max(_spread(lin, step[1]) for lin in _corner_maps((h, w), f, height, width))
+    z = _quantile(p_miss)
+    return z * max(_spread(lin, step.cov) for lin in _corner_maps((h, w), f, height, width))
 
 
-def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+class LinearStep(NamedTuple):
+    """:func:`linear_step`'s estimate ``theta`` ``(5,)`` and its covariance ``cov`` ``(5, 5)``."""
+
+    theta: np.ndarray
+    cov: np.ndarray
+
+
+def linear_step(reference: np.ndarray, image: np.ndarray) -> LinearStep | None:
     """The motion of ``image`` against ``reference`` (``(h, w)`` float32, at least
-    ``2 STILL_TILE + 4`` on a side) by one linearised step from no motion: ``(theta, cov)``,
+    :data:`STILL_MIN_SIDE` on a side) by one linearised step from no motion (:class:`LinearStep`),
     ``theta`` = (x, y translation in pixels, rotation about the centre in radians times half
     the longer side, gain, offset), or None when the step is singular.  Instrumental
     variables: ``reference``'s gradients are the regressors, ``image``'s the instruments
@@ -789,7 +805,7 @@ def linear_step(reference: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, n
     scores = z_ins.reshape(5, ny // t, t, nx // t, t).sum(axis=(2, 4), dtype=np.float64).reshape(5, -1)
     g = scores.shape[1]
     cov = inv @ (scores @ scores.T) @ inv.T * (g / max(g - 1, 1))
-    return theta, cov
+    return LinearStep(theta, cov)
 
 
 def correlation(reference: np.ndarray, image: np.ndarray) -> float:
@@ -838,13 +854,11 @@ def registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white
     return lin.mean(axis=-1, dtype=np.float32)
 
 
-def coarse_registration_image(codes: np.ndarray, crf, mosaic: bool, black: float, white: float, n_codes: int,
-                              f: int) -> np.ndarray:
-    """:func:`registration_image` reduced to blocks of ``f`` x ``f`` frame pixels (block
-    means; a mosaic's ``f`` even, whole CFA cells; coarse pixel ``u`` centred on frame pixel
-    ``f u + (f - 1) / 2``), float32 ``(H // f, W // f)``."""
-    if not mosaic:
-        return block_mean(registration_image(codes, crf, mosaic, black, white, n_codes), f)
+def coarse_mosaic_image(codes: np.ndarray, black: float, white: float, f: int) -> np.ndarray:
+    """A Bayer mosaic's :func:`registration_image` reduced to blocks of ``f`` x ``f`` frame
+    pixels (block means of whole CFA cells, ``f`` even; coarse pixel ``u`` centred on frame
+    pixel ``f u + (f - 1) / 2``), float32 ``(H // f, W // f)``, from its codes in strips (an
+    image's is the block mean of its registration image)."""
     cv2 = _cv2()
     h, w = codes.shape[0] // f * f, codes.shape[1] // f * f
     out = np.empty((h // f, w // f), np.float32)

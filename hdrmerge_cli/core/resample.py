@@ -17,6 +17,7 @@ import numpy as np
 
 
 def _cv2():
+    """OpenCV, imported when first used (here and in :mod:`hdrmerge_cli.core.registration`)."""
     import cv2
 
     return cv2
@@ -105,12 +106,17 @@ def _same_colour_index(n: int, shift: int) -> np.ndarray:
     return src
 
 
+def period_shift(warp: np.ndarray) -> np.ndarray:
+    """The warp's translation ``(tx, ty)`` rounded to whole CFA periods (even pixels)."""
+    return (2 * np.rint(warp[:, 2] / 2)).astype(int)
+
+
 def shift_mosaic(codes: np.ndarray, warp: np.ndarray) -> np.ndarray:
     """Bring a Bayer mosaic ``(H, W)`` onto the reference by whole 2 x 2 CFA periods: its
     translation rounded to even pixels, no resampling, no colours mixed (otherwise see
     :func:`resample_mosaic`).  Sites from outside the frame repeat the nearest same-colour
     edge site."""
-    tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
+    tx, ty = period_shift(warp)
     return codes[np.ix_(_same_colour_index(codes.shape[0], ty), _same_colour_index(codes.shape[1], tx))]
 
 

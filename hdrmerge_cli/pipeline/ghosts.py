@@ -41,45 +41,48 @@ def _planes(frame: Frame, codes: np.ndarray, pattern: np.ndarray) -> list[tuple[
     return list(zip(planes, _rows(frame, pattern, len(planes))))
 
 
-def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list, b: int):
-    """One frame's block estimates ``(h, w, C)`` (:func:`~hdrmerge_cli.core.deghost.block_statistics`
-    per channel): x, its variance s, whether every sample of the block measures, and what a
-    block whose samples are all dark (> 0) or all clipped (< 0) bounds (0 elsewhere)."""
+def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list[deghost.CodeTable],
+                     b: int) -> deghost.Blocks:
+    """One frame's :class:`~hdrmerge_cli.core.deghost.Blocks` ``(h, w, C)``
+    (:func:`~hdrmerge_cli.core.deghost.block_statistics` per channel), every block
+    ``steady`` (:func:`_untruncated` narrows that for linear data)."""
     planes = _planes(frame, codes, pattern)
     shape = (planes[0][0].shape[0] // b, planes[0][0].shape[1] // b, len(planes))
     x, s, bound = (np.empty(shape, np.float32) for _ in range(3))
     ok = np.empty(shape, bool)
     for c, (plane, row) in enumerate(planes):
-        deghost.block_statistics(plane, *tables[row], b, out=(x[..., c], s[..., c], ok[..., c], bound[..., c]))
-    return x, s, ok, bound
+        deghost.block_statistics(plane, tables[row], b, (x[..., c], s[..., c], ok[..., c], bound[..., c]))
+    return deghost.Blocks(x, s, ok, bound, ok)
 
 
-def _untruncated(x: np.ndarray, s: np.ndarray, frame: Frame, pattern: np.ndarray, tables: list, b: int) -> np.ndarray:
+def _untruncated(blocks: deghost.Blocks, frame: Frame, pattern: np.ndarray, tables: list[deghost.CodeTable],
+                 b: int) -> np.ndarray:
     """Where a frame's block readings ``(h, w, C)`` lie more than 3 sample noise deviations
     inside its measuring range (per channel, the x of its lowest and highest measuring
     code): there no reading of a block was lost to black or to clipping, which biases the
     mean of those kept."""
-    sd = np.sqrt(s) * np.float32(3 * b)
+    x = blocks.x
+    sd = np.sqrt(blocks.s) * np.float32(3 * b)
     out = np.empty(x.shape, bool)
     for c, row in enumerate(_rows(frame, pattern, x.shape[-1])):
-        x_t, _, ok_t = tables[row]
-        lo, hi = (x_t[ok_t][0], x_t[ok_t][-1]) if ok_t.any() else (np.inf, -np.inf)
+        lo, hi = tables[row].measuring()
+        lo, hi = (tables[row].x[lo], tables[row].x[hi]) if hi >= 0 else (np.inf, -np.inf)
         out[..., c] = (x[..., c] - sd[..., c] > lo) & (x[..., c] + sd[..., c] < hi)
     return out
 
 
-def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoiseParams] | None, linear: bool) -> list:
+def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoiseParams] | None,
+                  linear: bool) -> list[deghost.CodeTable]:
     """Per channel of ``frame``, :func:`~hdrmerge_cli.core.deghost.ghost_tables` (float32
-    ``x`` and ``s``, bool ``ok`` per code); without ``noise``, the quantisation of half a
-    code of an 8-bit range."""
+    ``x`` and ``s``); without ``noise``, the quantisation of half a code of an 8-bit range."""
+    lin = crf.codes_table(frame.n_codes, frame.black, frame.white)
     out = []
     for c in range(len(frame.black)):
         nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
             (0.5 * float(frame.white[c] - frame.black[c]) / 255.0) ** 2, 1e-12, 0.0)
-        x_t, s_t, ok_t = deghost.ghost_tables(frame.n_codes, frame.black[c], frame.white[c],
-                                              crf.codes_table(frame.n_codes, frame.black, frame.white)[c], exposure,
-                                              nz, footroom=linear)
-        out.append((x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
+        x_t, s_t, ok_t = deghost.ghost_tables(frame.n_codes, frame.black[c], frame.white[c], lin[c], exposure, nz,
+                                              footroom=linear)
+        out.append(deghost.CodeTable(x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
     return out
 
 
@@ -101,25 +104,28 @@ def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: lis
     per_px = 2 if raw else 1  # pixels per cell side of the planes
     h, w = (first.height // 2, first.width // 2) if raw else (first.height, first.width)
     b = deghost.block_size(h, w)
+    tables = [_ghost_tables(f, e, crf, noise, params.linear) for f, e in zip(frames, exposures)]
     one_at_a_time = threading.Lock()  # Numba's workqueue layer runs one parallel kernel at a time
 
     def estimate(k: int) -> deghost.Blocks:
-        t_k = _ghost_tables(frames[k], exposures[k], crf, noise, params.linear)
         with one_at_a_time:
-            x, s, ok, bound = _block_estimates(frames[k], load(frames[k]), pattern, t_k, b)
-        steady = (_untruncated(x, s, frames[k], pattern, t_k, b) & ok) if params.linear else ok
-        return deghost.Blocks(x, s, ok, bound, steady)
+            blocks = _block_estimates(frames[k], load(frames[k]), pattern, tables[k], b)
+        if params.linear:
+            blocks = blocks._replace(steady=_untruncated(blocks, frames[k], pattern, tables[k], b) & blocks.ok)
+        return blocks
 
     lin_hi = None
     if params.shoulder_code is not None:  # an image's reading near white bounds the light from below
         lin_hi = np.float32([crf.inverse(np.float64(params.shoulder_code), c) for c in range(len(first.black))])
     # two frames at a time where blocks are larger than a cell (one's test beside the other's
     # estimates); with blocks of one cell a test's temporaries are as large as the frame's samples
-    fractions, masks = deghost.ghost_masks(estimate, np.asarray(exposures), reference_index(frames), params,
-                                           b * per_px, lin_hi, workers=2 if b > 1 else 1)
-    hb, wb = masks[0].shape
-    return Ghosts(None, False, params.p_fa, b, (hb * b * per_px, wb * b * per_px),
-                  [round(f, 6) for f in fractions], list(frames), masks, per_px, max(fractions))
+    found = deghost.ghost_masks(estimate, np.asarray(exposures), reference_index(frames), params, b * per_px, lin_hi,
+                                workers=2 if b > 1 else 1)
+    hb, wb = found[0].mask.shape
+    fractions = [m.fraction for m in found]
+    return Ghosts(mode=None, applied=False, p_false_alarm=params.p_fa, block=b,
+                  covered=(hb * b * per_px, wb * b * per_px), rejected_fraction=[round(f, 6) for f in fractions],
+                  frames=list(frames), masks=[m.mask for m in found], per_px=per_px, largest=max(fractions))
 
 
 @dataclasses.dataclass

@@ -9,7 +9,7 @@ import functools
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -23,10 +23,6 @@ if TYPE_CHECKING:
     from hdrmerge_cli.pipeline.choices import Decision, RegistrationPlan
 
 log = logging.getLogger("hdrmerge_cli")
-
-
-#: a registration is kept when its correlation coefficient reaches this
-MIN_CONFIDENCE = 0.3
 
 
 @dataclasses.dataclass
@@ -129,10 +125,9 @@ def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
                                            float(np.mean(frame.white)), frame.n_codes)
 
 
-def _coarse_linear(frame: Frame, codes: np.ndarray, crf: CRF, f: int) -> np.ndarray:
-    """The frame's :func:`~hdrmerge_cli.core.registration.coarse_registration_image`."""
-    return registration.coarse_registration_image(codes, crf, frame.kind == "raw", float(np.mean(frame.black)),
-                                                  float(np.mean(frame.white)), frame.n_codes, f)
+def _coarse_linear(frame: Frame, codes: np.ndarray, f: int) -> np.ndarray:
+    """A RAW frame's :func:`~hdrmerge_cli.core.registration.coarse_mosaic_image`."""
+    return registration.coarse_mosaic_image(codes, float(np.mean(frame.black)), float(np.mean(frame.white)), f)
 
 
 def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, plan: RegistrationPlan,
@@ -141,7 +136,7 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, pla
     ``plan.motion``.  A pair is registered when both frames have texture in the irradiance
     range they share (:func:`~hdrmerge_cli.core.registration.registrable`: a count of
     pixels, however small a fraction of the frame), and the result is kept when its
-    correlation reaches :data:`MIN_CONFIDENCE`.  When the plan screens the pairs
+    correlation reaches :data:`~hdrmerge_cli.core.registration.MIN_CONFIDENCE`.  When the plan screens the pairs
     (``--align auto``), each pair is first tested at coarse resolution (the level the
     texture test measures at): a pair without texture there is left unaligned, one found
     still (:func:`~hdrmerge_cli.core.registration.still_test`, at ``plan.tolerance_px``
@@ -154,20 +149,19 @@ def estimate_alignment(frames: list[Frame], exposures: np.ndarray, crf: CRF, pla
     bracket does not pin is not applied.  Returns an :class:`Alignment` as found, not yet
     applied (:func:`~hdrmerge_cli.pipeline.choices.choose_alignment` decides that)."""
     ref = reference_index(frames)
-    identity = np.hstack([np.eye(2), np.zeros((2, 1))])
     found = _Registrar(frames, exposures, crf, plan, ref, load).run()
     steps = found.steps
     warps = [None] * len(frames)
-    warps[ref] = identity
+    warps[ref] = np.eye(2, 3)
     unaligned = []
     for j in found.sides[0] + found.sides[1]:
-        w, why = steps[j]
-        if why is not None:
+        if steps[j].why is not None:
             unaligned.append(frames[j].path)
-        warps[j] = registration.compose(w, warps[j - 1 if j > ref else j + 1])
-    left = {j: steps[j][1] for j in sorted(steps) if steps[j][1] is not None}  # in frame order
-    return Alignment(None, plan.motion, "none", frames[ref].path, False, list(frames), warps, found.confidence,
-                     unaligned, [frames[j].path for j in sorted(found.still)], left)
+        warps[j] = registration.compose(steps[j].warp, warps[j - 1 if j > ref else j + 1])
+    left = {j: steps[j].why for j in sorted(steps) if steps[j].why is not None}  # in frame order
+    return Alignment(mode=None, motion=plan.motion, resampling="none", reference=frames[ref].path, applied=False,
+                     frames=list(frames), warps=warps, confidence=found.confidence, unaligned=unaligned,
+                     still=[frames[j].path for j in sorted(found.still)], left=left)
 
 
 
@@ -183,13 +177,20 @@ def _shared_range(frame: Frame, exposure_a: float, exposure_b: float) -> tuple[f
         return None
 
 
+class Step(NamedTuple):
+    """One frame's step: the ``(2, 3)`` float64 warp from its neighbour towards the
+    reference to it, and why it is left unaligned (None: it is not)."""
+
+    warp: np.ndarray
+    why: str | None
+
+
 @dataclasses.dataclass
 class _Steps:
     """What :class:`_Registrar` hands :func:`estimate_alignment`."""
 
-    #: per frame ``j`` other than the reference: ``(warp, why)``, the ``(2, 3)`` float64 warp
-    #: from its neighbour towards the reference to it, and why it is left unaligned or None
-    steps: dict[int, tuple[np.ndarray, str | None]]
+    #: per frame ``j`` other than the reference, its :class:`Step`
+    steps: dict[int, Step]
     #: the frame indices of each side of the reference, outwards (after it, before it)
     sides: list[list[int]]
     #: per frame, its registration's correlation to its neighbour (1 for the reference)
@@ -208,13 +209,13 @@ class _Registrar:
         self.frames, self.exposures, self.crf, self.load = frames, exposures, crf, load
         self.plan, self.motion, self.ref = plan, plan.motion, ref
         self.raw = frames[0].kind == "raw"
-        self.identity = np.hstack([np.eye(2), np.zeros((2, 1))])
+        self.identity = np.eye(2, 3)
         self.confidence = [1.0] * len(frames)
         self.judged_still: list[int] = []
         self.scale = registration.coarse_factor(frames[0].height, frames[0].width, 2 if self.raw else 1)
         self._small: dict[int, np.ndarray] = {}
         self._full: dict[int, np.ndarray] = {}
-        self._making = {k: threading.Lock() for k in range(len(frames))}
+        self._making = {k: threading.RLock() for k in range(len(frames))}
         # the pairs that may read each frame's full-resolution image: its own step and its
         # outward neighbour's (the reference: each side's first); dropped after the last
         self._uses = [0] * len(frames)
@@ -240,11 +241,13 @@ class _Registrar:
                     self._full.pop(k, None)
 
     def coarse(self, k: int) -> np.ndarray:
-        """Frame k's registration image reduced as the texture test reduces it
-        (:func:`_coarse_linear`); made once, the reference's for both sides."""
+        """Frame k's registration image reduced as the texture test reduces it (block means:
+        a RAW frame's from its codes, :func:`_coarse_linear`; an image's from its full
+        registration image, :meth:`image`); made once, the reference's for both sides."""
         with self._making[k]:
             if k not in self._small:
-                self._small[k] = _coarse_linear(self.frames[k], self.load(self.frames[k]), self.crf, self.scale)
+                self._small[k] = (_coarse_linear(self.frames[k], self.load(self.frames[k]), self.scale) if self.raw
+                                  else registration.block_mean(self.image(k), self.scale))
             return self._small[k]
 
     def log_pair(self, a: int, b: int, image) -> tuple[np.ndarray, np.ndarray] | None:
@@ -257,34 +260,34 @@ class _Registrar:
         return (registration.log_irradiance(image(a), self.exposures[a], lo, hi),
                 registration.log_irradiance(image(b), self.exposures[b], lo, hi))
 
-    def step(self, a: int, b: int) -> tuple[np.ndarray, str | None]:
+    def step(self, a: int, b: int) -> Step:
         """Warp from frame a's coordinates to frame b's (neighbours in exposure), or the
         identity and why they cannot be registered."""
         pair = self.log_pair(a, b, self.image)
         if pair is None:
-            return self.identity, "no irradiance range is well exposed in both it and its neighbour"
+            return Step(self.identity, "no irradiance range is well exposed in both it and its neighbour")
         ia, ib = pair
         why = registration.registrable(ia, ib)
         if why is not None:
-            return self.identity, f"{why} in the range it shares with its neighbour"
+            return Step(self.identity, f"{why} in the range it shares with its neighbour")
         w, rho = registration.estimate_warp(ia, ib, self.motion)
         self.confidence[b] = round(rho, 4)
-        if rho < MIN_CONFIDENCE:
-            return self.identity, f"registration to its neighbour correlates only {rho:.2f}"
+        if rho < registration.MIN_CONFIDENCE:
+            return Step(self.identity, f"registration to its neighbour correlates only {rho:.2f}")
         # RAW: found on 2 x 2 cells (centre 2u + 0.5)
-        return (registration.rescale_warp(w, 2, 0.5) if self.raw else w), None
+        return Step(registration.rescale_warp(w, 2, 0.5) if self.raw else w, None)
 
-    def still(self, a: int, b: int) -> tuple[np.ndarray, str | None] | None:
-        """When screening: the step from frame a to b at coarse resolution when the pair is
-        still (:func:`~hdrmerge_cli.core.registration.still_test`, the plan's tolerance
-        shared by the steps between b and the reference), else None."""
-        pair = self.log_pair(a, b, self.coarse)
+    def still(self, a: int, b: int, pair: tuple[np.ndarray, np.ndarray] | None) -> Step | None:
+        """When screening: the step from frame a to b at coarse resolution (``pair``, their
+        :meth:`coarse` :meth:`log_pair`) when the pair is still
+        (:func:`~hdrmerge_cli.core.registration.still_test`, the plan's tolerance shared by
+        the steps between b and the reference), else None."""
         if pair is None:
             return None
         ia, ib = pair
         why = registration.registrable(ia, ib, self.scale // (2 if self.raw else 1))
         if why is not None:  # the texture test measures at this level
-            return self.identity, f"{why} in the range it shares with its neighbour"
+            return Step(self.identity, f"{why} in the range it shares with its neighbour")
         frame = self.frames[b]
         tol = self.plan.tolerance_px / abs(b - self.ref)
         is_still, w, bound, rho = registration.still_test(ia, ib, self.scale, frame.height, frame.width, tol)
@@ -297,21 +300,21 @@ class _Registrar:
                  "(%.3f, %.3f) px as estimated); not registered at full resolution", frame.path, bound,
                  1 - registration.STILL_P_MISS, w[0, 2], w[1, 2])
         self.judged_still.append(b)
-        if rho < MIN_CONFIDENCE:
-            return self.identity, f"its still test correlates only {rho:.2f} with its neighbour"
+        if rho < registration.MIN_CONFIDENCE:
+            return Step(self.identity, f"its still test correlates only {rho:.2f} with its neighbour")
         # RAW: within the tolerance at the test's confidence the frame stays where its
         # neighbour is: resampling a mosaic colour by colour for an estimate of a few
         # hundredths of a pixel costs more than it corrects (a colour's 2-px pitch, the taps'
         # spread in the weights, clipped taps near white)
-        return (self.identity if self.raw else w), None
+        return Step(self.identity if self.raw else w, None)
 
-    def pinned(self, a: int, b: int, w: np.ndarray) -> bool:
-        """When screening: whether the registered step from frame a to b moves b by more than
-        the pair can tell from no motion
-        (:func:`~hdrmerge_cli.core.registration.displacement_margin` on the coarse images)."""
+    def pinned(self, b: int, w: np.ndarray, pair: tuple[np.ndarray, np.ndarray]) -> bool:
+        """When screening: whether the registered step to frame b moves it by more than the
+        pair can tell from no motion (:func:`~hdrmerge_cli.core.registration.displacement_margin`
+        on the coarse ``pair``, as :meth:`still` read it)."""
         frame = self.frames[b]
         size = registration.warp_size(w, frame.height, frame.width)
-        ia, ib = self.log_pair(a, b, self.coarse)
+        ia, ib = pair
         margin = registration.displacement_margin(ia, ib, w, self.scale, frame.height, frame.width)
         if size > margin:
             return True
@@ -320,17 +323,18 @@ class _Registrar:
         self.judged_still.append(b)
         return False
 
-    def chain(self, indices: list[int]) -> dict[int, tuple[np.ndarray, str | None]]:
-        """The steps of one side of the reference, outwards (``{j: (warp, why)}``): when
+    def chain(self, indices: list[int]) -> dict[int, Step]:
+        """The steps of one side of the reference, outwards (``{j: Step}``): when
         screening, a step found still at coarse resolution is not registered at full
         resolution, and a registered one is kept only where the pair pins it (:meth:`pinned`)."""
         auto = self.plan.screen
         out = {}
         for j in indices:
             a = j - 1 if j > self.ref else j + 1
-            out[j] = (auto and self.still(a, j)) or self.step(a, j)
-            if auto and out[j][1] is None and j not in self.judged_still and not self.pinned(a, j, out[j][0]):
-                out[j] = self.identity, None
+            coarse = self.log_pair(a, j, self.coarse) if auto else None  # read by the still test and the margin
+            out[j] = (auto and self.still(a, j, coarse)) or self.step(a, j)
+            if auto and out[j].why is None and j not in self.judged_still and not self.pinned(j, out[j].warp, coarse):
+                out[j] = Step(self.identity, None)
             self.done(a, j)
         return out
 
@@ -405,7 +409,7 @@ class AlignedLoader:
 
 def is_identity(warp: np.ndarray) -> bool:
     """Whether a warp moves nothing (the reference's; no resampling)."""
-    return bool(np.allclose(warp, np.hstack([np.eye(2), np.zeros((2, 1))]), rtol=0.0, atol=1e-9))
+    return bool(np.allclose(warp, np.eye(2, 3), rtol=0.0, atol=1e-9))
 
 
 def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = None) -> np.ndarray:
@@ -415,7 +419,7 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = 
     CFA periods."""
     h, w = frame.height, frame.width
     if frame.kind == "raw" and periods:  # whole CFA periods
-        tx, ty = (2 * np.rint(warp[:, 2] / 2)).astype(int)
+        tx, ty = resample.period_shift(warp)
         inside = ((np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1))[rows or slice(None)]
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
         return inside[:, None] & cols[None, :]
