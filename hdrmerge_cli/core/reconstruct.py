@@ -27,9 +27,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
-from hdrmerge_cli.core.weights_goossens2012 import (
-    BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, WeightContext, bounded_noise,
-)
+from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
 
 #: flag values of :meth:`LogMerge.finish`
 FLAG_OK, FLAG_SATURATED, FLAG_DARK = 0, 1, -1
@@ -122,12 +120,12 @@ MODEL_TOLERANCE = 0.01
 def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k, bounds=None):
     if weighting not in NOISE_MODEL_WEIGHTS:
         return None
+    bounds = tuple(bounds) if bounds else WeightContext.bounds
     if noise is None:  # unknown camera: the conservative upper bounds of the bounded scheme
-        noise = bounded_noise(y_full, *(bounds or (BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, 0.0)))
+        noise = bounded_noise(y_full, *bounds)
     if not prior_rate or prior_rate <= 0:
         raise HdrMergeError("the irradiance prior needs a positive mean (the bracket looks black)")
-    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k,
-                        **({"bounds": tuple(bounds)} if bounds else {}))
+    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k, bounds=bounds)
     if weighting != "bounded":
         lo, hi = ctx.safe_range()
         if lo >= hi:
@@ -705,9 +703,6 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
     height = log_e.shape[0]
-    if height <= STRIP_ROWS:
-        return _irls_piece(codes_of, tables, pattern, log_e, exposures, y_full, rows, linear, iterations, tol,
-                           variance, None if adjust is None else (lambda *a: adjust(*a, slice(0, height))), den)
     flags = np.empty(log_e.shape, np.int8)
     given = den is not None
     den = den if given else np.empty(log_e.shape, np.float32)
