@@ -196,6 +196,11 @@ def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: Noise
     return y * y / (code_variance(y, noise) + (0.0 if code_error is None else code_error))
 
 
+def _floored(w: np.ndarray, v: np.ndarray, weighting: str) -> np.ndarray:
+    """Noise-model weights: the underflowed weights of unclipped codes kept at :data:`WEIGHT_FLOOR` (they still count)."""
+    return np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
+
+
 def _code_error(crf: CRF, excess, v: np.ndarray, lin: np.ndarray, y_full: float) -> np.ndarray | None:
     """(N,) variance (squared code values of ``y``) a camera-processed code adds beyond (17); None for a linear CRF."""
     # camera-processed codes' own error; a linear sensor's measured read noise already
@@ -268,14 +273,12 @@ def exposure_tables(
     log_h = np.log(exposure)
     rows = []
     for c, b, wl, v, lin in _channels(n_codes, black, white, crf):
-        cert = _row(certainty, c)
-        if weighting in NOISE_MODEL_WEIGHTS:  # underflowed weights of unclipped codes still count
-            cert = np.where((v > 0) & (v < 1), np.maximum(cert, WEIGHT_FLOOR), 0.0)
+        cert = _floored(_row(certainty, c), v, weighting)
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
         code_error = _code_error(crf, excess, v, lin, wl - b)
         w, value = _weight_and_value(estimator, variance, cert, lin, wl - b, exposure, _row(noise, c), code_error)
-        w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
+        w = _floored(w, v, weighting)
         rows.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
     w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*rows))
     var = (estimate_variance_table(n_codes, black, white, crf, exposure, noise, estimator)

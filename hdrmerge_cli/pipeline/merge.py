@@ -136,9 +136,8 @@ class SampleWeights:
                 self.slopes[k] = value_slope(self.tables[k])
             part = spread[rows]
             w, own = resampled_weight(w, self.tables[k], codes, self.pattern, part.reshape(part.shape[0], -1),
-                                      self.alignment.warp_of(self.frames[k]), out=w if own else None,
-                                      cfa=self.frames[k].cfa_pattern, row0=rows.indices(spread.shape[0])[0],
-                                      slope=self.slopes[k]), True
+                                      self.alignment.warp_of(self.frames[k]), self.slopes[k], out=w if own else None,
+                                      cfa=self.frames[k].cfa_pattern, row0=rows.indices(spread.shape[0])[0]), True
         f = self.factor(k, rows)
         if f is None:
             return w, None
@@ -173,15 +172,14 @@ class SampleWeights:
 
 
 def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, spread: np.ndarray,
-                     warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None,
-                     row0: int = 0, slope: np.ndarray | None = None) -> np.ndarray:
+                     warp: np.ndarray, slope: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None,
+                     row0: int = 0) -> np.ndarray:
     """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
     mosaic resampled by ``warp`` with the interpolation's variance added
     (:func:`~hdrmerge_cli.core.resample.resampled_weight_mosaic`), from the frame's
     ``tables``: the slope of its value table (linear or log value per code) and its
-    certainty ``w(z)`` (``slope``: :func:`value_slope`, computed when not given).  ``out``
-    may be ``w``; ``row0``: the arrays are rows ``row0`` on of the frame."""
-    slope = value_slope(tables) if slope is None else slope
+    certainty ``w(z)`` (``slope``: :func:`value_slope`).  ``out`` may be ``w``; ``row0``:
+    the arrays are rows ``row0`` on of the frame."""
     return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, tables.n_codes, spread, warp,
                                          out, weight=tables.weight, cfa=cfa, row0=row0)
 
