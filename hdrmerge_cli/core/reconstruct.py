@@ -201,7 +201,8 @@ def _floored(w: np.ndarray, v: np.ndarray, weighting: str) -> np.ndarray:
     return np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
 
 
-def _code_error(crf: CRF, excess, v: np.ndarray, lin: np.ndarray, y_full: float) -> np.ndarray | None:
+def _code_error(crf: CRF, excess, v: np.ndarray | None, lin: np.ndarray, y_full: float,
+                tolerance: float = MODEL_TOLERANCE) -> np.ndarray | None:
     """(N,) variance (squared code values of ``y``) a camera-processed code adds beyond (17); None for a linear CRF."""
     # camera-processed codes' own error; a linear sensor's measured read noise already
     # holds its quantisation
@@ -209,7 +210,7 @@ def _code_error(crf: CRF, excess, v: np.ndarray, lin: np.ndarray, y_full: float)
         return None
     if excess is not None:
         return quantisation_variance(lin, y_full) + excess.at(v) * (lin * y_full) ** 2
-    return code_error_variance(lin, y_full)
+    return code_error_variance(lin, y_full, tolerance)
 
 
 def _weight_and_value(estimator: str, variance: str, cert: np.ndarray, lin: np.ndarray, y_full: float,
@@ -327,8 +328,9 @@ def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: floa
         y = np.clip(lin, 0.0, 1.0) * y_full
         chan_noise = _row(noise, c)
         var_y = np.zeros_like(y) if chan_noise is None else code_variance(y, chan_noise)
-        if not crf.is_linear:
-            var_y = var_y + code_error_variance(lin, y_full, tolerance)
+        code_error = _code_error(crf, None, None, lin, y_full, tolerance)
+        if code_error is not None:
+            var_y = var_y + code_error
         elif chan_noise is None:
             var_y = var_y + 1.0 / 12.0
         if estimator == "ml":
