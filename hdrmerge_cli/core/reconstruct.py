@@ -22,7 +22,6 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from hdrmerge_cli.core.choices import VARIANCE_FACTORS
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
