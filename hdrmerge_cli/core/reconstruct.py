@@ -706,6 +706,8 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     unmeasured samples: :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a
     non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
+    if len(rows) != len(tables):
+        raise ValueError(f"irls: {len(rows)} noise rows for {len(tables)} frames (one noise_rows tuple per frame)")
     height = log_e.shape[0]
     flags = np.empty(log_e.shape, np.int8)
     given = den is not None
@@ -728,17 +730,13 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
                 linear: bool, iterations: int, tol: float, variance: bool, adjust, den: np.ndarray | None):
     """:func:`irls` on one strip of rows of every frame (``adjust`` bound to its rows):
     new arrays, as an :class:`IRLSResult`."""
-    flags = None
     prev_den = den if linear else None
-    change = np.inf
     pat = _pattern(pattern)
     shape2 = _rows_cols(log_e.shape)
     # the weights as an array only where something else reads them (motion's adjustment, the
     # variance, the censored terms of a first pass without ``den``); else fused into the sums
     fused = adjust is None and not variance and (prev_den is not None or not linear)
     weight = np.empty(shape2, np.float32) if not fused else np.zeros((1, 1), np.float32)
-    if len(rows) != len(tables):
-        raise ValueError(f"irls: {len(rows)} noise rows for {len(tables)} frames (one noise_rows tuple per frame)")
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern, variance=variance)
         cen = None  # ML: the clipped readings as censored observations (_censored_rows), when held apart
