@@ -233,7 +233,7 @@ def _choice(name: str, value, choices) -> None:
 
 def _settings(weighting, estimator, variance_model, irls, k, align, deghost, reference) -> MergeSettings:
     """The checked :class:`MergeSettings` of the array API's keywords."""
-    from hdrmerge_cli.core.reconstruct import VARIANCE_FACTORS
+    from hdrmerge_cli.core.choices import VARIANCE_FACTORS
     from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
     from hdrmerge_cli.io.metadata import reference_exposure
     from hdrmerge_cli.pipeline.options import ALIGN_MODES, DEGHOST_MODES

@@ -501,7 +501,7 @@ def test_resampled_weight_adds_the_interpolation_variance():
     between four taps (e = 1/4) the averaged noise weighs 4x, and a spread of noise alone
     (3/4 v) adds nothing."""
     from hdrmerge_cli.core.reconstruct import ExposureTables
-    from hdrmerge_cli.pipeline.merge import resampled_weight
+    from hdrmerge_cli.pipeline.merge import resampled_weight, value_slope
 
     n = 256
     value = np.arange(n, dtype=np.float32) / 255.0  # slope 1/255 per code
@@ -512,13 +512,14 @@ def test_resampled_weight_adds_the_interpolation_variance():
     w = (cert / var)[codes].astype(np.float32)
     spread = np.array([[0.0, 255.0**2 * 1e-6, 255.0**2 * 1e-2]] * 2, np.float32)  # u = 0, = v, = 1e4 v
     on_taps = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, 2.0]])
-    out = resampled_weight(w, tab, codes, None, spread, on_taps)
+    slope = value_slope(tab)
+    out = resampled_weight(w, tab, codes, None, spread, on_taps, slope)
     np.testing.assert_allclose(out[0], [1e6, 5e5, 1e6 / 10001], rtol=1e-3)
     midway = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])  # each colour's sub-plane moves by half a site
-    out = resampled_weight(w, tab, codes, None, spread, midway)
+    out = resampled_weight(w, tab, codes, None, spread, midway, slope)
     np.testing.assert_allclose(out[0], [4e6, 2e6, 1e6 / 9999.5], rtol=1e-3)
     noise_only = np.full((2, 3), 0.75 * 255.0**2 * 1e-6, np.float32)
-    np.testing.assert_allclose(resampled_weight(w, tab, codes, None, noise_only, midway), 4e6, rtol=1e-3)
+    np.testing.assert_allclose(resampled_weight(w, tab, codes, None, noise_only, midway, slope), 4e6, rtol=1e-3)
 
 
 def test_resampled_frames_give_way_to_the_reference_at_sharp_edges(tmp_path, monkeypatch):

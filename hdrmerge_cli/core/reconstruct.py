@@ -17,18 +17,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
-from hdrmerge_cli.core.choices import VARIANCE_FACTORS
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
-from hdrmerge_cli.core.weights_goossens2012 import (
-    BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, WeightContext, bounded_noise,
-)
+from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
 
 #: flag values of :meth:`LogMerge.finish`
 FLAG_OK, FLAG_SATURATED, FLAG_DARK = 0, 1, -1
@@ -91,9 +89,19 @@ def table_size(white, n_codes: int) -> int:
     return min(int(2 ** np.ceil(np.log2(float(np.max(white)) + 1))), n_codes)
 
 
-def code_grid(n_codes: int, black: float, white: float) -> np.ndarray:
-    """Normalised code values ``v = (r - black) / (white - black)`` for ``r = 0..N-1``."""
-    return (np.arange(n_codes, dtype=np.float64) - black) / float(white - black)
+def _channels(n_codes: int, black, white, crf: CRF):
+    """Per table row ``(c, black, white, v, lin)``: the normalised code values ``v = (r -
+    black) / (white - black)`` for ``r = 0..N-1`` and ``gamma^-1`` at every stored code."""
+    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
+    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
+    lins = crf.codes_table(n_codes, black, white)
+    for c, (b, wl) in enumerate(zip(black, white)):
+        yield c, b, wl, (np.arange(n_codes, dtype=np.float64) - b) / float(wl - b), lins[c]
+
+
+def _row(per_row, c: int):
+    """Table row ``c``'s entry of per-row values (the last where there are fewer; None: None)."""
+    return None if per_row is None else per_row[min(c, len(per_row) - 1)]
 
 
 #: smallest weight of an unclipped code: noise-model weights of codes far outside the
@@ -111,12 +119,12 @@ MODEL_TOLERANCE = 0.01
 def _context(weighting, y_full, exposure, noise, prior_rate, exposures, k, bounds=None):
     if weighting not in NOISE_MODEL_WEIGHTS:
         return None
+    bounds = tuple(bounds) if bounds else WeightContext.bounds
     if noise is None:  # unknown camera: the conservative upper bounds of the bounded scheme
-        noise = bounded_noise(y_full, *(bounds or (BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, 0.0)))
+        noise = bounded_noise(y_full, *bounds)
     if not prior_rate or prior_rate <= 0:
         raise HdrMergeError("the irradiance prior needs a positive mean (the bracket looks black)")
-    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k,
-                        **({"bounds": tuple(bounds)} if bounds else {}))
+    ctx = WeightContext(y_full, exposure, noise, prior_rate, tuple(exposures), k, bounds=bounds)
     if weighting != "bounded":
         lo, hi = ctx.safe_range()
         if lo >= hi:
@@ -135,16 +143,9 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
     weights; without it they use the bounded scheme's conservative upper bounds; ``prior_rate`` is the mean of the exponential irradiance prior in
     code values per second; ``bounds`` the ``(1/alpha, sigma_o^2, beta)`` upper bounds of
     ``bounded`` on the normalised scale (default: the paper's JPEG values)."""
-    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
-    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
-    rows, lins = [], crf.codes_table(n_codes, black, white)
-    for c, (b, wl) in enumerate(zip(black, white)):
-        v = code_grid(n_codes, b, wl)
-        lin = lins[c]
-        ctx = _context(weighting, wl - b, exposure, None if noise is None else noise[min(c, len(noise) - 1)],
-                       prior_rate, exposures, k, bounds)
-        rows.append(WEIGHTING_FUNCTIONS[weighting](v, lin, ctx))
-    return np.stack(rows)
+    return np.stack([WEIGHTING_FUNCTIONS[weighting](v, lin, _context(weighting, wl - b, exposure, _row(noise, c),
+                                                                     prior_rate, exposures, k, bounds))
+                     for c, b, wl, v, lin in _channels(n_codes, black, white, crf)])
 
 
 def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
@@ -194,7 +195,13 @@ def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: Noise
     return y * y / (code_variance(y, noise) + (0.0 if code_error is None else code_error))
 
 
-def _code_error(crf: CRF, excess, v: np.ndarray, lin: np.ndarray, y_full: float) -> np.ndarray | None:
+def _floored(w: np.ndarray, v: np.ndarray, weighting: str) -> np.ndarray:
+    """Noise-model weights: the underflowed weights of unclipped codes kept at :data:`WEIGHT_FLOOR` (they still count)."""
+    return np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
+
+
+def _code_error(crf: CRF, excess, v: np.ndarray | None, lin: np.ndarray, y_full: float,
+                tolerance: float = MODEL_TOLERANCE) -> np.ndarray | None:
     """(N,) variance (squared code values of ``y``) a camera-processed code adds beyond (17); None for a linear CRF."""
     # camera-processed codes' own error; a linear sensor's measured read noise already
     # holds its quantisation
@@ -202,7 +209,7 @@ def _code_error(crf: CRF, excess, v: np.ndarray, lin: np.ndarray, y_full: float)
         return None
     if excess is not None:
         return quantisation_variance(lin, y_full) + excess.at(v) * (lin * y_full) ** 2
-    return code_error_variance(lin, y_full)
+    return code_error_variance(lin, y_full, tolerance)
 
 
 def _weight_and_value(estimator: str, variance: str, cert: np.ndarray, lin: np.ndarray, y_full: float,
@@ -260,25 +267,18 @@ def exposure_tables(
         (:class:`~hdrmerge_cli.core.excess_variance.ExcessVariance`); it replaces the fixed
         :data:`MODEL_TOLERANCE` of :func:`code_error_variance`
     """
-    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
-    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
     if certainty is None:
         certainty = certainty_table(n_codes, black, white, crf, weighting, exposure, noise, prior_rate, exposures, k,
                                     bounds)
     log_h = np.log(exposure)
-    rows, lins = [], crf.codes_table(n_codes, black, white)
-    for c, (b, wl) in enumerate(zip(black, white)):
-        v = code_grid(n_codes, b, wl)
-        lin = lins[c]
-        chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
-        cert = certainty[min(c, certainty.shape[0] - 1)]
-        if weighting in NOISE_MODEL_WEIGHTS:  # underflowed weights of unclipped codes still count
-            cert = np.where((v > 0) & (v < 1), np.maximum(cert, WEIGHT_FLOOR), 0.0)
+    rows = []
+    for c, b, wl, v, lin in _channels(n_codes, black, white, crf):
+        cert = _floored(_row(certainty, c), v, weighting)
         half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
         fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
         code_error = _code_error(crf, excess, v, lin, wl - b)
-        w, value = _weight_and_value(estimator, variance, cert, lin, wl - b, exposure, chan_noise, code_error)
-        w = np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
+        w, value = _weight_and_value(estimator, variance, cert, lin, wl - b, exposure, _row(noise, c), code_error)
+        w = _floored(w, v, weighting)
         rows.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
     w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*rows))
     var = (estimate_variance_table(n_codes, black, white, crf, exposure, noise, estimator)
@@ -321,17 +321,15 @@ def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: floa
     frame's own reading, as the tables' weights are.  Without ``noise`` only ``c(y)`` remains (``1/12`` for a linear response): the
     ``codes`` variance factor of (7), a lower bound.
     """
-    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
-    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
-    rows, lins = [], crf.codes_table(n_codes, black, white)
-    for c, (b, wl) in enumerate(zip(black, white)):
-        lin = lins[c]
+    rows = []
+    for c, b, wl, _, lin in _channels(n_codes, black, white, crf):
         y_full = wl - b
         y = np.clip(lin, 0.0, 1.0) * y_full
-        chan_noise = None if noise is None else noise[min(c, len(noise) - 1)]
+        chan_noise = _row(noise, c)
         var_y = np.zeros_like(y) if chan_noise is None else code_variance(y, chan_noise)
-        if not crf.is_linear:
-            var_y = var_y + code_error_variance(lin, y_full, tolerance)
+        code_error = _code_error(crf, None, None, lin, y_full, tolerance)
+        if code_error is not None:
+            var_y = var_y + code_error
         elif chan_noise is None:
             var_y = var_y + 1.0 / 12.0
         if estimator == "ml":
@@ -384,6 +382,11 @@ def _rows_cols(shape):
     return shape[0], int(np.prod(shape[1:]))
 
 
+def _pattern(pattern: np.ndarray | None) -> np.ndarray:
+    """The kernels' table-row pattern: ``pattern`` as intp, or one row for every sample."""
+    return np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
+
+
 def _read_only(codes: np.ndarray) -> np.ndarray:
     """A read-only view of a frame's codes for the compiled kernels: decoded frames are
     writable, resampled ones read-only, and Numba compiles (and loads from its cache, tens
@@ -393,11 +396,18 @@ def _read_only(codes: np.ndarray) -> np.ndarray:
     return view
 
 
-def noise_rows(params: list[NoiseParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(sigma_o2, sqrt_alpha, beta / alpha) of (21) per table row, float32 ``(R,)`` each;
-    ``params`` one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
-    return tuple(np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
-                 for i in range(3))
+class NoiseRows(NamedTuple):
+    """The parameters of (21) per table row, float32 ``(R,)`` each, in the kernels' order."""
+
+    sigma_o2: np.ndarray
+    sqrt_alpha: np.ndarray
+    beta_per_alpha: np.ndarray
+
+
+def noise_rows(params: list[NoiseParams]) -> NoiseRows:
+    """:class:`NoiseRows` of ``params``, one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
+    return NoiseRows(*(np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
+                       for i in range(3)))
 
 
 @numba.njit(inline="always")
@@ -598,8 +608,8 @@ def _largest_change(new, old, flags):  # pragma: no cover
     return float(best.max()) if rows else 0.0
 
 
-def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h: float, y_full: float, max_rows,
-                    rows, weight, prev_den, factor, cen, variance: bool):
+def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h: float, y_full: float, rows,
+                    weight, prev_den, factor, cen, variance: bool):
     """Add one frame's clipped readings to a pass of :func:`irls` as censored terms.
 
     A clipped reading whose current estimate lies more than :data:`CENSORED_SDS` noise sds
@@ -614,11 +624,12 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
     straight into ``acc``; without it they are held apart in ``cen = (num, den)``, made on
     first use, until every frame is in.  Returns ``cen`` (None when the terms go direct).
 
-    rows : this frame's :func:`noise_rows`; max_rows : the largest value of each of its
-        three arrays (the noise at full scale of the noisiest table row)
+    rows : this frame's :func:`noise_rows`, whose largest values give the noise at full
+        scale of the noisiest table row
     """
     shape2 = log_e2.shape
-    sd_full2 = max_rows[0] + max_rows[1] * y_full + max_rows[2] * y_full ** 2
+    so, sq, ba = (float(np.max(m)) for m in rows)
+    sd_full2 = so + sq * y_full + ba * y_full ** 2
     log_hi = np.float32(np.log((y_full - 0.5 + CENSORED_SDS * np.sqrt(sd_full2)) / (h * y_full)))
     direct = prev_den is not None
     if not direct and cen is None:
@@ -695,10 +706,9 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     unmeasured samples: :data:`UNMEASURED_RELATIVE_VARIANCE`.  The quantisation of a
     non-linear response (:func:`code_error_variance`) is not part of these weights.
     """
+    if len(rows) != len(tables):
+        raise ValueError(f"irls: {len(rows)} noise rows for {len(tables)} frames (one noise_rows tuple per frame)")
     height = log_e.shape[0]
-    if height <= STRIP_ROWS:
-        return _irls_piece(codes_of, tables, pattern, log_e, exposures, y_full, rows, linear, iterations, tol,
-                           variance, None if adjust is None else (lambda *a: adjust(*a, slice(0, height))), den)
     flags = np.empty(log_e.shape, np.int8)
     given = den is not None
     den = den if given else np.empty(log_e.shape, np.float32)
@@ -720,18 +730,13 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
                 linear: bool, iterations: int, tol: float, variance: bool, adjust, den: np.ndarray | None):
     """:func:`irls` on one strip of rows of every frame (``adjust`` bound to its rows):
     new arrays, as an :class:`IRLSResult`."""
-    flags = None
     prev_den = den if linear else None
-    change = np.inf
-    pat = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
+    pat = _pattern(pattern)
     shape2 = _rows_cols(log_e.shape)
     # the weights as an array only where something else reads them (motion's adjustment, the
     # variance, the censored terms of a first pass without ``den``); else fused into the sums
     fused = adjust is None and not variance and (prev_den is not None or not linear)
     weight = np.empty(shape2, np.float32) if not fused else np.zeros((1, 1), np.float32)
-    if len(rows) != len(tables):
-        raise ValueError(f"irls: {len(rows)} noise rows for {len(tables)} frames (one noise_rows tuple per frame)")
-    max_rows = [[float(np.max(m)) for m in r] for r in rows]  # per frame, the largest of each parameter
     for it in range(1, iterations + 1):
         acc = LogMerge(log_e.shape, pattern, variance=variance)
         cen = None  # ML: the clipped readings as censored observations (_censored_rows), when held apart
@@ -749,8 +754,8 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
                 acc.add(codes, tab, last=k == len(tables) - 1, weight=w.reshape(log_e.shape), information=True,
                         factor=factor)
             if linear and tab.saturated is not None:
-                cen = _censored_frame(acc, codes, tab, pat, log_e2, h, y_full[k], max_rows[k], rows[k], weight,
-                                      prev_den, factor, cen, variance)
+                cen = _censored_frame(acc, codes, tab, pat, log_e2, h, y_full[k], rows[k], weight, prev_den, factor,
+                                      cen, variance)
         # the previous pass's weights and the last frame's codes are not needed any more:
         # freed before the new sums are finished (the peak memory of the pass)
         codes = den = prev_den = None
@@ -797,7 +802,7 @@ class LogMerge:
         self.num = np.zeros(self.shape, np.float32)
         self.den = np.zeros(self.shape, np.float32)
         self.var = np.zeros(self.shape, np.float32) if variance else None
-        self.pattern = np.zeros((1, 1), np.intp) if pattern is None else np.ascontiguousarray(pattern, np.intp)
+        self.pattern = _pattern(pattern)
         self.frames = 0
         self.finished = False
 
@@ -838,35 +843,27 @@ class LogMerge:
         frame's Fisher information ``I_j = 1 / Var(x_j)`` at the current estimate
         (:func:`_irls_weight`), ``var += w(z) weight`` (``= w^2 Var(x_j)`` exactly)."""
         n = tables.n_codes
-        mode = 0 if self.frames == 0 else 2 if last else 1
         keep = _NO_WEIGHT if factor is None else np.ascontiguousarray(factor, np.float32).reshape(factor.shape[0], -1)
         if factor is not None and weight is None and self.var is not None:  # the variance pass takes per-sample weights
             per_pixel = lookup(tables.weight, n, codes, self.pattern).reshape(factor.shape + (-1,))
             weight = (per_pixel * factor[..., None]).reshape(codes.shape)
-        elif factor is not None and weight is None:
-            _accumulate(_read_only(self._2d(codes)), self.pattern, tables.weight.reshape(-1, n),
-                        tables.weighted_log.reshape(-1, n),
-                        tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
-                        keep, 2, mode, self._2d(self.num), self._2d(self.den), keep, True)
-            self._added(tables)
-            return
-        if weight is None:
-            num_tab, per_sample = tables.weighted_log, _NO_WEIGHT
-        else:
-            num_tab, per_sample = tables.value, self._2d(weight.astype(np.float32, copy=False))
+        if weight is not None:  # 1: per-sample weights, with the table's values
+            num_tab, per_sample, use_weight = tables.value, self._2d(weight.astype(np.float32, copy=False)), 1
+        else:  # 2: the table's weights times the per-pixel factor; 0: the table's weights
+            num_tab, per_sample, use_weight = tables.weighted_log, keep, 0 if factor is None else 2
+        tabs = (tables.weight.reshape(-1, n), num_tab.reshape(-1, n), tables.fallback_log.reshape(-1, n),
+                tables.above_mid.reshape(-1, n))
         if self.var is None:
-            _accumulate(_read_only(self._2d(codes)), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
-                        tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), per_sample,
-                        int(weight is not None), mode, self._2d(self.num), self._2d(self.den), keep, factor is not None)
+            _accumulate(_read_only(self._2d(codes)), self.pattern, *tabs, per_sample, use_weight, self._mode(last),
+                        self._2d(self.num), self._2d(self.den), keep, factor is not None)
         else:
             use_cert = information and weight is not None
             q_tab = tables.certainty if use_cert else tables.variance
             if q_tab is None:
                 raise ValueError("LogMerge(..., variance=True) needs tables built with_variance=True")
-            _accumulate_var(_read_only(self._2d(codes)), self.pattern, tables.weight.reshape(-1, n), num_tab.reshape(-1, n),
-                            tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n),
-                            q_tab.reshape(-1, n), per_sample, weight is not None, use_cert, mode,
-                            self._2d(self.num), self._2d(self.den), self._2d(self.var), keep, factor is not None)
+            _accumulate_var(_read_only(self._2d(codes)), self.pattern, *tabs, q_tab.reshape(-1, n), per_sample,
+                            use_weight, use_cert, self._mode(last), self._2d(self.num), self._2d(self.den),
+                            self._2d(self.var), keep, factor is not None)
         self._added(tables)
 
     def add_irls(self, codes: np.ndarray, tables: ExposureTables, last: bool, log_e: np.ndarray, k: float, rows,
@@ -877,12 +874,15 @@ class LogMerge:
         if self.var is not None:
             raise ValueError("add_irls does not propagate the variance: use add(weight=...)")
         n = tables.n_codes
-        mode = 0 if self.frames == 0 else 2 if last else 1
         _accumulate_irls(_read_only(self._2d(codes)), self.pattern, tables.certainty.reshape(-1, n),
-                         tables.value.reshape(-1, n),
-                         tables.fallback_log.reshape(-1, n), tables.above_mid.reshape(-1, n), log_e, np.float32(k),
-                         *rows, linear, mode, self._2d(self.num), self._2d(self.den))
+                         tables.value.reshape(-1, n), tables.fallback_log.reshape(-1, n),
+                         tables.above_mid.reshape(-1, n), log_e, np.float32(k), *rows, linear, self._mode(last),
+                         self._2d(self.num), self._2d(self.den))
         self._added(tables)
+
+    def _mode(self, last: bool) -> int:
+        """The kernels' ``mode``: 0 the shortest frame, 2 the longest, 1 one between."""
+        return 0 if self.frames == 0 else 2 if last else 1
 
     def _added(self, tables: ExposureTables) -> None:
         # the ML estimator's dark floor: the longest frame's fallback at code 0, per row
@@ -921,6 +921,19 @@ class LogMerge:
         return self.num, flag
 
 
+@numba.njit(inline="always")
+def _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z):  # pragma: no cover
+    """Sample ``(r, s)``'s weight and weighted value (table row ``c``, code ``z``) as
+    :func:`_accumulate`'s ``use_weight`` says."""
+    if use_weight == 1:
+        w = weight[r, s]
+        return w, w * num_tab[c, z]
+    if use_weight == 2:
+        f = weight[r, s // per_pixel]
+        return w_tab[c, z] * f, num_tab[c, z] * f
+    return w_tab[c, z], num_tab[c, z]
+
+
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den,
                 keep, use_keep):  # pragma: no cover
@@ -943,16 +956,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
             c = prow[q]
             for s in range(q, cols, pw):
                 z = min(codes[r, s], top)
-                if use_weight == 1:
-                    w = weight[r, s]
-                    wv = w * num_tab[c, z]
-                elif use_weight == 2:
-                    f = weight[r, s // per_pixel]
-                    w = w_tab[c, z] * f
-                    wv = num_tab[c, z] * f
-                else:
-                    w = w_tab[c, z]
-                    wv = num_tab[c, z]
+                w, wv = _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z)
                 _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, keep, per_keep, use_keep)
 
 
@@ -1005,12 +1009,7 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
             c = prow[q]
             for s in range(q, cols, pw):
                 z = min(codes[r, s], top)
-                if use_weight:
-                    w = weight[r, s]
-                    wv = w * num_tab[c, z]
-                else:
-                    w = w_tab[c, z]
-                    wv = num_tab[c, z]
+                w, wv = _weight_value(w_tab, num_tab, weight, use_weight, 1, r, s, c, z)
                 if w > 0:  # var follows den, which _add_sample then sets or adds to
                     wq = w * q_tab[c, z] if use_cert else (w * q_tab[c, z]) * w
                     if mode != 0 and den[r, s] > 0:

@@ -29,6 +29,15 @@ LEVELS = 1024
 GRID = 2400
 
 
+#: the paper's upper bounds for JPEG input ("HDR reconstruction from JPEG compressed LDR
+#: digital photographs"): max(1/alpha) = 0.005, max(sigma_o^2) = 0.02, beta = 0, read on
+#: the normalised signal scale [0, 1] (where they give the bell-shaped weights of Fig. 16:
+#: sigma_o = 0.14 of full scale, i.e. 36 codes of 255).  Here "1/alpha" is the
+#: photon-noise variance per unit signal, ``sqrt(alpha)`` in this module's code units.
+BOUNDED_INV_ALPHA = 0.005
+BOUNDED_SIGMA_O2 = 0.02
+
+
 @dataclass(frozen=True)
 class WeightContext:
     """What noise-model weights need beyond the code values.
@@ -51,7 +60,7 @@ class WeightContext:
     exposures: tuple = field(default_factory=tuple)
     k: float = DEFAULT_K
     y_min: float = 0.5
-    bounds: tuple = (0.005, 0.02, 0.0)  # (max 1/alpha, max sigma_o^2, max beta), the paper's JPEG values
+    bounds: tuple = (BOUNDED_INV_ALPHA, BOUNDED_SIGMA_O2, 0.0)  # (max 1/alpha, max sigma_o^2, max beta)
 
     @property
     def frames(self) -> int:
@@ -181,15 +190,6 @@ def weights_goossens2012_optimal(v: np.ndarray, lin: np.ndarray, ctx: WeightCont
     levels = _levels(v)
     w = _posterior_expectation(_observations(v, lin, levels, ctx), ctx, lambda mu: _optimal_ratio(mu, ctx))
     return _to_table(v, w, levels)
-
-
-#: the paper's upper bounds for JPEG input ("HDR reconstruction from JPEG compressed LDR
-#: digital photographs"): max(1/alpha) = 0.005, max(sigma_o^2) = 0.02, beta = 0, read on
-#: the normalised signal scale [0, 1] (where they give the bell-shaped weights of Fig. 16:
-#: sigma_o = 0.14 of full scale, i.e. 36 codes of 255).  Here "1/alpha" is the
-#: photon-noise variance per unit signal, ``sqrt(alpha)`` in this module's code units.
-BOUNDED_INV_ALPHA = 0.005
-BOUNDED_SIGMA_O2 = 0.02
 
 
 def bounded_noise(y_full: float, inv_alpha: float = BOUNDED_INV_ALPHA, sigma_o2: float = BOUNDED_SIGMA_O2,

@@ -17,7 +17,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -303,22 +303,6 @@ def model_decisions(settings: MergeSettings, frame: Frame, crf: CRF, noise, exce
 
 
 def estimator_decision(frame: Frame, crf: CRF, noise=None, excess=None) -> Decision:
-    """``--estimator auto`` (:func:`default_estimator`) as a :class:`Decision`: measured
-    when the excess variance of a camera-processed bracket decided it (its ``chi_model``,
-    the standard error of that, and the effect on the predicted error)."""
-    value = default_estimator(frame, crf, noise, excess)
-    if frame.kind == "raw" or crf.is_linear:
-        return Decision(value, False, "sensor data: the noise model (17) explains the codes")
-    if not noise or excess is None:
-        return Decision(value, False, "no noise model measured" if not noise else
-                        "the variance beyond the noise model was not measured (one frame, or a --lut table)")
-    reason = ("the exposure pairs show variance beyond the noise model" if excess.kept else
-              "the exposure pairs show no material variance beyond the noise model" if excess.tested else
-              "too few exposure-pair readings to test the noise model: noise dominates")
-    return Decision(value, bool(excess.tested), reason, excess.chi_model, 1.0, excess.chi_stderr, excess.effect_db)
-
-
-def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
     """``--estimator auto``: the maximum-likelihood estimator of the errors the bracket
     shows.  ``"ml"`` (the linear-domain estimate, eq. (7) with inverse-variance weights)
     where the noise model (17) explains the codes: RAW frames and linear images, and a
@@ -328,10 +312,21 @@ def default_estimator(frame: Frame, crf: CRF, noise=None, excess=None) -> str:
     ``"log"`` (the paper's log-domain (7)) where they show more, or where the noise could
     not be measured: that excess is the camera's processing (tone curves, local tone
     mapping, noise reduction), relative errors that the log domain averages.  Evidence:
-    benchmarks/results/cli_defaults.md, real_loo.md."""
+    benchmarks/results/cli_defaults.md, real_loo.md.
+
+    Returns the :class:`Decision`, measured when the excess variance of a camera-processed
+    bracket decided it (its ``chi_model``, the standard error of that, and the effect on
+    the predicted error)."""
     if frame.kind == "raw" or crf.is_linear:
-        return "ml"
-    return "ml" if noise and excess is not None and not excess.kept else "log"
+        return Decision("ml", False, "sensor data: the noise model (17) explains the codes")
+    if not noise or excess is None:
+        return Decision("log", False, "no noise model measured" if not noise else
+                        "the variance beyond the noise model was not measured (one frame, or a --lut table)")
+    reason = ("the exposure pairs show variance beyond the noise model" if excess.kept else
+              "the exposure pairs show no material variance beyond the noise model" if excess.tested else
+              "too few exposure-pair readings to test the noise model: noise dominates")
+    return Decision("log" if excess.kept else "ml", bool(excess.tested), reason, excess.chi_model, 1.0,
+                    excess.chi_stderr, excess.effect_db)
 
 
 def default_weights(estimator: str) -> str:
@@ -424,11 +419,21 @@ def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
     return columns
 
 
+class Tables(NamedTuple):
+    """What :func:`build_tables` returns: per frame its
+    :class:`~hdrmerge_cli.core.reconstruct.ExposureTables`, the periodic pattern of table
+    rows (see :class:`LogMerge`; None when one row serves every channel) and the rows'
+    channel names."""
+
+    tables: list
+    pattern: np.ndarray | None
+    channels: list[str]
+
+
 def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-                 luts=None, bounds=None, with_variance=False, excess=None, frame_noise=None):
-    """Per-frame lookup tables (each frame with its own black and white levels), the
-    periodic pattern of table rows (see :class:`LogMerge`; None when one row serves every
-    channel) and the table rows' channel names.  ``with_variance``: the tables also hold
+                 luts=None, bounds=None, with_variance=False, excess=None, frame_noise=None) -> Tables:
+    """Per-frame lookup tables (each frame with its own black and white levels), as
+    :class:`Tables`.  ``with_variance``: the tables also hold
     each frame's per-code variance (``--extra-channels variance``, streamed by :class:`LogMerge`).
     ``frame_noise``: per frame its own {channel: NoiseParams} (frames of several ISOs),
     instead of ``noise`` for all."""
@@ -448,4 +453,4 @@ def build_tables(frames, exposures, crf, weights, noise=None, variance="none", p
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
                               bounds=bounds, with_variance=with_variance, excess=excess)
               for j, (f, h) in enumerate(zip(frames, exposures))]
-    return tables, None if shared else sample_pattern(first), names
+    return Tables(tables, None if shared else sample_pattern(first), names)

@@ -15,7 +15,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core import resample
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, noise_rows
-from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.io.metadata import equal_exposure_groups, fmt_time
 from hdrmerge_cli.io.noisespec import per_channel
 
@@ -55,16 +55,13 @@ def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models
     ``E * h_ref`` with ``with_variance``.  The stages' seconds are added to ``timings``."""
     ml = models.estimator == "ml"
     # without IRLS the first pass returns the linear image directly
-    first, pass_timings = _first_pass(frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref,
-                                      load, weights_of, with_variance and not models.n_irls)
-    timings.update(pass_timings)
+    first = _first_pass(frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref, load, weights_of,
+                        with_variance and not models.n_irls, timings)
     if not models.n_irls:
         return first
     t0 = time.perf_counter()
-    if models.frame_noise is None:
-        maps = [noise_rows(per_channel(models.noise, models.table_channels))] * len(frames)
-    else:
-        maps = [noise_rows(per_channel(n, models.table_channels)) for n in models.frame_noise]
+    maps = [noise_rows(per_channel(n, models.table_channels))
+            for n in models.frame_noise or [models.noise] * len(frames)]
     y_full = [float(f.white[0] - f.black[0]) for f in frames]
     result, den = first.result, first.den  # IRLS makes its own flags; it writes over the estimate and weights
     del first
@@ -137,10 +134,10 @@ class SampleWeights:
             rows = rows or slice(0, spread.shape[0])
             if k not in self.slopes:
                 self.slopes[k] = value_slope(self.tables[k])
-            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, _samples(spread[rows]),
-                                      self.alignment.warp_of(self.frames[k]), out=w if own else None,
-                                      cfa=self.frames[k].cfa_pattern, row0=rows.indices(spread.shape[0])[0],
-                                      slope=self.slopes[k]), True
+            part = spread[rows]
+            w, own = resampled_weight(w, self.tables[k], codes, self.pattern, part.reshape(part.shape[0], -1),
+                                      self.alignment.warp_of(self.frames[k]), self.slopes[k], out=w if own else None,
+                                      cfa=self.frames[k].cfa_pattern, row0=rows.indices(spread.shape[0])[0]), True
         f = self.factor(k, rows)
         if f is None:
             return w, None
@@ -175,15 +172,14 @@ class SampleWeights:
 
 
 def resampled_weight(w: np.ndarray | None, tables, codes: np.ndarray, pattern, spread: np.ndarray,
-                     warp: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None,
-                     row0: int = 0, slope: np.ndarray | None = None) -> np.ndarray:
+                     warp: np.ndarray, slope: np.ndarray, out: np.ndarray | None = None, cfa: str | None = None,
+                     row0: int = 0) -> np.ndarray:
     """Inverse-variance weights ``w`` (``(H, W)``; None: the table's) of the samples of a
     mosaic resampled by ``warp`` with the interpolation's variance added
     (:func:`~hdrmerge_cli.core.resample.resampled_weight_mosaic`), from the frame's
     ``tables``: the slope of its value table (linear or log value per code) and its
-    certainty ``w(z)`` (``slope``: :func:`value_slope`, computed when not given).  ``out``
-    may be ``w``; ``row0``: the arrays are rows ``row0`` on of the frame."""
-    slope = value_slope(tables) if slope is None else slope
+    certainty ``w(z)`` (``slope``: :func:`value_slope`).  ``out`` may be ``w``; ``row0``:
+    the arrays are rows ``row0`` on of the frame."""
     return resample.resampled_weight_mosaic(w, codes, pattern, slope, tables.certainty, tables.n_codes, spread, warp,
                                          out, weight=tables.weight, cfa=cfa, row0=row0)
 
@@ -193,10 +189,6 @@ def value_slope(tables) -> np.ndarray:
     :func:`resampled_weight`."""
     n = tables.n_codes
     return np.gradient(tables.value.reshape(-1, n).astype(np.float64), axis=1).astype(np.float32).ravel()
-
-
-def _samples(codes: np.ndarray) -> np.ndarray:
-    return codes.reshape(codes.shape[0], -1)
 
 
 # ---------------------------------------------------------------- checks after the merge
@@ -330,14 +322,14 @@ def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) 
 
 
 # ---------------------------------------------------------------- the first pass
-def _first_pass(frames, tables, pattern, linear=False, scale=None, load=load_codes, weights_of=None, variance=False):
+def _first_pass(frames, tables, pattern, linear, scale, load, weights_of, variance, timings: dict) -> Reconstruction:
     """(7) over the frames' codes (``load``: held, or resampled on first use, two frames at
     a time), in strips of :data:`~hdrmerge_cli.core.reconstruct.STRIP_ROWS` rows of
     every frame: the sums, and the per-sample weights of moved or deghosted frames
     (``weights_of(k, codes, rows)``), are strip-sized.  Returns a :class:`Reconstruction`
     whose result is ``log E``, or ``E * scale`` when ``scale`` is given (see
-    :meth:`LogMerge.finish`), with ``variance`` its variance (:attr:`LogMerge.variance`),
-    and the timings."""
+    :meth:`LogMerge.finish`), with ``variance`` its variance (:attr:`LogMerge.variance`);
+    the seconds of decoding and merging go to ``timings``."""
     shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
 
     def decode(frame):
@@ -366,5 +358,5 @@ def _first_pass(frames, tables, pattern, linear=False, scale=None, load=load_cod
         if variance:
             var[part] = acc.variance
     total = time.perf_counter() - t_start
-    return Reconstruction(result, flags, den, var), {"decode": decode_time, "merge": total - decode_time,
-                                                     "decode_and_merge_wall": total}
+    timings.update(decode=decode_time, merge=total - decode_time, decode_and_merge_wall=total)
+    return Reconstruction(result, flags, den, var)
