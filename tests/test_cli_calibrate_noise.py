@@ -43,8 +43,8 @@ def test_a_dark_bracket_measures_the_gain_near_its_bound(run, tmp_path, seed):
     alone.  Every channel's alpha lies within 2 of its stated standard errors of the
     truth, and that error within 1.25 times the Cramer-Rao bound of all the photosites'
     exposure contrasts (the darkest pair's ratio is measured again, weighted by what each
-    pixel tells of it, and is not left to read as gain: seeds 4 and 5 gave alpha 2.2 and
-    3.4 for G2 before, 4.4 and 5.3 standard errors off)."""
+    pixel tells of it, and is not left to read as gain: with the plain ratio, seeds 4 and
+    5 give alpha 2.2 and 3.4 for G2, 4.4 and 5.3 standard errors off)."""
     import numpy as np
     import OpenImageIO as oiio
     from scipy import ndimage as ndi

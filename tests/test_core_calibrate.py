@@ -362,3 +362,39 @@ def test_hand_held_bracket_far_apart_falls_back_to_the_local_statistics(sigma_o2
     fit, ratios = estimate_noise(moved, -50, 16000)
     assert ratios == []
     assert fit.alpha == pytest.approx(alpha, rel=0.1) and fit.sigma_o2 == pytest.approx(sigma_o2, rel=0.1)
+
+
+def test_weighted_ratio_is_the_gls_ratio_with_its_stated_variance():
+    """weighted_ratio against the generalised least-squares ratio written out with numpy
+    (``sum w y_long / sum w y_short``, ``w = (key / r) / Var[d]`` by (17) on the pixels
+    PixelPairs.usable keeps; equal to 1e-12), and over 300 brackets of 20 000 pixels
+    (c0 = 36, c1 = 1, true ratio 4, started 2 % off): the mean within 3 standard errors of
+    the truth and the spread of the estimates within 15 % of the stated standard error.
+    at_ratio recomputes ``d = long - r short`` for the new ratio (to 1e-9)."""
+    from hdrmerge_cli.core.calibrate import PixelPairs, weighted_ratio
+
+    c0, c1, r_true, start = 36.0, 1.0, 4.0, 4.08
+    coef = (c0, c1, 0.0)
+    estimates, stated = [], []
+    for seed in range(300):
+        rng = np.random.default_rng(seed)
+        mu = rng.exponential(60.0, 20_000)  # the long frame's mean, codes
+        long = mu + rng.normal(0, np.sqrt(c0 + c1 * mu))
+        short = mu / r_true + rng.normal(0, np.sqrt(c0 + c1 * mu / r_true))
+        key = mu + rng.normal(0, np.sqrt(c0 + c1 * mu))  # another frame's reading: independent noise
+        pp = PixelPairs(long, long - start * short, key, start)
+        r, var = weighted_ratio(pp, coef, -500.0, 16000.0)
+        if seed == 0:
+            keep = pp.usable(coef, -500.0, 16000.0)
+            m = np.maximum(key[keep], 0.0)
+            w = (m / start) / (c0 * (1 + start**2) + c1 * (1 + start) * m)
+            assert r == pytest.approx(np.sum(w * long[keep]) / np.sum(w * short[keep]), rel=1e-12)
+            moved = pp.at_ratio(r, var)
+            np.testing.assert_allclose(moved.d, long - r * short, rtol=0, atol=1e-9)
+            assert moved.ratio_var == var
+        estimates.append(r)
+        stated.append(np.sqrt(var))
+    estimates = np.array(estimates)
+    se = float(np.mean(stated))
+    assert abs(estimates.mean() - r_true) < 3 * se / np.sqrt(estimates.size), (estimates.mean(), se)
+    assert estimates.std(ddof=1) == pytest.approx(se, rel=0.15)

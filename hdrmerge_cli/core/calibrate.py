@@ -209,8 +209,9 @@ class PixelPairs:
     into sigma_o^2 when photon noise dominates);
     ``key_scale`` the factor ``s`` by which the key's variance is ``s^2 c0 + s c1 key``
     (a frame scaled by ``s``; the 8-neighbour mean has ``s^2 = s = 1/8`` nearly);
-    ``ratio_var`` the variance of the measured ratio (:func:`weighted_ratio`), whose error
-    adds ``ratio_var * short^2`` to each ``E[d^2]`` (taken out by :func:`binned_pairs`)."""
+    ``ratio_var`` the variance of a ratio fitted to these pixels (:func:`weighted_ratio`),
+    which shrinks each ``E[d^2]`` by ``ratio_var * short^2`` (added back by
+    :func:`binned_pairs`)."""
 
     long: np.ndarray
     d: np.ndarray
@@ -281,9 +282,9 @@ def selection_keys(planes: list[np.ndarray], gains: np.ndarray, k: int, lo: floa
     frame unclipped there of those longer than ``k + 1`` (scaled down by ``s``, its noise
     shrinks), else the mean of the pixel's 8 neighbours in frame ``k + 1``.  A shorter
     frame scaled up by ``s > 1`` is never the less noisy (variance ``s^2 c0 + s c1 mu``
-    against about ``(c0 + c1 mu) / 8``): on a dark bracket, the shortest frame scaled up
-    16 times made a key so noisy that the clipping test (:meth:`PixelPairs.unclipped`)
-    kept 15 of 65,000 pixels of the next pair.
+    against about ``(c0 + c1 mu) / 8``): on a dark bracket a shortest frame scaled up 16
+    times is a key so noisy that the clipping test (:meth:`PixelPairs.unclipped`) keeps
+    almost none of the next pair's pixels.
 
     Binning by a noisy estimate of the mean and using the same estimate as the bin's
     abscissa biases the abscissa (regression to the mean of the scene's histogram, by
@@ -433,8 +434,8 @@ def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None)
     mean ``e * short`` that an exposure ratio off by ``e`` leaves in ``d``: that mean grows
     with the scene's brightness, so its square, left in, would add ``e^2 mu^2 / r^2`` to
     the bright bins and read as gain (on a dark bracket, whose darkest pair's ratio is
-    measured to 1-2 %, alpha came out up to 3 times too large); within a bin of nearly one
-    brightness it is nearly constant.  A ratio fitted to these pixels
+    measured to 1-2 %, it would triple alpha); within a bin of nearly one brightness it is
+    nearly constant.  A ratio fitted to these pixels
     (:func:`weighted_ratio`) shrinks each difference's expected square by ``Var[r]
     short^2``; ``pp.ratio_var`` times the bin's ``sum (key / r)^2`` adds it back.
 
@@ -747,22 +748,17 @@ def _pairs_moved(pairs: NoiseFit, alone: NoiseFit, pooled: WindowStats) -> bool:
     return pairs.sigma_o2 + pairs.alpha * level > PAIR_EXCESS * (alone.sigma_o2 + alone.alpha * level)
 
 
-def _measured_ratios(planes: list[np.ndarray], lo: float, hi: float,
-                     per_pixel: bool) -> tuple[list[float | None], list[float | None]]:
-    """The exposure ratio of each pair of consecutive frames (len(planes) - 1) as
-    :func:`exposure_ratio` measures it, None where it cannot; and where it cannot, the
-    provisional ratio of its ``precise=False`` (else the same)."""
-    measured, provisional = [], []
+def _measured_ratios(planes: list[np.ndarray], lo: float, hi: float, per_pixel: bool,
+                     precise: bool = True) -> list[float | None]:
+    """The exposure ratio of each pair of consecutive frames (len(planes) - 1), None where it
+    cannot be measured (:func:`exposure_ratio`, ``precise`` as there)."""
+    measured = []
     for s, g in zip(planes[:-1], planes[1:]):
-        for precise, out in ((True, measured), (False, provisional)):
-            try:
-                out.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel, precise=precise))
-            except HdrMergeError:
-                out.append(None)
-            if out[-1] is not None:
-                break
-        provisional.extend(measured[len(provisional):])
-    return measured, provisional
+        try:
+            measured.append(exposure_ratio(s, g, lo, hi, black_clipped=not per_pixel, precise=precise))
+        except HdrMergeError:
+            measured.append(None)
+    return measured
 
 
 def _window_pair_points(planes: list[np.ndarray], measured: list, lo: float, hi: float, window: int,
@@ -785,14 +781,14 @@ def _refined_pair_points(pp: PixelPairs, coef, lo: float, hi: float, pair_bins: 
     return binned_pairs(pp.subset(pp.usable(coef, lo, hi)), pair_bins, coef=coef)
 
 
-def _pixel_pair_points(planes: list[np.ndarray], measured: list, provisional: list, lo: float, hi: float,
+def _pixel_pair_points(planes: list[np.ndarray], measured: list, ratios: list, lo: float, hi: float,
                        pair_bins: int) -> tuple[list[VariancePoints], list[float], float]:
     """Per-pixel variance points of the exposure pairs, their ratios and the p-value of
     :func:`pair_gradient_test`.  The pairs whose ratio is ``measured`` give a first fit;
-    then every pair's ratio, ``measured`` or only ``provisional`` (:func:`exposure_ratio`'s
-    ``precise=False``), is measured again under it (:func:`weighted_ratio`), and the pairs
-    are binned again without the pixels the fit calls clipped or outliers."""
-    ratios = [m if m is not None else p for m, p in zip(measured, provisional)]
+    then every pair's ratio in ``ratios`` (``measured``, or where that is None the
+    provisional ratio of :func:`exposure_ratio`'s ``precise=False``) is measured again
+    under it (:func:`weighted_ratio`), and the pairs are binned again without the pixels
+    the fit calls clipped or outliers."""
     pixel_pairs, first_points, used = [], [], []
     for k, r in enumerate(ratios):
         if r is None or r <= 1.05:
@@ -827,9 +823,11 @@ def _pair_points(planes: list[np.ndarray], lo: float, hi: float, window: int, bi
                  pair_bins: int) -> tuple[list[VariancePoints], list[float], float]:
     """The exposure pairs' variance points, the ratios of the pairs used and the gradient test's p-value (1 if none)."""
     per_pixel = max(np.mean(p <= lo) for p in planes) < BLACK_CLIPPED
-    measured, provisional = _measured_ratios(planes, lo, hi, per_pixel)
+    measured = _measured_ratios(planes, lo, hi, per_pixel)
     if per_pixel:
-        return _pixel_pair_points(planes, measured, provisional, lo, hi, pair_bins)
+        ratios = [m if m is not None else _measured_ratios([s, g], lo, hi, per_pixel, precise=False)[0]
+                  for m, s, g in zip(measured, planes[:-1], planes[1:])]
+        return _pixel_pair_points(planes, measured, ratios, lo, hi, pair_bins)
     return (*_window_pair_points(planes, measured, lo, hi, window, bins), 1.0)
 
 
