@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import zlib
-
 import numpy as np
 import pytest
 
@@ -14,11 +12,13 @@ imagecodecs = pytest.importorskip("imagecodecs")
 rawpy = pytest.importorskip("rawpy")
 
 from hdrmerge_cli.core.errors import HdrMergeError  # noqa: E402
-from hdrmerge_cli.io.dng_float import _XYZ_TO_SRGB, _fp_predict, write_float_dng  # noqa: E402
+from hdrmerge_cli.io.dng_float import write_float_dng  # noqa: E402
 
 #: a Canon-like XYZ (D65) -> camera matrix
 CM = np.array([[0.6722, -0.0635, -0.0963], [-0.4287, 1.2460, 0.2028], [-0.0908, 0.2162, 0.5668]])
-SRGB_TO_XYZ = np.linalg.inv(_XYZ_TO_SRGB)
+#: linear sRGB (D65) -> XYZ
+SRGB_TO_XYZ = np.linalg.inv([[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560],
+                             [0.0556434, -0.2040259, 1.0572252]])
 NEUTRAL = CM @ SRGB_TO_XYZ @ np.ones(3)  # camera RGB of D65 white
 NEUTRAL = NEUTRAL / NEUTRAL[1]
 #: sRGB-linear colour patches, left to right: grey, red, green, blue
@@ -41,7 +41,8 @@ def patch_mosaic(height: int, width: int, pattern: str = "RGGB", seed: int = 0) 
 
 def write(path, mosaic, **kw):
     args = dict(cfa_pattern="RGGB", xyz_to_camera=CM, as_shot_neutral=NEUTRAL, make="Acme", model="HDR-1",
-                exposure_time=1 / 60, iso=200, aperture=5.6, baseline_exposure=0.5)
+                exposure_time=1 / 60, iso=200, aperture=5.6, baseline_exposure=0.5,
+                preview=np.full((24, 32, 3), 128, np.uint8))
     args.update(kw)
     write_float_dng(path, mosaic, **args)
     return path
@@ -52,40 +53,15 @@ def raw_page(tif):
 
 
 def stored_values(path) -> np.ndarray:
-    """The raw SubIFD's samples as float32, decoded here (tifffile cannot undo the
-    floating-point predictor on 24-bit floats)."""
+    """The raw SubIFD's samples as float32."""
     with tifffile.TiffFile(path) as tif:
-        page = raw_page(tif)
-        if page.bitspersample != 24:
-            return page.asarray().astype(np.float32)
-        height, width = page.shape
-        th, tw = (page.tilelength, page.tilewidth) if page.is_tiled else (height, width)
-        out = np.zeros((-(-height // th) * th, -(-width // tw) * tw), np.float32)
-        fh = tif.filehandle
-        nx = out.shape[1] // tw
-        for i, (offset, count) in enumerate(zip(page.dataoffsets, page.databytecounts)):
-            fh.seek(offset)
-            rows = np.frombuffer(zlib.decompress(fh.read(count)), np.uint8).reshape(th, 3 * tw)
-            planes = np.cumsum(rows, axis=1, dtype=np.uint8)  # undo the byte differencing
-            fp24 = planes.reshape(th, 3, tw).transpose(0, 2, 1)
-            ty, tx = divmod(i, nx)
-            out[ty * th:(ty + 1) * th, tx * tw:(tx + 1) * tw] = imagecodecs.float24_decode(
-                np.ascontiguousarray(fp24).tobytes(), byteorder=">").reshape(th, tw)
-        return out[:height, :width]
+        return raw_page(tif).asarray().astype(np.float32)
 
 
-def test_predictor_matches_imagecodecs_for_32_bit():
-    data = np.random.default_rng(3).random((8, 48)).astype(np.float32)
-    ours = _fp_predict(data.astype(">f4").view(np.uint8).reshape(8, 48, 4))
-    assert np.array_equal(ours.ravel(), np.asarray(imagecodecs.floatpred_encode(data, axis=-1)).view(np.uint8).ravel())
-
-
-@pytest.mark.parametrize("bits,compression,rtol", [
-    (32, "deflate", 0.0), (32, "none", 0.0), (16, "deflate", 2.0 ** -11), (16, "none", 2.0 ** -11),
-    (24, "deflate", 2.0 ** -17)])
-def test_round_trip_values_and_tags(tmp_path, bits, compression, rtol):
+@pytest.mark.parametrize("bits,rtol", [(32, 0.0), (16, 2.0 ** -11)])
+def test_round_trip_values_and_tags(tmp_path, bits, rtol):
     mosaic = np.random.default_rng(7).uniform(1e-3, 0.95, (64, 96)).astype(np.float32)
-    path = write(tmp_path / "out.dng", mosaic, bits=bits, compression=compression, datetime="2024:05:01 12:34:56")
+    path = write(tmp_path / "out.dng", mosaic, bits=bits, datetime="2024:05:01 12:34:56")
     values = stored_values(path)
     assert values.shape == mosaic.shape
     np.testing.assert_allclose(values, mosaic, rtol=rtol, atol=0)
@@ -94,8 +70,7 @@ def test_round_trip_values_and_tags(tmp_path, bits, compression, rtol):
         assert ifd0.tags["NewSubfileType"].value == 1 and raw.tags["NewSubfileType"].value == 0
         assert bytes(ifd0.tags["DNGVersion"].value) == b"\x01\x04\x00\x00"
         assert raw.tags["SampleFormat"].value == 3 and raw.bitspersample == bits
-        assert raw.compression == (8 if compression == "deflate" else 1)
-        assert raw.predictor == (3 if compression == "deflate" else 1)
+        assert raw.compression == 8 and raw.predictor == 3
         assert raw.is_tiled and raw.tilelength <= 64 and raw.tilewidth <= 96
         assert ifd0.tags["UniqueCameraModel"].value == "Acme HDR-1"
         assert ifd0.tags["Software"].value.startswith("hdrmerge-cli")
@@ -175,17 +150,6 @@ def test_embedded_preview_and_thumbnail(tmp_path):
         assert thumb.format in (rawpy.ThumbFormat.JPEG, rawpy.ThumbFormat.BITMAP)
 
 
-def test_thumbnail_without_preview_is_rough_rendering(tmp_path):
-    path = write(tmp_path / "t.dng", patch_mosaic(64, 96))
-    with tifffile.TiffFile(path) as tif:
-        thumb = tif.pages.first.asarray().astype(float)
-        assert len(tif.pages.first.pages) == 1
-    assert thumb.shape == (32, 48, 3)
-    grey, red, blue = thumb[:, 2:10].mean((0, 1)), thumb[:, 14:22].mean((0, 1)), thumb[:, 38:46].mean((0, 1))
-    assert np.ptp(grey) < 12  # the neutral patch renders neutral
-    assert red[0] > red[1] + 40 and blue[2] > blue[0] + 40
-
-
 @pytest.mark.parametrize("bits", [16, 32])
 @pytest.mark.parametrize("shape", [(192, 256), (256, 256), (128, 130), (130, 128), (640, 960)])
 def test_raw_has_at_least_two_tiles(tmp_path, shape, bits):
@@ -212,9 +176,7 @@ def test_small_image_is_written_in_strips(tmp_path):
 
 
 @pytest.mark.parametrize("kw,message", [
-    (dict(bits=20), "16-, 24- or 32-bit"),
-    (dict(bits=24, compression="none"), "Deflate"),
-    (dict(compression="lzw"), "compression"),
+    (dict(bits=24), "16- or 32-bit"),
     (dict(cfa_pattern="RGBW"), "CFA pattern"),
     (dict(xyz_to_camera=np.zeros((3, 3))), "colour matrix"),
     (dict(as_shot_neutral=[1, 0, 1]), "as-shot neutral"),
@@ -267,7 +229,7 @@ def test_rawpy_renders_sensible_colours(tmp_path):
 
 
 @pytest.mark.skipif(shutil.which("darktable-cli") is None, reason="darktable-cli not installed (Debian: darktable)")
-@pytest.mark.parametrize("bits", [16, 24, 32])
+@pytest.mark.parametrize("bits", [16, 32])
 def test_darktable_renders(tmp_path, bits):
     path = write(tmp_path / "d.dng", patch_mosaic(128, 192), bits=bits)
     out = tmp_path / "d.jpg"

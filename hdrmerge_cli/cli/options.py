@@ -160,28 +160,24 @@ class FiniteFloatRange(click.FloatRange):
         return rv
 
 
-def _check_text(parse, value):
-    """Check a text option with ``parse`` as soon as it is read, so that an empty text is
-    an error too (not silently unset); its HdrMergeError, which names the option, is a
-    one-line data error (exit 1) like the later checks of the values.  Passes the text on."""
-    if value is None:
-        return None
-    parse(str(value))  # its HdrMergeError becomes the group's one-line data error
-    return str(value)
+def _text_checked_by(parser: str):
+    """A callback that checks a text option with :mod:`hdrmerge_cli.io.noisespec`'s
+    ``parser`` as soon as it is read, so that an empty text is an error too (not silently
+    unset); its HdrMergeError, which names the option, is a one-line data error (exit 1)
+    like the later checks of the values.  Passes the text on."""
+    def callback(ctx, param, value):
+        from hdrmerge_cli.io import noisespec
+
+        if value is None:
+            return None
+        getattr(noisespec, parser)(str(value))  # its HdrMergeError becomes the group's one-line data error
+        return str(value)
+
+    return callback
 
 
-def noise_option_callback(ctx, param, value):
-    """``--noise``: checked by :func:`hdrmerge_cli.io.noisespec.parse_noise`."""
-    from hdrmerge_cli.io.noisespec import parse_noise
-
-    return _check_text(parse_noise, value)
-
-
-def bounds_option_callback(ctx, param, value):
-    """``--bounds``: checked by :func:`hdrmerge_cli.io.noisespec.parse_bounds`."""
-    from hdrmerge_cli.io.noisespec import parse_bounds
-
-    return _check_text(parse_bounds, value)
+#: ``--noise`` and ``--bounds``, checked by :func:`~hdrmerge_cli.io.noisespec.parse_noise` and ``parse_bounds``
+noise_option_callback, bounds_option_callback = _text_checked_by("parse_noise"), _text_checked_by("parse_bounds")
 
 
 def times_option_callback(ctx, param, value):

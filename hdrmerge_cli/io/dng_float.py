@@ -3,13 +3,10 @@
 :func:`write_float_dng` lays the file out as DNG writers do (Adobe DNG Converter,
 HDRMerge): IFD0 is a small RGB thumbnail (NewSubfileType 1) carrying the DNG and TIFF/EP
 tags that describe the whole file (versions, camera, colour, white balance, EXIF-like
-shooting data); its SubIFDs hold the raw CFA mosaic (NewSubfileType 0: 16-, 24- or 32-bit
-IEEE floats, tiled, Deflate with the floating-point predictor) and, when a preview is
-given, that preview as a JPEG (NewSubfileType 1).  The TIFF structure is written by
-tifffile, Deflate and the predictor by imagecodecs; 24-bit floats, which no NumPy type
-holds, are encoded here (:func:`_fp24`; imagecodecs' encoder mis-rounds) with the
-floating-point predictor's byte regrouping (:func:`_fp_predict`, checked against imagecodecs'
-for 32 bits) and zlib from imagecodecs.
+shooting data); its SubIFDs hold the raw CFA mosaic (NewSubfileType 0: 16- or 32-bit
+IEEE floats, tiled, Deflate with the floating-point predictor) and
+that preview as a JPEG (NewSubfileType 1).  The TIFF structure is written by tifffile,
+Deflate and the predictor by imagecodecs.
 
 What the readers need, beyond the DNG specification:
 
@@ -24,7 +21,7 @@ What the readers need, beyond the DNG specification:
   file": 128 x 192, 192 x 128 and 192 x 160 pixels; 176 x 176 and 128 x 256 open); its
   uncompressed-float path needs the raw in IFD0 alone (with a thumbnail IFD it renders
   black).  darktable 4.2 (rawspeed) reads 16/24/32 bits, Deflate or not; LibRaw
-  (rawpy 0.28) all of them too.  Hence the default: 32 bits, Deflate, Predictor 3.
+  (rawpy 0.28) all of them too.  Hence 32 bits (``--half``: 16), Deflate, Predictor 3.
 * Shooting data (ExposureTime, FNumber, ISOSpeedRatings) go in IFD0 as TIFF/EP tags:
   tifffile writes no EXIF IFD, and LibRaw reads ISO only from one (exposure and aperture
   it reads from IFD0).
@@ -37,7 +34,6 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -49,10 +45,6 @@ _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 _BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
 #: largest finite half-precision value
 _HALF_MAX = 65504.0
-#: XYZ (D65) -> linear sRGB, for the thumbnail made when no preview is given
-_XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
-                         [-0.9692660, 1.8760108, 0.0415560],
-                         [0.0556434, -0.2040259, 1.0572252]])
 _THUMB_SIZE = 256
 _TILE = 256
 _PREDICTOR = 3
@@ -60,9 +52,8 @@ _PREDICTOR = 3
 
 def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_neutral, make: str, model: str,
                     exposure_time: float | None, iso: float | None = None, aperture: float | None = None,
-                    baseline_exposure: float = 0.0, orientation: int = 1, preview=None, bits: int = 32,
-                    compression: str = "deflate", white_level: float = 1.0, software: str | None = None,
-                    datetime: _dt.datetime | str | None = None, deflate_level: int = 6) -> None:
+                    preview, baseline_exposure: float = 0.0, orientation: int = 1, bits: int = 32,
+                    white_level: float = 1.0, datetime: _dt.datetime | str | None = None) -> None:
     """Write a scene-linear CFA mosaic as a floating-point DNG 1.4.
 
     Parameters
@@ -90,24 +81,18 @@ def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_ne
         DNG BaselineExposure in EV: how far raw editors brighten the default rendering.
     orientation : int
         EXIF orientation (1-8) of the whole image.
-    preview : (h, w, 3) uint8 array, optional
+    preview : (h, w, 3) uint8 array
         An sRGB rendering.  Written as a JPEG preview SubIFD, and downscaled to the IFD0
-        thumbnail; without it the thumbnail is a rough rendering of the mosaic.
-    bits : 16, 24 or 32
+        thumbnail.
+    bits : 16 or 32
         Float sample size.  16 = IEEE half (range 6e-5 .. 65504 at full precision: keep
-        ``white_level`` within it); 24 = DNG's 24-bit float (16-bit mantissa, needs
-        Deflate with the floating-point predictor, as DNG 1.4 specifies); 32 = single.
-    compression : "deflate" or "none"
-        Deflate uses the floating-point predictor (TIFF Predictor 3), which LibRaw,
-        rawspeed (darktable) and RawTherapee decode.
+        ``white_level`` within it); 32 = single.  Deflate-compressed with the
+        floating-point predictor (TIFF Predictor 3), which LibRaw, rawspeed (darktable)
+        and RawTherapee decode.
     white_level : float
         WhiteLevel, a positive whole number in the mosaic's units.
-    software : str, optional
-        The Software tag (default "hdrmerge-cli <version>").
     datetime : datetime or "YYYY:MM:DD HH:MM:SS", optional
         DateTime and DateTimeOriginal (of the shot); omitted when None.
-    deflate_level : int
-        zlib level 1-9.
 
     Raises
     ------
@@ -118,17 +103,17 @@ def write_float_dng(path, mosaic, *, cfa_pattern: str, xyz_to_camera, as_shot_ne
     where = os.fspath(path)
     _require_codecs(where)
     mosaic, cfa, matrix, neutral, white = _check(where, mosaic, cfa_pattern, xyz_to_camera, as_shot_neutral,
-                                                 bits, compression, white_level, orientation)
-    preview, thumb = _preview_and_thumbnail(where, preview, mosaic, cfa, matrix, neutral, white, baseline_exposure)
-    if software is None:
-        from hdrmerge_cli._version import __version__
-        software = f"hdrmerge-cli {__version__}"
+                                                 bits, white_level, orientation)
+    preview = np.asarray(preview)
+    if preview.ndim != 3 or preview.shape[2] != 3 or preview.dtype != np.uint8 or min(preview.shape[:2]) < 1:
+        raise HdrMergeError(f"{where}: the DNG preview must be an (h, w, 3) uint8 image, "
+                            f"not {preview.dtype} {preview.shape}")
     stamp = _stamp(where, datetime)
     try:
         _write(where, mosaic, cfa=cfa, matrix=matrix, neutral=neutral, white=white, make=make, model=model,
                exposure_time=exposure_time, iso=iso, aperture=aperture, baseline_exposure=baseline_exposure,
-               orientation=orientation, thumb=thumb, preview=preview, bits=bits, compression=compression,
-               software=software, stamp=stamp, level=deflate_level)
+               orientation=orientation, thumb=_downscale(preview, _THUMB_SIZE), preview=preview, bits=bits,
+               stamp=stamp)
     except HdrMergeError:
         raise
     except OSError as exc:
@@ -148,19 +133,7 @@ def _require_codecs(where: str) -> None:
                             f"(pip install tifffile imagecodecs)") from None
 
 
-def _preview_and_thumbnail(where: str, preview, mosaic: np.ndarray, cfa: str, matrix: np.ndarray,
-                           neutral: np.ndarray, white: int, baseline_exposure: float) -> tuple:
-    """The checked preview ((h, w, 3) uint8, or None) and the IFD0 thumbnail ((h', w', 3) uint8)."""
-    if preview is None:
-        return None, _rough_thumbnail(mosaic, cfa, matrix, neutral, white, baseline_exposure)
-    preview = np.asarray(preview)
-    if preview.ndim != 3 or preview.shape[2] != 3 or preview.dtype != np.uint8 or min(preview.shape[:2]) < 1:
-        raise HdrMergeError(f"{where}: the DNG preview must be an (h, w, 3) uint8 image, "
-                            f"not {preview.dtype} {preview.shape}")
-    return preview, _downscale(preview, _THUMB_SIZE)
-
-def _check(where, mosaic, cfa_pattern, xyz_to_camera, as_shot_neutral, bits, compression, white_level,
-           orientation):
+def _check(where, mosaic, cfa_pattern, xyz_to_camera, as_shot_neutral, bits, white_level, orientation):
     mosaic = np.asarray(mosaic)
     if mosaic.ndim != 2 or min(mosaic.shape) < 2 or mosaic.dtype.kind not in "fiu":
         raise HdrMergeError(f"{where}: a DNG mosaic must be a 2-D numeric array of at least 2 x 2, "
@@ -180,20 +153,15 @@ def _check(where, mosaic, cfa_pattern, xyz_to_camera, as_shot_neutral, bits, com
     if neutral.shape != (3,) or not np.isfinite(neutral).all() or neutral.min() <= 0:
         raise HdrMergeError(f"{where}: the as-shot neutral must be 3 positive numbers, not {neutral.tolist()}")
     neutral = neutral / neutral[1]
-    if bits not in (16, 24, 32):
-        raise HdrMergeError(f"{where}: a float DNG has 16-, 24- or 32-bit samples, not {bits}")
-    if compression not in ("deflate", "none"):
-        raise HdrMergeError(f"{where}: DNG compression must be 'deflate' or 'none', not {compression!r}")
-    if bits == 24 and compression != "deflate":
-        raise HdrMergeError(f"{where}: 24-bit float DNG data must be Deflate-compressed "
-                            "(DNG 1.4 allows 24-bit floats only with the floating-point predictor)")
+    if bits not in (16, 32):
+        raise HdrMergeError(f"{where}: a float DNG has 16- or 32-bit samples, not {bits}")
     white = float(white_level)
     if not (math.isfinite(white) and white >= 1 and white == round(white) and white < 2 ** 32):
         raise HdrMergeError(f"{where}: the DNG white level must be a positive whole number, not {white_level!r} "
                             "(scale the mosaic instead)")
     if bits == 16 and max(white, float(np.abs(mosaic).max(initial=0.0))) > _HALF_MAX:
         raise HdrMergeError(f"{where}: values above {_HALF_MAX:g} do not fit 16-bit floats; "
-                            "use 24 or 32 bits or scale the mosaic")
+                            "use 32 bits or scale the mosaic")
     if orientation not in range(1, 9):
         raise HdrMergeError(f"{where}: EXIF orientation must be 1 to 8, not {orientation!r}")
     return mosaic, cfa, matrix, neutral, int(white)
@@ -248,8 +216,10 @@ def _tiling(height: int, width: int) -> tuple | None:
 
 
 def _write(where, mosaic, *, cfa, matrix, neutral, white, make, model, exposure_time, iso, aperture,
-           baseline_exposure, orientation, thumb, preview, bits, compression, software, stamp, level):
+           baseline_exposure, orientation, thumb, preview, bits, stamp):
     import tifffile
+
+    from hdrmerge_cli._version import __version__
 
     make, model = str(make or "").strip(), str(model or "").strip()
     unique = model if make and model.lower().startswith(make.lower()) else f"{make} {model}".strip()
@@ -290,91 +260,18 @@ def _write(where, mosaic, *, cfa, matrix, neutral, white, make, model, exposure_
     ]
     height, width = mosaic.shape
     tile = _tiling(height, width)
-    deflate = compression == "deflate"
-    raw_args = dict(photometric=tifffile.PHOTOMETRIC.CFA, subfiletype=0, extratags=raw_tags, metadata=None,
-                    planarconfig="contig")
-    if tile is not None:
-        raw_args["tile"] = tile
-    else:
-        raw_args["rowsperstrip"] = height
-    if deflate:
-        raw_args.update(compression="adobe_deflate", compressionargs={"level": int(level)},
-                        predictor=_PREDICTOR, maxworkers=min(4, os.cpu_count() or 1))
-    if bits == 24:  # no NumPy type: encode the chunks here, then mark the samples as 24-bit
-        data = iter(_fp24_chunks(mosaic, tile, int(level)))
-        raw_args.update(shape=mosaic.shape, dtype=np.float32)
-    else:
-        data = mosaic.astype(np.float16 if bits == 16 else np.float32, copy=False)
-
+    layout = {"tile": tile} if tile is not None else {"rowsperstrip": height}
     with tifffile.TiffWriter(where, byteorder="<", bigtiff=False) as tw:
-        tw.write(thumb, photometric="rgb", subfiletype=1, subifds=1 if preview is None else 2, software=software,
+        tw.write(thumb, photometric="rgb", subfiletype=1, subifds=2, software=f"hdrmerge-cli {__version__}",
                  datetime=stamp, extratags=ifd0, metadata=None, description=None, compression=None,
                  planarconfig="contig")
-        tw.write(data, **raw_args)
-        if preview is not None:
-            tw.write(preview, photometric="rgb", subfiletype=1, compression="jpeg", compressionargs={"level": 90}, metadata=None,
-                     planarconfig="contig", rowsperstrip=preview.shape[0],
-                     extratags=[(50970, _LONG, 1, 2, True)])  # PreviewColorSpace: sRGB
-    if bits == 24:
-        _mark_24_bit(where)
-
-
-def _mark_24_bit(where):
-    """Set the raw SubIFD's BitsPerSample to 24 in place (tifffile writes the 24-bit
-    chunks encoded here under a float32 shape, which it cannot label otherwise)."""
-    import tifffile
-
-    with tifffile.TiffFile(where, mode="r+b") as tif:
-        raw = tif.pages.first.pages[0]
-        raw.tags[258].overwrite(24)
-
-
-def _fp24(values: np.ndarray) -> np.ndarray:
-    """float32 -> DNG's 24-bit float (sign, 7-bit exponent biased by 63, 16-bit mantissa)
-    as (..., 3) bytes, most significant first: rounded to nearest even (a mantissa that
-    rounds up past all ones carries into the exponent, which imagecodecs' FLOAT24 encoder
-    gets wrong: 0.0624999 comes out as 0.03125); magnitudes below 2^-62 become 0 and
-    above the largest 24-bit float that largest value."""
-    bits32 = np.ascontiguousarray(values, dtype=np.float32).view(np.uint32)
-    sign = (bits32 >> 8) & 0x800000
-    magnitude = (bits32 & 0x7FFFFFFF).astype(np.int64)
-    magnitude += 0x3F + ((magnitude >> 7) & 1)  # round the 7 dropped bits, ties to even
-    exponent = (magnitude >> 23) - 64  # float32 bias 127 -> 24-bit bias 63
-    word = ((magnitude >> 7) & 0xFFFF) | (np.clip(exponent, 0, 126) << 16)
-    word = np.where(exponent <= 0, 0, np.where(exponent >= 127, 0x7EFFFF, word)).astype(np.uint32) | sign
-    return np.stack([(word >> 16) & 0xFF, (word >> 8) & 0xFF, word & 0xFF], axis=-1).astype(np.uint8)
-
-
-def _fp_predict(rows: np.ndarray) -> np.ndarray:
-    """TIFF's floating-point predictor (Predictor 3, one sample per pixel) on (..., n, B)
-    big-endian sample bytes: each row's bytes regrouped most significant first, then
-    differenced byte by byte."""
-    planes = np.swapaxes(rows, -1, -2).reshape(*rows.shape[:-2], -1)
-    out = planes.copy()
-    out[..., 1:] = np.diff(planes, axis=-1)  # uint8 arithmetic wraps modulo 256
-    return out
-
-
-def _fp24_chunks(mosaic: np.ndarray, tile, level: int) -> list:
-    """Deflated, predicted 24-bit float tiles (or the single strip) in TIFF order."""
-    import imagecodecs
-
-    height, width = mosaic.shape
-    th, tw = tile if tile is not None else (height, width)
-    ny, nx = -(-height // th), -(-width // tw)
-    chunks = []
-    for ty in range(ny):
-        for tx in range(nx):
-            block = mosaic[ty * th:(ty + 1) * th, tx * tw:(tx + 1) * tw]
-            if block.shape != (th, tw):  # edge tiles are padded to the full tile (TIFF)
-                block = np.pad(block, ((0, th - block.shape[0]), (0, tw - block.shape[1])))
-            chunks.append(block)
-
-    def encode(block):
-        return imagecodecs.zlib_encode(np.ascontiguousarray(_fp_predict(_fp24(block))), level=level)
-
-    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
-        return list(pool.map(encode, chunks))
+        tw.write(mosaic.astype(np.float16 if bits == 16 else np.float32, copy=False),
+                 photometric=tifffile.PHOTOMETRIC.CFA, subfiletype=0, extratags=raw_tags, metadata=None,
+                 planarconfig="contig", compression="adobe_deflate", compressionargs={"level": 6},
+                 predictor=_PREDICTOR, maxworkers=min(4, os.cpu_count() or 1), **layout)
+        tw.write(preview, photometric="rgb", subfiletype=1, compression="jpeg", compressionargs={"level": 90},
+                 metadata=None, planarconfig="contig", rowsperstrip=preview.shape[0],
+                 extratags=[(50970, _LONG, 1, 2, True)])  # PreviewColorSpace: sRGB
 
 
 def _downscale(image: np.ndarray, size: int) -> np.ndarray:
@@ -386,26 +283,3 @@ def _downscale(image: np.ndarray, size: int) -> np.ndarray:
     hh, ww = max(1, h // k), max(1, w // k)
     block = image[:hh * k, :ww * k].astype(np.float32).reshape(hh, k, ww, k, 3).mean(axis=(1, 3))
     return np.clip(np.rint(block), 0, 255).astype(np.uint8)
-
-
-def _rough_thumbnail(mosaic, cfa, xyz_to_camera, neutral, white, baseline_exposure) -> np.ndarray:
-    """A small sRGB rendering of the mosaic for IFD0 when no preview is given: 2 x 2
-    cells to camera RGB, white balanced, through the colour matrix to sRGB, exposed so the
-    median lands at 18 % grey (at most to white) plus the baseline exposure."""
-    h2, w2 = mosaic.shape[0] // 2, mosaic.shape[1] // 2
-    cells = mosaic[:h2 * 2, :w2 * 2].reshape(h2, 2, w2, 2)
-    cam = np.zeros((h2, w2, 3), np.float64)
-    for i, c in enumerate(cfa):
-        cam[..., _CFA_CODES[c]] += cells[:, i // 2, :, i % 2]
-    cam[..., 1] /= 2
-    k = max(1, math.ceil(max(h2, w2) / _THUMB_SIZE))
-    hh, ww = max(1, h2 // k), max(1, w2 // k)
-    cam = cam[:hh * k, :ww * k].reshape(hh, k, ww, k, 3).mean(axis=(1, 3))
-    camera_to_srgb = _XYZ_TO_SRGB @ np.linalg.inv(xyz_to_camera) @ np.diag(neutral)
-    camera_to_srgb /= camera_to_srgb.sum(axis=1, keepdims=True)  # neutral -> grey
-    rgb = (cam / neutral) @ camera_to_srgb.T
-    luma = np.median(rgb.mean(axis=2))
-    gain = (0.18 / luma if luma > 0 else 1.0 / white) * 2.0 ** baseline_exposure
-    rgb = np.clip(rgb * min(gain, 1e6), 0, 1)
-    srgb = np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * rgb ** (1 / 2.4) - 0.055)
-    return np.clip(np.rint(srgb * 255), 0, 255).astype(np.uint8)

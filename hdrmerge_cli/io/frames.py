@@ -187,10 +187,6 @@ def _positive(value) -> float | None:
     return v if v is not None and v > 0 else None
 
 
-def is_raw_path(path: str | os.PathLike) -> bool:
-    return Path(path).suffix.lower() not in IMAGE_EXTENSIONS
-
-
 #: suffixes of files that are never frames (outputs and sidecars), with what they are
 NOT_FRAMES = {".exr": "an OpenEXR image (floating point)", ".hdr": "a Radiance HDR image (floating point)",
               ".json": "a JSON file", ".xmp": "an XMP sidecar", ".txt": "a text file", ".csv": "a CSV table",
@@ -225,7 +221,7 @@ def read_frame(path: str | os.PathLike, held: "HeldCodes | None" = None) -> Fram
     if Path(path).suffix.lower() in NOT_FRAMES:
         raise HdrMergeError(f"{path}: {NOT_FRAMES[Path(path).suffix.lower()]} is not an input frame "
                             "(frames are RAW files or 8/16-bit JPEG/TIFF/PNG)")
-    return _read_raw(path, held) if is_raw_path(path) else _read_image(path)
+    return _read_image(path) if Path(path).suffix.lower() in IMAGE_EXTENSIONS else _read_raw(path, held)
 
 
 def check_distinct_frames(paths) -> None:

@@ -100,7 +100,7 @@ def split_brackets(frames: list[Frame], gap: float = DEFAULT_GAP, thumbnail=None
         t = capture_seconds(f.timestamp)
         return (t if t is not None else float("-inf"), Path(f.path).name)
 
-    scenes = _SceneTest(thumbnail or _read_thumbnail)
+    scenes = _SceneTest(thumbnail or (lambda frame: read_thumbnail(frame, thumbnail_shape(frame, THUMBNAIL_SIDE))))
     brackets: list[FoundBracket] = []
     open_bracket: dict = {}  # layout -> its current bracket
     previous = None
@@ -206,10 +206,6 @@ def _seconds_after(last: Frame, f: Frame) -> float | None:
     if t is None or t0 is None:
         return None
     return t - t0 - (last.exposure_time or 0.0)
-
-
-def _read_thumbnail(frame: Frame) -> np.ndarray:
-    return read_thumbnail(frame, thumbnail_shape(frame, THUMBNAIL_SIDE))
 
 
 class _SceneTest:

@@ -67,13 +67,11 @@ def _estimates(frames: list[Frame], s: Samples, crf_spec: str | None) -> dict:
     bracket; a label more than 1/3 EV off is also a warning."""
     from hdrmerge_cli.core.crf import CRF
     from hdrmerge_cli.io.crfspec import resolve_crf
-    from hdrmerge_cli.io.profile import crf_from_json, load_profile
 
     if frames[0].kind in ("raw", "linear"):
         crf = CRF("linear")
     elif crf_spec:
-        crf = (crf_from_json(load_profile(crf_spec)["crf"], crf_spec) if crf_spec.lower().endswith(".json")
-               else resolve_crf(crf_spec))
+        crf = resolve_crf(crf_spec)
     else:
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
     exposures = exposure_values(frames)

@@ -67,11 +67,6 @@ class SimulateOptions:
     overwrite: bool = False
 
 
-def photographic_time(t: float) -> float:
-    """Round as cameras do: 1/n s below 0.1 s, four significant digits above."""
-    return 1.0 / round(1.0 / t) if t < 0.1 else float(f"{t:.4g}")
-
-
 def check_memory(width: int, height: int, what: str) -> None:
     """Refuse, before any work, a scene whose simulation needs more memory than there is."""
     need, have = BYTES_PER_PIXEL * width * height, available_memory()
@@ -217,28 +212,13 @@ def _bracket_times(opts: SimulateOptions, signal: np.ndarray, scene_name: str, a
         times = auto_exposure_times(signal, auto, opts.frames)
     if not opts.times:
         isos = isos * len(times)
-    times = np.repeat([photographic_time(t) for t in times], opts.repeat)
+    # rounded as cameras do: 1/n s below 0.1 s, four significant digits above
+    times = np.repeat([1.0 / round(1.0 / t) if t < 0.1 else float(f"{t:.4g}") for t in times], opts.repeat)
     isos = np.repeat(isos, opts.repeat)
     order = np.argsort(times * isos, kind="stable")  # merge's order: exposure h = t ISO, shortest first
     times, isos = times[order], [int(i) for i in isos[order]]
     check_times(np.sort(times), signal, scene_name, opts, auto)
     return times, isos
-
-
-def _reference_exposure(times: np.ndarray, isos: list[int]) -> float:
-    """merge's reference exposure (seconds): the geometric mean of ``h_j = t_j ISO_j / ISO_ref`` (first frame's ISO)."""
-    h = times * np.asarray(isos, float) / isos[0]
-    return float(np.exp(np.mean(np.log(h))))
-
-
-def _truth_image(irradiance: np.ndarray, sensor_at_ref: SensorModel, full_scale: float, t_ref: float,
-                 scene_name: str, scale: float) -> np.ndarray:
-    """The ground truth (H, W, 3) float64 in merge's units; refused when float32 cannot hold it."""
-    truth = (np.sqrt(sensor_at_ref.alpha) * t_ref / full_scale) * irradiance
-    if float(truth.max()) > np.finfo(np.float32).max:
-        raise HdrMergeError(f"{scene_name}: its brightest values times --scale {scale:g} exceed what a float "
-                            "EXR holds (truth.exr); lower --scale")
-    return truth
 
 
 def _simulation_metadata(opts: SimulateOptions, scene_name: str, names: list[str], times: np.ndarray, t_ref: float,
@@ -286,22 +266,6 @@ def _write_frame(path, y: np.ndarray, exposure_time: float, iso: int, opts: Simu
         })
 
 
-def _check_stored_time(path, name: str, t: float) -> None:
-    """Refuse a written frame whose file does not read back the exposure time ``t`` (seconds)."""
-    stored = read_frame(path).exposure_time
-    if stored is None or abs(stored - t) > 1e-5 * t:
-        raise HdrMergeError(f"{name}: the file stores exposure time {stored}, not {t} (internal error)")
-
-
-def _write_truth(path, truth: np.ndarray, t_ref: float, units: str) -> None:
-    """Write the ground truth (H, W, 3) as a float32 RGB EXR stating its units."""
-    write_exr(path, truth.astype(np.float32), ["R", "G", "B"], {
-        "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
-        "hdrmerge:units": units, "chromaticities": list(REC709_CHROMATICITIES),
-        "ExposureTime": t_ref,
-    })
-
-
 def simulate(opts: SimulateOptions) -> dict:
     if opts.fmt not in FORMATS:
         raise HdrMergeError(f"unknown format {opts.fmt!r} (choose from {', '.join(FORMATS)})")
@@ -329,8 +293,12 @@ def simulate(opts: SimulateOptions) -> dict:
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
         hint = "give longer --times" if opts.times else "lower --scale or give --times"
         times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
-        t_ref = _reference_exposure(times, isos)
-        truth = _truth_image(irradiance, at_iso[isos[0]], sensor.full_scale, t_ref, scene_name, opts.scale)
+        # merge's reference exposure: the geometric mean of h_j = t_j ISO_j / ISO_ref (the first frame's ISO)
+        t_ref = float(np.exp(np.mean(np.log(times * np.asarray(isos, float) / isos[0]))))
+        truth = (np.sqrt(at_iso[isos[0]].alpha) * t_ref / sensor.full_scale) * irradiance  # in merge's units
+        if float(truth.max()) > np.finfo(np.float32).max:
+            raise HdrMergeError(f"{scene_name}: its brightest values times --scale {opts.scale:g} exceed what a float "
+                                "EXR holds (truth.exr); lower --scale")
         meta = _simulation_metadata(opts, scene_name, names, times, t_ref, at_iso, crf, out_bits, isos, irradiance)
         saturated = []
         with atomic_paths(paths, opts.overwrite) as tmps:
@@ -338,10 +306,15 @@ def simulate(opts: SimulateOptions) -> dict:
                 y = expose(signal, t, at_iso[isos[k]], rng, pattern)
                 saturated.append(float(np.mean(y >= sensor.full_scale)))
                 _write_frame(tmps[k], y, requested[k], isos[k], opts, crf, out_bits)
-                _check_stored_time(tmps[k], names[k], t)
+                stored = read_frame(tmps[k]).exposure_time
+                if stored is None or abs(stored - t) > 1e-5 * t:
+                    raise HdrMergeError(f"{names[k]}: the file stores exposure time {stored}, not {t} (internal error)")
                 log.info("rendered %s (t = %.6g s, ISO %d, %.1f %% saturated)", names[k], t, isos[k],
                          100 * saturated[-1])
-            _write_truth(tmps[-2], truth, t_ref, meta["truth_units"])
+            write_exr(tmps[-2], truth.astype(np.float32), ["R", "G", "B"], {
+                "Software": f"hdrmerge-cli {__version__}", "hdrmerge:referenceExposure": t_ref,
+                "hdrmerge:units": meta["truth_units"], "chromaticities": list(REC709_CHROMATICITIES),
+                "ExposureTime": t_ref})
             meta["saturated_fraction"] = saturated
             write_text(tmps[-1], json.dumps(meta, indent=1) + "\n")
         return {"output_dir": str(out), "files": [str(p) for p in paths]} | meta
