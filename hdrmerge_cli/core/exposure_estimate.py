@@ -423,19 +423,38 @@ def response_from_comparagrams(grams: list[np.ndarray], log_ratios: np.ndarray, 
     return np.linalg.solve(ata, atb)
 
 
-def quick_response(exposures: np.ndarray, s: Samples, skip: frozenset[int] = frozenset()) -> CRF:
-    """An image bracket's inverse response fitted on its samples (constant borders off)
-    with the given exposures, per channel, from the neighbour pairs' comparagrams
-    (:func:`response_from_comparagrams`): the check's own
+@dataclass
+class KnotCodes:
+    """The samples off the constant borders as the knot codes a quick response is fitted on:
+    ``codes`` ``(N, C)`` per frame, on ``levels`` knots of the frames' ``n_codes`` codes."""
+
+    codes: list[np.ndarray]
+    levels: int
+    n_codes: int
+
+
+def knot_codes(s: Samples) -> KnotCodes:
+    """:func:`~hdrmerge_cli.core.samples.samples_codes` on the knots of
+    :func:`~hdrmerge_cli.core.crf_goossens2012.to_knots`: drawn once for every fit of
+    :func:`quick_response` on the same samples."""
+    from hdrmerge_cli.core.crf_goossens2012 import knot_levels, to_knots
+
+    n = s.levels[2]
+    levels = knot_levels(n)
+    return KnotCodes([to_knots(c, n, levels) for c in samples_codes(s)], levels, n)
+
+
+def quick_response(exposures: np.ndarray, knots: KnotCodes, skip: frozenset[int] = frozenset()) -> CRF:
+    """An image bracket's inverse response fitted on its samples' knot codes
+    (:func:`knot_codes`, constant borders off) with the given exposures, per channel, from
+    the neighbour pairs' comparagrams (:func:`response_from_comparagrams`): the check's own
     response when the one in use is an unverified model (sRGB assumed), whose ratios are
     off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
     moved) are left out while others remain."""
     from hdrmerge_cli.core.crf_estimate import inverse_from_log  # (numba: only a bracket given no response)
-    from hdrmerge_cli.core.crf_goossens2012 import from_knots, knot_levels, to_knots
+    from hdrmerge_cli.core.crf_goossens2012 import from_knots
 
-    n = s.levels[2]
-    levels = knot_levels(n)
-    codes = [to_knots(c, n, levels) for c in samples_codes(s)]  # (N, C)
+    codes, levels, n = knots.codes, knots.levels, knots.n_codes
     log_r = np.diff(np.log(exposures))
     used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
     tables = []
@@ -455,10 +474,11 @@ def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: 
     if crf_verified(crf):
         return estimate(exposures, s, crf, moved=moved), crf
     h = np.asarray(exposures, dtype=np.float64)
-    fitted = quick_response(h, s, moved)  # its least squares shrink the ratios a little: slope fitted
+    knots = knot_codes(s)
+    fitted = quick_response(h, knots, moved)  # its least squares shrink the ratios a little: slope fitted
     est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
     for _ in range(rounds - 1):
-        fitted = quick_response(np.exp(est.log_h), s, moved)
+        fitted = quick_response(np.exp(est.log_h), knots, moved)
         est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
     # a label is called wrong only where the assumed response agrees (same sign; the smaller
     # of the two differences): a fit on pairs that barely overlap, or a camera curve far
