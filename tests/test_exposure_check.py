@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.comparametric import (
-    PairRatio, border_mask, comparagram, constant_border, estimate_exposures, order_test, response_from_comparagrams,
-    robust_log_ratio,
+from hdrmerge_cli.core.exposure_estimate import (
+    PairRatio, comparagram, estimate_exposures, order_test, response_from_comparagrams, robust_log_ratio,
 )
+from hdrmerge_cli.core.samples import border_mask, constant_border
 from tests.conftest import SHARED, frames_of, needs_shared
 
 
@@ -200,7 +200,7 @@ def test_info_takes_times_and_reports_estimates(run, dng_bracket):
 @pytest.mark.parametrize("name", ["office_jpg", "eos5d3_foyer_jpg", "em1ii_kitchen_jpg", "eos70d_kitchen_jpg",
                                   "ex2f_trees_jpg", "stack_jpg", "stack_ghost_jpg", "eos350d_lamps_night_jpg"])
 def test_no_false_alarm_on_real_brackets(name):
-    from hdrmerge_cli.core.samples import estimate_with_response
+    from hdrmerge_cli.core.exposure_estimate import estimate_with_response
     from hdrmerge_cli.pipeline import exposure_check as ex
     from hdrmerge_cli.pipeline.bracket import read_bracket
     from hdrmerge_cli.io.metadata import exposure_values
@@ -252,7 +252,7 @@ def moving_bracket(tmp_path_factory, run):
 def test_moved_threshold_and_displacement_on_samples():
     from hdrmerge_cli.core.registration import log_irradiance
     from hdrmerge_cli.core.registration import pair_displacement
-    from hdrmerge_cli.core.samples import MOVED_PITCHES, moved_threshold_px
+    from hdrmerge_cli.core.exposure_estimate import MOVED_PITCHES, moved_threshold_px
 
     assert moved_threshold_px(1) == 1.5 and moved_threshold_px(0.5) == 1.0
     assert moved_threshold_px(6) == pytest.approx(6 * MOVED_PITCHES)
@@ -377,7 +377,7 @@ def test_ratio_trend_is_zero_for_a_label_and_the_bend_for_a_response():
     """A wrong label moves every log ratio alike: no trend.  Ratios read through a response
     of the wrong power (gamma 2.2 data read as 1.8) change linearly with log brightness:
     the trend is that slope times the 5th-95th percentile span of log y."""
-    from hdrmerge_cli.core.comparametric import ratio_trend, robust_log_ratio
+    from hdrmerge_cli.core.exposure_estimate import ratio_trend, robust_log_ratio
 
     rng = np.random.default_rng(0)
     y = np.exp(rng.uniform(np.log(1e-3), 0.0, 100000))
@@ -393,8 +393,7 @@ def test_ratio_trend_is_zero_for_a_label_and_the_bend_for_a_response():
 def test_a_wrong_power_is_told_from_a_wrong_label():
     """Differences proportional to the distance in exposure from the reference are one
     slope (a response of the wrong power); one wrong label leaves half its error off it."""
-    from hdrmerge_cli.core.comparametric import ExposureEstimate
-    from hdrmerge_cli.core.samples import power_explains
+    from hdrmerge_cli.core.exposure_estimate import ExposureEstimate, power_explains
 
     log_h = np.log(2.0) * np.arange(5.0) * 1.5
     power = ExposureEstimate(log_h, 0.2 * (np.arange(5.0) - 2) * 1.5, [], 2, 1.0)
@@ -429,7 +428,7 @@ def test_label_motion_comes_from_the_alignment():
     """``warp_motion``: applied warps leave no displacement between registered frames and
     none is known for a frame left unaligned; warps not applied give the distance between
     where the pair's warps take a corner (of a 100 x 200 frame, samples 2 px apart)."""
-    from hdrmerge_cli.core.samples import warp_motion
+    from hdrmerge_cli.core.exposure_estimate import warp_motion
 
     warps = [np.array([[1.0, 0, 0.1], [0, 1, 0]]), np.eye(2, 3), np.array([[1.0, 0, 0], [0, 1, -0.2]])]
     m = warp_motion(warps, [True, True, False], True, 100, 200, 2)
@@ -441,10 +440,10 @@ def test_label_motion_comes_from_the_alignment():
 
 
 def test_normalised_samples_against_direct_levels():
-    """core.comparametric.normalised_samples: an image's codes minus black over the range
+    """core.samples.normalised_samples: an image's codes minus black over the range
     per channel, every step-th row and column; a mosaic's in whole 2 x 2 cells, each site
     with its own colour's levels (independent loop over the sites)."""
-    from hdrmerge_cli.core.comparametric import normalised_samples
+    from hdrmerge_cli.core.samples import normalised_samples
 
     rng = np.random.default_rng(2)
     image = rng.integers(0, 256, (9, 11, 3)).astype(np.uint8)

@@ -1,14 +1,11 @@
-"""The bracket's one sample set and what is measured on it.
+"""The bracket's one sample set, drawn once and read by every check.
 
-:class:`Samples` holds every frame decoded, subsampled and normalised to
-``v = (z - black) / (white - black)`` (drawn by the exposures stage,
-:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`).  On it: the neighbour pairs'
-overlap (:func:`thin_overlap`), their ratios through a response (:func:`measure_pairs`), the
-exposures chained from them (:func:`estimate`; :mod:`hdrmerge_cli.core.comparametric` holds
-the estimators), a quick response fitted on the samples when the one in use is only
-assumed (:func:`quick_response`), and whether the response or a label explains a frame's
-difference from its label (:func:`label_at_fault`, :func:`response_fits`).  The response
-stage, the exposures stage and the excess-variance test all read the same samples here.
+:class:`Samples` holds every frame decoded, subsampled (:func:`normalised_samples`) and
+normalised to ``v = (z - black) / (white - black)`` (drawn by the exposures stage,
+:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`), off the constant borders
+(:func:`constant_border`), with each frame's floor; and what the response stage asks of its
+overlap (:func:`thin_overlap`, :func:`pairs_pin_response`).  What is measured on the samples
+(ratios, exposures, motion) is :mod:`hdrmerge_cli.core.exposure_estimate`.
 
 Everything here is pure array code: no paths, no printing.
 """
@@ -19,22 +16,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hdrmerge_cli.core.comparametric import (
-    LABEL_TOLERANCE_EV, MIN_RATIO_PIXELS, ExposureEstimate, PairRatio, chain_pairs, comparagram, estimate_exposures,
-    response_from_comparagrams, robust_log_ratio,
-)
-from hdrmerge_cli.core.crf import CRF, linearise, table_crf
-from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.registration import (
-    block_mean, common_range, corner_distance, dark_floor, log_irradiance, pair_displacement,
-)
-
-#: a pair registered on the samples counts as moved when displaced by more than this many
-#: sample pitches (:func:`moved_threshold_px`)
-MOVED_PITCHES = 1.5
-#: ... and by more than this many full-resolution pixels
-MOVED_MIN_PX = 1.0
-
+#: fewest pixels both frames must measure for a pair's ratio to count as measured
+MIN_RATIO_PIXELS = 200
 #: well-exposed range of v (normalised codes) whose ratios are trusted: linear data
 #: (RAW, a linear response) and a verified response (a table: a profile or CSV)
 RANGE_LINEAR = (0.01, 0.9)
@@ -144,7 +127,7 @@ class Samples:
         return np.broadcast_to((rows[:, None] * TILES + cols[None, :])[..., None], (h, w, c))
 
     def read_nothing(self) -> list[int]:
-        """The frames with fewer than :data:`~hdrmerge_cli.core.comparametric.MIN_RATIO_PIXELS`
+        """The frames with fewer than :data:`MIN_RATIO_PIXELS`
         samples between their floor and its noise (:attr:`noise_floors`) and clipping, off the
         borders: black (or white) frames, which say nothing of the light, their label or
         their order."""
@@ -228,50 +211,6 @@ def pairs_pin_response(s: Samples) -> bool:
     return len(s.v) < 2 or max(well_exposed_overlap(s)) >= MIN_OVERLAP
 
 
-def crf_verified(crf: CRF) -> bool:
-    """Linear data and measured response tables (a profile's, a CSV, one fitted on the
-    bracket) are trusted; a model (sRGB or ``gamma:G``, assumed for want of a response or
-    named by the user) is not: it is a guess at this camera's curve, so its ratios are read
-    in the mid range, up to a power, and a label is judged only where the bracket's own
-    fitted response agrees."""
-    return crf.is_linear or (crf.table is not None and not crf.assumed)
-
-
-def usable_range(crf: CRF) -> tuple[float, float]:
-    return RANGE_LINEAR if crf.is_linear else RANGE_VERIFIED if crf_verified(crf) else RANGE_UNVERIFIED
-
-
-def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
-    """:func:`~hdrmerge_cli.core.comparametric.robust_log_ratio` of every neighbour pair, on the
-    pixels both frames expose well: ``v`` within ``value_range`` (default by the response,
-    :func:`usable_range`) and above each frame's own floor, off the borders; linearised by
-    ``crf`` per channel (RAW: ``v`` itself)."""
-    lo, hi = value_range or usable_range(crf)
-    masks, lin = [], []
-    for v, floor in zip(s.v, s.floors):
-        ok = (v >= np.maximum(lo, floor)) & (v <= hi) & s.inside[..., None]
-        masks.append(ok)
-        lin.append(linearise(v, crf, s.codes_step))
-    total = max(1, int(np.count_nonzero(s.inside)) * s.v[0].shape[-1])
-    tiles = s.tiles
-    out = []
-    for k in range(1, len(s.v)):
-        both = masks[k - 1] & masks[k]
-        r = robust_log_ratio(lin[k - 1][both], lin[k][both], tiles=tiles[both])
-        r.coverage = int(np.count_nonzero(both)) / total
-        out.append(r)
-    return out
-
-
-def estimate(exposures: np.ndarray, s: Samples, crf: CRF, value_range: tuple[float, float] | None = None, free_slope: bool = False,
-             moved: frozenset[int] = frozenset()) -> ExposureEstimate:
-    """Every frame's exposure measured on the samples (see :mod:`hdrmerge_cli.core.comparametric`),
-    on the labels' scale (the reference frame keeps its label).  The pairs in ``moved``
-    (frames that moved between the exposures) are marked so: their labels' ratio is kept."""
-    pairs = [replace(p, moved=True) if k in moved else p for k, p in enumerate(measure_pairs(s, crf, value_range))]
-    return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
-
-
 def samples_codes(s: Samples) -> list[np.ndarray]:
     """The samples off the constant borders back as integer code values (images: exact),
     ``(N, C)`` int64 per frame."""
@@ -279,197 +218,69 @@ def samples_codes(s: Samples) -> list[np.ndarray]:
     return [np.rint(v[s.inside] * span + black).clip(0, n_codes - 1).astype(np.int64) for v in s.v]
 
 
-def quick_response(exposures: np.ndarray, s: Samples, skip: frozenset[int] = frozenset()) -> CRF:
-    """An image bracket's inverse response fitted on its samples (constant borders off)
-    with the given exposures, per channel, from the neighbour pairs' comparagrams
-    (:func:`~hdrmerge_cli.core.comparametric.response_from_comparagrams`): the check's own
-    response when the one in use is an unverified model (sRGB assumed), whose ratios are
-    off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
-    moved) are left out while others remain."""
-    from hdrmerge_cli.core.crf_estimate import inverse_from_log  # (numba: only a bracket given no response)
-    from hdrmerge_cli.core.crf_goossens2012 import from_knots, knot_levels, to_knots
+# ---------------------------------------------------------------- constant borders
+def constant_border(codes: list[np.ndarray], tol: float, max_fraction: float = 0.25) -> tuple[int, int, int, int]:
+    """Rows and columns at the edges of the frames that are constant in every frame
+    (scan borders, letterboxing, a lens hood's black): ``(top, bottom, left, right)``
+    counts of lines to drop.
 
-    n = s.levels[2]
-    levels = knot_levels(n)
-    codes = [to_knots(c, n, levels) for c in samples_codes(s)]  # (N, C)
-    log_r = np.diff(np.log(exposures))
-    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
-    tables = []
-    for ch in range(codes[0].shape[-1]):
-        grams = [comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
-        g = from_knots(response_from_comparagrams(grams, log_r[[k - 1 for k in used]]), n)
-        tables.append(inverse_from_log(g)[0])
-    return table_crf(np.stack(tables), "fitted on the bracket")
+    A line counts as constant when, in every frame and channel, the spread of its codes
+    (95th minus 5th percentile) is at most ``tol``; lines are taken from each edge inward
+    until the first textured one, at most ``max_fraction`` of the size per side.  Lines
+    constant in every frame carry no exposure information (their codes do not follow the
+    exposure), and they fool statistics of whole frames such as the mean code.
 
+    codes : P arrays (H, W) or (H, W, C), one per frame (same shape)
+    """
+    h, w = codes[0].shape[:2]
 
-def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: int = 1,
-                           moved: frozenset[int] = frozenset()) -> tuple[ExposureEstimate, CRF]:
-    """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
-    otherwise through a response fitted on the bracket (:func:`quick_response`), jointly:
-    fit with the labels, estimate, refit with the estimates, ``rounds`` times.  Pairs in
-    ``moved`` are not used (their labels' ratio is kept)."""
-    if crf_verified(crf):
-        return estimate(exposures, s, crf, moved=moved), crf
-    h = np.asarray(exposures, dtype=np.float64)
-    fitted = quick_response(h, s, moved)  # its least squares shrink the ratios a little: slope fitted
-    est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
-    for _ in range(rounds - 1):
-        fitted = quick_response(np.exp(est.log_h), s, moved)
-        est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
-    # a label is called wrong only where the assumed response agrees (same sign; the smaller
-    # of the two differences): a fit on pairs that barely overlap, or a camera curve far
-    # from the assumed one, each alone makes false alarms
-    model = estimate(exposures, s, crf, moved=moved)
-    assumed = model.difference_ev
-    agree = np.sign(assumed) == np.sign(est.difference_ev)
-    diff = np.where(agree, np.sign(assumed) * np.minimum(np.abs(assumed), np.abs(est.difference_ev)), 0.0)
-    return replace(est, difference_ev=diff, model_slope=model.slope), fitted
+    def spread(axis: int) -> np.ndarray:  # largest line spread over frames and channels, per line
+        out = None
+        for z in codes:
+            z3 = z.reshape(h, w, -1).astype(np.float32)
+            lo, hi = np.percentile(z3, [5, 95], axis=axis)  # (lines, C)
+            s = np.max(hi - lo, axis=-1)
+            out = s if out is None else np.maximum(out, s)
+        return out
+
+    def run(flat: np.ndarray, limit: int) -> int:
+        n = 0
+        while n < limit and flat[n]:
+            n += 1
+        return n
+
+    rows = spread(1) <= tol  # (H,)
+    cols = spread(0) <= tol  # (W,)
+    mh, mw = int(h * max_fraction), int(w * max_fraction)
+    return run(rows, mh), run(rows[::-1], mh), run(cols, mw), run(cols[::-1], mw)
 
 
-def label_at_fault(est: ExposureEstimate, k: int) -> bool:
-    """Whether frame ``k``'s difference from its label is what a wrong label makes rather
-    than a response that does not fit the frame.  A wrong label moves every pixel's ratio
-    alike; a wrong response (or a frame processed or lit differently) bends the ratios with
-    brightness.  The label is blamed when the ratios' change over the brightness range,
-    summed over the pairs frame ``k``'s estimate chains through (:func:`ratio_bend_ev`), is
-    smaller than the difference itself."""
-    return bool(ratio_bend_ev(est, k) < abs(est.difference_ev[k]))
+def border_mask(shape: tuple[int, int], border: tuple[int, int, int, int]) -> np.ndarray:
+    """(H, W) bool: True inside the frame, False on the border lines of :func:`constant_border`."""
+    top, bottom, left, right = border
+    m = np.zeros(shape[:2], dtype=bool)
+    m[top:shape[0] - bottom, left:shape[1] - right] = True
+    return m
 
 
-def power_explains(est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV) -> bool:
-    """Whether the differences from the labels grow in proportion to each frame's distance
-    from the reference in exposure, as a response of the wrong power makes (every ratio
-    read through it is scaled alike): one slope fitted through the reference leaves every
-    frame within ``tol_ev``.  Needs three frames; a single wrong label leaves at least half
-    its error off such a line."""
-    d = np.asarray(est.difference_ev, np.float64)
-    x = (est.log_h - est.log_h[est.reference]) / np.log(2)
-    if d.size < 3 or not np.any(x):
-        return False
-    slope = float(np.dot(x, d) / np.dot(x, x))
-    return bool(np.max(np.abs(d - slope * x)) <= tol_ev)
+
+def _subsample_index(n: int, step: int, mosaic: bool) -> np.ndarray:
+    idx = np.arange(n)
+    return idx[(idx // 2) % step == 0] if mosaic else idx[::step]
 
 
-def response_fits(est: ExposureEstimate) -> bool:
-    """Whether the response in use fits the bracket: the median measured pair's ratios
-    change by less than the label tolerance over their brightness range.  The response is
-    common to every frame, so where it bends most pairs no label can be judged through it."""
-    trends = [abs(p.trend) for p in est.pairs if p.measured]
-    return not trends or float(np.median(trends)) / np.log(2) < LABEL_TOLERANCE_EV
-
-
-def model_power_error_ev(est: ExposureEstimate) -> float:
-    """Where the response is a model checked against the bracket's own fit
-    (:func:`estimate_with_response`): how far the model's reading of the ratios puts the
-    bracket's outermost frame from its label (EV), ``|slope - 1|`` times its distance from
-    the reference; 0 otherwise.  A response of another power than the camera's scales
-    every log ratio alike."""
-    if est.model_slope is None:
-        return 0.0
-    span = np.abs(est.log_h - est.log_h[est.reference]) / np.log(2)
-    return float(abs(est.model_slope - 1.0) * np.max(span))
-
-
-def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:
-    """The change of the pixels' ratios over brightness (EV), summed over the pairs frame
-    ``k``'s estimate chains through (:attr:`~hdrmerge_cli.core.comparametric.PairRatio.trend`)."""
-    return sum(abs(est.pairs[j].trend) for j in chain_pairs(k, est.reference)) / np.log(2)
-
-
-# ---------------------------------------------------------------- motion between exposures
-def moved_threshold_px(pitch: float) -> float:
-    """Displacement (full-resolution pixels) beyond which a pair registered on samples
-    ``pitch`` pixels apart counts as moved: :data:`MOVED_PITCHES` pitches, at least
-    :data:`MOVED_MIN_PX`.
-
-    The samples are a strided subsample (no prefilter: aliased), so their registration
-    resolves about one pitch, not one full-resolution pixel: on the static real brackets
-    of the test data (pitch 2 to 4) neighbour pairs registered on the samples at up to
-    0.87 pitch (1.7 px), where full-resolution alignment found up to 1.9 px of real
-    (tripod) movement and differed from the samples' registration by up to 0.7 pitch; the
-    hand-held ones registered at 7 to 12 pitches (14 to 26 px).  A displacement under a
-    pitch also barely reaches the ratio, which is read on the same samples: it moves the
-    pixels next to edges by a fraction of a sample, and the ratio's 3-sigma rejection drops
-    them."""
-    return max(MOVED_MIN_PX, MOVED_PITCHES * float(pitch))
-
-
-@dataclass
-class Motion:
-    """Neighbour pairs' displacement: ``px`` per pair index (frames ``j``, ``j + 1``) in
-    full-resolution pixels, None where the pair could not be registered (too little texture
-    in the range both expose, a weak correlation); pairs not asked about are absent.
-    ``threshold_px``: beyond it a pair moved (:func:`moved_threshold_px` of the samples' pitch)."""
-
-    px: dict[int, float | None]
-    threshold_px: float
-
-    def moved(self) -> frozenset[int]:
-        return frozenset(j for j, d in self.px.items() if d is not None and d > self.threshold_px)
-
-    def decided_by_motion(self, k: int, reference: int) -> int | None:
-        """The pair that moved most among those frame ``k``'s estimate chains through from
-        the reference (:func:`~hdrmerge_cli.core.comparametric.chain_pairs`), or None when none
-        of them moved."""
-        moved = [j for j in chain_pairs(k, reference) if j in self.moved()]
-        return max(moved, key=lambda j: self.px[j]) if moved else None
-
-
-def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
-    """Frame ``k``'s samples linearised through ``crf`` as one plane for registration (the
-    channels' mean), the constant borders cut off; RAW: the mean of each 2 x 2 CFA cell."""
-    top, bottom, left, right = s.border
-    v = s.v[k]
-    if s.raw:  # whole cells: start on an even sample row and column
-        top, left = top + top % 2, left + left % 2
-    v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
-    lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
-    return block_mean(lin, 2) if s.raw else lin
-
-
-def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
-    """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
-    the samples (:func:`~hdrmerge_cli.core.registration.pair_displacement` of their
-    :func:`sample_plane` as :func:`~hdrmerge_cli.core.registration.log_irradiance`
-    over the irradiance range both expose, exposure-normalised by ``exposures``, the
-    labels: registration is invariant to the gain a wrong label makes), in full-resolution
-    pixels (the samples' pitch).  A few tens of milliseconds a pair on the merge's default
-    samples; only the pairs asked about are registered."""
-    lin: dict[int, np.ndarray] = {}
-    px: dict[int, float | None] = {}
-    for j in sorted(set(pairs)):
-        try:
-            lo, hi = common_range([exposures[j], exposures[j + 1]], lo_code=dark_floor(s.codes_step if s.raw else None))
-        except HdrMergeError:
-            px[j] = None
-            continue
-        for k in (j, j + 1):
-            if k not in lin:
-                lin[k] = sample_plane(s, k, crf)
-        d = pair_displacement(log_irradiance(lin[j], exposures[j], lo, hi),
-                              log_irradiance(lin[j + 1], exposures[j + 1], lo, hi))
-        px[j] = None if d is None else d * s.pitch
-        lin.pop(j, None)  # pairs in order: frame j is not needed again
-    return Motion(px, moved_threshold_px(s.pitch))
-
-
-def label_motion(s: Samples, exposures: np.ndarray, crf: CRF, est: ExposureEstimate) -> Motion:
-    """:func:`moved_pairs` of only the pairs that decided a label in question (none: no cost)."""
-    return moved_pairs(s, exposures, crf, {j for k in est.mislabelled() for j in chain_pairs(k, est.reference)})
-
-
-def warp_motion(warps: list[np.ndarray], aligned: list[bool], applied: bool, height: int, width: int,
-                pitch: float) -> Motion:
-    """The neighbour pairs' displacement as a registration measured it, ``warps`` ``(2, 3)``
-    per frame (``aligned``: False where a frame was left unaligned), for samples brought onto
-    the reference with them when ``applied`` (:meth:`Samples.registered`): 0 left between
-    two registered frames, unknown (None) where either was left unaligned; otherwise the
-    largest distance between where the two frames' warps take a corner of the
-    ``height`` x ``width`` frame.  ``pitch``: the samples' (:func:`moved_threshold_px`)."""
-    px: dict[int, float | None] = {}
-    for j in range(len(warps) - 1):
-        if not (aligned[j] and aligned[j + 1]):
-            px[j] = None
-        else:
-            px[j] = 0.0 if applied else corner_distance(warps[j], warps[j + 1], height, width)
-    return Motion(px, moved_threshold_px(pitch))
+def normalised_samples(codes: np.ndarray, black, white, step: int = 1, cell: np.ndarray | None = None) -> np.ndarray:
+    """``v = (z - black) / (white - black)`` of a frame's codes, float32, every ``step``-th
+    row and column: an image's ``(H, W, C)`` codes with ``(C,)`` levels, ``(H', W', C)``; a
+    mosaic's ``(H, W)`` codes in whole 2 x 2 cells (every ``step``-th cell), each site with
+    the levels of its colour index in ``cell`` (2 x 2; None: the first), ``(H', W', 1)``."""
+    mosaic = codes.ndim == 2
+    ys = _subsample_index(codes.shape[0], step, mosaic)
+    xs = _subsample_index(codes.shape[1], step, mosaic)
+    z = codes[np.ix_(ys, xs)].astype(np.float32)
+    black = np.asarray(black, dtype=np.float32)
+    white = np.asarray(white, dtype=np.float32)
+    if mosaic:
+        c = cell[(ys % 2)[:, None], (xs % 2)[None, :]] if cell is not None else np.zeros((len(ys), len(xs)), np.intp)
+        return ((z - black[c]) / (white[c] - black[c]))[..., None]
+    return (z - black[: z.shape[-1]]) / (white[: z.shape[-1]] - black[: z.shape[-1]])

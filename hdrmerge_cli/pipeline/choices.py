@@ -29,7 +29,6 @@ from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.luts import read_luts
 from hdrmerge_cli.io.noisespec import iso_key, parse_bounds, per_channel
-from hdrmerge_cli.io.metadata import sample_pattern
 from hdrmerge_cli.pipeline.options import MergeSettings
 
 if TYPE_CHECKING:
@@ -241,14 +240,16 @@ def wanted(frames: list[Frame], crf: CRF, settings: MergeSettings, samples, with
 
 def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings: MergeSettings, load=load_codes,
                   noise: dict[str, NoiseParams] | None = None, estimated: dict | None = None, excess=None,
-                  frame_noise: list | None = None, *, timings: dict, with_variance: bool = False) -> Models:
+                  frame_noise: list | None = None, *, pattern: np.ndarray, timings: dict,
+                  with_variance: bool = False) -> Models:
     """The estimator, weights, variance mode and re-weighting passes, each option's
     ``auto`` resolved by the defaults below from what the bracket measured: its noise
     (``noise``, given or measured, ``estimated`` saying how; ``frame_noise``: each frame's
     own, frames of several ISOs) and the variance beyond the noise model of a
     camera-processed bracket (``excess``, :mod:`hdrmerge_cli.pipeline.excess`: it picks the
     estimator, and the ML estimator's variance holds it); then the per-frame tables of (7)
-    (``load``: the frames' codes, for the prior).  The log estimator keeps the fixed
+    (``load``: the frames' codes, for the prior; ``pattern``: the bracket's
+    :func:`~hdrmerge_cli.io.metadata.sample_pattern`).  The log estimator keeps the fixed
     :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: on the real brackets'
     leave-one-out the measured excess in its place did not lower the error
     (benchmarks/results/real_loo.md).  The tables' seconds go to ``timings["tables"]``."""
@@ -267,7 +268,7 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
                                                    estimator, luts, bounds,
                                                    with_variance=with_variance and not n_irls,
                                                    excess=excess if estimator == "ml" else None,
-                                                   frame_noise=frame_noise)
+                                                   frame_noise=frame_noise, pattern=pattern)
     timings["tables"] = time.perf_counter() - t0
     if settings.lut:  # the table's weights are the merge's, whatever --weights says
         if settings.weights != "auto":
@@ -431,7 +432,7 @@ class Tables(NamedTuple):
 
 
 def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-                 luts=None, bounds=None, with_variance=False, excess=None, frame_noise=None) -> Tables:
+                 luts=None, bounds=None, with_variance=False, excess=None, frame_noise=None, pattern=None) -> Tables:
     """Per-frame lookup tables (each frame with its own black and white levels), as
     :class:`Tables`.  ``with_variance``: the tables also hold
     each frame's per-code variance (``--extra-channels variance``, streamed by :class:`LogMerge`).
@@ -453,4 +454,4 @@ def build_tables(frames, exposures, crf, weights, noise=None, variance="none", p
                               tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
                               bounds=bounds, with_variance=with_variance, excess=excess)
               for j, (f, h) in enumerate(zip(frames, exposures))]
-    return Tables(tables, None if shared else sample_pattern(first), names)
+    return Tables(tables, None if shared else pattern, names)

@@ -13,7 +13,8 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_correspondences
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_WEIGHTING, knot_levels
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.samples import MIN_OVERLAP, estimate, pairs_pin_response
+from hdrmerge_cli.core.exposure_estimate import estimate
+from hdrmerge_cli.core.samples import MIN_OVERLAP, pairs_pin_response
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import load_codes

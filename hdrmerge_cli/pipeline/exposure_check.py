@@ -1,12 +1,12 @@
 """Exposure labels checked against the frames (and, on request, replaced by estimates),
 and the order and overlap checks that read real frames.
 
-The numerics are :mod:`hdrmerge_cli.core.samples` and :mod:`hdrmerge_cli.core.comparametric`;
+The numerics are :mod:`hdrmerge_cli.core.samples` and :mod:`hdrmerge_cli.core.exposure_estimate`;
 here the frames are decoded, subsampled (CFA cells kept whole), normalised to
 ``v = (z - black) / (white - black)``, cut to the pixels worth comparing (constant borders
 off, clipped and noise-floor codes off) and linearised through the response in use.
 Before a label is called wrong, the pairs that decided it are registered on the same
-samples (:func:`~hdrmerge_cli.core.samples.moved_pairs`): frames that moved between exposures (a hand-held bracket
+samples (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`): frames that moved between exposures (a hand-held bracket
 merged without ``--align``) leave the labels unchecked, with a line saying so, instead of
 a false label warning.
 """
@@ -21,12 +21,12 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.comparametric import (
-    LABEL_TOLERANCE_EV, ExposureEstimate, border_mask, constant_border, normalised_samples, order_test,
+from hdrmerge_cli.core.exposure_estimate import (
+    LABEL_TOLERANCE_EV, ExposureEstimate, Motion, crf_verified, estimate_with_response, label_at_fault, label_motion,
+    model_power_error_ev, moved_pairs, order_test, power_explains, ratio_bend_ev, response_fits, warp_motion,
 )
 from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Motion, Samples, crf_verified, estimate_with_response, label_at_fault, label_motion,
-    model_power_error_ev, moved_pairs, power_explains, ratio_bend_ev, response_fits, thin_overlap, warp_motion,
+    MIN_OVERLAP, Samples, border_mask, constant_border, normalised_samples, thin_overlap,
 )
 from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, fmt_time
@@ -40,7 +40,7 @@ BORDER_TOL = 0.03
 
 
 def normalise(frame: Frame, codes: np.ndarray, step: int = 1, cell: np.ndarray | None = None) -> np.ndarray:
-    """The frame's :func:`~hdrmerge_cli.core.comparametric.normalised_samples`."""
+    """The frame's :func:`~hdrmerge_cli.core.samples.normalised_samples`."""
     return normalised_samples(codes, frame.black, frame.white, step, cell)
 
 
@@ -92,7 +92,7 @@ def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes,
 # ---------------------------------------------------------------- checks
 def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
     """Frames sorted by their labels must not get darker: per neighbour pair the sign test
-    of :func:`~hdrmerge_cli.core.comparametric.order_test` on the pixels both frames read
+    of :func:`~hdrmerge_cli.core.exposure_estimate.order_test` on the pixels both frames read
     above their floors and its noise (:attr:`~hdrmerge_cli.core.samples.Samples.noise_floors`)
     and neither clips, off the constant borders (frames that read black, at the floor, and equal
     exposures pass: they neither confirm nor contradict an order; only a pair darker on
@@ -159,7 +159,7 @@ def check_labels(frames: list[Frame], exposures: np.ndarray, est: ExposureEstima
     """The labels judged once on the exposures ``est`` measured through ``used`` (the
     response the estimate read): ``motion`` as measured (the alignment's, or every pair
     registered), else the pairs that decided a label in question registered on the samples
-    through ``crf`` (:func:`~hdrmerge_cli.core.samples.moved_pairs`; none: no cost); then
+    through ``crf`` (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`; none: no cost); then
     :func:`label_verdicts`, their warnings (:func:`warn_mislabelled`; ``named_moved``: the
     pairs that moved were named already) and the ``--json`` record (:func:`report`, of the
     ``estimates`` used or the labels)."""
@@ -183,11 +183,11 @@ def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, ve
     """The ``--json`` record of the estimates: per frame the label and the estimate (in
     seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV,
     the estimate's standard error, the share of well-exposed pixels it rests on and whether
-    it is measured (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.measured`),
+    it is measured (:meth:`~hdrmerge_cli.core.exposure_estimate.ExposureEstimate.measured`),
     and its :func:`label_verdicts` entry: whether its label is blamed (``mislabelled``), could
     not be checked because the frames moved (``moved``), or the response is blamed instead
     (``response_at_fault``: why); per neighbour pair the measured ratio and, where registered
-    (:func:`~hdrmerge_cli.core.samples.moved_pairs`), ``moved_px`` (null: not registered: no
+    (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`), ``moved_px`` (null: not registered: no
     label in question, or too little texture); which exposures the merge used."""
     est_h = np.exp(est.log_h)
     se, share, measured = est.stderr_ev(), est.share(), est.measured()
@@ -233,9 +233,9 @@ def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLER
 
 def label_verdicts(frames: list[Frame], est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV,
                    motion: Motion | None = None) -> dict[int, Verdict]:
-    """Per frame whose estimate is off its label (:meth:`~hdrmerge_cli.core.comparametric.ExposureEstimate.mislabelled`),
+    """Per frame whose estimate is off its label (:meth:`~hdrmerge_cli.core.exposure_estimate.ExposureEstimate.mislabelled`),
     what is blamed, and why: ``"moved"`` (its estimate chains through a pair that moved:
-    ``motion``, :func:`~hdrmerge_cli.core.samples.moved_pairs`), ``"pair"`` (two frames:
+    ``motion``, :func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`), ``"pair"`` (two frames:
     neither label outvotes the other), ``"given"`` (the user's time, the first suspect
     whatever the ratios say), ``"response"`` (the response explains the difference better
     than the label, :func:`response_at_fault`, the reason beside it) or ``"label"``.  The
@@ -314,9 +314,9 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
     merge's ``alignment``, the samples are brought onto the reference by its warps where it
     applies them and the pairs' motion is what it measured
-    (:func:`~hdrmerge_cli.core.samples.warp_motion`);
+    (:func:`~hdrmerge_cli.core.exposure_estimate.warp_motion`);
     without, the pairs in question are registered on the samples
-    (:func:`~hdrmerge_cli.core.samples.label_motion`).
+    (:func:`~hdrmerge_cli.core.exposure_estimate.label_motion`).
 
     A single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:

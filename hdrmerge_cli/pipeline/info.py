@@ -7,7 +7,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
-from hdrmerge_cli.core.samples import Samples, estimate_with_response
+from hdrmerge_cli.core.exposure_estimate import estimate_with_response
+from hdrmerge_cli.core.samples import Samples
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.io.metadata import exposure_values, fmt_time, sample_pattern
 from hdrmerge_cli.io.times import apply_times

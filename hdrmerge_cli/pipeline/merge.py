@@ -16,7 +16,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core import resample
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, noise_rows
 from hdrmerge_cli.io.frames import Frame
-from hdrmerge_cli.io.metadata import equal_exposure_groups, fmt_time
+from hdrmerge_cli.io.metadata import fmt_time
 from hdrmerge_cli.io.noisespec import per_channel
 
 log = logging.getLogger("hdrmerge_cli")
@@ -205,11 +205,11 @@ class Repeats:
     seen: dict[int, np.ndarray]
 
 
-def watch_repeats(load, frames: list[Frame], exposures: np.ndarray) -> tuple:
-    """Frames of equal exposure (:func:`~hdrmerge_cli.io.metadata.equal_exposure_groups`)
-    are merged; to check that they agree, a loader that keeps an even subsample of their
-    codes as the merge decodes them (no extra decode).  Returns ``(loader, Repeats)``."""
-    groups = equal_exposure_groups(exposures)
+def watch_repeats(load, frames: list[Frame], groups: list[list[int]]) -> tuple:
+    """Frames of equal exposure (``groups``: the bracket's runs,
+    :func:`~hdrmerge_cli.io.metadata.equal_exposure_groups`) are merged; to check that they
+    agree, a loader that keeps an even subsample of their codes as the merge decodes them
+    (no extra decode).  Returns ``(loader, Repeats)``."""
     seen: dict[int, np.ndarray] = {}
     if not groups:
         return load, Repeats(groups, seen)

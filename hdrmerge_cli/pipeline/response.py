@@ -13,9 +13,8 @@ from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_correspondences, inverse_from_log, sample_pixels
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, CRFFit, standard_prior
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, estimate, label_at_fault, pairs_pin_response, response_fits, samples_codes, thin_overlap,
-)
+from hdrmerge_cli.core.exposure_estimate import estimate, label_at_fault, response_fits
+from hdrmerge_cli.core.samples import MIN_OVERLAP, Samples, pairs_pin_response, samples_codes, thin_overlap
 from hdrmerge_cli.io.frames import Frame
 
 log = logging.getLogger("hdrmerge_cli")
@@ -90,7 +89,7 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
     :mod:`hdrmerge_cli.io.noisecache`).  Where the frames cannot support a fit (fewer than
     two distinct exposures, or neighbours sharing fewer than :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` unclipped
     pixels) the cached response of the same camera and style, unless the frames contradict
-    it (:func:`~hdrmerge_cli.core.samples.response_fits`); else None, with a warning
+    it (:func:`~hdrmerge_cli.core.exposure_estimate.response_fits`); else None, with a warning
     saying why and that sRGB is assumed."""
     from hdrmerge_cli.io import noisecache
 
@@ -149,7 +148,7 @@ def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples
     """The response and the labels judged together: fit with the labels (on the samples'
     pixels, or with ``histograms`` on their histograms'
     :func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), check them through
-    the fit (:func:`~hdrmerge_cli.core.samples.estimate`), and while a frame's label
+    the fit (:func:`~hdrmerge_cli.core.exposure_estimate.estimate`), and while a frame's label
     is off by more than the tolerance in a way a label explains (its ratios do not change
     with brightness, :func:`~hdrmerge_cli.pipeline.label_at_fault`), refit with
     that frame's estimate in place of its label, the frame furthest off first, at most half

@@ -37,7 +37,7 @@ from hdrmerge_cli.core.reconstruct import neutral_bounds
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.images import exr_compression
-from hdrmerge_cli.io.metadata import output_orientation, reference_exposure
+from hdrmerge_cli.io.metadata import reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline.bracket import Bracket, read
 from hdrmerge_cli.pipeline.choices import (
@@ -186,8 +186,8 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
     checked = resolve_exposures(b.frames, b.exposures, b.crf, b.codes, inputs.times == ESTIMATE, b.samples,
                                 b.alignment)
-    b.frames, b.exposures, b.exposure_report, b.samples = (checked.frames, checked.exposures, checked.report,
-                                                           checked.samples)
+    b.settle_exposures(checked.frames, checked.exposures, settings.reference)
+    b.exposure_report, b.samples = checked.report, checked.samples
     timings["exposure_check"] = time.perf_counter() - t1
     b.models = choose(b, opts)
     b.samples = None  # no stage reads the samples after the choices
@@ -198,17 +198,16 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
         b.ghosts = deghost(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames), aligned,
                            settings.deghost)
         timings["deghost"] = time.perf_counter() - t1
-    h_ref = reference_exposure(settings.reference, b.exposures)
     validity = frame_validity(b.frames, b.alignment, b.codes)
-    load, repeats = watch_repeats(aligned, b.frames, b.exposures)
-    rec = reconstruct(b.frames, b.exposures, h_ref, b.models, load,
+    load, repeats = watch_repeats(aligned, b.frames, b.repeats)
+    rec = reconstruct(b.frames, b.exposures, b.h_ref, b.models, load,
                       sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment, aligned,
                                      validity),
                       timings, "variance" in outputs.extra_channels)
-    check_range(rec.result, outputs.half, settings.reference, h_ref, b.exposures, b.crf)
+    check_range(rec.result, outputs.half, settings.reference, b.h_ref, b.exposures, b.crf)
     neutral_bounds(rec.result, rec.flags)
     warn_unmeasured(b.frames, rec.result, rec.flags)
-    return Merged(b, rec, opts, h_ref, output_orientation(b.frames), check_repeats(repeats, b.frames, b.crf),
+    return Merged(b, rec, opts, b.h_ref, b.orientation, check_repeats(repeats, b.frames, b.crf),
                   output_alpha(b.frames, validity))
 
 
@@ -249,7 +248,7 @@ def choose(b: Bracket, opts: MergeOptions) -> Models:
         excess = measure_excess(b.samples, b.exposures, b.crf, noise, b.frames[0].channel_names)
         timings["excess_variance"] = time.perf_counter() - t1
     return choose_models(b.frames, b.exposures, b.crf, settings, b.codes, noise, estimated, excess, frame_noise,
-                         with_variance=with_variance, timings=timings)
+                         pattern=b.pattern, with_variance=with_variance, timings=timings)
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
