@@ -35,6 +35,7 @@ BRACKETS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bra
 MAX_PIXELS = 400_000
 LOW, HIGH = 10, 245
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+TIMES_FILE = "exposure_times_seconds.txt"
 
 
 def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
@@ -45,7 +46,8 @@ def load_bracket(folder: Path, max_pixels: int = MAX_PIXELS):
     from hdrmerge_cli.io.metadata import exposure_values
 
     paths = sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    frames = read_bracket(paths)
+    times = folder / TIMES_FILE  # a bracket without EXIF (a film scan) states its times in this file
+    frames = read_bracket(paths, times_file=str(times) if times.exists() else None)
     step = max(1, int(np.ceil(np.sqrt(frames[0].width * frames[0].height / max_pixels))))
     codes = [np.ascontiguousarray(load_codes(f)[::step, ::step]) for f in frames]
     return frames, codes, exposure_values(frames), step
@@ -98,12 +100,12 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     return e.astype(np.float64), crf
 
 
-def plain_merge(paths: list[str], step: int, h: float, workdir: Path) -> np.ndarray:
+def plain_merge(paths: list[str], step: int, h: float, workdir: Path, times: list[float] | None = None) -> np.ndarray:
     """The command a user types, ``hdrmerge-cli merge FILES -o out.exr`` with no response
     option (the response measured on the bracket), on the full-resolution files, with
     ``--align off`` as every row here (alignment is align_loo's subject); the left-out frame
     of exposure ``h`` predicted through the response its profile records, on the
-    benchmark's decimated grid."""
+    benchmark's decimated grid.  ``times``: the frames' exposure times, where EXIF has none."""
     import json
     import subprocess
     import sys
@@ -113,7 +115,9 @@ def plain_merge(paths: list[str], step: int, h: float, workdir: Path) -> np.ndar
 
     exe = Path(sys.executable).parent / "hdrmerge-cli"
     out = workdir / "plain.exr"
-    subprocess.run([str(exe), "merge", *paths, "-o", str(out), "-q", "--overwrite", "--align", "off"], check=True)
+    given = ["--times", ",".join(f"{t:.9g}" for t in times)] if times else []
+    subprocess.run([str(exe), "merge", *paths, *given, "-o", str(out), "-q", "--overwrite", "--align", "off"],
+                   check=True)
     pixels, header = read_exr(str(out))
     crf = crf_from_json(json.loads(out.with_suffix(".profile.json").read_text())["crf"])
     e = pixels[::step, ::step, :3].astype(np.float64) / float(header["hdrmerge:referenceExposure"])
@@ -191,7 +195,8 @@ def run(quick: bool = False, configs=None, peers=True, brackets=None, plain=True
                 t = time.perf_counter()
                 with tempfile.TemporaryDirectory() as tmp:
                     try:
-                        pred = plain_merge([frames[j].path for j in keep], step, exposures[k], Path(tmp))
+                        times = [frames[j].exposure_time for j in keep] if (folder / TIMES_FILE).exists() else None
+                        pred = plain_merge([frames[j].path for j in keep], step, exposures[k], Path(tmp), times)
                         row[PLAIN] = rmse(pred, actual, mask)
                     except Exception as exc:  # noqa: BLE001
                         logging.warning("%s %s: %s failed: %s", folder.name, frames[k].name, PLAIN, exc)
