@@ -184,8 +184,8 @@ def test_binned_pairs_counts_a_misplaced_bright_pixel_at_its_own_level():
     variances at their own level (written out here), so such a bin is not weighed as a
     thousand equal pixels.  Over 400 000 Gaussian differences with 1 % of the bright ones
     keyed as dark, the gain stays within 4 Fisher standard errors and sigma_o^2 within 15
-    (seeds 3, 4, 5: -0.9, +3.1, -10.7; with V read off the key -21, -3.5, -25: the bins
-    of dark keys, which fix sigma_o^2, were weighed as if their few bright pixels were
+    (seeds 3, 4, 5: -0.9, +3.1, -10.7; V read off the key gives -21, -3.5, -25: the
+    bins of dark keys, which fix sigma_o^2, weighed as if their few bright pixels were
     dark).  Seed 5, the worst of the three."""
     rng = np.random.default_rng(5)
     c0, c1, r = 16.0, 2.0, 4.0

@@ -450,8 +450,8 @@ def binned_pairs(pp: PixelPairs, bins: int = 64, min_count: int = 20, coef=None)
     at each pixel's own level (``long``), not at its key: in a textured scene the
     neighbours' mean can put a bright pixel among a thousand dark ones (a fine highlight
     on a dark ground), whose few large variances then carry the bin, and a ``V`` read off
-    the key would count it as a thousand equal pixels (on StillLife such bins, 20 stated
-    standard errors off, pulled alpha down by 1-4 %)."""
+    the key would count it as a thousand equal pixels (on the StillLife scene such bins lie
+    20 stated standard errors off and pull alpha down by 1-4 %)."""
     n = pp.key.size
     if n < bins * min_count:
         bins = max(n // min_count, 0)

@@ -48,10 +48,10 @@ class Bracket:
     noise_by_iso : per ``ISO100``-style key, each ISO's noise where the frames' ISOs differ
     exposures : ``(P,)`` float64, each frame's ``h_j`` (:func:`~hdrmerge_cli.io.metadata.exposure_values`)
     pattern : the table row each sample reads (:func:`~hdrmerge_cli.io.metadata.sample_pattern`)
-    orientation : the output's EXIF orientation (:func:`~hdrmerge_cli.io.metadata.output_orientation`)
-    h_ref, repeats : the reference exposure and the runs of equal exposures
-        (:func:`~hdrmerge_cli.io.metadata.equal_exposure_groups`), set with the exposures the
-        merge uses (:meth:`settle_exposures`)
+    h_ref, repeats, orientation : the reference exposure, the runs of equal exposures
+        (:func:`~hdrmerge_cli.io.metadata.equal_exposure_groups`) and the output's EXIF
+        orientation (:func:`~hdrmerge_cli.io.metadata.output_orientation`), set with the
+        exposures the merge uses (:meth:`settle_exposures`)
     samples : the one sample set every check reads (:class:`~hdrmerge_cli.core.samples.Samples`),
         drawn by the exposures stage; brought onto the reference once the frames are aligned
     alignment, exposure_report, models, ghosts : the stages' results (None: not run)
@@ -70,22 +70,23 @@ class Bracket:
     models: Models | None = None
     ghosts: Ghosts | None = None
     timings: dict[str, float] = field(default_factory=dict)
-    pattern: np.ndarray | None = None
-    orientation: int | None = None
-    h_ref: float | None = None
-    repeats: list[list[int]] | None = None
+    pattern: np.ndarray | None = field(init=False, default=None)
+    orientation: int | None = field(init=False, default=None)
+    h_ref: float | None = field(init=False, default=None)
+    repeats: list[list[int]] | None = field(init=False, default=None)
 
     def __post_init__(self):
         if self.exposures is None:
             self.exposures = exposure_values(self.frames)
         self.pattern = sample_pattern(self.frames[0])  # the frames share their kind and CFA (read_bracket)
-        self.orientation = output_orientation(self.frames)
 
     def settle_exposures(self, frames: list[Frame], exposures: np.ndarray, reference: str | float) -> None:
         """The frames and exposures the merge uses (as the exposures stage returns them), and
         what follows from them alone: the reference exposure (``--reference``,
-        :func:`~hdrmerge_cli.io.metadata.reference_exposure`) and the runs of equal exposures."""
+        :func:`~hdrmerge_cli.io.metadata.reference_exposure`), the runs of equal exposures and
+        the output's orientation (the first frame's, of the frames in their final order)."""
         self.frames, self.exposures = frames, exposures
+        self.orientation = output_orientation(frames)
         self.h_ref = reference_exposure(reference, exposures)
         self.repeats = equal_exposure_groups(exposures)
 

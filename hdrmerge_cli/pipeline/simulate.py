@@ -27,6 +27,7 @@ from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import MIN_RAW_SIDE, read_frame
 from hdrmerge_cli.io.images import read_exr, read_header, write_exr, write_ldr
 from hdrmerge_cli.io.malloc import available_memory
+from hdrmerge_cli.io.metadata import reference_exposure
 from hdrmerge_cli.io.noisespec import iso_key
 from hdrmerge_cli.io.dng_integer import write_dng
 from hdrmerge_cli.io.times import MIN_SECONDS
@@ -293,8 +294,8 @@ def simulate(opts: SimulateOptions) -> dict:
         requested = times  # what the metadata is written with (rewriting a read-back value can re-round it)
         hint = "give longer --times" if opts.times else "lower --scale or give --times"
         times = np.array([stored_time(out, opts.fmt, t, hint) for t in times])
-        # merge's reference exposure: the geometric mean of h_j = t_j ISO_j / ISO_ref (the first frame's ISO)
-        t_ref = float(np.exp(np.mean(np.log(times * np.asarray(isos, float) / isos[0]))))
+        # merge's reference exposure, of h_j = t_j ISO_j / ISO_ref (the first frame's ISO)
+        t_ref = reference_exposure("geomean", times * np.asarray(isos, float) / isos[0])
         truth = (np.sqrt(at_iso[isos[0]].alpha) * t_ref / sensor.full_scale) * irradiance  # in merge's units
         if float(truth.max()) > np.finfo(np.float32).max:
             raise HdrMergeError(f"{scene_name}: its brightest values times --scale {opts.scale:g} exceed what a float "
