@@ -77,11 +77,64 @@ def _image_bracket(src: list[Path], folder: Path, channels: int, bits: int, size
     return out
 
 
+#: DNG PhotometricInterpretation of demosaiced linear data (DNG 1.4 specification)
+LINEAR_RAW = 34892
+
+
+def write_linear_dng(
+    path: str,
+    pixels: np.ndarray,
+    *,
+    black: int,
+    white: int,
+    exposure_time: float,
+    iso: int | None = None,
+    aperture: float | None = None,
+    make: str = "hdrmerge-cli",
+    model: str = "simulated linear camera",
+    xyz_to_camera: np.ndarray | None = None,
+    as_shot_neutral=(1.0, 1.0, 1.0),
+    orientation: int = 1,
+) -> None:
+    """Write ``(H, W, 3)`` (or ``(H, W)`` monochrome) uint16 linear camera RGB as an
+    uncompressed LinearRaw DNG (PhotometricInterpretation 34892), the already demosaiced
+    data DNG converters and some cameras write; LibRaw reads it back bit-exactly as a
+    colour stack.  ``as_shot_neutral``: the camera RGB of white (AsShotNeutral; LibRaw's
+    as-shot white balance is its inverse); ``orientation``: the EXIF orientation tag."""
+    from pidng.core import DNGTags, Tag
+    from pidng.defs import CalibrationIlluminant
+
+    from hdrmerge_cli.io.dng_integer import finish_dng, rational
+
+    if xyz_to_camera is None:
+        from hdrmerge_cli.core.output_colorspace import xyz_to
+
+        xyz_to_camera = xyz_to("rec709")
+    pixels = np.ascontiguousarray(pixels, dtype=np.uint16)
+    h, w = pixels.shape[:2]
+    samples = 1 if pixels.ndim == 2 else pixels.shape[2]
+    tags = DNGTags()
+    tags.set(Tag.ImageWidth, w)
+    tags.set(Tag.ImageLength, h)
+    tags.set(Tag.TileWidth, w)
+    tags.set(Tag.TileLength, h)
+    tags.set(Tag.Orientation, int(orientation))
+    tags.set(Tag.PhotometricInterpretation, LINEAR_RAW)
+    tags.set(Tag.SamplesPerPixel, samples)
+    tags.set(Tag.BitsPerSample, [16] * samples)
+    tags.set(Tag.BlackLevel, int(black))
+    tags.set(Tag.WhiteLevel, int(white))
+    if samples == 3:
+        tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])
+        tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
+        tags.set(Tag.AsShotNeutral, [rational(v, 10000) for v in as_shot_neutral])
+    finish_dng(tags, path, pixels, exposure_time, iso, aperture, make, model)
+
+
 def linear_dng_bracket(folder: Path, mono: bool, shape=(64, 96)) -> list[Path]:
     """Three LinearRaw DNGs (RGB, or monochrome with ``mono``) of a ramp over 10 stops,
     frames of ``shape`` (rows, columns) 2 EV apart (:data:`TIMES`)."""
     from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
-    from hdrmerge_cli.io.dng_integer import write_linear_dng
 
     sensor = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)
     rng = np.random.default_rng(5)

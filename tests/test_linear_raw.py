@@ -10,7 +10,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_raw
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.io.images import read_exr
-from hdrmerge_cli.io.dng_integer import write_linear_dng
+from benchmarks.input_kinds import write_linear_dng
 from hdrmerge_cli.io.metadata import exposure_values, upright
 
 SENSOR = SensorModel(alpha=0.25, sigma_o2=9.0, bits=14, black=512)

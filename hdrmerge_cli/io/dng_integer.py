@@ -1,5 +1,4 @@
-"""Writing DNG files (pidng) that LibRaw reads back bit-exactly: Bayer mosaics and
-LinearRaw (demosaiced linear RGB)."""
+"""Writing Bayer-mosaic DNG files (pidng) that LibRaw reads back bit-exactly."""
 from __future__ import annotations
 
 import os
@@ -58,62 +57,10 @@ def write_dng(
     tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])
     tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
     tags.set(Tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]])
-    _finish_dng(tags, path, np.ascontiguousarray(mosaic, dtype=np.uint16), exposure_time, iso, aperture, make, model)
+    finish_dng(tags, path, np.ascontiguousarray(mosaic, dtype=np.uint16), exposure_time, iso, aperture, make, model)
 
 
-#: DNG PhotometricInterpretation of demosaiced linear data (DNG 1.4 specification)
-LINEAR_RAW = 34892
-
-
-def write_linear_dng(
-    path: str,
-    pixels: np.ndarray,
-    *,
-    black: int,
-    white: int,
-    exposure_time: float,
-    iso: int | None = None,
-    aperture: float | None = None,
-    make: str = "hdrmerge-cli",
-    model: str = "simulated linear camera",
-    xyz_to_camera: np.ndarray | None = None,
-    as_shot_neutral=(1.0, 1.0, 1.0),
-    orientation: int = 1,
-) -> None:
-    """Write ``(H, W, 3)`` (or ``(H, W)`` monochrome) uint16 linear camera RGB as an
-    uncompressed LinearRaw DNG (PhotometricInterpretation 34892), the already demosaiced
-    data DNG converters and some cameras write; LibRaw reads it back bit-exactly as a
-    colour stack.  ``as_shot_neutral``: the camera RGB of white (AsShotNeutral; LibRaw's
-    as-shot white balance is its inverse); ``orientation``: the EXIF orientation tag."""
-    from pidng.core import DNGTags, Tag
-    from pidng.defs import CalibrationIlluminant
-
-    if xyz_to_camera is None:
-        from hdrmerge_cli.core.output_colorspace import xyz_to
-
-        xyz_to_camera = xyz_to("rec709")
-    pixels = np.ascontiguousarray(pixels, dtype=np.uint16)
-    h, w = pixels.shape[:2]
-    samples = 1 if pixels.ndim == 2 else pixels.shape[2]
-    tags = DNGTags()
-    tags.set(Tag.ImageWidth, w)
-    tags.set(Tag.ImageLength, h)
-    tags.set(Tag.TileWidth, w)
-    tags.set(Tag.TileLength, h)
-    tags.set(Tag.Orientation, int(orientation))
-    tags.set(Tag.PhotometricInterpretation, LINEAR_RAW)
-    tags.set(Tag.SamplesPerPixel, samples)
-    tags.set(Tag.BitsPerSample, [16] * samples)
-    tags.set(Tag.BlackLevel, int(black))
-    tags.set(Tag.WhiteLevel, int(white))
-    if samples == 3:
-        tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])
-        tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
-        tags.set(Tag.AsShotNeutral, [rational(v, 10000) for v in as_shot_neutral])
-    _finish_dng(tags, path, pixels, exposure_time, iso, aperture, make, model)
-
-
-def _finish_dng(tags, path: str, pixels: np.ndarray, exposure_time: float, iso, aperture, make: str,
+def finish_dng(tags, path: str, pixels: np.ndarray, exposure_time: float, iso, aperture, make: str,
                 model: str) -> None:
     """The exposure and camera tags every DNG written here carries, then the file (pidng)."""
     from pidng.core import RAW2DNG, Tag
