@@ -60,3 +60,32 @@ def test_a_service_account_without_a_home_merges_with_a_read_only_install():
             if p.is_dir():
                 p.chmod(0o755)
         shutil.rmtree(base, ignore_errors=True)
+
+
+def test_a_ctrl_c_a_library_swallows_still_stops_the_merge(tmp_path, monkeypatch, dng_bracket):
+    """A SIGINT whose exception a bare ``except:`` swallowed (as in some import-time probe)
+    is noted by the handler: the merge commits nothing and exits 130 with the one line."""
+    from click.testing import CliRunner
+
+    from hdrmerge_cli.cli import cli
+    from hdrmerge_cli.core import errors
+    from hdrmerge_cli.pipeline import run
+
+    merge_frames = run.merge_frames
+
+    def swallowing(*args, **kwargs):
+        try:
+            errors.raise_terminated(signal.SIGINT, None)
+        except BaseException:  # a library's bare except
+            pass
+        return merge_frames(*args, **kwargs)
+
+    monkeypatch.setattr(run, "merge_frames", swallowing)
+    frames = sorted(str(p) for p in dng_bracket[0].glob("frame_*.dng"))
+    try:
+        result = CliRunner().invoke(cli, ["merge", *frames, "-o", str(tmp_path / "out.exr")])
+    finally:
+        errors.RECEIVED.clear()
+    assert result.exit_code == 130, result.output
+    assert "stopped by SIGINT" in result.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -140,13 +140,13 @@ _RUN_FROM_MAIN = False
 
 
 def main():
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # first: temporaries removed, exit 128 + signal
+        signal.signal(sig, raise_terminated)
     global _RUN_FROM_MAIN
     _RUN_FROM_MAIN = True
     # numpy's RuntimeWarnings (a 0/0 in a masked-out sample) say nothing a user can act on;
     # results are checked for finiteness before anything is written
     warnings.filterwarnings("ignore", category=RuntimeWarning)
-    for sig in (signal.SIGTERM, signal.SIGHUP):  # handled like Ctrl-C: temporaries removed
-        signal.signal(sig, raise_terminated)
     from hdrmerge_cli.io.malloc import one_malloc_arena
 
     one_malloc_arena()

@@ -7,7 +7,7 @@ import os
 import secrets
 from pathlib import Path
 
-from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.errors import HdrMergeError, check_not_stopped
 
 
 def check_writable(path: str | os.PathLike, overwrite: bool) -> Path:
@@ -126,6 +126,7 @@ def create_temporary(path: Path, tmps: list[str]) -> None:
 
 
 def _commit(tmps: list[str], paths: list[Path], overwrite: bool) -> None:
+    check_not_stopped()  # a Ctrl-C whose exception a library swallowed still stops the run
     done: list[tuple[Path, str | None]] = []  # (output, the backup of the file it replaced)
     try:
         for tmp, path in zip(tmps, paths):
