@@ -89,3 +89,63 @@ def test_a_ctrl_c_a_library_swallows_still_stops_the_merge(tmp_path, monkeypatch
     assert result.exit_code == 130, result.output
     assert "stopped by SIGINT" in result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("pattern", [[7, 7, 7, 7], [0, 0, 0, 0], [1, 1, 1, 1]])
+def test_a_mosaic_whose_cfa_pattern_is_no_bayer_pattern_is_refused(tmp_path, pattern):
+    """A CFA DNG whose CFAPattern names no colour, or one colour only, is refused in one
+    line naming the file and the pattern (it used to merge as a 1-channel Y image)."""
+    import numpy as np
+    from click.testing import CliRunner
+
+    from hdrmerge_cli.cli import cli
+    from hdrmerge_cli.io.dng_integer import write_dng
+
+    frames = []
+    for k, t in enumerate((0.01, 0.04)):
+        frames.append(str(tmp_path / f"f{k}.dng"))
+        mosaic = np.random.default_rng(k).integers(100, 4000, (32, 48)).astype(np.uint16)
+        write_dng(frames[-1], mosaic, pattern=pattern, black=64, white=4095, exposure_time=t)
+    result = CliRunner().invoke(cli, ["merge", *frames, "-o", str(tmp_path / "out.exr")])
+    assert result.exit_code == 1, result.output
+    assert result.stderr.startswith(f"hdrmerge-cli: error: {frames[0]}: a colour filter (CFA) mosaic whose CFAPattern")
+    assert "Bayer" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "out.exr").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this system")
+def test_a_fifo_given_as_a_frame_is_named_as_what_it_is(tmp_path, jpeg_bracket):
+    """A FIFO exists: it is 'not a regular file', not 'no such file' (and is never opened,
+    so the command does not block on it)."""
+    from click.testing import CliRunner
+
+    from conftest import frames_of
+    from hdrmerge_cli.cli import cli
+
+    fifo = tmp_path / "frame.jpg"
+    os.mkfifo(fifo)
+    folder, meta = jpeg_bracket
+    for argv in (["merge", str(fifo), *map(str, frames_of(folder, meta)), "-o", str(tmp_path / "out.exr")], ["info", str(fifo)]):
+        result = CliRunner().invoke(cli, argv)
+        assert result.exit_code == 1, result.output
+        assert result.stderr.strip() == (f"hdrmerge-cli: error: {fifo}: not a regular file (a pipe, socket or "
+                                         "device); a frame is a RAW or image file")
+
+
+@pytest.mark.parametrize("argv", [["merge", "F", "-o", "-"], ["estimate-crf", "F", "-o", "-"],
+                                  ["calibrate-noise", "F", "-o", "-"], ["weights-lut", "-o", "-", "--times", "1,2"],
+                                  ["simulate", "-o", "-"]])
+def test_output_to_standard_output_is_refused_as_such(tmp_path, jpeg_bracket, argv):
+    """``-o -`` is a usage error that says standard output is not supported and what to give
+    instead, for every command with ``-o`` (not a complaint about the file name's suffix)."""
+    from click.testing import CliRunner
+
+    from conftest import frames_of
+    from hdrmerge_cli.cli import cli
+
+    folder, meta = jpeg_bracket
+    frame = str(frames_of(folder, meta)[0])
+    result = CliRunner().invoke(cli, [frame if a == "F" else a for a in argv])
+    assert result.exit_code == 2, result.output
+    assert "writing to standard output is not supported" in result.stderr and "give a name" in result.stderr
+    assert "Traceback" not in result.stderr

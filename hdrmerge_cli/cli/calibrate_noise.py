@@ -5,13 +5,13 @@ from pathlib import Path
 
 import click
 
-from hdrmerge_cli.cli.options import common_options, emit, output_options
+from hdrmerge_cli.cli.options import common_options, emit, output_options, to_a_file
 from hdrmerge_cli.pipeline.calibrate import CalibrateOptions, calibrate_noise
 
 
 @click.command("calibrate-noise")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), callback=to_a_file,
               help="The profile JSON to write [default: update --profile in place].")
 @click.option("--darks", type=click.Path(exists=True, file_okay=False),
               help="Folder of dark frames (no light; at least two per ISO): read noise by photon transfer.")

@@ -7,7 +7,7 @@ import click
 
 from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, SEED, FiniteFloatRange, bounds_option_callback, common_options, emit, output_options, TIMES_HELP,
-    times_or_estimate_callback,
+    times_or_estimate_callback, to_a_file
 )
 from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS
 from hdrmerge_cli.core.crf_goossens2012 import (
@@ -20,7 +20,7 @@ from hdrmerge_cli.pipeline.crf import MAX_SMOOTHING, CRFOptions, estimate_crf
 
 @click.command("estimate-crf")
 @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), callback=to_a_file,
               help="The profile JSON to write (default with --profile: that profile, updated in place).")
 @click.option("--method", type=click.Choice(list(CRF_ESTIMATORS)), default="goossens", show_default=True,
               help="goossens: the paper's monotone QP (37) on comparagrams; debevec: Debevec-Malik 1997 least "

@@ -10,7 +10,7 @@ import click
 
 from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
-    TIMES_HELP, parse_csv_list, times_or_estimate_callback,
+    TIMES_HELP, parse_csv_list, times_or_estimate_callback, to_a_file
 )
 from hdrmerge_cli.core.choices import VARIANCE_FACTORS, WEIGHTINGS
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
@@ -29,7 +29,7 @@ log = logging.getLogger("hdrmerge_cli")
 
 @click.command("merge")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), callback=to_a_file,
               help="The EXR to write, or from RAW a floating-point DNG (*.dng: the merged mosaic, for raw editors; "
                    "its BaselineExposure, printed in the closing line and --json's dng_baseline_exposure_ev, makes "
                    "the default rendering show the --reference exposure: darktable ignores it, so raise darktable's "

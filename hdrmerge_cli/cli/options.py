@@ -132,6 +132,14 @@ def emit(summary: dict, as_json: bool, text: str) -> None:
         click.echo(f"hdrmerge-cli: {text}", err=True)
 
 
+def to_a_file(ctx, param, value):
+    """``-o``: a file or folder name; ``-`` (standard output) is refused as what it is."""
+    if value is not None and str(value) == "-":
+        raise click.BadParameter("writing to standard output is not supported: outputs are files, written whole "
+                                 "and then renamed into place; give a name (e.g. -o out.exr) and read that file")
+    return value
+
+
 def parse_csv_list(ctx, param, value):
     if value is None:
         return ()

@@ -6,7 +6,7 @@ from pathlib import Path
 import click
 
 from hdrmerge_cli.cli.options import (
-    SEED, FiniteFloatRange, common_options, emit, output_options, times_option_callback,
+    SEED, FiniteFloatRange, common_options, emit, output_options, times_option_callback, to_a_file
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.sensor import SensorModel
@@ -48,6 +48,7 @@ def _size(ctx, param, value):
 
 @click.command("simulate")
 @click.option("-o", "--output", "output_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              callback=to_a_file,
               help="Folder for the frames, truth.exr and simulation.json.")
 @click.option("--scene", default="builtin", show_default=True,
               help="'builtin' (procedural, ~19 stops), 'flat' (uniform, --scale electrons per second: flat-field "

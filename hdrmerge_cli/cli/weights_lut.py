@@ -9,7 +9,7 @@ import numpy as np
 
 from hdrmerge_cli.cli.options import (
     BOUNDS_HELP, FiniteFloatRange, bounds_option_callback, common_options, emit, noise_option_callback, output_options,
-    times_option_callback,
+    times_option_callback, to_a_file
 )
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
@@ -27,7 +27,7 @@ from hdrmerge_cli.pipeline.noise import resolve_noise
 
 @click.command("weights-lut")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path), callback=to_a_file,
               help="Table to write: .csv, .npy or .json.")
 @click.option("--times", callback=times_option_callback, metavar="T1,T2,...",
               help="Exposure times in seconds (instead of a bracket IMAGES).")

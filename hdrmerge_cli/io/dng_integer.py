@@ -18,7 +18,7 @@ def write_dng(
     path: str,
     mosaic: np.ndarray,
     *,
-    pattern: str,
+    pattern: str | list[int],
     black: int,
     white: int,
     exposure_time: float,
@@ -28,7 +28,8 @@ def write_dng(
     model: str = "simulated sensor",
     xyz_to_camera: np.ndarray | None = None,
 ) -> None:
-    """Write a ``(H, W)`` uint16 Bayer mosaic as an uncompressed DNG.
+    """Write a ``(H, W)`` uint16 Bayer mosaic as an uncompressed DNG; ``pattern`` is a
+    name (``"RGGB"``...) or the CFAPattern tag's four colour indices (0 R, 1 G, 2 B).
 
     ``xyz_to_camera`` is the DNG ColorMatrix1 (D65); the default makes the camera's
     native RGB equal to linear Rec.709, so LibRaw's camera -> sRGB matrix is identity.
@@ -51,7 +52,7 @@ def write_dng(
     tags.set(Tag.SamplesPerPixel, 1)
     tags.set(Tag.BitsPerSample, 16)
     tags.set(Tag.CFARepeatPatternDim, [2, 2])
-    tags.set(Tag.CFAPattern, getattr(CFAPattern, pattern))
+    tags.set(Tag.CFAPattern, getattr(CFAPattern, pattern) if isinstance(pattern, str) else list(pattern))
     tags.set(Tag.BlackLevel, int(black))
     tags.set(Tag.WhiteLevel, int(white))
     tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])

@@ -215,7 +215,10 @@ def read_frame(path: str | os.PathLike, held: "HeldCodes | None" = None) -> Fram
         raise HdrMergeError(f"{shown}: the file name is not valid UTF-8, which the image libraries cannot open; "
                             "rename the file") from None
     if not os.path.isfile(path):
-        raise HdrMergeError(f"{path}: no such file")
+        if not os.path.exists(path):
+            raise HdrMergeError(f"{path}: no such file")
+        what = "is a folder" if os.path.isdir(path) else "not a regular file (a pipe, socket or device)"
+        raise HdrMergeError(f"{path}: {what}; a frame is a RAW or image file")
     if not os.access(path, os.R_OK):
         raise HdrMergeError(f"{path}: not readable (permission denied)")
     if Path(path).suffix.lower() in NOT_FRAMES:
@@ -245,10 +248,14 @@ def _oiio_meta(path: str) -> dict:
         oiio.geterror()
         return {}
     spec = inp.spec()
-    meta = {k: spec.getattribute(k) for k in ("Make", "Model", "Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings")}
+    meta = {k: spec.getattribute(k) for k in ("Make", "Model", "Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings",
+                                              "tiff:PhotometricInterpretation")}
     inp.close()
     return meta
 
+
+#: TIFF PhotometricInterpretation of a colour filter array (DNG: a mosaic)
+CFA_PHOTOMETRIC = 32803
 
 #: LibRaw's ``flip`` (dcraw's code) -> the EXIF orientation it came from
 LIBRAW_FLIP_TO_EXIF = {0: 1, 1: 2, 2: 4, 3: 3, 4: 5, 5: 8, 6: 6, 7: 7}
@@ -290,6 +297,13 @@ def _read_raw(path: str, held: "HeldCodes | None" = None) -> Frame:
         if stored is None:  # else the codes may be LibRaw's buffer itself, freed with them (_visible)
             raw.close()
     pattern = None if pattern is None else np.asarray(pattern)
+    meta = _oiio_meta(path)
+    bayer = pattern is not None and pattern.shape == (2, 2) and num_colors == 3
+    if bayer and {colors[i] for i in pattern.ravel()} != set("RGB") or (
+            not bayer and meta.get("tiff:PhotometricInterpretation") == CFA_PHOTOMETRIC):
+        named = f" ({''.join(colors[i] for i in pattern.ravel())})" if bayer else ""
+        raise HdrMergeError(f"{path}: a colour filter (CFA) mosaic whose CFAPattern{named} is not a Bayer pattern "
+                            "(2 x 2 of red, green and blue, each present); the file's CFAPattern tag is wrong")
     if raw_type == rawpy.RawType.Stack or (num_colors == 1 and (pattern is None or pattern.size == 1)):
         kind, channels = "linear", 3 if raw_type == rawpy.RawType.Stack else 1
     elif pattern is not None and pattern.shape == (6, 6):
@@ -304,7 +318,6 @@ def _read_raw(path: str, held: "HeldCodes | None" = None) -> Frame:
         kind, channels = "raw", 4
     if white <= black.max():
         raise HdrMergeError(f"{path}: white level {white:g} is not above the black level {black.max():g}")
-    meta = _oiio_meta(path)
     ts = other.timestamp
     stamp = ts.isoformat() if isinstance(ts, _dt.datetime) and ts.year > 1970 else None
     bits = int(np.ceil(np.log2(white + 1)))
