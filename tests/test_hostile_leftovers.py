@@ -149,3 +149,14 @@ def test_output_to_standard_output_is_refused_as_such(tmp_path, jpeg_bracket, ar
     assert result.exit_code == 2, result.output
     assert "writing to standard output is not supported" in result.stderr and "give a name" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_the_package_metadata_uses_no_deprecated_form():
+    """``project.license`` is an SPDX expression (a TOML table is deprecated by setuptools,
+    which warns on every ``pip install`` and stops accepting it in February 2027), with a
+    build backend recent enough to read it."""
+    import tomllib
+
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert meta["project"]["license"] == "MIT"
+    assert "setuptools>=77" in meta["build-system"]["requires"]
