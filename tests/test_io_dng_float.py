@@ -98,7 +98,8 @@ def test_cfa_pattern(tmp_path, pattern):
 
 
 def test_colour_matrix_exif_and_white_level(tmp_path):
-    path = write(tmp_path / "c.dng", patch_mosaic(64, 96) * 1000, white_level=1000, orientation=6)
+    path = write(tmp_path / "c.dng", patch_mosaic(64, 96) * 1000, white_level=1000, orientation=6,
+                 datetime="2026:01:02 03:04:05")
     with tifffile.TiffFile(path) as tif:
         ifd0, raw = tif.pages.first, raw_page(tif)
         cm = np.asarray(ifd0.tags["ColorMatrix1"].value, float).reshape(9, 2)
@@ -110,17 +111,18 @@ def test_colour_matrix_exif_and_white_level(tmp_path):
         assert be[0] / be[1] == 0.5
         assert ifd0.tags["Orientation"].value == 6
         assert ifd0.tags["Make"].value == "Acme" and ifd0.tags["Model"].value == "HDR-1"
-        assert tuple(ifd0.tags["ExposureTime"].value) == (1, 60)
-        assert ifd0.tags["ISOSpeedRatings"].value == 200
-        fnum = ifd0.tags["FNumber"].value
-        assert fnum[0] / fnum[1] == 5.6
+        exif = ifd0.tags["ExifTag"].value  # the shooting data stand in the EXIF IFD, not in IFD0
+        assert not {"ExposureTime", "ISOSpeedRatings", "FNumber"} & {t.name for t in ifd0.tags.values()}
+        assert tuple(exif["ExposureTime"]) == (1, 60)
+        assert exif["ISOSpeedRatings"] == 200
+        assert exif["FNumber"][0] / exif["FNumber"][1] == 5.6
+        assert exif["DateTimeOriginal"] == "2026:01:02 03:04:05"
         assert raw.tags["WhiteLevel"].value == 1000 and raw.tags["BlackLevel"].value == 0
         assert bytes(raw.tags["CFAPattern"].value) == b"\x00\x01\x01\x02"
     with rawpy.imread(str(path)) as raw:
         assert raw.sizes.flip == 6  # LibRaw's code for EXIF orientation 6
-        # (ISO: LibRaw reads ISOSpeedRatings only from an EXIF IFD, which tifffile does
-        # not write; the TIFF/EP tag in IFD0 is checked above)
         assert raw.other.shutter_speed == pytest.approx(1 / 60)
+        assert raw.other.iso_speed == 200
         assert raw.other.aperture == pytest.approx(5.6)
         # LibRaw's rgb_cam (camera -> sRGB) is built from ColorMatrix1: white stays white
         rgb_cam = np.asarray(raw.color_matrix)[:, :3]
@@ -226,6 +228,16 @@ def test_rawpy_renders_sensible_colours(tmp_path):
     path = write(tmp_path / "r.dng", patch_mosaic(128, 192))
     with rawpy.imread(str(path)) as raw:
         check_colours(raw.postprocess(use_camera_wb=True, no_auto_bright=True), "LibRaw")
+
+
+@pytest.mark.skipif(shutil.which("exiftool") is None, reason="exiftool not installed (Debian: libimage-exiftool-perl)")
+@pytest.mark.parametrize("bits", [16, 32])
+def test_exiftool_validates_the_dng_without_a_warning(tmp_path, bits):
+    """``exiftool -validate``: shooting data in the EXIF IFD (not IFD0), SubIFDs of type
+    LONG; no warning at all."""
+    path = write(tmp_path / "v.dng", patch_mosaic(64, 96), bits=bits, datetime="2026:01:02 03:04:05")
+    run = subprocess.run(["exiftool", "-validate", "-warning", "-a", str(path)], capture_output=True, text=True)
+    assert run.stdout.split() == ["Validate", ":", "OK"], run.stdout
 
 
 @pytest.mark.skipif(shutil.which("darktable-cli") is None, reason="darktable-cli not installed (Debian: darktable)")

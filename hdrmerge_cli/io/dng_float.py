@@ -22,9 +22,11 @@ What the readers need, beyond the DNG specification:
   uncompressed-float path needs the raw in IFD0 alone (with a thumbnail IFD it renders
   black).  darktable 4.2 (rawspeed) reads 16/24/32 bits, Deflate or not; LibRaw
   (rawpy 0.28) all of them too.  Hence 32 bits (``--half``: 16), Deflate, Predictor 3.
-* Shooting data (ExposureTime, FNumber, ISOSpeedRatings) go in IFD0 as TIFF/EP tags:
-  tifffile writes no EXIF IFD, and LibRaw reads ISO only from one (exposure and aperture
-  it reads from IFD0).
+* Shooting data (ExposureTime, FNumber, ISOSpeedRatings, DateTimeOriginal) go in an
+  EXIF IFD, where EXIF puts them and LibRaw reads ISO; tifffile writes no EXIF IFD, so
+  :func:`_add_exif` appends one after the file is written and points IFD0's ExifTag at
+  it, and gives IFD0's SubIFDs the LONG type the TIFF note on SubIFDs and DNG writers use
+  (tifffile writes type IFD, which ``exiftool -validate`` flags).
 * WhiteLevel is a whole number (SHORT/LONG in the specification): the mosaic's values
   are stored as given, so ``white_level`` must be a positive whole number; values above it
   are clipped by raw editors, so pass the mosaic's maximum (or more) when it exceeds 1.
@@ -42,7 +44,9 @@ from hdrmerge_cli.core.errors import HdrMergeError
 #: DNG CFAPattern codes of CFAPlaneColor (0 = red, 1 = green, 2 = blue)
 _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 #: TIFF tag data types (tifffile's codes)
-_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _SRATIONAL = 1, 2, 3, 4, 5, 10
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED, _SRATIONAL = 1, 2, 3, 4, 5, 7, 10
+#: an unassigned tag code just below ExifTag (34665), written by tifffile in its place
+_EXIF_PLACEHOLDER = 34664
 #: largest finite half-precision value
 _HALF_MAX = 65504.0
 _THUMB_SIZE = 256
@@ -238,15 +242,16 @@ def _write(where, mosaic, *, cfa, matrix, neutral, white, make, model, exposure_
         ifd0.append((271, _ASCII, 0, make, True))
     if model:
         ifd0.append((272, _ASCII, 0, model, True))
-    # shooting data as TIFF/EP tags in IFD0 (where TIFF/EP and DNG put them; LibRaw, exiv2 read them there)
+    exif = [(36864, _UNDEFINED, 4, b"0232")]  # ExifVersion 2.32; then the shooting data, appended by _add_exif
     if exposure_time is not None and exposure_time > 0:
-        ifd0.append((33434, _RATIONAL, 1, _exposure_rational(float(exposure_time)), True))
+        exif.append((33434, _RATIONAL, 1, _exposure_rational(float(exposure_time))))
     if aperture is not None and aperture > 0:
-        ifd0.append((33437, _RATIONAL, 1, (int(round(aperture * 100)), 100), True))
+        exif.append((33437, _RATIONAL, 1, (int(round(aperture * 100)), 100)))
     if iso is not None and iso > 0:
-        ifd0.append((34855, _SHORT, 1, min(int(round(iso)), 65535), True))
+        exif.append((34855, _SHORT, 1, (min(int(round(iso)), 65535),)))
     if stamp:
-        ifd0.append((36867, _ASCII, 0, stamp, True))  # DateTimeOriginal
+        exif.append((36867, _ASCII, 20, stamp.encode("ascii") + b"\0"))  # DateTimeOriginal
+    ifd0.append((_EXIF_PLACEHOLDER, _LONG, 1, 0, True))  # becomes ExifTag in _add_exif
     cfa_codes = tuple(_CFA_CODES[c] for c in cfa)
     raw_tags = [
         (33421, _SHORT, 2, (2, 2), True),  # CFARepeatPatternDim
@@ -272,6 +277,43 @@ def _write(where, mosaic, *, cfa, matrix, neutral, white, make, model, exposure_
         tw.write(preview, photometric="rgb", subfiletype=1, compression="jpeg", compressionargs={"level": 90},
                  metadata=None, planarconfig="contig", rowsperstrip=preview.shape[0],
                  extratags=[(50970, _LONG, 1, 2, True)])  # PreviewColorSpace: sRGB
+    _add_exif(where, exif)
+
+
+def _add_exif(where: str, entries: list) -> None:
+    """Append an EXIF IFD of ``entries`` ((tag, TIFF type, count, value)) to the written
+    file, turn IFD0's placeholder entry into ExifTag (34665) pointing at it, and give
+    IFD0's SubIFDs (330) type LONG: fields of entries tifffile wrote are patched in place
+    (little-endian, classic TIFF, as :func:`_write` writes).  tifffile refuses to write
+    tag 34665 itself; the placeholder's code sorts where 34665 does, so IFD0's entries
+    stay in ascending order."""
+    import struct
+
+    import tifffile
+
+    with tifffile.TiffFile(where) as tif:
+        tags = tif.pages.first.tags
+        exif_entry, subifds_entry = tags[_EXIF_PLACEHOLDER].offset, tags[330].offset
+    size = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1}
+    entries = sorted(entries, key=lambda e: e[0])
+    with open(where, "r+b") as f:
+        start = f.seek(0, os.SEEK_END) + 1 & ~1  # IFDs begin on a word boundary
+        data_at = start + 2 + 12 * len(entries) + 4
+        head, data = [struct.pack("<H", len(entries))], b""
+        for tag, kind, count, value in entries:
+            raw = value if isinstance(value, bytes) else struct.pack(f"<{len(value)}{'H' if kind == _SHORT else 'I'}",
+                                                                     *value)
+            if size[kind] * count <= 4:
+                field = raw.ljust(4, b"\0")
+            else:
+                field, data = struct.pack("<I", data_at + len(data)), data + raw + b"\0" * (len(raw) % 2)
+            head.append(struct.pack("<HHI", tag, kind, count) + field)
+        f.seek(start)
+        f.write(b"".join(head) + struct.pack("<I", 0) + data)
+        f.seek(exif_entry)
+        f.write(struct.pack("<HHII", 34665, _LONG, 1, start))
+        f.seek(subifds_entry + 2)
+        f.write(struct.pack("<H", _LONG))
 
 
 def _downscale(image: np.ndarray, size: int) -> np.ndarray:
