@@ -160,3 +160,32 @@ def test_the_package_metadata_uses_no_deprecated_form():
     meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert meta["project"]["license"] == "MIT"
     assert "setuptools>=77" in meta["build-system"]["requires"]
+
+
+def test_a_weights_csv_without_its_header_reads_every_row(tmp_path, jpeg_bracket):
+    """``merge --lut``: a headerless CSV is read from its first row (it lost one row, then
+    was refused as 255 rows for 256 code values); a table without its z column, or with
+    too few columns, is refused for that fault."""
+    from click.testing import CliRunner
+
+    from conftest import frames_of
+    from hdrmerge_cli.cli import cli
+
+    folder, meta = jpeg_bracket
+    frames = [str(p) for p in frames_of(folder, meta)]
+    run = lambda *a: CliRunner().invoke(cli, [str(x) for x in a])
+    assert run("weights-lut", *frames, "-o", tmp_path / "w.csv").exit_code == 0
+    lines = (tmp_path / "w.csv").read_text().splitlines()
+    (tmp_path / "plain.csv").write_text("\n".join(lines[1:]) + "\n")
+    (tmp_path / "no_z.csv").write_text("\n".join(",".join(ln.split(",")[1:]) for ln in lines[1:]) + "\n")
+    (tmp_path / "two.csv").write_text("\n".join(",".join(ln.split(",")[:2]) for ln in lines) + "\n")
+    with_header = run("merge", *frames, "--lut", tmp_path / "w.csv", "-o", tmp_path / "a.exr")
+    without = run("merge", *frames, "--lut", tmp_path / "plain.csv", "-o", tmp_path / "b.exr")
+    assert with_header.exit_code == 0 and without.exit_code == 0, without.output
+    from hdrmerge_cli.io.images import read_exr
+
+    assert (read_exr(str(tmp_path / "a.exr"))[0] == read_exr(str(tmp_path / "b.exr"))[0]).all()
+    no_z = run("merge", *frames, "--lut", tmp_path / "no_z.csv", "-o", tmp_path / "c.exr")
+    assert no_z.exit_code == 1 and "the first column must be the code value z" in no_z.stderr
+    two = run("merge", *frames, "--lut", tmp_path / "two.csv", "-o", tmp_path / "d.exr")
+    assert two.exit_code == 1 and "columns do not fit" in two.stderr and "rows" not in two.stderr

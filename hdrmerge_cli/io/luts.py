@@ -43,9 +43,7 @@ def read_luts(path: str) -> np.ndarray:
         elif suffix == ".json":
             table = np.asarray(json.loads(Path(path).read_text())["weights"], dtype=np.float64).T
         elif suffix == ".csv":
-            with warnings.catch_warnings():  # an empty file: refused below
-                warnings.simplefilter("ignore", UserWarning)
-                table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)[:, 1:]
+            table = _read_csv(path)
         else:
             raise HdrMergeError(f"{path}: unknown table format (use {', '.join(LUT_FORMATS)})")
     except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
@@ -56,3 +54,24 @@ def read_luts(path: str) -> np.ndarray:
     if table.ndim != 2 or not np.all(np.isfinite(table)) or table.min() < 0 or table.max() > 1:
         raise HdrMergeError(f"{path}: a weights table holds values in [0, 1], one row per code value")
     return table
+
+
+def _read_csv(path: str) -> np.ndarray:
+    """A CSV table: a header line if its first line is not numbers (``weights-lut`` writes
+    ``# z,...``), then rows whose first column is the code value z = 0, 1, 2, ...; the
+    columns after it."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        first = f.readline().lstrip("#").split(",")
+    try:
+        [float(v) for v in first]
+        header = False
+    except ValueError:
+        header = True
+    with warnings.catch_warnings():  # an empty file: refused by the caller
+        warnings.simplefilter("ignore", UserWarning)
+        table = np.loadtxt(path, delimiter=",", skiprows=int(header), ndmin=2)
+    if table.size and (table.shape[1] < 2 or not np.array_equal(table[:, 0], np.arange(len(table)))):
+        raise HdrMergeError(f"{path}: the first column must be the code value z = 0, 1, 2, ... (as weights-lut "
+                            f"writes it), then one column of weights per exposure; this table has "
+                            f"{table.shape[1]} column{'s' if table.shape[1] != 1 else ''}")
+    return table[:, 1:]
