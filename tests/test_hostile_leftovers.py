@@ -189,3 +189,23 @@ def test_a_weights_csv_without_its_header_reads_every_row(tmp_path, jpeg_bracket
     assert no_z.exit_code == 1 and "the first column must be the code value z" in no_z.stderr
     two = run("merge", *frames, "--lut", tmp_path / "two.csv", "-o", tmp_path / "d.exr")
     assert two.exit_code == 1 and "columns do not fit" in two.stderr and "rows" not in two.stderr
+
+
+def test_estimate_crf_takes_repeated_exposures_as_more_data(tmp_path, jpeg_bracket):
+    """Two frames of one exposure (an ISO change inside a real bracket makes them) are more
+    data for the response, not an error; frames labelled alike that read differently are
+    refused, naming both and the exposure times."""
+    from click.testing import CliRunner
+
+    from conftest import frames_of
+    from hdrmerge_cli.cli import cli
+
+    folder, meta = jpeg_bracket
+    frames = [str(p) for p in frames_of(folder, meta)]
+    shutil.copy(frames[1], tmp_path / "repeat.jpg")
+    run = lambda *a: CliRunner().invoke(cli, [str(x) for x in a])
+    ok = run("estimate-crf", *frames, tmp_path / "repeat.jpg", "-o", tmp_path / "r.json")
+    assert ok.exit_code == 0, ok.output
+    bad = run("estimate-crf", *frames, "-o", tmp_path / "b.json", "--times", "0.01,0.01,0.02")
+    assert bad.exit_code == 1 and "labelled the same exposure" in bad.stderr
+    assert "check the exposure times" in bad.stderr and not (tmp_path / "b.json").exists()

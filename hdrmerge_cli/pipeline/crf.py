@@ -18,7 +18,7 @@ from hdrmerge_cli.core.samples import MIN_OVERLAP, pairs_pin_response
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.io.atomic import check_writable, write_together
 from hdrmerge_cli.io.frames import load_codes
-from hdrmerge_cli.io.metadata import exposure_values
+from hdrmerge_cli.io.metadata import equal_exposure_groups, exposure_values, fmt_time
 from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, profile_writer
@@ -115,6 +115,7 @@ def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit
         codes = list(pool.map(load_codes, frames))
     by_frame = {id(f): c for f, c in zip(frames, codes)}
     labels = exposure_values(frames)
+    check_repeated_exposures(frames, labels, codes)
     samples = exposure_check.ordered_samples(frames, labels, lambda f: by_frame[id(f)])  # constant borders off
     if first.kind == "raw":
         codes = [c[..., None] for c in codes]
@@ -191,7 +192,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
     if opts.plot is not None:
         check_figure_path(opts.plot, opts.overwrite)
     base = load_profile(opts.profile) if opts.profile else None
-    frames = read_bracket(list(paths), opts.times, opts.times_file)
+    frames = read_bracket(list(paths), opts.times, opts.times_file, equal_ok=True)
     first = frames[0]
     smoothing = method.smoothing if opts.smoothing is None else opts.smoothing
     n_samples = method.samples if opts.samples is None else opts.samples
@@ -246,3 +247,23 @@ def crf_figure(g: np.ndarray, codes: list[np.ndarray], log_h: np.ndarray, frames
     axes[0][0].legend(fontsize=7, markerscale=3)
     fig.tight_layout()
     return fig
+
+
+def check_repeated_exposures(frames, labels: np.ndarray, codes: list[np.ndarray]) -> None:
+    """Frames labelled with one exposure are more data for the response, unless they read
+    differently: a frame brighter or darker than its repeat (by more than
+    :data:`~hdrmerge_cli.core.repeats.RATIO_TOLERANCE_EV` in code values, a monotone
+    response's lower bound on the change) had another exposure, and is refused."""
+    from hdrmerge_cli.core.repeats import compare_repeat
+
+    top = float(frames[0].n_codes - 1)
+    step = max(1, int(np.sqrt(codes[0].size / 300_000)))
+    for group in equal_exposure_groups(labels):
+        a = frames[group[0]]
+        for k in group[1:]:
+            za, zb = codes[group[0]][::step, ::step], codes[k][::step, ::step]
+            check = compare_repeat(za, zb, za / top, zb / top)
+            if check is not None and check.exposure_changed:
+                raise HdrMergeError(f"{frames[k].path}: labelled the same exposure ({fmt_time(frames[k].exposure_time)}) "
+                                    f"as {a.path}, but its code values are {2.0 ** check.ratio_ev:.3g}x "
+                                    "that frame's: check the exposure times")
