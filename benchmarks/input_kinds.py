@@ -90,9 +90,6 @@ def write_linear_dng(
     exposure_time: float,
     iso: int | None = None,
     aperture: float | None = None,
-    make: str = "hdrmerge-cli",
-    model: str = "simulated linear camera",
-    xyz_to_camera: np.ndarray | None = None,
     as_shot_neutral=(1.0, 1.0, 1.0),
     orientation: int = 1,
 ) -> None:
@@ -106,10 +103,9 @@ def write_linear_dng(
 
     from hdrmerge_cli.io.dng_integer import finish_dng, rational
 
-    if xyz_to_camera is None:
-        from hdrmerge_cli.core.output_colorspace import xyz_to
+    from hdrmerge_cli.core.output_colorspace import xyz_to
 
-        xyz_to_camera = xyz_to("rec709")
+    xyz_to_camera = xyz_to("rec709")  # camera RGB is linear Rec.709
     pixels = np.ascontiguousarray(pixels, dtype=np.uint16)
     h, w = pixels.shape[:2]
     samples = 1 if pixels.ndim == 2 else pixels.shape[2]
@@ -128,7 +124,7 @@ def write_linear_dng(
         tags.set(Tag.ColorMatrix1, [rational(v, 10000) for v in np.asarray(xyz_to_camera, float).ravel()])
         tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
         tags.set(Tag.AsShotNeutral, [rational(v, 10000) for v in as_shot_neutral])
-    finish_dng(tags, path, pixels, exposure_time, iso, aperture, make, model)
+    finish_dng(tags, path, pixels, exposure_time, iso, aperture, "hdrmerge-cli", "simulated linear camera")
 
 
 def linear_dng_bracket(folder: Path, mono: bool, shape=(64, 96)) -> list[Path]:
