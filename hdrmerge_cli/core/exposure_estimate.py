@@ -31,6 +31,7 @@ Everything here is pure array code: no paths, no printing.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -637,3 +638,126 @@ def warp_motion(warps: list[np.ndarray], aligned: list[bool], applied: bool, hei
         else:
             px[j] = 0.0 if applied else corner_distance(warps[j], warps[j + 1], height, width)
     return Motion(px, moved_threshold_px(pitch))
+
+
+# ---------------------------------------------------------------- the labels judged
+class Verdict(NamedTuple):
+    """What :func:`label_verdicts` blames for a frame off its label: ``kind`` one of
+    ``"moved"``, ``"pair"``, ``"given"``, ``"response"``, ``"label"``; ``why``: the
+    response's fault (:func:`response_at_fault`) or None; ``pair``: for ``"moved"``, the
+    pair that moved most on the frame's chain."""
+
+    kind: str
+    why: str | None = None
+    pair: int | None = None
+
+
+def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLERANCE_EV) -> str | None:
+    """Why frame ``k``'s difference from its label points at the response rather than the
+    label (:func:`power_explains`, :func:`response_fits`, :func:`label_at_fault`), or None."""
+    if power_explains(est, tol_ev):
+        return ("the frames' differences grow with their distance in exposure from the reference frame, as a "
+                "response of the wrong power makes")
+    if not response_fits(est):
+        return "the ratios of most frame pairs change with brightness"
+    if not label_at_fault(est, k):
+        return (f"its ratios change with brightness (by {ratio_bend_ev(est, k):.2f} EV from shadows to "
+                "highlights)")
+    return None
+
+
+def label_verdicts(est: ExposureEstimate, given: list[bool], tol_ev: float = LABEL_TOLERANCE_EV,
+                   motion: Motion | None = None) -> dict[int, Verdict]:
+    """Per frame whose estimate is off its label (:meth:`ExposureEstimate.mislabelled`),
+    what is blamed, and why: ``"moved"`` (its estimate chains through a pair that moved:
+    ``motion``, :func:`moved_pairs`), ``"pair"`` (two frames:
+    neither label outvotes the other), ``"given"`` (the user's time, the first suspect
+    whatever the ratios say; ``given``: per frame whether its time is the user's, not its
+    metadata's), ``"response"`` (the response explains the difference better
+    than the label, :func:`response_at_fault`, the reason beside it) or ``"label"``.  The
+    one judgement the warnings and ``--json`` both read."""
+    out = {}
+    for k in est.mislabelled(tol_ev):
+        j = motion.decided_by_motion(k, est.reference) if motion is not None else None
+        if j is not None:
+            out[k] = Verdict("moved", None, j)
+            continue
+        by_user = given[k] or given[est.reference]
+        why = response_at_fault(est, k, tol_ev)
+        out[k] = Verdict("pair" if len(given) == 2 and (why is None or by_user) else
+                         "given" if why is not None and by_user else "response" if why is not None else "label", why)
+    return out
+
+
+@dataclass
+class LabelCheck:
+    """The labels judged once (:func:`judge_labels`) on the exposures ``est`` measured: the
+    pairs' ``motion``, the :func:`label_verdicts`, and per frame the estimate's standard
+    error (EV), share and whether it is measured (:meth:`ExposureEstimate.stderr_ev`,
+    :meth:`~ExposureEstimate.share`, :meth:`~ExposureEstimate.measured`), which the
+    warnings and the ``--json`` record read; ``response``: the response the estimate read,
+    as the record names it."""
+
+    est: ExposureEstimate
+    motion: Motion
+    verdicts: dict[int, Verdict]
+    stderr_ev: np.ndarray
+    share: np.ndarray
+    measured: np.ndarray
+    response: str
+
+
+def judge_labels(exposures: np.ndarray, est: ExposureEstimate, s: Samples, crf: CRF, used: CRF, given: list[bool],
+                 motion: Motion | None = None) -> LabelCheck:
+    """The labels judged on the exposures ``est`` measured through ``used``: ``motion`` as
+    measured (the alignment's, or every pair registered), else the pairs that decided a
+    label in question registered on the samples through ``crf`` (:func:`label_motion`;
+    none: no cost); then :func:`label_verdicts` (``given``: per frame whether its time is
+    the user's)."""
+    motion = label_motion(s, exposures, crf, est) if motion is None else motion
+    verdicts = label_verdicts(est, given, motion=motion)
+    name = used.describe() + ("" if crf_verified(used) else " (unverified: mid-range codes, slope fitted)")
+    return LabelCheck(est, motion, verdicts, est.stderr_ev(), est.share(), est.measured(), name)
+
+
+@dataclass
+class ExposureCheck:
+    """What :func:`check_exposures` measures: the ``samples`` as compared (brought onto the
+    reference where the alignment applies), the labels judged (:class:`LabelCheck`), the
+    response the estimates read (``used``) and the one in use as named (``response``), the
+    model's power error (:func:`model_power_error_ev`) and the frames that read nothing
+    (:meth:`~hdrmerge_cli.core.samples.Samples.read_nothing`)."""
+
+    samples: Samples
+    labels: LabelCheck
+    used: CRF
+    response: str
+    power_ev: float
+    nothing: list[int]
+
+
+def check_exposures(exposures: np.ndarray, s: Samples, crf: CRF, given: list[bool], use_estimates: bool = False,
+                    warps: list[np.ndarray] | None = None, aligned: list[bool] | None = None, applied: bool = False,
+                    size: tuple[int, int] = (0, 0)) -> ExposureCheck:
+    """The frames' exposures measured on the samples ``s`` through ``crf``
+    (:func:`estimate_with_response`; ``use_estimates``: two rounds, and a pair that moved
+    keeps its labels' ratio) and the labels judged (:func:`judge_labels`).  With the
+    merge's registration (``warps`` per frame, ``aligned``: False where a frame was left
+    unaligned, ``applied``; ``size``: the frames' height and width) the samples are brought
+    onto the reference where it applies them and the pairs' motion is what it measured
+    (:func:`warp_motion`); without, every pair (``use_estimates``) or the pairs in question
+    (:func:`label_motion`) are registered on the samples."""
+    if warps is not None and applied:
+        s = s.registered(warps)
+    nothing = s.read_nothing()
+    est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)
+    if warps is not None:  # the pairs' motion as the merge's registration measured it
+        motion = warp_motion(warps, aligned, applied, size[0], size[1], s.pitch)
+    elif use_estimates:  # every estimate is used: every pair registered
+        motion = moved_pairs(s, exposures, crf, range(len(exposures) - 1))
+    else:
+        motion = label_motion(s, exposures, crf, est)
+    if use_estimates and motion.moved():  # a pair that moved keeps its labels' ratio
+        est, used = estimate_with_response(exposures, s, crf, rounds=2, moved=motion.moved())
+    labels = judge_labels(exposures, est, s, crf, used, given, motion)
+    return ExposureCheck(s, labels, used, crf.describe(), model_power_error_ev(est), nothing)
