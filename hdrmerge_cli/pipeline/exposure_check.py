@@ -6,7 +6,7 @@ here the frames are decoded, subsampled (CFA cells kept whole), normalised to
 ``v = (z - black) / (white - black)``, cut to the pixels worth comparing (constant borders
 off, clipped and noise-floor codes off) and linearised through the response in use.
 Before a label is called wrong, the pairs that decided it are registered on the same
-samples (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`): frames that moved between exposures (a hand-held bracket
+samples (:func:`~hdrmerge_cli.core.registration.moved_pairs`): frames that moved between exposures (a hand-held bracket
 merged without ``--align``) leave the labels unchecked, with a line saying so, instead of
 a false label warning.
 """
@@ -176,7 +176,7 @@ def report(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, used:
     label is blamed (``mislabelled``), could not be checked because the frames moved
     (``moved``), or the response is blamed instead (``response_at_fault``: why); per
     neighbour pair the measured ratio and, where registered
-    (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`), ``moved_px`` (null: not registered: no
+    (:func:`~hdrmerge_cli.core.registration.moved_pairs`), ``moved_px`` (null: not registered: no
     label in question, or too little texture); which exposures the merge used."""
     est, motion = labels.est, labels.motion
     est_h = np.exp(est.log_h)
@@ -263,9 +263,9 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
     merge's ``alignment``, the samples are brought onto the reference by its warps where it
     applies them and the pairs' motion is what it measured
-    (:func:`~hdrmerge_cli.core.exposure_estimate.warp_motion`);
+    (:func:`~hdrmerge_cli.core.registration.warp_motion`);
     without, the pairs in question are registered on the samples
-    (:func:`~hdrmerge_cli.core.exposure_estimate.label_motion`).
+    (:func:`~hdrmerge_cli.core.exposure_estimate.questioned_pairs`).
 
     A single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:
@@ -279,7 +279,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
                             alignment is not None and alignment.applied, (frames[0].height, frames[0].width))
     s, labels = check.samples, check.labels
     est, motion = labels.est, labels.motion
-    for j in sorted(motion.moved()) if use_estimates else ():  # a pair that moved keeps its labels' ratio
+    for j in sorted(motion.moved) if use_estimates else ():  # a pair that moved keeps its labels' ratio
         warn_moved(frames, j + 1, j, motion, "their exposures' ratio is not estimated (their labels' ratio is kept)")
     if check.power_ev > LABEL_TOLERANCE_EV and not crf.assumed:  # a model the user named, of another power
         log.warning("%s: read through the response given (%s) the frames' ratios are %.0f %% %s than their labels', "
