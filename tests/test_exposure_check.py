@@ -462,9 +462,9 @@ def test_normalised_samples_against_direct_levels():
 
 
 def test_linearise_through_a_code_table_equals_the_inverse_response():
-    """core.crf.linearise: through its table over whole codes, g(v) to float32 precision of
+    """core.exposure_estimate.linearise: through its table over whole codes, g(v) to float32 precision of
     the direct evaluation; a linear response returns v clipped to [0, 1]."""
-    from hdrmerge_cli.core.crf import linearise
+    from hdrmerge_cli.core.exposure_estimate import linearise
 
     crf = CRF("gamma", 2.2)
     v = np.random.default_rng(4).integers(0, 256, (20, 3)) / 255.0

@@ -220,13 +220,13 @@ def fit_response(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, metho
     m = CRF_ESTIMATORS[method]
     rng = rng if rng is not None else np.random.default_rng(0)
     samples = m.samples if samples is None else samples
+    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
     options = dict(options or {})
     if method == "goossens":  # the prior towards the standard curve where the frames leave g open
         options.setdefault("anchor", DEFAULT_ANCHOR)
         options.setdefault("prior", standard_prior(n_codes))
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
-    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
     if m.joint:  # one solve of every channel, coupled
         fit = m.estimate(samples_of, log_h, n_codes, **options)
         fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]

@@ -35,9 +35,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF, linearise
+from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.registration import Motion, moved_pairs, warp_motion
+from hdrmerge_cli.core.registration import Motion, block_mean, moved_pairs, warp_motion
 from hdrmerge_cli.core.samples import (
     MIN_RATIO_PIXELS, RANGE_LINEAR, RANGE_UNVERIFIED, RANGE_VERIFIED, Samples,
 )
@@ -344,6 +344,20 @@ def usable_range(crf: CRF) -> tuple[float, float]:
     return RANGE_LINEAR if crf.is_linear else RANGE_VERIFIED if crf_verified(crf) else RANGE_UNVERIFIED
 
 
+def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
+    """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
+    clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds
+    whole codes (``codes_step``: one code as a fraction of full scale, at most 2^16 codes)
+    through :meth:`CRF.linear` in float32, else evaluated per value."""
+    vc = np.clip(v, 0.0, 1.0)
+    if crf.is_linear:
+        return vc
+    n = int(round(1.0 / codes_step)) + 1
+    if n > 1 << 16:
+        return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
+    return crf.linear(np.rint(vc * (n - 1)).astype(np.int64), n).astype(np.float32)
+
+
 def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
     """:func:`robust_log_ratio` of every neighbour pair, on the
     pixels both frames expose well: ``v`` within ``value_range`` (default by the response,
@@ -459,6 +473,24 @@ def questioned_pairs(est: ExposureEstimate) -> set[int]:
     return {j for k in est.mislabelled() for j in chain_pairs(k, est.reference)}
 
 
+def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
+    """Frame ``k``'s samples linearised through ``crf`` as one plane for registration (the
+    channels' mean), the constant borders cut off; RAW: the mean of each 2 x 2 CFA cell."""
+    top, bottom, left, right = s.border
+    v = s.v[k]
+    if s.raw:  # whole cells: start on an even sample row and column
+        top, left = top + top % 2, left + left % 2
+    v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
+    lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
+    return block_mean(lin, 2) if s.raw else lin
+
+
+def sample_planes(s: Samples, crf: CRF, pairs) -> dict[int, np.ndarray]:
+    """:func:`sample_plane` of every frame of the neighbour ``pairs`` (``j``: frames ``j``,
+    ``j + 1``), by frame index: what :func:`~hdrmerge_cli.core.registration.moved_pairs` registers."""
+    return {k: sample_plane(s, k, crf) for k in sorted({k for j in pairs for k in (j, j + 1)})}
+
+
 # ---------------------------------------------------------------- the labels judged
 class Verdict(NamedTuple):
     """What :func:`label_verdicts` blames for a frame off its label: ``kind`` one of
@@ -511,12 +543,13 @@ def label_verdicts(est: ExposureEstimate, given: list[bool], tol_ev: float = LAB
 
 @dataclass
 class LabelCheck:
-    """The labels judged once (:func:`judge_labels`) on the exposures ``est`` measured: the
+    """The labels judged once (:func:`check_exposures`) on the exposures ``est`` measured: the
     pairs' ``motion``, the :func:`label_verdicts`, and per frame the estimate's standard
     error (EV), share and whether it is measured (:meth:`ExposureEstimate.stderr_ev`,
     :meth:`~ExposureEstimate.share`, :meth:`~ExposureEstimate.measured`), which the
-    warnings and the ``--json`` record read; ``response``: the response the estimate read,
-    as the record names it."""
+    warnings and the ``--json`` record read; ``used``: the response the estimate read, and
+    ``response`` as the record names it; ``model``: the response in use, named, and
+    ``power_ev`` its power error (:func:`model_power_error_ev`)."""
 
     est: ExposureEstimate
     motion: Motion
@@ -524,64 +557,34 @@ class LabelCheck:
     stderr_ev: np.ndarray
     share: np.ndarray
     measured: np.ndarray
-    response: str
-
-
-def judge_labels(exposures: np.ndarray, est: ExposureEstimate, s: Samples, crf: CRF, used: CRF, given: list[bool],
-                 motion: Motion | None = None) -> LabelCheck:
-    """The labels judged on the exposures ``est`` measured through ``used``: ``motion`` as
-    measured (the alignment's, or every pair registered), else the pairs that decided a
-    label in question (:func:`questioned_pairs`) registered on the samples through
-    ``crf`` (none: no cost); then :func:`label_verdicts` (``given``: per frame whether its time is
-    the user's)."""
-    motion = moved_pairs(s, exposures, crf, questioned_pairs(est)) if motion is None else motion
-    return judged(est, used, given, motion)
-
-
-def judged(est: ExposureEstimate, used: CRF, given: list[bool], motion: Motion) -> LabelCheck:
-    """:func:`label_verdicts` of ``est`` (read through ``used``) with the pairs' ``motion`` as measured."""
-    verdicts = label_verdicts(est, given, motion=motion)
-    name = used.describe() + ("" if crf_verified(used) else " (unverified: mid-range codes, slope fitted)")
-    return LabelCheck(est, motion, verdicts, est.stderr_ev(), est.share(), est.measured(), name)
-
-
-@dataclass
-class ExposureCheck:
-    """What :func:`check_exposures` measures: the ``samples`` as compared (brought onto the
-    reference where the alignment applies), the labels judged (:class:`LabelCheck`), the
-    response the estimates read (``used``) and the one in use as named (``response``), the
-    model's power error (:func:`model_power_error_ev`) and the frames that read nothing
-    (:meth:`~hdrmerge_cli.core.samples.Samples.read_nothing`)."""
-
-    samples: Samples
-    labels: LabelCheck
     used: CRF
     response: str
+    model: str
     power_ev: float
-    nothing: list[int]
 
 
 def check_exposures(exposures: np.ndarray, s: Samples, crf: CRF, given: list[bool], use_estimates: bool = False,
                     warps: list[np.ndarray] | None = None, aligned: list[bool] | None = None, applied: bool = False,
-                    size: tuple[int, int] = (0, 0)) -> ExposureCheck:
+                    size: tuple[int, int] = (0, 0)) -> LabelCheck:
     """The frames' exposures measured on the samples ``s`` through ``crf``
     (:func:`estimate_with_response`; ``use_estimates``: two rounds, and a pair that moved
-    keeps its labels' ratio) and the labels judged (:func:`judge_labels`).  With the
+    keeps its labels' ratio) and the labels judged (:func:`label_verdicts`).  With the
     merge's registration (``warps`` per frame, ``aligned``: False where a frame was left
-    unaligned, ``applied``; ``size``: the frames' height and width) the samples are brought
-    onto the reference where it applies them and the pairs' motion is what it measured
-    (:func:`warp_motion`); without, every pair (``use_estimates``) or the pairs in question
-    (:func:`questioned_pairs`) are registered on the samples."""
-    if warps is not None and applied:
-        s = s.registered(warps)
-    nothing = s.read_nothing()
+    unaligned, ``applied``: the samples are then brought onto the reference already,
+    :meth:`~hdrmerge_cli.core.samples.Samples.registered`; ``size``: the frames' height and
+    width) the pairs' motion is what it measured (:func:`warp_motion`); without, every pair
+    (``use_estimates``) or the pairs in question (:func:`questioned_pairs`) are registered
+    on the samples (``given``: per frame whether its time is the user's)."""
     est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)
     pairs = range(len(exposures) - 1) if use_estimates else questioned_pairs(est)  # every estimate used: every pair
+    planes = sample_planes(s, crf, pairs) if warps is None else {}
     if warps is not None:  # the pairs' motion as the merge's registration measured it
         motion = warp_motion(warps, aligned, applied, size[0], size[1], s.pitch)
     else:  # the pairs registered on the samples
-        motion = moved_pairs(s, exposures, crf, pairs)
+        motion = moved_pairs(s, exposures, planes, pairs)
     if use_estimates and motion.moved:  # a pair that moved keeps its labels' ratio
         est, used = estimate_with_response(exposures, s, crf, rounds=2, moved=motion.moved)
-    labels = judged(est, used, given, motion)
-    return ExposureCheck(s, labels, used, crf.describe(), model_power_error_ev(est), nothing)
+    verdicts = label_verdicts(est, given, motion=motion)
+    name = used.describe() + ("" if crf_verified(used) else " (unverified: mid-range codes, slope fitted)")
+    return LabelCheck(est, motion, verdicts, est.stderr_ev(), est.share(), est.measured(), used, name,
+                      crf.describe(), model_power_error_ev(est))

@@ -24,7 +24,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF, linearise
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.resample import _cv2, covered_mask
 from hdrmerge_cli.core.samples import Samples
@@ -916,27 +915,14 @@ class Motion:
         return frozenset(j for j, d in self.px.items() if d is not None and d > self.threshold_px)
 
 
-def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
-    """Frame ``k``'s samples linearised through ``crf`` as one plane for registration (the
-    channels' mean), the constant borders cut off; RAW: the mean of each 2 x 2 CFA cell."""
-    top, bottom, left, right = s.border
-    v = s.v[k]
-    if s.raw:  # whole cells: start on an even sample row and column
-        top, left = top + top % 2, left + left % 2
-    v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
-    lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
-    return block_mean(lin, 2) if s.raw else lin
-
-
-def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
+def moved_pairs(s: Samples, exposures: np.ndarray, planes: dict[int, np.ndarray], pairs) -> Motion:
     """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
-    the samples (:func:`pair_displacement` of their
-    :func:`sample_plane` as :func:`log_irradiance`
+    the samples (:func:`pair_displacement` of their ``planes``, by frame index, the
+    :func:`~hdrmerge_cli.core.exposure_estimate.sample_planes`, as :func:`log_irradiance`
     over the irradiance range both expose, exposure-normalised by ``exposures``, the
     labels: registration is invariant to the gain a wrong label makes), in full-resolution
     pixels (the samples' pitch).  A few tens of milliseconds a pair on the merge's default
     samples; only the pairs asked about are registered."""
-    lin: dict[int, np.ndarray] = {}
     px: dict[int, float | None] = {}
     for j in sorted(set(pairs)):
         try:
@@ -944,13 +930,9 @@ def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
         except HdrMergeError:
             px[j] = None
             continue
-        for k in (j, j + 1):
-            if k not in lin:
-                lin[k] = sample_plane(s, k, crf)
-        d = pair_displacement(log_irradiance(lin[j], exposures[j], lo, hi),
-                              log_irradiance(lin[j + 1], exposures[j + 1], lo, hi))
+        d = pair_displacement(log_irradiance(planes[j], exposures[j], lo, hi),
+                              log_irradiance(planes[j + 1], exposures[j + 1], lo, hi))
         px[j] = None if d is None else d * s.pitch
-        lin.pop(j, None)  # pairs in order: frame j is not needed again
     return Motion(px, moved_threshold_px(s.pitch))
 
 

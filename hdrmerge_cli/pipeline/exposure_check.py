@@ -21,7 +21,7 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.exposure_estimate import (
-    LABEL_TOLERANCE_EV, ExposureEstimate, LabelCheck, Motion, check_exposures, judge_labels, order_test,
+    LABEL_TOLERANCE_EV, LabelCheck, Motion, check_exposures, order_test,
 )
 from hdrmerge_cli.core.samples import (
     MIN_OVERLAP, Samples, border_mask, constant_border, normalised_samples, thin_overlap,
@@ -145,25 +145,22 @@ def user_times(frames: list[Frame]) -> list[bool]:
     return [f.time_source != "its metadata" for f in frames]
 
 
-def check_labels(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, s: Samples, crf: CRF,
-                 used: CRF, hint: str, estimates: bool = False) -> dict:
-    """The labels judged once on the exposures ``est`` measured through ``used`` (the
-    response the estimate read; :func:`~hdrmerge_cli.core.exposure_estimate.judge_labels`,
-    the pairs that decided a label in question registered on the samples through ``crf``),
-    their warnings (:func:`warn_mislabelled`) and the ``--json`` record (:func:`report`, of
-    the ``estimates`` used or the labels)."""
-    labels = judge_labels(exposures, est, s, crf, used, user_times(frames))
-    warn_mislabelled(frames, exposures, labels, hint, used)
+def check_labels(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF, hint: str,
+                 estimates: bool = False) -> dict:
+    """The labels judged once on the exposures measured on the samples ``s`` through
+    ``crf`` (:func:`~hdrmerge_cli.core.exposure_estimate.check_exposures`: through a
+    response fitted on the bracket where ``crf`` is an unverified model; the pairs that
+    decided a label in question registered on the samples), their warnings
+    (:func:`warn_mislabelled`) and the ``--json`` record (:func:`report`, of the
+    ``estimates`` used or the labels)."""
+    labels = check_exposures(exposures, s, crf, user_times(frames))
+    warn_mislabelled(frames, exposures, labels, hint)
     return report(frames, exposures, labels, "estimates" if estimates else "labels")
-
-
-def _fmt_px(d: float) -> str:
-    return f"{d:.0f}" if d >= 10 else f"{d:.1f}"
 
 
 def warn_moved(frames: list[Frame], k: int, j: int, motion: Motion, consequence: str) -> None:
     log.warning("%s: the frames moved between exposures (about %s px between %s and %s); %s; consider --align auto",
-                frames[k].path, _fmt_px(motion.px[j]), frames[j].name, frames[j + 1].name, consequence)
+                frames[k].path, f"{motion.px[j]:.{0 if motion.px[j] >= 10 else 1}f}", frames[j].name, frames[j + 1].name, consequence)
 
 
 def report(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, used: str,
@@ -203,13 +200,13 @@ def report(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, used:
             "moved_threshold_px": round(motion.threshold_px, 2)}
 
 
-def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, hint: str, crf: CRF | None = None,
+def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, hint: str,
                      named_moved: bool = False) -> None:
     """One line per frame of the labels' verdicts
     (:func:`~hdrmerge_cli.core.exposure_estimate.label_verdicts`): a warning naming the label (or both of
     two frames, or the user's time), a frame that moved saying its label cannot be checked
     (unless ``named_moved``: said already), and a frame whose difference the response
-    explains naming the response (``crf``: the one in use; at info level for a response
+    explains naming the response (``labels.used``, the one read; at info level for a response
     measured on the bracket, which leaves the user nothing to change)."""
     est = labels.est
     ref = frames[est.reference]
@@ -227,7 +224,7 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, labels: LabelCh
             log.warning("%s: %+.2f EV from the time %s gives it (%s), and %s; check %s", f.path,
                         -est.difference_ev[k], given, fmt_time(f.exposure_time), why, given)
         elif verdict == "response":
-            measured = crf is not None and crf.name.startswith(("measured", "estimate-crf"))
+            measured = labels.used.name.startswith(("measured", "estimate-crf"))
             (log.info if measured else log.warning)(
                 "%s: %+.2f EV from its label, but %s: the %s does not fit the frames, and the label is not at fault%s",
                 f.path, -est.difference_ev[k], why,
@@ -274,20 +271,21 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         return CheckedExposures(frames, exposures, None, samples)
     s = samples if samples is not None else ordered_samples(frames, exposures, load)
     warps = None if alignment is None else [alignment.warp_of(f) for f in frames]
-    check = check_exposures(exposures, s, crf, user_times(frames), use_estimates, warps,
-                            None if alignment is None else [f.path not in alignment.unaligned for f in frames],
-                            alignment is not None and alignment.applied, (frames[0].height, frames[0].width))
-    s, labels = check.samples, check.labels
+    applied = alignment is not None and alignment.applied
+    s = s.registered(warps) if applied else s
+    nothing = s.read_nothing()
+    labels = check_exposures(exposures, s, crf, user_times(frames), use_estimates, warps,
+                             None if alignment is None else [f.path not in alignment.unaligned for f in frames],
+                             applied, (frames[0].height, frames[0].width))
     est, motion = labels.est, labels.motion
     for j in sorted(motion.moved) if use_estimates else ():  # a pair that moved keeps its labels' ratio
         warn_moved(frames, j + 1, j, motion, "their exposures' ratio is not estimated (their labels' ratio is kept)")
-    if check.power_ev > LABEL_TOLERANCE_EV and not crf.assumed:  # a model the user named, of another power
+    if labels.power_ev > LABEL_TOLERANCE_EV and not crf.assumed:  # a model the user named, of another power
         log.warning("%s: read through the response given (%s) the frames' ratios are %.0f %% %s than their labels', "
                     "%.2f EV at the ends of the bracket: it does not fit the frames (the labels are judged where a "
                     "response fitted on the bracket agrees); measure the response on the bracket (no --crf) or with "
-                    "'hdrmerge-cli estimate-crf'", frames[0].path, check.response, 100 * abs(est.model_slope - 1),
-                    "larger" if est.model_slope > 1 else "smaller", check.power_ev)
-    nothing = check.nothing
+                    "'hdrmerge-cli estimate-crf'", frames[0].path, labels.model, 100 * abs(est.model_slope - 1),
+                    "larger" if est.model_slope > 1 else "smaller", labels.power_ev)
     if 0 < len(nothing) < len(frames):  # named once, merged with their labels (all: the merge says so)
         log.warning("%s: nothing but black (the floor) or clipped readings, no evidence for or against %s; "
                     "merged as labelled", ", ".join(frames[k].path for k in nothing),
@@ -303,7 +301,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         log.info("%s / %s: on the samples, %s", frames[j].name, frames[j + 1].name, what)
     # --times estimate: the pairs that moved are out of the estimates already (named above)
     warn_mislabelled(frames, exposures, labels, "" if use_estimates else
-                     "; merge with --times estimate to use the estimates", check.used, use_estimates)
+                     "; merge with --times estimate to use the estimates", use_estimates)
     rep = report(frames, exposures, labels, "estimates" if use_estimates else "labels")
     if not use_estimates:
         return CheckedExposures(frames, exposures, rep, s)
