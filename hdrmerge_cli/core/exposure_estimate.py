@@ -467,12 +467,6 @@ def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:
 
 
 # ---------------------------------------------------------------- motion between exposures
-def questioned_pairs(est: ExposureEstimate) -> set[int]:
-    """The pairs that decided a label in question, which :func:`~hdrmerge_cli.core.registration.moved_pairs`
-    registers (none: no cost)."""
-    return {j for k in est.mislabelled() for j in chain_pairs(k, est.reference)}
-
-
 def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
     """Frame ``k``'s samples linearised through ``crf`` as one plane for registration (the
     channels' mean), the constant borders cut off; RAW: the mean of each 2 x 2 CFA cell."""
@@ -483,12 +477,6 @@ def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
     v = v[top:v.shape[0] - bottom, left:v.shape[1] - right]
     lin = linearise(v, crf, s.codes_step).mean(axis=-1, dtype=np.float32)
     return block_mean(lin, 2) if s.raw else lin
-
-
-def sample_planes(s: Samples, crf: CRF, pairs) -> dict[int, np.ndarray]:
-    """:func:`sample_plane` of every frame of the neighbour ``pairs`` (``j``: frames ``j``,
-    ``j + 1``), by frame index: what :func:`~hdrmerge_cli.core.registration.moved_pairs` registers."""
-    return {k: sample_plane(s, k, crf) for k in sorted({k for j in pairs for k in (j, j + 1)})}
 
 
 # ---------------------------------------------------------------- the labels judged
@@ -573,11 +561,14 @@ def check_exposures(exposures: np.ndarray, s: Samples, crf: CRF, given: list[boo
     unaligned, ``applied``: the samples are then brought onto the reference already,
     :meth:`~hdrmerge_cli.core.samples.Samples.registered`; ``size``: the frames' height and
     width) the pairs' motion is what it measured (:func:`warp_motion`); without, every pair
-    (``use_estimates``) or the pairs in question (:func:`questioned_pairs`) are registered
-    on the samples (``given``: per frame whether its time is the user's)."""
+    (``use_estimates``) or the pairs that decided a label in question are registered on
+    the samples (``given``: per frame whether its time is the user's)."""
     est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)
-    pairs = range(len(exposures) - 1) if use_estimates else questioned_pairs(est)  # every estimate used: every pair
-    planes = sample_planes(s, crf, pairs) if warps is None else {}
+    # the pairs registered on the samples: every pair (every estimate is used), or those that
+    # decided a label in question (none: no cost); their frames' sample_plane by index
+    pairs = range(len(exposures) - 1) if use_estimates else {j for k in est.mislabelled()
+                                                             for j in chain_pairs(k, est.reference)}
+    planes = {} if warps is not None else {k: sample_plane(s, k, crf) for k in {k for j in pairs for k in (j, j + 1)}}
     if warps is not None:  # the pairs' motion as the merge's registration measured it
         motion = warp_motion(warps, aligned, applied, size[0], size[1], s.pitch)
     else:  # the pairs registered on the samples

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.resample import _cv2, covered_mask
+from hdrmerge_cli.core.resample import _cv2
 from hdrmerge_cli.core.samples import Samples
 
 #: longest side of the coarse registration level
@@ -612,6 +612,29 @@ def warp_size(warp: np.ndarray, height: int, width: int) -> float:
     return corner_distance(warp, np.eye(2, 3), height, width)
 
 
+def covered_mask(warp: np.ndarray, height: int, width: int, rows: slice | None = None) -> np.ndarray:
+    """Which reference pixels ``(x, y)`` the warp takes inside the frame (``W @ (x, y, 1)``
+    within half a pixel of its edge), ``(height, width)`` bool (``rows``: those rows
+    only).  The set is convex: each row's pixels inside form one interval, found from the
+    four edge inequalities."""
+    y = np.arange(height, dtype=np.float64)[rows if rows is not None else slice(None)]
+    lo, hi = np.full(y.size, -np.inf), np.full(y.size, np.inf)
+    for row, size in ((warp[0], width), (warp[1], height)):  # -0.5 <= p x + q(y) <= size - 0.5
+        p, q = row[0], row[1] * y + row[2]
+        if abs(p) < 1e-12:
+            ok = (q >= -0.5) & (q <= size - 0.5)
+            lo[~ok], hi[~ok] = np.inf, -np.inf
+            continue
+        a, b = (-0.5 - q) / p, (size - 0.5 - q) / p
+        lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
+    first = np.clip(np.ceil(lo - 1e-9), 0, width).astype(np.int64)  # each row's pixels first..last
+    last = np.clip(np.floor(hi + 1e-9) + 1, 0, width).astype(np.int64)
+    out = np.zeros((y.size, width), bool)
+    for i in np.flatnonzero(last > first):  # row by row: faster than a comparison per pixel
+        out[i, first[i]:last[i]] = True
+    return out
+
+
 #: the still test's error rate (:func:`still_test`): a pair displaced by its tolerance or
 #: more is declared still with at most this probability
 STILL_P_MISS = 1e-3
@@ -918,7 +941,7 @@ class Motion:
 def moved_pairs(s: Samples, exposures: np.ndarray, planes: dict[int, np.ndarray], pairs) -> Motion:
     """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
     the samples (:func:`pair_displacement` of their ``planes``, by frame index, the
-    :func:`~hdrmerge_cli.core.exposure_estimate.sample_planes`, as :func:`log_irradiance`
+    :func:`~hdrmerge_cli.core.exposure_estimate.sample_plane`, as :func:`log_irradiance`
     over the irradiance range both expose, exposure-normalised by ``exposures``, the
     labels: registration is invariant to the gain a wrong label makes), in full-resolution
     pixels (the samples' pitch).  A few tens of milliseconds a pair on the merge's default

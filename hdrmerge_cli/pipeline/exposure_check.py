@@ -262,7 +262,7 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     applies them and the pairs' motion is what it measured
     (:func:`~hdrmerge_cli.core.registration.warp_motion`);
     without, the pairs in question are registered on the samples
-    (:func:`~hdrmerge_cli.core.exposure_estimate.questioned_pairs`).
+    (:func:`~hdrmerge_cli.core.exposure_estimate.check_exposures`).
 
     A single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:
