@@ -38,14 +38,6 @@ def srgb_eotf_inverse(x) -> np.ndarray:
     return np.where(x <= _SRGB_BREAK, x * 12.92, 1.055 * _spow(x, 1 / 2.4) - 0.055)
 
 
-def _srgb_decode(v):
-    return np.asarray(srgb_eotf(v), dtype=np.float64)
-
-
-def _srgb_encode(x):
-    return np.asarray(srgb_eotf_inverse(x), dtype=np.float64)
-
-
 #: accepted gamma of ``gamma:G``: beyond it the codes of an 8-bit image span more than
 #: 80 stops (or less than one), which no camera records
 GAMMA_RANGE = (0.1, 10.0)
@@ -53,7 +45,7 @@ GAMMA_RANGE = (0.1, 10.0)
 #: name -> (forward gamma: x -> v, inverse gamma^-1: v -> x, takes a parameter)
 CRF_MODELS = {
     "linear": (lambda x, p: np.asarray(x, np.float64), lambda v, p: np.asarray(v, np.float64), False),
-    "srgb": (lambda x, p: _srgb_encode(x), lambda v, p: _srgb_decode(v), False),
+    "srgb": (lambda x, p: srgb_eotf_inverse(x), lambda v, p: srgb_eotf(v), False),
     "gamma": (
         lambda x, p: np.power(np.clip(x, 0, None), 1.0 / p),
         lambda v, p: np.power(np.clip(v, 0, None), p),
