@@ -110,7 +110,7 @@ def merged(codes, times, crf, options=None) -> tuple[np.ndarray, np.ndarray]:
     ``--align off``): ``(E (H, W, 3) per second of exposure, where every frame has data
     (H, W) bool)``."""
     from hdrmerge_cli.api import merge_arrays
-    from hdrmerge_cli.core.resample import covered_mask
+    from hdrmerge_cli.core.registration import covered_mask
 
     m = merge_arrays(codes, times, crf=crf, **(options or {"align": "off"}))
     h, w = codes[0].shape[:2]

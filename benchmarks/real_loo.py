@@ -62,11 +62,11 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
     (:mod:`hdrmerge_cli.pipeline.excess`), the latter in the tables in place of the fixed
     tolerance.  Returns (E per second in units of the normalised linear signal, CRF)."""
     from benchmarks.core_merge import merge_frames
-    from hdrmerge_cli.pipeline.response import fit_crf
+    from hdrmerge_cli.core.crf_estimate import fit_response
 
     log_h = np.log(exposures)
     opts = dict(crf_options or {})
-    crf, _, _ = fit_crf(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts)
+    crf = fit_response(codes, log_h, 256, crf, opts.pop("smoothing", None), opts.pop("samples", None), opts).crf
     params = None
     if noise == "measured" and excess:  # as merge measures an image bracket's noise (None where it cannot)
         from hdrmerge_cli.pipeline.noise import measure_noise
@@ -272,7 +272,7 @@ def neutral_drift(crf, lo: int = 5, hi: int = 250) -> float:
 
 def drift_table(quick: bool = False) -> list[str]:
     """Each bracket's response from all its frames, channels independent and coupled."""
-    from hdrmerge_cli.pipeline.response import fit_crf
+    from hdrmerge_cli.core.crf_estimate import fit_response
 
     lines = ["", "## Neutral ramps", "",
              "Colour drift of a neutral ramp (equal codes in R, G, B) through each bracket's response, codes 5-250: "
@@ -281,8 +281,8 @@ def drift_table(quick: bool = False) -> list[str]:
              "| bracket | channels independent | coupled (default) |", "|---|---|---|"]
     for folder in sorted(p for p in BRACKETS.iterdir() if p.is_dir()):
         _, codes, exposures, _ = load_bracket(folder, MAX_PIXELS // (4 if quick else 1))
-        free, _, _ = fit_crf(codes, np.log(exposures), 256, options={"coupling": 0.0})
-        tied, _, _ = fit_crf(codes, np.log(exposures), 256)
+        free = fit_response(codes, np.log(exposures), 256, options={"coupling": 0.0}).crf
+        tied = fit_response(codes, np.log(exposures), 256).crf
         lines.append(f"| {folder.name} | {neutral_drift(free):.3f} | {neutral_drift(tied):.3f} |")
     return lines
 

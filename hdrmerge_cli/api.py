@@ -397,7 +397,8 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     >>> round(float(crf.inverse(128 / 255)), 2)   # gamma 2.2: (128/255)**2.2 = 0.22
     0.22
     """
-    from hdrmerge_cli.pipeline.response import fit_with_labels, is_flat
+    from hdrmerge_cli.core.crf_estimate import labelled_fit
+    from hdrmerge_cli.pipeline.response import is_flat, log_labelled_fit
     from hdrmerge_cli.core.samples import thin_overlap
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
@@ -410,7 +411,9 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
         k, both = thin
         raise HdrMergeError(f"frames {st.order[k - 1]} and {st.order[k]} share {both} unclipped pixels: too few to "
                             "chain a response across")
-    crf = fit_with_labels(st.frames, st.exposures, samples)
+    fit = labelled_fit(samples, st.exposures)
+    log_labelled_fit(st.frames, fit, False)
+    crf = fit.crf
     if is_flat(crf):
         raise HdrMergeError("the response fitted on the stack is flat: the frames do not pin it")
     return CRF("measured", table=crf.table)

@@ -161,7 +161,7 @@ def test_covered_mask_matches_a_pixelwise_test():
             np.array([[0.0, -1.0, 40.0], [1.0, 0.0, 0.0]])):
         sx, sy = warp[0, 0] * x + warp[0, 1] * y + warp[0, 2], warp[1, 0] * x + warp[1, 1] * y + warp[1, 2]
         brute = (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
-        np.testing.assert_array_equal(resample.covered_mask(warp, h, w), brute)
+        np.testing.assert_array_equal(registration.covered_mask(warp, h, w), brute)
 
 
 def test_resample_mosaic_spread_is_the_taps_spread():
@@ -353,7 +353,8 @@ def test_inner_rectangle_lies_inside_the_pixels_every_warp_covers():
     """For translations the intersection of the covered masks is itself a rectangle, found
     whole; for rotations the rectangle lies inside the convex intersection and keeps most
     of it; ``even`` keeps a CFA's phase."""
-    from hdrmerge_cli.core.resample import covered_mask, inner_rectangle
+    from hdrmerge_cli.core.registration import covered_mask
+    from hdrmerge_cli.core.resample import inner_rectangle
 
     h, w = 120, 160
     shifts = [np.array([[1, 0, dx], [0, 1, dy]], float) for dx, dy in ((0, 0), (7.0, -3.0), (-4.0, 5.0))]

@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.exposure_estimate import (
-    PairRatio, comparagram, estimate_exposures, order_test, response_from_comparagrams, robust_log_ratio,
-)
+from hdrmerge_cli.core.crf_goossens2012 import pair_comparagram, response_from_comparagrams
+from hdrmerge_cli.core.exposure_estimate import PairRatio, estimate_exposures, order_test, robust_log_ratio
 from hdrmerge_cli.core.samples import border_mask, constant_border
 from tests.conftest import SHARED, frames_of, needs_shared
 
@@ -91,7 +90,7 @@ def test_response_from_comparagrams_recovers_a_gamma_curve():
     e = _scene(rng, (128, 128)).ravel()
     t = np.array([1, 2, 4, 8], float) / 8
     codes = [np.clip(np.rint(255 * np.clip(e * tj * 2, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.int64) for tj in t]
-    grams = [comparagram(codes[k - 1], codes[k], 256) for k in range(1, 4)]
+    grams = [pair_comparagram(codes[k - 1], codes[k], 256) for k in range(1, 4)]
     g = response_from_comparagrams(grams, np.diff(np.log(t)))
     z = np.arange(60, 240)
     want = 2.2 * np.log(z / 255.0)
@@ -252,7 +251,7 @@ def moving_bracket(tmp_path_factory, run):
 def test_moved_threshold_and_displacement_on_samples():
     from hdrmerge_cli.core.registration import log_irradiance
     from hdrmerge_cli.core.registration import pair_displacement
-    from hdrmerge_cli.core.exposure_estimate import MOVED_PITCHES, moved_threshold_px
+    from hdrmerge_cli.core.registration import MOVED_PITCHES, moved_threshold_px
 
     assert moved_threshold_px(1) == 1.5 and moved_threshold_px(0.5) == 1.0
     assert moved_threshold_px(6) == pytest.approx(6 * MOVED_PITCHES)
@@ -428,7 +427,7 @@ def test_label_motion_comes_from_the_alignment():
     """``warp_motion``: applied warps leave no displacement between registered frames and
     none is known for a frame left unaligned; warps not applied give the distance between
     where the pair's warps take a corner (of a 100 x 200 frame, samples 2 px apart)."""
-    from hdrmerge_cli.core.exposure_estimate import warp_motion
+    from hdrmerge_cli.core.registration import warp_motion
 
     warps = [np.array([[1.0, 0, 0.1], [0, 1, 0]]), np.eye(2, 3), np.array([[1.0, 0, 0], [0, 1, -0.2]])]
     m = warp_motion(warps, [True, True, False], True, 100, 200, 2)
@@ -436,7 +435,7 @@ def test_label_motion_comes_from_the_alignment():
     m = warp_motion(warps[::-1], [False, True, True], True, 100, 200, 2)
     assert m.px == {0: None, 1: 0.0}
     m = warp_motion(warps, [True] * 3, False, 100, 200, 2)
-    assert m.px[0] == pytest.approx(0.1) and m.px[1] == pytest.approx(0.2) and not m.moved()
+    assert m.px[0] == pytest.approx(0.1) and m.px[1] == pytest.approx(0.2) and not m.moved
 
 
 def test_normalised_samples_against_direct_levels():
@@ -463,9 +462,9 @@ def test_normalised_samples_against_direct_levels():
 
 
 def test_linearise_through_a_code_table_equals_the_inverse_response():
-    """core.crf.linearise: through its table over whole codes, g(v) to float32 precision of
+    """core.exposure_estimate.linearise: through its table over whole codes, g(v) to float32 precision of
     the direct evaluation; a linear response returns v clipped to [0, 1]."""
-    from hdrmerge_cli.core.crf import linearise
+    from hdrmerge_cli.core.exposure_estimate import linearise
 
     crf = CRF("gamma", 2.2)
     v = np.random.default_rng(4).integers(0, 256, (20, 3)) / 255.0

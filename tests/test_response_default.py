@@ -154,13 +154,13 @@ def test_two_frames_sharing_no_well_exposed_pixels_are_fitted_on_their_histogram
 
     from hdrmerge_cli.pipeline.bracket import read_bracket
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
-    from hdrmerge_cli.pipeline.response import fit_with_labels
+    from hdrmerge_cli.core.crf_estimate import labelled_fit
     from hdrmerge_cli.io.frames import HeldCodes
     from hdrmerge_cli.io.metadata import exposure_values
 
     frames = read_bracket([str(files[0]), str(files[-1])])
     exposures = exposure_values(frames)
-    pairs = fit_with_labels(frames, exposures, ordered_samples(frames, exposures, HeldCodes()), histograms=False)
+    pairs = labelled_fit(ordered_samples(frames, exposures, HeldCodes()), exposures, histograms=False).crf
     table = tmp_path / "pairs.csv"
     table.write_text("".join(f"{z}," + ",".join(f"{pairs.table[c, z]:.12g}" for c in range(3)) + "\n"
                              for z in range(256)))

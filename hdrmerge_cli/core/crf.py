@@ -38,14 +38,6 @@ def srgb_eotf_inverse(x) -> np.ndarray:
     return np.where(x <= _SRGB_BREAK, x * 12.92, 1.055 * _spow(x, 1 / 2.4) - 0.055)
 
 
-def _srgb_decode(v):
-    return np.asarray(srgb_eotf(v), dtype=np.float64)
-
-
-def _srgb_encode(x):
-    return np.asarray(srgb_eotf_inverse(x), dtype=np.float64)
-
-
 #: accepted gamma of ``gamma:G``: beyond it the codes of an 8-bit image span more than
 #: 80 stops (or less than one), which no camera records
 GAMMA_RANGE = (0.1, 10.0)
@@ -53,7 +45,7 @@ GAMMA_RANGE = (0.1, 10.0)
 #: name -> (forward gamma: x -> v, inverse gamma^-1: v -> x, takes a parameter)
 CRF_MODELS = {
     "linear": (lambda x, p: np.asarray(x, np.float64), lambda v, p: np.asarray(v, np.float64), False),
-    "srgb": (lambda x, p: _srgb_encode(x), lambda v, p: _srgb_decode(v), False),
+    "srgb": (lambda x, p: srgb_eotf_inverse(x), lambda v, p: srgb_eotf(v), False),
     "gamma": (
         lambda x, p: np.power(np.clip(x, 0, None), 1.0 / p),
         lambda v, p: np.power(np.clip(v, 0, None), p),
@@ -102,7 +94,8 @@ class CRF:
         float64, row ``c`` = :meth:`inverse` of ``clip((r - black_c) / (white_c - black_c),
         0, 1)`` through channel ``c``'s curve.  ``black``, ``white``: scalars or ``(C,)``
         (``white`` default ``N - 1``; ``C`` their length).  The one linearisation of stored
-        codes: frames (:meth:`linear`), sample sets (:func:`linearise`) and weight tables
+        codes: frames (:meth:`linear`), sample sets
+        (:func:`~hdrmerge_cli.core.exposure_estimate.linearise`) and weight tables
         read their linear values from it; built once per response and grid."""
         black = np.atleast_1d(np.asarray(black, dtype=np.float64))
         white = np.broadcast_to(np.asarray(n_codes - 1.0 if white is None else white, dtype=np.float64), black.shape)
@@ -178,17 +171,3 @@ def table_crf(table: np.ndarray, name: str = "table") -> CRF:
     if np.any(top <= 0):
         raise HdrMergeError("the CRF table must end at a positive value")
     return CRF(name, table=tab / top)
-
-
-def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
-    """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
-    clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds
-    whole codes (``codes_step``: one code as a fraction of full scale, at most 2^16 codes)
-    through :meth:`CRF.linear` in float32, else evaluated per value."""
-    vc = np.clip(v, 0.0, 1.0)
-    if crf.is_linear:
-        return vc
-    n = int(round(1.0 / codes_step)) + 1
-    if n > 1 << 16:
-        return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
-    return crf.linear(np.rint(vc * (n - 1)).astype(np.int64), n).astype(np.float32)

@@ -12,10 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_goossens2012 import (
-    DEFAULT_LAMBDA, CRFFit, crf_goossens2012, from_knots, knot_levels, to_knots,
+    DEFAULT_ANCHOR, DEFAULT_LAMBDA, CRFFit, crf_goossens2012, from_knots, knot_levels, standard_prior, to_knots,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.samples import Samples
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 
 #: Debevec & Malik's lambda (their scale: per sampled pixel, unnormalised)
@@ -47,7 +49,7 @@ def histogram_correspondences(codes: list[np.ndarray], n_codes: int, rows: int =
     codes : P arrays ``(N, C)`` of integer codes (below ``n_codes``), one per frame, the
         same pixels' in each (their order is not used)
     Returns P arrays ``(rows, C)`` int64: row ``i`` the code of each frame at ``u_i``, per
-    channel (monotone in ``i``), as :func:`fit_crf`'s samples."""
+    channel (monotone in ``i``), as :func:`fit_response`'s samples."""
     u = (np.arange(rows) + 0.5) / rows
     out = []
     for z in codes:
@@ -178,3 +180,98 @@ CRF_ESTIMATORS = {
     "debevec": CRFMethod(crf_debevec1997, DEBEVEC_LAMBDA, 1000),
     "robertson": CRFMethod(crf_robertson2003, None, None),
 }
+
+
+def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, method: str, rng) -> np.ndarray:
+    """(N, P) codes of channel ``c``: every pixel, or ``samples`` of them (Debevec-Malik's
+    stratified choice over the middle frame's codes, else uniformly at random)."""
+    n = codes[0][..., c].size
+    if not samples or samples >= n:
+        out = np.empty((n, len(codes)), codes[0].dtype)
+        for j, fr in enumerate(codes):
+            out[:, j] = fr[..., c].reshape(-1)
+        return out
+    idx = (sample_pixels(codes[len(codes) // 2][..., c], samples, rng) if method == "debevec"
+           else rng.choice(n, samples, replace=False))
+    return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
+
+
+@dataclass
+class ResponseFit:
+    """What :func:`fit_response` returns: the response (a ``(C, n_codes)`` table), the
+    per-channel fits, and whether a fit had to be made monotone."""
+
+    crf: CRF
+    fits: list[CRFFit]
+    changed: bool
+
+
+def fit_response(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: str = "goossens",
+                 smoothing: float | None = None, samples: int | None = None, options: dict | None = None,
+                 rng: np.random.Generator | None = None) -> ResponseFit:
+    """The inverse response of decoded frames: ``method`` of :data:`CRF_ESTIMATORS`, the
+    channels in one coupled solve for a ``joint`` method (goossens: see its ``coupling``;
+    its prior towards the standard curve where the frames leave ``g`` open), one by one
+    for the others.
+
+    codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
+    smoothing, samples : None for the method's defaults; options : the method's keywords
+    """
+    m = CRF_ESTIMATORS[method]
+    rng = rng if rng is not None else np.random.default_rng(0)
+    samples = m.samples if samples is None else samples
+    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
+    options = dict(options or {})
+    if method == "goossens":  # the prior towards the standard curve where the frames leave g open
+        options.setdefault("anchor", DEFAULT_ANCHOR)
+        options.setdefault("prior", standard_prior(n_codes))
+    if m.smoothing is not None:
+        options["smoothing"] = m.smoothing if smoothing is None else smoothing
+    if m.joint:  # one solve of every channel, coupled
+        fit = m.estimate(samples_of, log_h, n_codes, **options)
+        fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]
+    else:
+        fits = [m.estimate(z, log_h, n_codes, **options) for z in samples_of]
+    tables, fixed = zip(*(inverse_from_log(f.g) for f in fits))
+    return ResponseFit(table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, any(fixed))
+
+
+@dataclass
+class LabelledFit:
+    """What :func:`labelled_fit` returns: the response, each round's :class:`ResponseFit`
+    (for the log), the frames whose measured exposure replaced their label, and the codes
+    per frame the fit read (pixels or histogram levels)."""
+
+    crf: CRF
+    rounds: list[ResponseFit]
+    replaced: list[int]
+    rows: int
+
+
+def labelled_fit(s: Samples, exposures: np.ndarray, histograms: bool = False) -> LabelledFit:
+    """The response and the labels judged together: fit with the labels (on the samples'
+    codes, or with ``histograms`` on their :func:`histogram_correspondences`), check them
+    through the fit (:func:`~hdrmerge_cli.core.exposure_estimate.estimate`), and while a
+    frame's label is off by more than the tolerance in a way a label explains (its ratios
+    do not change with brightness, :func:`~hdrmerge_cli.core.exposure_estimate.label_at_fault`),
+    refit with that frame's estimate in place of its label, the frame furthest off first,
+    at most half the frames.  A wrong label then does not bend the curve; the labels are
+    judged (and warned about) afterwards against the response returned."""
+    from hdrmerge_cli.core.exposure_estimate import estimate, label_at_fault
+
+    n_codes = s.levels[2]
+    codes = histogram_correspondences(s.codes, n_codes) if histograms else s.codes
+    log_h = np.log(np.asarray(exposures, np.float64))
+    replaced: list[int] = []
+    rounds: list[ResponseFit] = []
+    for r in range(len(s.v) // 2 + 1):
+        rounds.append(fit_response(codes, log_h, n_codes))
+        if r == len(s.v) // 2:
+            break
+        est = estimate(np.exp(log_h), s, rounds[-1].crf)
+        off = [k for k in est.mislabelled() if k not in replaced and label_at_fault(est, k)]
+        if not off:
+            break
+        k = max(off, key=lambda j: abs(est.difference_ev[j]))
+        log_h[k], replaced = est.log_h[k], replaced + [k]
+    return LabelledFit(rounds[-1].crf, rounds, replaced, codes[0].shape[0])

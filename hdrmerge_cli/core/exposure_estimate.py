@@ -15,15 +15,15 @@ On the one sample set (:class:`~hdrmerge_cli.core.samples.Samples`): the frames'
 (:func:`order_test`), the neighbour pairs' ratios through a response (:func:`measure_pairs`,
 :func:`robust_log_ratio`), the exposures chained from them (:func:`estimate`,
 :func:`estimate_exposures`), a quick response fitted on the samples when the one in use is
-only assumed (:func:`quick_response`, :func:`estimate_with_response`), and whether the
+only assumed (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`, :func:`estimate_with_response`), and whether the
 response or a label explains a frame's difference from its label (:func:`label_at_fault`,
 :func:`response_fits`).  The response stage, the exposures stage and ``info`` read them.
 
 A hand-held bracket merged without alignment breaks the premise (the same pixels in both
 frames): a pair's ratio is then read across edges that moved, and a label can look wrong
 when only the camera moved.  Before a label is called wrong, the pairs its estimate chains
-through are registered on the same samples (:func:`moved_pairs`, OpenCV through
-:mod:`hdrmerge_cli.core.registration`); past :func:`moved_threshold_px` the label is reported as
+through are registered on the same samples (:func:`~hdrmerge_cli.core.registration.moved_pairs`, OpenCV through
+:mod:`hdrmerge_cli.core.registration`); past :func:`~hdrmerge_cli.core.registration.moved_threshold_px` the label is reported as
 unchecked instead.
 
 Everything here is pure array code: no paths, no printing.
@@ -31,16 +31,15 @@ Everything here is pure array code: no paths, no printing.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF, linearise, table_crf
+from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.registration import (
-    block_mean, common_range, corner_distance, dark_floor, log_irradiance, pair_displacement,
-)
+from hdrmerge_cli.core.registration import Motion, block_mean, moved_pairs, warp_motion
 from hdrmerge_cli.core.samples import (
-    MIN_RATIO_PIXELS, RANGE_LINEAR, RANGE_UNVERIFIED, RANGE_VERIFIED, Samples, samples_codes,
+    MIN_RATIO_PIXELS, RANGE_LINEAR, RANGE_UNVERIFIED, RANGE_VERIFIED, Samples,
 )
 
 #: a label more than this many EV from its estimate is reported (1/3 EV, a camera's step)
@@ -55,11 +54,6 @@ WEAK_COVERAGE = 0.05
 LABEL_SIGMAS = 3.0
 #: ... and at least this many pixels changed by more than the margin
 ORDER_MIN_CHANGED = 100
-#: a pair registered on the samples counts as moved when displaced by more than this many
-#: sample pitches (:func:`moved_threshold_px`)
-MOVED_PITCHES = 1.5
-#: ... and by more than this many full-resolution pixels
-MOVED_MIN_PX = 1.0
 
 
 # ---------------------------------------------------------------- order check
@@ -350,6 +344,20 @@ def usable_range(crf: CRF) -> tuple[float, float]:
     return RANGE_LINEAR if crf.is_linear else RANGE_VERIFIED if crf_verified(crf) else RANGE_UNVERIFIED
 
 
+def linearise(v: np.ndarray, crf: CRF, codes_step: float) -> np.ndarray:
+    """``g(v)``, the inverse response of normalised codes ``v`` (``(..., C)``, full scale 1,
+    clipped to [0, 1]) per channel; ``v`` itself for a linear response.  Where ``v`` holds
+    whole codes (``codes_step``: one code as a fraction of full scale, at most 2^16 codes)
+    through :meth:`CRF.linear` in float32, else evaluated per value."""
+    vc = np.clip(v, 0.0, 1.0)
+    if crf.is_linear:
+        return vc
+    n = int(round(1.0 / codes_step)) + 1
+    if n > 1 << 16:
+        return np.stack([crf.inverse(vc[..., c], c) for c in range(v.shape[-1])], -1)
+    return crf.linear(np.rint(vc * (n - 1)).astype(np.int64), n).astype(np.float32)
+
+
 def measure_pairs(s: Samples, crf: CRF, value_range: tuple[float, float] | None = None) -> list[PairRatio]:
     """:func:`robust_log_ratio` of every neighbour pair, on the
     pixels both frames expose well: ``v`` within ``value_range`` (default by the response,
@@ -381,105 +389,23 @@ def estimate(exposures: np.ndarray, s: Samples, crf: CRF, value_range: tuple[flo
     return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
 
 
-# ---------------------------------------------------------------- quick response
-def comparagram(z_a: np.ndarray, z_b: np.ndarray, levels: int) -> np.ndarray:
-    """Joint histogram ``J[i, j]`` of the knot codes of the same pixels in two frames
-    (Mann 2000's comparagram; the data of the paper's (36)-(37))."""
-    return np.bincount(z_a.astype(np.int64).ravel() * levels + z_b.astype(np.int64).ravel(),
-                       minlength=levels * levels).reshape(levels, levels).astype(np.float64)
-
-
-def response_from_comparagrams(grams: list[np.ndarray], log_ratios: np.ndarray, smoothing: float = 1.0) -> np.ndarray:
-    """``g = log gamma^-1`` on ``L`` knots from the comparagrams of neighbour pairs and their
-    log exposure ratios: weighted least squares of ``g(j) - g(i) = log(h_b / h_a)`` over
-    the cells of each comparagram (weight: the cell's count times the hat weights of both
-    codes, Debevec-Malik's ``w(z)``; clipped codes 0 and L-1 left out), plus
-    ``smoothing`` times the second differences of ``g`` (scaled to the data's total weight)
-    and ``g(L/2) = 0``: the paper's (36) without its monotonicity constraints, solved in
-    closed form through the ``L x L`` normal equations (no per-pixel unknowns, so it costs
-    one histogram per pair).  Not made monotone here.
-
-    grams : comparagrams ``(L, L)`` of the pairs; log_ratios : their ``log(h_b / h_a)``
-    """
-    levels = grams[0].shape[0]
-    hat = np.minimum(np.arange(levels), levels - 1 - np.arange(levels)).astype(np.float64)
-    hat /= max(hat.max(), 1.0)
-    ata = np.zeros((levels, levels))
-    atb = np.zeros(levels)
-    total = 0.0
-    for j_ab, d in zip(grams, log_ratios):
-        w = j_ab * hat[:, None] * hat[None, :]
-        rs, cs = w.sum(axis=1), w.sum(axis=0)
-        ata += np.diag(rs + cs) - w - w.T
-        atb += d * (cs - rs)
-        total += float(w.sum())
-    lam = smoothing * max(total, 1.0) / levels
-    dd = np.zeros((levels - 2, levels))
-    idx = np.arange(levels - 2)
-    dd[idx, idx], dd[idx, idx + 1], dd[idx, idx + 2] = 1.0, -2.0, 1.0
-    ata += lam * dd.T @ dd
-    mid = levels // 2
-    ata[mid, mid] += max(total, 1.0)  # g(mid) = 0
-    return np.linalg.solve(ata, atb)
-
-
-@dataclass
-class KnotCodes:
-    """The samples off the constant borders as the knot codes a quick response is fitted on:
-    ``codes`` ``(N, C)`` per frame, on ``levels`` knots of the frames' ``n_codes`` codes."""
-
-    codes: list[np.ndarray]
-    levels: int
-    n_codes: int
-
-
-def knot_codes(s: Samples) -> KnotCodes:
-    """:func:`~hdrmerge_cli.core.samples.samples_codes` on the knots of
-    :func:`~hdrmerge_cli.core.crf_goossens2012.to_knots`: drawn once for every fit of
-    :func:`quick_response` on the same samples."""
-    from hdrmerge_cli.core.crf_goossens2012 import knot_levels, to_knots
-
-    n = s.levels[2]
-    levels = knot_levels(n)
-    return KnotCodes([to_knots(c, n, levels) for c in samples_codes(s)], levels, n)
-
-
-def quick_response(exposures: np.ndarray, knots: KnotCodes, skip: frozenset[int] = frozenset()) -> CRF:
-    """An image bracket's inverse response fitted on its samples' knot codes
-    (:func:`knot_codes`, constant borders off) with the given exposures, per channel, from
-    the neighbour pairs' comparagrams (:func:`response_from_comparagrams`): the check's own
-    response when the one in use is an unverified model (sRGB assumed), whose ratios are
-    off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
-    moved) are left out while others remain."""
-    from hdrmerge_cli.core.crf_estimate import inverse_from_log  # (numba: only a bracket given no response)
-    from hdrmerge_cli.core.crf_goossens2012 import from_knots
-
-    codes, levels, n = knots.codes, knots.levels, knots.n_codes
-    log_r = np.diff(np.log(exposures))
-    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
-    tables = []
-    for ch in range(codes[0].shape[-1]):
-        grams = [comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
-        g = from_knots(response_from_comparagrams(grams, log_r[[k - 1 for k in used]]), n)
-        tables.append(inverse_from_log(g)[0])
-    return table_crf(np.stack(tables), "fitted on the bracket")
-
-
 def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: int = 1,
                            moved: frozenset[int] = frozenset()) -> tuple[ExposureEstimate, CRF]:
     """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
-    otherwise through a response fitted on the bracket (:func:`quick_response`), jointly:
+    otherwise through a response fitted on the bracket
+    (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`), jointly:
     fit with the labels, estimate, refit with the estimates, ``rounds`` times.  Pairs in
     ``moved`` are not used (their labels' ratio is kept)."""
     if crf_verified(crf):
         return estimate(exposures, s, crf, moved=moved), crf
+    from hdrmerge_cli.core.crf_goossens2012 import knot_codes, quick_response  # (numba: only an unverified response)
+
     h = np.asarray(exposures, dtype=np.float64)
     knots = knot_codes(s)
-    fitted = quick_response(h, knots, moved)  # its least squares shrink the ratios a little: slope fitted
-    est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
-    for _ in range(rounds - 1):
-        fitted = quick_response(np.exp(est.log_h), knots, moved)
+    for _ in range(rounds):  # fitted with the labels, then with the estimates
+        fitted = quick_response(h, knots, moved)  # its least squares shrink the ratios a little: slope fitted
         est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
+        h = np.exp(est.log_h)
     # a label is called wrong only where the assumed response agrees (same sign; the smaller
     # of the two differences): a fit on pairs that barely overlap, or a camera curve far
     # from the assumed one, each alone makes false alarms
@@ -541,44 +467,6 @@ def ratio_bend_ev(est: ExposureEstimate, k: int) -> float:
 
 
 # ---------------------------------------------------------------- motion between exposures
-def moved_threshold_px(pitch: float) -> float:
-    """Displacement (full-resolution pixels) beyond which a pair registered on samples
-    ``pitch`` pixels apart counts as moved: :data:`MOVED_PITCHES` pitches, at least
-    :data:`MOVED_MIN_PX`.
-
-    The samples are a strided subsample (no prefilter: aliased), so their registration
-    resolves about one pitch, not one full-resolution pixel: on the static real brackets
-    of the test data (pitch 2 to 4) neighbour pairs registered on the samples at up to
-    0.87 pitch (1.7 px), where full-resolution alignment found up to 1.9 px of real
-    (tripod) movement and differed from the samples' registration by up to 0.7 pitch; the
-    hand-held ones registered at 7 to 12 pitches (14 to 26 px).  A displacement under a
-    pitch also barely reaches the ratio, which is read on the same samples: it moves the
-    pixels next to edges by a fraction of a sample, and the ratio's 3-sigma rejection drops
-    them."""
-    return max(MOVED_MIN_PX, MOVED_PITCHES * float(pitch))
-
-
-@dataclass
-class Motion:
-    """Neighbour pairs' displacement: ``px`` per pair index (frames ``j``, ``j + 1``) in
-    full-resolution pixels, None where the pair could not be registered (too little texture
-    in the range both expose, a weak correlation); pairs not asked about are absent.
-    ``threshold_px``: beyond it a pair moved (:func:`moved_threshold_px` of the samples' pitch)."""
-
-    px: dict[int, float | None]
-    threshold_px: float
-
-    def moved(self) -> frozenset[int]:
-        return frozenset(j for j, d in self.px.items() if d is not None and d > self.threshold_px)
-
-    def decided_by_motion(self, k: int, reference: int) -> int | None:
-        """The pair that moved most among those frame ``k``'s estimate chains through from
-        the reference (:func:`chain_pairs`), or None when none
-        of them moved."""
-        moved = [j for j in chain_pairs(k, reference) if j in self.moved()]
-        return max(moved, key=lambda j: self.px[j]) if moved else None
-
-
 def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
     """Frame ``k``'s samples linearised through ``crf`` as one plane for registration (the
     channels' mean), the constant borders cut off; RAW: the mean of each 2 x 2 CFA cell."""
@@ -591,49 +479,103 @@ def sample_plane(s: Samples, k: int, crf: CRF) -> np.ndarray:
     return block_mean(lin, 2) if s.raw else lin
 
 
-def moved_pairs(s: Samples, exposures: np.ndarray, crf: CRF, pairs) -> Motion:
-    """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
-    the samples (:func:`~hdrmerge_cli.core.registration.pair_displacement` of their
-    :func:`sample_plane` as :func:`~hdrmerge_cli.core.registration.log_irradiance`
-    over the irradiance range both expose, exposure-normalised by ``exposures``, the
-    labels: registration is invariant to the gain a wrong label makes), in full-resolution
-    pixels (the samples' pitch).  A few tens of milliseconds a pair on the merge's default
-    samples; only the pairs asked about are registered."""
-    lin: dict[int, np.ndarray] = {}
-    px: dict[int, float | None] = {}
-    for j in sorted(set(pairs)):
-        try:
-            lo, hi = common_range([exposures[j], exposures[j + 1]], lo_code=dark_floor(s.codes_step if s.raw else None))
-        except HdrMergeError:
-            px[j] = None
+# ---------------------------------------------------------------- the labels judged
+class Verdict(NamedTuple):
+    """What :func:`label_verdicts` blames for a frame off its label: ``kind`` one of
+    ``"moved"``, ``"pair"``, ``"given"``, ``"response"``, ``"label"``; ``why``: the
+    response's fault (:func:`response_at_fault`) or None; ``pair``: for ``"moved"``, the
+    pair that moved most on the frame's chain."""
+
+    kind: str
+    why: str | None = None
+    pair: int | None = None
+
+
+def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLERANCE_EV) -> str | None:
+    """Why frame ``k``'s difference from its label points at the response rather than the
+    label (:func:`power_explains`, :func:`response_fits`, :func:`label_at_fault`), or None."""
+    if power_explains(est, tol_ev):
+        return ("the frames' differences grow with their distance in exposure from the reference frame, as a "
+                "response of the wrong power makes")
+    if not response_fits(est):
+        return "the ratios of most frame pairs change with brightness"
+    if not label_at_fault(est, k):
+        return (f"its ratios change with brightness (by {ratio_bend_ev(est, k):.2f} EV from shadows to "
+                "highlights)")
+    return None
+
+
+def label_verdicts(est: ExposureEstimate, given: list[bool], tol_ev: float = LABEL_TOLERANCE_EV,
+                   motion: Motion | None = None) -> dict[int, Verdict]:
+    """Per frame whose estimate is off its label (:meth:`ExposureEstimate.mislabelled`),
+    what is blamed, and why: ``"moved"`` (its estimate chains through a pair that moved:
+    ``motion``, :func:`moved_pairs`), ``"pair"`` (two frames:
+    neither label outvotes the other), ``"given"`` (the user's time, the first suspect
+    whatever the ratios say; ``given``: per frame whether its time is the user's, not its
+    metadata's), ``"response"`` (the response explains the difference better
+    than the label, :func:`response_at_fault`, the reason beside it) or ``"label"``.  The
+    one judgement the warnings and ``--json`` both read."""
+    out = {}
+    for k in est.mislabelled(tol_ev):
+        moved = [j for j in chain_pairs(k, est.reference) if motion is not None and j in motion.moved]
+        j = max(moved, key=lambda j: motion.px[j]) if moved else None
+        if j is not None:
+            out[k] = Verdict("moved", None, j)
             continue
-        for k in (j, j + 1):
-            if k not in lin:
-                lin[k] = sample_plane(s, k, crf)
-        d = pair_displacement(log_irradiance(lin[j], exposures[j], lo, hi),
-                              log_irradiance(lin[j + 1], exposures[j + 1], lo, hi))
-        px[j] = None if d is None else d * s.pitch
-        lin.pop(j, None)  # pairs in order: frame j is not needed again
-    return Motion(px, moved_threshold_px(s.pitch))
+        by_user = given[k] or given[est.reference]
+        why = response_at_fault(est, k, tol_ev)
+        out[k] = Verdict("pair" if len(given) == 2 and (why is None or by_user) else
+                         "given" if why is not None and by_user else "response" if why is not None else "label", why)
+    return out
 
 
-def label_motion(s: Samples, exposures: np.ndarray, crf: CRF, est: ExposureEstimate) -> Motion:
-    """:func:`moved_pairs` of only the pairs that decided a label in question (none: no cost)."""
-    return moved_pairs(s, exposures, crf, {j for k in est.mislabelled() for j in chain_pairs(k, est.reference)})
+@dataclass
+class LabelCheck:
+    """The labels judged once (:func:`check_exposures`) on the exposures ``est`` measured: the
+    pairs' ``motion``, the :func:`label_verdicts`, and per frame the estimate's standard
+    error (EV), share and whether it is measured (:meth:`ExposureEstimate.stderr_ev`,
+    :meth:`~ExposureEstimate.share`, :meth:`~ExposureEstimate.measured`), which the
+    warnings and the ``--json`` record read; ``used``: the response the estimate read, and
+    ``response`` as the record names it; ``model``: the response in use, named, and
+    ``power_ev`` its power error (:func:`model_power_error_ev`)."""
+
+    est: ExposureEstimate
+    motion: Motion
+    verdicts: dict[int, Verdict]
+    stderr_ev: np.ndarray
+    share: np.ndarray
+    measured: np.ndarray
+    used: CRF
+    response: str
+    model: str
+    power_ev: float
 
 
-def warp_motion(warps: list[np.ndarray], aligned: list[bool], applied: bool, height: int, width: int,
-                pitch: float) -> Motion:
-    """The neighbour pairs' displacement as a registration measured it, ``warps`` ``(2, 3)``
-    per frame (``aligned``: False where a frame was left unaligned), for samples brought onto
-    the reference with them when ``applied`` (:meth:`Samples.registered`): 0 left between
-    two registered frames, unknown (None) where either was left unaligned; otherwise the
-    largest distance between where the two frames' warps take a corner of the
-    ``height`` x ``width`` frame.  ``pitch``: the samples' (:func:`moved_threshold_px`)."""
-    px: dict[int, float | None] = {}
-    for j in range(len(warps) - 1):
-        if not (aligned[j] and aligned[j + 1]):
-            px[j] = None
-        else:
-            px[j] = 0.0 if applied else corner_distance(warps[j], warps[j + 1], height, width)
-    return Motion(px, moved_threshold_px(pitch))
+def check_exposures(exposures: np.ndarray, s: Samples, crf: CRF, given: list[bool], use_estimates: bool = False,
+                    warps: list[np.ndarray] | None = None, aligned: list[bool] | None = None, applied: bool = False,
+                    size: tuple[int, int] = (0, 0)) -> LabelCheck:
+    """The frames' exposures measured on the samples ``s`` through ``crf``
+    (:func:`estimate_with_response`; ``use_estimates``: two rounds, and a pair that moved
+    keeps its labels' ratio) and the labels judged (:func:`label_verdicts`).  With the
+    merge's registration (``warps`` per frame, ``aligned``: False where a frame was left
+    unaligned, ``applied``: the samples are then brought onto the reference already,
+    :meth:`~hdrmerge_cli.core.samples.Samples.registered`; ``size``: the frames' height and
+    width) the pairs' motion is what it measured (:func:`warp_motion`); without, every pair
+    (``use_estimates``) or the pairs that decided a label in question are registered on
+    the samples (``given``: per frame whether its time is the user's)."""
+    est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)
+    # the pairs registered on the samples: every pair (every estimate is used), or those that
+    # decided a label in question (none: no cost); their frames' sample_plane by index
+    pairs = range(len(exposures) - 1) if use_estimates else {j for k in est.mislabelled()
+                                                             for j in chain_pairs(k, est.reference)}
+    planes = {} if warps is not None else {k: sample_plane(s, k, crf) for k in {k for j in pairs for k in (j, j + 1)}}
+    if warps is not None:  # the pairs' motion as the merge's registration measured it
+        motion = warp_motion(warps, aligned, applied, size[0], size[1], s.pitch)
+    else:  # the pairs registered on the samples
+        motion = moved_pairs(s, exposures, planes, pairs)
+    if use_estimates and motion.moved:  # a pair that moved keeps its labels' ratio
+        est, used = estimate_with_response(exposures, s, crf, rounds=2, moved=motion.moved)
+    verdicts = label_verdicts(est, given, motion=motion)
+    name = used.describe() + ("" if crf_verified(used) else " (unverified: mid-range codes, slope fitted)")
+    return LabelCheck(est, motion, verdicts, est.stderr_ev(), est.share(), est.measured(), used, name,
+                      crf.describe(), model_power_error_ev(est))

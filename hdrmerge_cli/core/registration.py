@@ -19,12 +19,14 @@ exposure brackets do not zoom).
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.resample import _cv2, covered_mask
+from hdrmerge_cli.core.resample import _cv2
+from hdrmerge_cli.core.samples import Samples
 
 #: longest side of the coarse registration level
 COARSE_SIDE = 1024
@@ -610,6 +612,29 @@ def warp_size(warp: np.ndarray, height: int, width: int) -> float:
     return corner_distance(warp, np.eye(2, 3), height, width)
 
 
+def covered_mask(warp: np.ndarray, height: int, width: int, rows: slice | None = None) -> np.ndarray:
+    """Which reference pixels ``(x, y)`` the warp takes inside the frame (``W @ (x, y, 1)``
+    within half a pixel of its edge), ``(height, width)`` bool (``rows``: those rows
+    only).  The set is convex: each row's pixels inside form one interval, found from the
+    four edge inequalities."""
+    y = np.arange(height, dtype=np.float64)[rows if rows is not None else slice(None)]
+    lo, hi = np.full(y.size, -np.inf), np.full(y.size, np.inf)
+    for row, size in ((warp[0], width), (warp[1], height)):  # -0.5 <= p x + q(y) <= size - 0.5
+        p, q = row[0], row[1] * y + row[2]
+        if abs(p) < 1e-12:
+            ok = (q >= -0.5) & (q <= size - 0.5)
+            lo[~ok], hi[~ok] = np.inf, -np.inf
+            continue
+        a, b = (-0.5 - q) / p, (size - 0.5 - q) / p
+        lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
+    first = np.clip(np.ceil(lo - 1e-9), 0, width).astype(np.int64)  # each row's pixels first..last
+    last = np.clip(np.floor(hi + 1e-9) + 1, 0, width).astype(np.int64)
+    out = np.zeros((y.size, width), bool)
+    for i in np.flatnonzero(last > first):  # row by row: faster than a comparison per pixel
+        out[i, first[i]:last[i]] = True
+    return out
+
+
 #: the still test's error rate (:func:`still_test`): a pair displaced by its tolerance or
 #: more is declared still with at most this probability
 STILL_P_MISS = 1e-3
@@ -870,3 +895,82 @@ def coarse_mosaic_image(codes: np.ndarray, black: float, white: float, f: int) -
     out -= np.float32(black)
     out *= np.float32(1.0 / (white - black))
     return out
+
+
+# ---------------------------------------------------------------- motion between exposures (on the samples)
+#: a pair registered on the samples counts as moved when displaced by more than this many
+#: sample pitches (:func:`moved_threshold_px`)
+MOVED_PITCHES = 1.5
+#: ... and by more than this many full-resolution pixels
+MOVED_MIN_PX = 1.0
+
+
+def moved_threshold_px(pitch: float) -> float:
+    """Displacement (full-resolution pixels) beyond which a pair registered on samples
+    ``pitch`` pixels apart counts as moved: :data:`MOVED_PITCHES` pitches, at least
+    :data:`MOVED_MIN_PX`.
+
+    The samples are a strided subsample (no prefilter: aliased), so their registration
+    resolves about one pitch, not one full-resolution pixel: on the static real brackets
+    of the test data (pitch 2 to 4) neighbour pairs registered on the samples at up to
+    0.87 pitch (1.7 px), where full-resolution alignment found up to 1.9 px of real
+    (tripod) movement and differed from the samples' registration by up to 0.7 pitch; the
+    hand-held ones registered at 7 to 12 pitches (14 to 26 px).  A displacement under a
+    pitch also barely reaches the ratio, which is read on the same samples: it moves the
+    pixels next to edges by a fraction of a sample, and the ratio's 3-sigma rejection drops
+    them."""
+    return max(MOVED_MIN_PX, MOVED_PITCHES * float(pitch))
+
+
+@dataclass
+class Motion:
+    """Neighbour pairs' displacement: ``px`` per pair index (frames ``j``, ``j + 1``) in
+    full-resolution pixels, None where the pair could not be registered (too little texture
+    in the range both expose, a weak correlation); pairs not asked about are absent.
+    ``threshold_px``: beyond it a pair moved (:func:`moved_threshold_px` of the samples' pitch)."""
+
+    px: dict[int, float | None]
+    threshold_px: float
+
+    @property
+    def moved(self) -> frozenset[int]:
+        """The pairs that moved (beyond ``threshold_px``)."""
+        return frozenset(j for j, d in self.px.items() if d is not None and d > self.threshold_px)
+
+
+def moved_pairs(s: Samples, exposures: np.ndarray, planes: dict[int, np.ndarray], pairs) -> Motion:
+    """Register each neighbour pair in ``pairs`` (indices ``j``: frames ``j``, ``j + 1``) on
+    the samples (:func:`pair_displacement` of their ``planes``, by frame index, the
+    :func:`~hdrmerge_cli.core.exposure_estimate.sample_plane`, as :func:`log_irradiance`
+    over the irradiance range both expose, exposure-normalised by ``exposures``, the
+    labels: registration is invariant to the gain a wrong label makes), in full-resolution
+    pixels (the samples' pitch).  A few tens of milliseconds a pair on the merge's default
+    samples; only the pairs asked about are registered."""
+    px: dict[int, float | None] = {}
+    for j in sorted(set(pairs)):
+        try:
+            lo, hi = common_range([exposures[j], exposures[j + 1]], lo_code=dark_floor(s.codes_step if s.raw else None))
+        except HdrMergeError:
+            px[j] = None
+            continue
+        d = pair_displacement(log_irradiance(planes[j], exposures[j], lo, hi),
+                              log_irradiance(planes[j + 1], exposures[j + 1], lo, hi))
+        px[j] = None if d is None else d * s.pitch
+    return Motion(px, moved_threshold_px(s.pitch))
+
+
+def warp_motion(warps: list[np.ndarray], aligned: list[bool], applied: bool, height: int, width: int,
+                pitch: float) -> Motion:
+    """The neighbour pairs' displacement as a registration measured it, ``warps`` ``(2, 3)``
+    per frame (``aligned``: False where a frame was left unaligned), for samples brought onto
+    the reference with them when ``applied`` (:meth:`~hdrmerge_cli.core.samples.Samples.registered`): 0 left between
+    two registered frames, unknown (None) where either was left unaligned; otherwise the
+    largest distance between where the two frames' warps take a corner of the
+    ``height`` x ``width`` frame.  ``pitch``: the samples' (:func:`moved_threshold_px`)."""
+    px: dict[int, float | None] = {}
+    for j in range(len(warps) - 1):
+        if not (aligned[j] and aligned[j + 1]):
+            px[j] = None
+        else:
+            px[j] = 0.0 if applied else corner_distance(warps[j], warps[j + 1], height, width)
+    return Motion(px, moved_threshold_px(pitch))

@@ -73,29 +73,6 @@ def inner_rectangle(mask: np.ndarray, even: bool = False) -> tuple[int, int, int
     return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else None
 
 
-def covered_mask(warp: np.ndarray, height: int, width: int, rows: slice | None = None) -> np.ndarray:
-    """Which reference pixels ``(x, y)`` the warp takes inside the frame (``W @ (x, y, 1)``
-    within half a pixel of its edge), ``(height, width)`` bool (``rows``: those rows
-    only).  The set is convex: each row's pixels inside form one interval, found from the
-    four edge inequalities."""
-    y = np.arange(height, dtype=np.float64)[rows if rows is not None else slice(None)]
-    lo, hi = np.full(y.size, -np.inf), np.full(y.size, np.inf)
-    for row, size in ((warp[0], width), (warp[1], height)):  # -0.5 <= p x + q(y) <= size - 0.5
-        p, q = row[0], row[1] * y + row[2]
-        if abs(p) < 1e-12:
-            ok = (q >= -0.5) & (q <= size - 0.5)
-            lo[~ok], hi[~ok] = np.inf, -np.inf
-            continue
-        a, b = (-0.5 - q) / p, (size - 0.5 - q) / p
-        lo, hi = np.maximum(lo, np.minimum(a, b)), np.minimum(hi, np.maximum(a, b))
-    first = np.clip(np.ceil(lo - 1e-9), 0, width).astype(np.int64)  # each row's pixels first..last
-    last = np.clip(np.floor(hi + 1e-9) + 1, 0, width).astype(np.int64)
-    out = np.zeros((y.size, width), bool)
-    for i in np.flatnonzero(last > first):  # row by row: faster than a comparison per pixel
-        out[i, first[i]:last[i]] = True
-    return out
-
-
 def _same_colour_index(n: int, shift: int) -> np.ndarray:
     """Source rows (or columns) ``i + shift`` (``shift`` even), those beyond the frame
     replaced by the nearest in-frame one of the same CFA parity."""

@@ -47,7 +47,7 @@ class Samples:
     every ``step``-th row and column; RAW: whole 2 x 2 CFA cells, one every ``step`` cells,
     so consecutive sample rows pair up into cells ``2 step`` pixels apart); ``levels``:
     ``(black, white - black, n_codes)`` of the codes normalised, per channel of ``v``
-    (float32), for :func:`samples_codes`."""
+    (float32), for :attr:`codes`."""
 
     v: list[np.ndarray]
     inside: np.ndarray
@@ -64,7 +64,7 @@ class Samples:
 
     @property
     def pitch(self) -> int:
-        """Full-resolution pixels between the samples :func:`sample_plane` reads
+        """Full-resolution pixels between the samples :func:`~hdrmerge_cli.core.registration.sample_plane` reads
         (RAW: between CFA cells)."""
         return 2 * self.step if self.raw else self.step
 
@@ -125,6 +125,13 @@ class Samples:
         rows = np.arange(h) * TILES // max(h, 1)
         cols = np.arange(w) * TILES // max(w, 1)
         return np.broadcast_to((rows[:, None] * TILES + cols[None, :])[..., None], (h, w, c))
+
+    @functools.cached_property
+    def codes(self) -> list[np.ndarray]:
+        """The samples off the constant borders back as integer code values (images: exact),
+        ``(N, C)`` int64 per frame (made once: the response's fit and the quick response read them)."""
+        black, span, n_codes = self.levels
+        return [np.rint(v[self.inside] * span + black).clip(0, n_codes - 1).astype(np.int64) for v in self.v]
 
     def read_nothing(self) -> list[int]:
         """The frames with fewer than :data:`MIN_RATIO_PIXELS`
@@ -209,13 +216,6 @@ def pairs_pin_response(s: Samples) -> bool:
     (:func:`well_exposed_overlap`): else a response is fitted on the frames' histograms
     (:func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), not on pixel pairs."""
     return len(s.v) < 2 or max(well_exposed_overlap(s)) >= MIN_OVERLAP
-
-
-def samples_codes(s: Samples) -> list[np.ndarray]:
-    """The samples off the constant borders back as integer code values (images: exact),
-    ``(N, C)`` int64 per frame."""
-    black, span, n_codes = s.levels
-    return [np.rint(v[s.inside] * span + black).clip(0, n_codes - 1).astype(np.int64) for v in s.v]
 
 
 # ---------------------------------------------------------------- constant borders

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_correspondences
+from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, fit_response, histogram_correspondences
 from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, DEFAULT_COUPLING, DEFAULT_WEIGHTING, knot_levels
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.exposure_estimate import estimate
@@ -25,7 +25,7 @@ from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, prof
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline import exposure_check
 from hdrmerge_cli.pipeline.bracket import read_bracket
-from hdrmerge_cli.pipeline.response import fit_crf, is_flat
+from hdrmerge_cli.pipeline.response import is_flat, log_fit
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -96,12 +96,14 @@ def _solver_options(method, opts: CRFOptions) -> dict:
 
 def _fit_checked(codes, log_h: np.ndarray, n_codes: int, opts: CRFOptions, smoothing, n_samples,
                  options: dict) -> tuple[CRF, list, bool]:
-    """:func:`fit_crf` at the log exposures ``log_h`` ``(P,)``, refused when flat
-    (:func:`check_not_flat`): the response, the per-channel fits, whether made monotone."""
-    crf, fits, changed = fit_crf(codes, log_h, n_codes, opts.method, smoothing, n_samples, options,
-                                 np.random.default_rng(opts.seed))
-    check_not_flat(crf, opts.method, smoothing)
-    return crf, fits, changed
+    """:func:`~hdrmerge_cli.core.crf_estimate.fit_response` at the log exposures ``log_h``
+    ``(P,)`` (its log lines: :func:`~hdrmerge_cli.pipeline.response.log_fit`), refused when
+    flat (:func:`check_not_flat`): the response, the per-channel fits, whether made monotone."""
+    fit = fit_response(codes, log_h, n_codes, opts.method, smoothing, n_samples, options,
+                       np.random.default_rng(opts.seed))
+    log_fit(fit, opts.method)
+    check_not_flat(fit.crf, opts.method, smoothing)
+    return fit.crf, fit.fits, fit.changed
 
 
 def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit:
@@ -140,7 +142,7 @@ def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit
         log_h = new_log_h
         if moved < 0.01:
             break
-    report = exposure_check.check_labels(frames, labels, est, samples, crf, crf, "" if opts.times == ESTIMATE
+    report = exposure_check.check_labels(frames, labels, samples, crf, "" if opts.times == ESTIMATE
                                          else "; estimate-crf --times estimate fits with the estimates",
                                          opts.times == ESTIMATE)
     return _Fit(crf, fits, changed, (codes, log_h), report, histograms)

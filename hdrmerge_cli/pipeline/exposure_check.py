@@ -6,7 +6,7 @@ here the frames are decoded, subsampled (CFA cells kept whole), normalised to
 ``v = (z - black) / (white - black)``, cut to the pixels worth comparing (constant borders
 off, clipped and noise-floor codes off) and linearised through the response in use.
 Before a label is called wrong, the pairs that decided it are registered on the same
-samples (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`): frames that moved between exposures (a hand-held bracket
+samples (:func:`~hdrmerge_cli.core.registration.moved_pairs`): frames that moved between exposures (a hand-held bracket
 merged without ``--align``) leave the labels unchecked, with a line saying so, instead of
 a false label warning.
 """
@@ -15,15 +15,13 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from typing import NamedTuple
 
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.exposure_estimate import (
-    LABEL_TOLERANCE_EV, ExposureEstimate, Motion, crf_verified, estimate_with_response, label_at_fault, label_motion,
-    model_power_error_ev, moved_pairs, order_test, power_explains, ratio_bend_ev, response_fits, warp_motion,
+    LABEL_TOLERANCE_EV, LabelCheck, Motion, check_exposures, order_test,
 )
 from hdrmerge_cli.core.samples import (
     MIN_OVERLAP, Samples, border_mask, constant_border, normalised_samples, thin_overlap,
@@ -141,67 +139,55 @@ def _clipped_alone(frames: list[Frame], s: Samples, k: int) -> str | None:
     return None
 
 
-# ---------------------------------------------------------------- motion between exposures
-class Verdict(NamedTuple):
-    """What :func:`label_verdicts` blames for a frame off its label: ``kind`` one of
-    ``"moved"``, ``"pair"``, ``"given"``, ``"response"``, ``"label"``; ``why``: the
-    response's fault (:func:`response_at_fault`) or None; ``pair``: for ``"moved"``, the
-    pair that moved most on the frame's chain."""
-
-    kind: str
-    why: str | None = None
-    pair: int | None = None
+# ---------------------------------------------------------------- the labels judged
+def user_times(frames: list[Frame]) -> list[bool]:
+    """Per frame, whether its time is the user's (``--times``, a times file), not its metadata's."""
+    return [f.time_source != "its metadata" for f in frames]
 
 
-def check_labels(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, s: Samples, crf: CRF,
-                 used: CRF, hint: str, estimates: bool = False, motion: Motion | None = None,
-                 named_moved: bool = False) -> dict:
-    """The labels judged once on the exposures ``est`` measured through ``used`` (the
-    response the estimate read): ``motion`` as measured (the alignment's, or every pair
-    registered), else the pairs that decided a label in question registered on the samples
-    through ``crf`` (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`; none: no cost); then
-    :func:`label_verdicts`, their warnings (:func:`warn_mislabelled`; ``named_moved``: the
-    pairs that moved were named already) and the ``--json`` record (:func:`report`, of the
+def check_labels(frames: list[Frame], exposures: np.ndarray, s: Samples, crf: CRF, hint: str,
+                 estimates: bool = False) -> dict:
+    """The labels judged once on the exposures measured on the samples ``s`` through
+    ``crf`` (:func:`~hdrmerge_cli.core.exposure_estimate.check_exposures`: through a
+    response fitted on the bracket where ``crf`` is an unverified model; the pairs that
+    decided a label in question registered on the samples), their warnings
+    (:func:`warn_mislabelled`) and the ``--json`` record (:func:`report`, of the
     ``estimates`` used or the labels)."""
-    motion = label_motion(s, exposures, crf, est) if motion is None else motion
-    verdicts = label_verdicts(frames, est, motion=motion)
-    warn_mislabelled(frames, exposures, est, verdicts, hint, motion, used, named_moved)
-    return report(frames, exposures, est, verdicts, "estimates" if estimates else "labels", used, motion=motion)
-
-
-def _fmt_px(d: float) -> str:
-    return f"{d:.0f}" if d >= 10 else f"{d:.1f}"
+    labels = check_exposures(exposures, s, crf, user_times(frames))
+    warn_mislabelled(frames, exposures, labels, hint)
+    return report(frames, exposures, labels, "estimates" if estimates else "labels")
 
 
 def warn_moved(frames: list[Frame], k: int, j: int, motion: Motion, consequence: str) -> None:
     log.warning("%s: the frames moved between exposures (about %s px between %s and %s); %s; consider --align auto",
-                frames[k].path, _fmt_px(motion.px[j]), frames[j].name, frames[j + 1].name, consequence)
+                frames[k].path, f"{motion.px[j]:.{0 if motion.px[j] >= 10 else 1}f}", frames[j].name, frames[j + 1].name, consequence)
 
 
-def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, verdicts: dict[int, Verdict],
-           used: str, crf: CRF, tol_ev: float = LABEL_TOLERANCE_EV, motion: Motion | None = None) -> dict:
+def report(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, used: str,
+           tol_ev: float = LABEL_TOLERANCE_EV) -> dict:
     """The ``--json`` record of the estimates: per frame the label and the estimate (in
     seconds: the estimated ``h`` over the label's ISO factor) and their difference in EV,
     the estimate's standard error, the share of well-exposed pixels it rests on and whether
     it is measured (:meth:`~hdrmerge_cli.core.exposure_estimate.ExposureEstimate.measured`),
-    and its :func:`label_verdicts` entry: whether its label is blamed (``mislabelled``), could
-    not be checked because the frames moved (``moved``), or the response is blamed instead
-    (``response_at_fault``: why); per neighbour pair the measured ratio and, where registered
-    (:func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`), ``moved_px`` (null: not registered: no
+    and its :func:`~hdrmerge_cli.core.exposure_estimate.label_verdicts` entry: whether its
+    label is blamed (``mislabelled``), could not be checked because the frames moved
+    (``moved``), or the response is blamed instead (``response_at_fault``: why); per
+    neighbour pair the measured ratio and, where registered
+    (:func:`~hdrmerge_cli.core.registration.moved_pairs`), ``moved_px`` (null: not registered: no
     label in question, or too little texture); which exposures the merge used."""
+    est, motion = labels.est, labels.motion
     est_h = np.exp(est.log_h)
-    se, share, measured = est.stderr_ev(), est.share(), est.measured()
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
-        verdict, why, _ = verdicts.get(k, Verdict(None))
+        verdict, why, _ = labels.verdicts.get(k, (None, None, None))
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
-                     "stderr_ev": round(float(se[k]), 4), "share": round(float(share[k]), 4),
-                     "measured": bool(measured[k]),
+                     "stderr_ev": round(float(labels.stderr_ev[k]), 4), "share": round(float(labels.share[k]), 4),
+                     "measured": bool(labels.measured[k]),
                      "mislabelled": verdict in ("pair", "given", "label"), "moved": verdict == "moved",
                      "response_at_fault": why if verdict == "response" else None})
-    px = motion.px if motion is not None else {}
+    px = motion.px
     pairs = [{"frames": [frames[k].name, frames[k + 1].name],
               "label_ev": round(float(np.log2(exposures[k + 1] / exposures[k])), 4),
               "measured_ev": round(float(p.log_ratio / np.log(2)), 4) if p.counted else None,
@@ -209,67 +195,27 @@ def report(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, ve
               "pixels": p.kept, "coverage": round(p.coverage, 4),
               "moved_px": None if px.get(k) is None else round(float(px[k]), 2),
               "used": p.measured} for k, p in enumerate(est.pairs)]
-    out = {"used": used, "reference": frames[est.reference].name, "tolerance_ev": round(tol_ev, 4),
-           "response": crf.describe() + ("" if crf_verified(crf) else " (unverified: mid-range codes, slope fitted)"),
-           "slope": round(est.slope, 4), "frames": rows, "pairs": pairs}
-    if motion is not None:
-        out["moved_threshold_px"] = round(motion.threshold_px, 2)
-    return out
+    return {"used": used, "reference": frames[est.reference].name, "tolerance_ev": round(tol_ev, 4),
+            "response": labels.response, "slope": round(est.slope, 4), "frames": rows, "pairs": pairs,
+            "moved_threshold_px": round(motion.threshold_px, 2)}
 
 
-def response_at_fault(est: ExposureEstimate, k: int, tol_ev: float = LABEL_TOLERANCE_EV) -> str | None:
-    """Why frame ``k``'s difference from its label points at the response rather than the
-    label (:func:`power_explains`, :func:`response_fits`, :func:`label_at_fault`), or None."""
-    if power_explains(est, tol_ev):
-        return ("the frames' differences grow with their distance in exposure from the reference frame, as a "
-                "response of the wrong power makes")
-    if not response_fits(est):
-        return "the ratios of most frame pairs change with brightness"
-    if not label_at_fault(est, k):
-        return (f"its ratios change with brightness (by {ratio_bend_ev(est, k):.2f} EV from shadows to "
-                "highlights)")
-    return None
-
-
-def label_verdicts(frames: list[Frame], est: ExposureEstimate, tol_ev: float = LABEL_TOLERANCE_EV,
-                   motion: Motion | None = None) -> dict[int, Verdict]:
-    """Per frame whose estimate is off its label (:meth:`~hdrmerge_cli.core.exposure_estimate.ExposureEstimate.mislabelled`),
-    what is blamed, and why: ``"moved"`` (its estimate chains through a pair that moved:
-    ``motion``, :func:`~hdrmerge_cli.core.exposure_estimate.moved_pairs`), ``"pair"`` (two frames:
-    neither label outvotes the other), ``"given"`` (the user's time, the first suspect
-    whatever the ratios say), ``"response"`` (the response explains the difference better
-    than the label, :func:`response_at_fault`, the reason beside it) or ``"label"``.  The
-    one judgement the warnings (:func:`warn_mislabelled`) and ``--json`` (:func:`report`)
-    both read."""
-    ref = frames[est.reference]
-    out = {}
-    for k in est.mislabelled(tol_ev):
-        j = motion.decided_by_motion(k, est.reference) if motion is not None else None
-        if j is not None:
-            out[k] = Verdict("moved", None, j)
-            continue
-        given = any(g.time_source != "its metadata" for g in (frames[k], ref))
-        why = response_at_fault(est, k, tol_ev)
-        out[k] = Verdict("pair" if len(frames) == 2 and (why is None or given) else
-                         "given" if why is not None and given else "response" if why is not None else "label", why)
-    return out
-
-
-def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEstimate, verdicts: dict[int, Verdict],
-                     hint: str, motion: Motion | None = None, crf: CRF | None = None,
+def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, hint: str,
                      named_moved: bool = False) -> None:
-    """One line per frame of :func:`label_verdicts`: a warning naming the label (or both of
+    """One line per frame of the labels' verdicts
+    (:func:`~hdrmerge_cli.core.exposure_estimate.label_verdicts`): a warning naming the label (or both of
     two frames, or the user's time), a frame that moved saying its label cannot be checked
     (unless ``named_moved``: said already), and a frame whose difference the response
-    explains naming the response (``crf``: the one in use; at info level for a response
+    explains naming the response (``labels.used``, the one read; at info level for a response
     measured on the bracket, which leaves the user nothing to change)."""
+    est = labels.est
     ref = frames[est.reference]
-    for k, (verdict, why, j) in verdicts.items():
+    for k, (verdict, why, j) in labels.verdicts.items():
         f = frames[k]
         given = next((g.time_source for g in (f, ref) if g.time_source != "its metadata"), None)
         if verdict == "moved":
             if not named_moved:
-                warn_moved(frames, k, j, motion, "the exposure labels cannot be checked")
+                warn_moved(frames, k, j, labels.motion, "the exposure labels cannot be checked")
         elif verdict == "pair":
             log.warning("%s and %s: labelled %s and %s%s, but the frames' ratio is %+.2f EV from theirs; two frames "
                         "cannot tell which label is wrong (check both)%s", ref.path, f.path, fmt_time(ref.exposure_time),
@@ -278,7 +224,7 @@ def warn_mislabelled(frames: list[Frame], exposures: np.ndarray, est: ExposureEs
             log.warning("%s: %+.2f EV from the time %s gives it (%s), and %s; check %s", f.path,
                         -est.difference_ev[k], given, fmt_time(f.exposure_time), why, given)
         elif verdict == "response":
-            measured = crf is not None and crf.name.startswith(("measured", "estimate-crf"))
+            measured = labels.used.name.startswith(("measured", "estimate-crf"))
             (log.info if measured else log.warning)(
                 "%s: %+.2f EV from its label, but %s: the %s does not fit the frames, and the label is not at fault%s",
                 f.path, -est.difference_ev[k], why,
@@ -314,9 +260,9 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
     instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
     merge's ``alignment``, the samples are brought onto the reference by its warps where it
     applies them and the pairs' motion is what it measured
-    (:func:`~hdrmerge_cli.core.exposure_estimate.warp_motion`);
+    (:func:`~hdrmerge_cli.core.registration.warp_motion`);
     without, the pairs in question are registered on the samples
-    (:func:`~hdrmerge_cli.core.exposure_estimate.label_motion`).
+    (:func:`~hdrmerge_cli.core.exposure_estimate.check_exposures`).
 
     A single frame has nothing to compare: returned as it is, with no report."""
     if len(frames) < 2:
@@ -324,30 +270,22 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
             log.warning("--times estimate: a single frame has nothing to compare; its label is used")
         return CheckedExposures(frames, exposures, None, samples)
     s = samples if samples is not None else ordered_samples(frames, exposures, load)
-    if alignment is not None and alignment.applied:
-        s = s.registered([alignment.warp_of(f) for f in frames])
-    est, used = estimate_with_response(exposures, s, crf, rounds=2 if use_estimates else 1)
-    if alignment is not None:  # the pairs' motion as the merge's registration measured it
-        motion = warp_motion([alignment.warp_of(f) for f in frames], [f.path not in alignment.unaligned for f in frames],
-                             alignment.applied, frames[0].height, frames[0].width, s.pitch)
-    elif use_estimates:  # every estimate is used: every pair registered
-        motion = moved_pairs(s, exposures, crf, range(len(frames) - 1))
-    else:
-        motion = label_motion(s, exposures, crf, est)
-    if use_estimates:  # a pair that moved keeps its labels' ratio
-        if motion.moved():
-            est, used = estimate_with_response(exposures, s, crf, rounds=2, moved=motion.moved())
-            for j in sorted(motion.moved()):
-                warn_moved(frames, j + 1, j, motion,
-                           "their exposures' ratio is not estimated (their labels' ratio is kept)")
-    power = model_power_error_ev(est)
-    if power > LABEL_TOLERANCE_EV and not crf.assumed:  # a model the user named, of another power than the camera's
+    warps = None if alignment is None else [alignment.warp_of(f) for f in frames]
+    applied = alignment is not None and alignment.applied
+    s = s.registered(warps) if applied else s
+    nothing = s.read_nothing()
+    labels = check_exposures(exposures, s, crf, user_times(frames), use_estimates, warps,
+                             None if alignment is None else [f.path not in alignment.unaligned for f in frames],
+                             applied, (frames[0].height, frames[0].width))
+    est, motion = labels.est, labels.motion
+    for j in sorted(motion.moved) if use_estimates else ():  # a pair that moved keeps its labels' ratio
+        warn_moved(frames, j + 1, j, motion, "their exposures' ratio is not estimated (their labels' ratio is kept)")
+    if labels.power_ev > LABEL_TOLERANCE_EV and not crf.assumed:  # a model the user named, of another power
         log.warning("%s: read through the response given (%s) the frames' ratios are %.0f %% %s than their labels', "
                     "%.2f EV at the ends of the bracket: it does not fit the frames (the labels are judged where a "
                     "response fitted on the bracket agrees); measure the response on the bracket (no --crf) or with "
-                    "'hdrmerge-cli estimate-crf'", frames[0].path, crf.describe(), 100 * abs(est.model_slope - 1),
-                    "larger" if est.model_slope > 1 else "smaller", power)
-    nothing = s.read_nothing()
+                    "'hdrmerge-cli estimate-crf'", frames[0].path, labels.model, 100 * abs(est.model_slope - 1),
+                    "larger" if est.model_slope > 1 else "smaller", labels.power_ev)
     if 0 < len(nothing) < len(frames):  # named once, merged with their labels (all: the merge says so)
         log.warning("%s: nothing but black (the floor) or clipped readings, no evidence for or against %s; "
                     "merged as labelled", ", ".join(frames[k].path for k in nothing),
@@ -362,8 +300,9 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
                      f"{motion.threshold_px:.1f} px)")
         log.info("%s / %s: on the samples, %s", frames[j].name, frames[j + 1].name, what)
     # --times estimate: the pairs that moved are out of the estimates already (named above)
-    rep = check_labels(frames, exposures, est, s, crf, used, "" if use_estimates else
-                       "; merge with --times estimate to use the estimates", use_estimates, motion, use_estimates)
+    warn_mislabelled(frames, exposures, labels, "" if use_estimates else
+                     "; merge with --times estimate to use the estimates", use_estimates)
+    rep = report(frames, exposures, labels, "estimates" if use_estimates else "labels")
     if not use_estimates:
         return CheckedExposures(frames, exposures, rep, s)
     est_h = np.exp(est.log_h)

@@ -7,7 +7,6 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
-from hdrmerge_cli.core.exposure_estimate import estimate_with_response
 from hdrmerge_cli.core.samples import Samples
 from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
 from hdrmerge_cli.io.metadata import exposure_values, fmt_time, sample_pattern
@@ -83,9 +82,7 @@ def _estimates(frames: list[Frame], s: Samples, crf_spec: str | None) -> dict:
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
     exposures = exposure_values(frames)
     exposure_check.check_order(frames, exposures, s)
-    est, used = estimate_with_response(exposures, s, crf)
-    return exposure_check.check_labels(frames, exposures, est, s, crf, used,
-                                       "; merge with --times estimate to use the estimates")
+    return exposure_check.check_labels(frames, exposures, s, crf, "; merge with --times estimate to use the estimates")
 
 
 def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:

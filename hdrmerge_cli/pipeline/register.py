@@ -423,7 +423,7 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = 
         inside = ((np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1))[rows or slice(None)]
         cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
         return inside[:, None] & cols[None, :]
-    return resample.covered_mask(warp, h, w, rows)
+    return registration.covered_mask(warp, h, w, rows)
 
 
 def frame_validity(frames: list[Frame], alignment: Alignment | None, codes: HeldCodes) -> list:

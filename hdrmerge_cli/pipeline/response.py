@@ -1,7 +1,8 @@
 """The response stage: an image bracket's inverse response, measured on the bracket's
 samples when none was given (:func:`measure_response`), else the per-camera cache's, else
-none (sRGB assumed, with a warning); and the fitter every response estimate goes through
-(:func:`fit_crf`, which ``estimate-crf`` shares)."""
+none (sRGB assumed, with a warning); and the log lines of the fitter every response
+estimate goes through (:func:`~hdrmerge_cli.core.crf_estimate.fit_response`, which
+``estimate-crf`` shares: :func:`log_fit`)."""
 from __future__ import annotations
 
 import logging
@@ -10,28 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
-from hdrmerge_cli.core.crf_estimate import CRF_ESTIMATORS, histogram_correspondences, inverse_from_log, sample_pixels
-from hdrmerge_cli.core.crf_goossens2012 import DEFAULT_ANCHOR, CRFFit, standard_prior
+from hdrmerge_cli.core.crf_estimate import LabelledFit, ResponseFit, labelled_fit
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.exposure_estimate import estimate, label_at_fault, response_fits
-from hdrmerge_cli.core.samples import MIN_OVERLAP, Samples, pairs_pin_response, samples_codes, thin_overlap
+from hdrmerge_cli.core.exposure_estimate import estimate, response_fits
+from hdrmerge_cli.core.samples import MIN_OVERLAP, Samples, pairs_pin_response, thin_overlap
 from hdrmerge_cli.io.frames import Frame
 
 log = logging.getLogger("hdrmerge_cli")
-
-
-def _channel_samples(codes: list[np.ndarray], c: int, samples: int | None, method: str, rng) -> np.ndarray:
-    """(N, P) codes of channel ``c``: every pixel, or ``samples`` of them (Debevec-Malik's
-    stratified choice over the middle frame's codes, else uniformly at random)."""
-    n = codes[0][..., c].size
-    if not samples or samples >= n:
-        out = np.empty((n, len(codes)), codes[0].dtype)
-        for j, fr in enumerate(codes):
-            out[:, j] = fr[..., c].reshape(-1)
-        return out
-    idx = (sample_pixels(codes[len(codes) // 2][..., c], samples, rng) if method == "debevec"
-           else rng.choice(n, samples, replace=False))
-    return np.stack([fr[..., c].ravel()[idx] for fr in codes], axis=1)
 
 
 def is_flat(crf: CRF) -> bool:
@@ -40,41 +26,14 @@ def is_flat(crf: CRF) -> bool:
     return bool(np.all(crf.table[:, 1] > 0.5))
 
 
-def fit_crf(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, method: str = "goossens",
-            smoothing: float | None = None, samples: int | None = None, options: dict | None = None,
-            rng: np.random.Generator | None = None):
-    """The inverse response of decoded frames: ``method`` of
-    :data:`~hdrmerge_cli.core.crf_estimate.CRF_ESTIMATORS`, the channels in one coupled
-    solve for a ``joint`` method (goossens: see its ``coupling``), one by one for the others.
-
-    codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
-    smoothing, samples : None for the method's defaults; options : the method's keywords
-    Returns (CRF with a ``(C, n_codes)`` table, the per-channel fits, whether a fit had to
-    be made monotone).
-    """
-    m = CRF_ESTIMATORS[method]
-    rng = rng if rng is not None else np.random.default_rng(0)
-    samples = m.samples if samples is None else samples
-    options = dict(options or {})
-    if method == "goossens":  # the prior towards the standard curve where the frames leave g open
-        options.setdefault("anchor", DEFAULT_ANCHOR)
-        options.setdefault("prior", standard_prior(n_codes))
-    if m.smoothing is not None:
-        options["smoothing"] = m.smoothing if smoothing is None else smoothing
-    samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
-    if m.joint:  # one solve of every channel, coupled
-        fit = m.estimate(samples_of, log_h, n_codes, **options)
-        fits = [CRFFit(g, fit.iterations, fit.converged, fit.rows) for g in fit.g]
-    else:
-        fits = [m.estimate(z, log_h, n_codes, **options) for z in samples_of]
-    for c, fit in enumerate(fits):
-        log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, method, fit.iterations,
-                 "" if fit.converged else " (not converged)", fit.rows)
-    tables, fixed = zip(*(inverse_from_log(f.g) for f in fits))
-    changed = any(fixed)
-    if changed:
+def log_fit(fit: ResponseFit, method: str) -> None:
+    """The log lines of a fit: per channel its iterations and data rows, and a warning when
+    it had to be made monotone."""
+    for c, f in enumerate(fit.fits):
+        log.info("channel %d: %s fit in %d iteration(s)%s, %d data rows", c, method, f.iterations,
+                 "" if f.converged else " (not converged)", f.rows)
+    if fit.changed:
         log.warning("the %s fit was not monotone; it was made non-decreasing", method)
-    return table_crf(np.stack(tables), f"estimate-crf:{method}"), fits, changed
 
 
 def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Samples, cache: bool = True) -> CRF | None:
@@ -105,14 +64,28 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
         if histograms:
             log.info("no two neighbouring frames share %d well-exposed pixels: the response is measured on the "
                      "frames' histograms", MIN_OVERLAP)
-        crf = fit_with_labels(frames, exposures, samples, histograms)
+        fit = labelled_fit(samples, exposures, histograms)
+        log_labelled_fit(frames, fit, histograms)
+        crf = fit.crf
         if not is_flat(crf):
             if noisecache.store_response(key, crf.table, [f.path for f in frames]):
                 log.debug("response of %s stored in %s", key, noisecache.response_file())
             return CRF(MEASURED_HISTOGRAMS if histograms else MEASURED, table=crf.table)
         why = "the fit is flat"
-    cached = _cached_response(frames, exposures, samples, key)
-    if cached is not None:
+    # the cached response of key, unless none is stored, the entry is damaged, or the frames'
+    # ratios bend through it (most pairs, beyond the label tolerance)
+    hit = noisecache.lookup_response(key)
+    try:
+        cached = None if hit is None else CRF(CACHED, table=table_crf(np.asarray(hit["inverse"], np.float64)).table)
+    except (HdrMergeError, ValueError):
+        cached = None
+    if cached is not None and cached.table.shape != (frames[0].channels, frames[0].n_codes):
+        cached = None
+    if cached is not None and len(frames) > 1 and not response_fits(estimate(exposures, samples, cached)):
+        log.info("the cached response of %s does not fit these frames; not used", key)
+    elif cached is not None:
+        log.info("camera response of %s from the cache %s (measured on %s, %s)", key, noisecache.response_file(),
+                 ", ".join(Path(p).name for p in hit.get("inputs", [])), hit.get("date"))
         return cached
     log.warning("%s: no camera response given and none can be measured on this bracket (%s); assuming sRGB. Run "
                 "'hdrmerge-cli estimate-crf' on a bracket of this camera and pass --crf PROFILE.json",
@@ -120,59 +93,15 @@ def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Sample
     return None
 
 
-def _cached_response(frames: list[Frame], exposures: np.ndarray, samples: Samples,
-                     key: str | None) -> CRF | None:
-    """The cached response of ``key`` (:func:`measure_response`), or None: none stored, a
-    damaged entry, or frames whose ratios bend through it (most pairs, beyond the label
-    tolerance)."""
-    from hdrmerge_cli.io import noisecache
-
-    hit = noisecache.lookup_response(key)
-    if hit is None:
-        return None
-    try:
-        crf = CRF(CACHED, table=table_crf(np.asarray(hit["inverse"], np.float64)).table)
-        if crf.table.shape != (frames[0].channels, frames[0].n_codes):
-            return None
-    except (HdrMergeError, ValueError):
-        return None
-    if len(frames) > 1 and not response_fits(estimate(exposures, samples, crf)):
-        log.info("the cached response of %s does not fit these frames; not used", key)
-        return None
-    log.info("camera response of %s from the cache %s (measured on %s, %s)", key, noisecache.response_file(),
-             ", ".join(Path(p).name for p in hit.get("inputs", [])), hit.get("date"))
-    return crf
-
-
-def fit_with_labels(frames: list[Frame], exposures: np.ndarray, samples: Samples, histograms: bool = False) -> CRF:
-    """The response and the labels judged together: fit with the labels (on the samples'
-    pixels, or with ``histograms`` on their histograms'
-    :func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), check them through
-    the fit (:func:`~hdrmerge_cli.core.exposure_estimate.estimate`), and while a frame's label
-    is off by more than the tolerance in a way a label explains (its ratios do not change
-    with brightness, :func:`~hdrmerge_cli.pipeline.label_at_fault`), refit with
-    that frame's estimate in place of its label, the frame furthest off first, at most half
-    the frames.  A wrong label then does not bend the curve; the labels are judged (and
-    warned about) afterwards against the response returned."""
-    codes = samples_codes(samples)
-    if histograms:
-        codes = histogram_correspondences(codes, frames[0].n_codes)
-    log_h = np.log(np.asarray(exposures, np.float64))
-    crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
-    replaced: list[int] = []
-    for _ in range(len(frames) // 2):
-        est = estimate(np.exp(log_h), samples, crf)
-        off = [k for k in est.mislabelled() if k not in replaced and label_at_fault(est, k)]
-        if not off:
-            break
-        k = max(off, key=lambda j: abs(est.difference_ev[j]))
-        log_h[k], replaced = est.log_h[k], replaced + [k]
-        crf, _, _ = fit_crf(codes, log_h, frames[0].n_codes)
-    log.info("camera response measured on the bracket (goossens, %d %s per frame%s)", codes[0].shape[0],
+def log_labelled_fit(frames: list[Frame], fit: LabelledFit, histograms: bool) -> None:
+    """The log lines of :func:`~hdrmerge_cli.core.crf_estimate.labelled_fit`: each round's
+    (:func:`log_fit`), then what the response was measured on and which labels it replaced."""
+    for r in fit.rounds:
+        log_fit(r, "goossens")
+    log.info("camera response measured on the bracket (goossens, %d %s per frame%s)", fit.rows,
              "histogram levels" if histograms else "samples",
-             f"; fitted with the measured exposures of {', '.join(frames[k].name for k in replaced)}" if replaced
-             else "")
-    return crf
+             f"; fitted with the measured exposures of {', '.join(frames[k].name for k in fit.replaced)}"
+             if fit.replaced else "")
 
 
 #: the name of a response :func:`measure_response` fitted on the bracket being merged
