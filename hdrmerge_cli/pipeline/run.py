@@ -41,7 +41,7 @@ from hdrmerge_cli.io.metadata import reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
 from hdrmerge_cli.pipeline.bracket import Bracket, read
 from hdrmerge_cli.pipeline.choices import (
-    Models, choose_alignment, choose_deghost, choose_models, registration_plan, wanted,
+    choose_alignment, choose_deghost, choose_models, registration_plan, wanted,
 )
 from hdrmerge_cli.pipeline.excess import measure_excess
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
@@ -189,7 +189,21 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     b.settle_exposures(checked.frames, checked.exposures, settings.reference)
     b.exposure_report, b.samples = checked.report, checked.samples
     timings["exposure_check"] = time.perf_counter() - t1
-    b.models = choose(b, opts)
+    # the noise stage (given, cached or measured, where the options need it), the excess variance
+    # of a camera-processed bracket (which picks its estimator), then the choices on what they measured
+    with_variance = "variance" in outputs.extra_channels
+    want, estimated, excess = wanted(b.frames, b.crf, settings, b.samples, with_variance), None, None
+    noise, frame_noise = frame_noise_of(b.frames, b.noise, b.noise_by_iso)
+    # the noise is measured on the frames as decoded: resampling smooths it, and frames that
+    # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
+    if noise is None and (want.noise or want.excess) and not settings.lut:
+        noise, estimated = bracket_noise(b.frames, b.crf, b.codes, want.noise, outputs.noise_cache, timings)
+    if want.excess:
+        t1 = time.perf_counter()
+        excess = measure_excess(b.samples, b.exposures, b.crf, noise, b.frames[0].channel_names)
+        timings["excess_variance"] = time.perf_counter() - t1
+    b.models = choose_models(b.frames, b.exposures, b.crf, settings, b.codes, noise, estimated, excess, frame_noise,
+                             pattern=b.pattern, with_variance=with_variance, timings=timings)
     b.samples = None  # no stage reads the samples after the choices
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
     aligned = loader(b.alignment, b.codes)
@@ -230,25 +244,6 @@ def deghost(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise, load, m
     ghosts = choose_deghost(find_ghosts(frames, exposures, crf, noise, load, p_fa, params), mode)
     ghosts.report()
     return ghosts
-
-
-def choose(b: Bracket, opts: MergeOptions) -> Models:
-    """The noise stage (given, cached or measured, where the options need it), the excess
-    variance of a camera-processed bracket (which picks its estimator), then the choices
-    stage on what they measured (:func:`~hdrmerge_cli.pipeline.choices.choose_models`)."""
-    settings, with_variance, timings = opts.algorithm, "variance" in opts.io.extra_channels, b.timings
-    noise, frame_noise = frame_noise_of(b.frames, b.noise, b.noise_by_iso)
-    want, estimated, excess = wanted(b.frames, b.crf, settings, b.samples, with_variance), None, None
-    # the noise is measured on the frames as decoded: resampling smooths it, and frames that
-    # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    if noise is None and (want.noise or want.excess) and not settings.lut:
-        noise, estimated = bracket_noise(b.frames, b.crf, b.codes, want.noise, opts.io.noise_cache, timings)
-    if want.excess:
-        t1 = time.perf_counter()
-        excess = measure_excess(b.samples, b.exposures, b.crf, noise, b.frames[0].channel_names)
-        timings["excess_variance"] = time.perf_counter() - t1
-    return choose_models(b.frames, b.exposures, b.crf, settings, b.codes, noise, estimated, excess, frame_noise,
-                         pattern=b.pattern, with_variance=with_variance, timings=timings)
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
