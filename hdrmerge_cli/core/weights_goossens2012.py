@@ -217,8 +217,8 @@ def bounds_for_width(delta: float, inv_alpha: float | None = None, sigma_o2: flo
     y_full = 1000.0  # any scale: the width is scale-free on the normalised signal
 
     def width(free):
-        ia, so2 = (inv_alpha, free) if sigma_o2 is None else (free, sigma_o2)
-        lo, hi = clipping_safe_range_exact(bounded_noise(y_full, ia, so2, beta), 0.5, y_full, k)
+        noise = bounded_noise(y_full, *((inv_alpha, free) if sigma_o2 is None else (free, sigma_o2)), beta)
+        lo, hi = clipping_safe_range_exact(noise, 0.5, y_full, k)
         return (hi - lo) / y_full - delta
 
     top = 1.0

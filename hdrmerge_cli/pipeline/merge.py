@@ -248,8 +248,8 @@ def check_repeats(repeats: Repeats, frames: list[Frame], crf: CRF) -> list[dict]
             b = frames[k]
             if id(a) not in seen or id(b) not in seen:
                 continue
-            za, zb = seen[id(a)], seen[id(b)]
-            check = compare_repeat(za, zb, _linear_sample(a, za, crf), _linear_sample(b, zb, crf))
+            (za, la), (zb, lb) = [(seen[id(f)], _linear_sample(f, seen[id(f)], crf)) for f in (a, b)]
+            check = compare_repeat(za, zb, la, lb)
             entry = {"frames": [a.path, b.path], "exposure_time": b.exposure_time}
             if check is None:
                 report.append(entry | {"compared": False})
