@@ -298,24 +298,7 @@ def _read_raw(path: str, held: "HeldCodes | None" = None) -> Frame:
             raw.close()
     pattern = None if pattern is None else np.asarray(pattern)
     meta = _oiio_meta(path)
-    bayer = pattern is not None and pattern.shape == (2, 2) and num_colors == 3
-    if bayer and {colors[i] for i in pattern.ravel()} != set("RGB") or (
-            not bayer and meta.get("tiff:PhotometricInterpretation") == CFA_PHOTOMETRIC):
-        named = f" ({''.join(colors[i] for i in pattern.ravel())})" if bayer else ""
-        raise HdrMergeError(f"{path}: a colour filter (CFA) mosaic whose CFAPattern{named} is not a Bayer pattern "
-                            "(2 x 2 of red, green and blue, each present); the file's CFAPattern tag is wrong")
-    if raw_type == rawpy.RawType.Stack or (num_colors == 1 and (pattern is None or pattern.size == 1)):
-        kind, channels = "linear", 3 if raw_type == rawpy.RawType.Stack else 1
-    elif pattern is not None and pattern.shape == (6, 6):
-        raise HdrMergeError(f"{path}: a Fujifilm X-Trans RAW file (6 x 6 colour filter), which cannot be merged: only "
-                            "Bayer (2 x 2) mosaics and linear RGB RAW data are supported; convert it to a linear "
-                            "(demosaiced) DNG first, e.g. with Adobe DNG Converter")
-    elif pattern is None or pattern.shape != (2, 2) or num_colors != 3:
-        shape = "no" if pattern is None else f"a {pattern.shape[0]} x {pattern.shape[1]}"
-        raise HdrMergeError(f"{path}: a RAW file with {shape} colour filter pattern and {num_colors} colours, which "
-                            "cannot be merged: only Bayer (2 x 2 RGB) mosaics and linear RGB RAW data are supported")
-    else:
-        kind, channels = "raw", 4
+    kind, channels = _raw_kind(path, pattern, num_colors, colors, raw_type == rawpy.RawType.Stack, meta)
     if white <= black.max():
         raise HdrMergeError(f"{path}: white level {white:g} is not above the black level {black.max():g}")
     ts = other.timestamp
@@ -344,6 +327,31 @@ def _read_raw(path: str, held: "HeldCodes | None" = None) -> Frame:
     if stored is not None:
         held.hold(frame, stored)
     return frame
+
+
+def _raw_kind(path: str, pattern: np.ndarray | None, num_colors: int, colors: str, stack: bool,
+              meta: dict) -> tuple[str, int]:
+    """``(kind, channels)`` of a RAW file from LibRaw's colour filter ``pattern`` (None: none),
+    its ``num_colors`` and ``colors`` (LibRaw's color_desc) and ``stack`` (3 colours per
+    pixel): a Bayer mosaic is ("raw", 4), linear data ("linear", 3 or 1); anything else,
+    or a CFA-tagged file whose pattern is not Bayer RGB, is refused with what it is."""
+    bayer = pattern is not None and pattern.shape == (2, 2) and num_colors == 3
+    if bayer and {colors[i] for i in pattern.ravel()} != set("RGB") or (
+            not bayer and meta.get("tiff:PhotometricInterpretation") == CFA_PHOTOMETRIC):
+        named = f" ({''.join(colors[i] for i in pattern.ravel())})" if bayer else ""
+        raise HdrMergeError(f"{path}: a colour filter (CFA) mosaic whose CFAPattern{named} is not a Bayer pattern "
+                            "(2 x 2 of red, green and blue, each present); the file's CFAPattern tag is wrong")
+    if stack or (num_colors == 1 and (pattern is None or pattern.size == 1)):
+        return "linear", 3 if stack else 1
+    if pattern is not None and pattern.shape == (6, 6):
+        raise HdrMergeError(f"{path}: a Fujifilm X-Trans RAW file (6 x 6 colour filter), which cannot be merged: only "
+                            "Bayer (2 x 2) mosaics and linear RGB RAW data are supported; convert it to a linear "
+                            "(demosaiced) DNG first, e.g. with Adobe DNG Converter")
+    if pattern is None or pattern.shape != (2, 2) or num_colors != 3:
+        shape = "no" if pattern is None else f"a {pattern.shape[0]} x {pattern.shape[1]}"
+        raise HdrMergeError(f"{path}: a RAW file with {shape} colour filter pattern and {num_colors} colours, which "
+                            "cannot be merged: only Bayer (2 x 2 RGB) mosaics and linear RGB RAW data are supported")
+    return "raw", 4
 
 
 def _visible(raw) -> np.ndarray:
