@@ -263,21 +263,6 @@ def _weight_and_value(estimator: str, variance: str, cert: np.ndarray, lin: np.n
     return w, value
 
 
-def weight_tables(inverses: list[CodesInverse], exposures, weighting: str, noise: list | None = None,
-                  variance: str = "none", prior_rate: float | None = None, k: float = DEFAULT_K,
-                  certainty: list | None = None, estimator: str = "log", bounds=None, with_variance: bool = False,
-                  excess=None) -> list[ExposureTables]:
-    """Per frame its :func:`exposure_tables` for (7), each with its own black and white
-    levels: ``inverses`` the response's inverse at each frame's codes, ``exposures`` the
-    frames' ``h_j``, ``noise`` per frame its per-row
-    :class:`~hdrmerge_cli.core.noise.NoiseParams` (or None), ``certainty`` per frame a
-    ``(C, N)`` weight table (``merge --lut``) or None; the rest as :func:`exposure_tables`."""
-    return [exposure_tables(inv, weighting, h, None if noise is None else noise[j], variance, prior_rate,
-                            tuple(exposures), k, certainty=None if certainty is None else certainty[j],
-                            estimator=estimator, bounds=bounds, with_variance=with_variance, excess=excess)
-            for j, (inv, h) in enumerate(zip(inverses, exposures))]
-
-
 def exposure_tables(
     inverse: CodesInverse,
     weighting: str,
@@ -766,10 +751,10 @@ def merge(codes: list[np.ndarray], tables: list[ExposureTables], pattern, linear
         piece = reweight(lambda k: codes[k][part], tables, pattern, log_e[part], exposures, y_full, rows, linear,
                          passes, variance=variance, adjust=None if adjust is None else (lambda *a: adjust(*a, part)),
                          den=den[part])
-        log_e[part], flags[part], den[part] = piece.log_e, piece.flags, piece.den
+        log_e[part], flags[part], den[part] = piece.result, piece.flags, piece.den
         if variance:
             var[part] = piece.variance
-        done, change = max(done, piece.passes), max(change, piece.change)
+        done, change = max(done, piece.iterations), max(change, piece.change)
         seconds += time.perf_counter() - t0
     if passes:  # the passes' estimate is log E: E * scale, Var(E scale) = (E scale)^2 Var(log E) (the delta method)
         np.exp(log_e, out=log_e)
@@ -782,32 +767,15 @@ def merge(codes: list[np.ndarray], tables: list[ExposureTables], pattern, linear
     return Reconstruction(log_e, flags, den, var, done, change, peak, median, seconds)
 
 
-@dataclass
-class IRLSResult:
-    """What :func:`reweight` returns, per sample like ``log_e``.
-
-    log_e : float32, the estimate of ``log E`` (linear: of ``E``'s log) after the last pass
-    flags : int8, 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
-    den : float32, the summed weights of the last pass
-    passes : the passes run; change : the largest change of the last
-    variance : float32, the variance of ``log_e`` of the last pass, or None (not asked)
-    """
-
-    log_e: np.ndarray
-    flags: np.ndarray
-    den: np.ndarray
-    passes: int
-    change: float
-    variance: np.ndarray | None = None
-
-
 def reweight(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
              linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
-             den: np.ndarray | None = None) -> IRLSResult:
+             den: np.ndarray | None = None) -> Reconstruction:
     """Iteratively re-weighted (7) on rows of every frame: each pass weights every frame
     by :func:`_irls_weight` at the previous estimate (one compiled pass per frame,
     :func:`_irls_weights_rows`), until no measured sample moves more than ``tol`` (in log
-    E) or ``iterations`` passes; new arrays, as an :class:`IRLSResult`.
+    E) or ``iterations`` passes; new arrays, as a :class:`Reconstruction` whose result is
+    the estimate of ``log E`` (linear: of ``E``'s log) after the last pass, with the
+    variance of ``log E`` of the last pass (``variance``) and its summed weights.
 
     codes_of : ``k -> codes`` of frame k, ``(H, W)`` or ``(H, W, C)``
     y_full : per frame, the full-scale code value ``white - black``
@@ -875,7 +843,7 @@ def reweight(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray,
         log_e = new
         if change < tol:
             break
-    return IRLSResult(log_e, flags, den, it, change, acc.variance if variance else None)
+    return Reconstruction(log_e, flags, den, acc.variance if variance else None, it, change)
 
 
 class LogMerge:
@@ -958,17 +926,15 @@ class LogMerge:
             num_tab, per_sample, use_weight = tables.weighted_log, keep, 0 if factor is None else 2
         tabs = (tables.weight.reshape(-1, n), num_tab.reshape(-1, n), tables.fallback_log.reshape(-1, n),
                 tables.above_mid.reshape(-1, n))
-        if self.var is None:
-            _accumulate(_read_only(self._2d(codes)), self.pattern, *tabs, per_sample, use_weight, self._mode(last),
-                        self._2d(self.num), self._2d(self.den), keep, factor is not None)
-        else:
-            use_cert = information and weight is not None
+        use_cert, q_tab, var = information and weight is not None, _NO_WEIGHT, _NO_WEIGHT
+        if self.var is not None:  # the third sum's per-code table (:func:`_accumulate`)
             q_tab = tables.certainty if use_cert else tables.variance
             if q_tab is None:
                 raise ValueError("LogMerge(..., variance=True) needs tables built with_variance=True")
-            _accumulate_var(_read_only(self._2d(codes)), self.pattern, *tabs, q_tab.reshape(-1, n), per_sample,
-                            use_weight, use_cert, self._mode(last), self._2d(self.num), self._2d(self.den),
-                            self._2d(self.var), keep, factor is not None)
+            q_tab, var = q_tab.reshape(-1, n), self._2d(self.var)
+        _accumulate(_read_only(self._2d(codes)), self.pattern, *tabs, q_tab, per_sample, use_weight, use_cert,
+                    self._mode(last), self._2d(self.num), self._2d(self.den), var, self.var is not None, keep,
+                    factor is not None)
         self._added(tables)
 
     def add_irls(self, codes: np.ndarray, tables: ExposureTables, last: bool, log_e: np.ndarray, k: float, rows,
@@ -1015,13 +981,9 @@ class LogMerge:
         if self.frames == 0:
             raise ValueError("no frame was added")
         flag = np.empty(self.shape, np.int8)
-        if self.var is None:
-            _finish(self._2d(self.num), self._2d(self.den), self.pattern, self._dark_floor, linear,
-                    -1.0 if scale is None else float(scale), self._2d(flag))
-        else:
-            _finish_var(self._2d(self.num), self._2d(self.den), self._2d(self.var), self.pattern, self._dark_floor,
-                        linear, -1.0 if scale is None else float(scale), UNMEASURED_RELATIVE_VARIANCE,
-                        self._2d(flag))
+        _finish(self._2d(self.num), self._2d(self.den), _NO_WEIGHT if self.var is None else self._2d(self.var),
+                self.var is not None, self.pattern, self._dark_floor, linear, -1.0 if scale is None else float(scale),
+                UNMEASURED_RELATIVE_VARIANCE, self._2d(flag))
         self.finished = True
         return self.num, flag
 
@@ -1040,8 +1002,8 @@ def _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z):  #
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den,
-                keep, use_keep):  # pragma: no cover
+def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
+                num, den, var, use_var, keep, use_keep):  # pragma: no cover
     """One frame of (7) into ``num``/``den`` (2-D views), rows in parallel.  ``mode`` 0:
     the shortest frame (sets the fallback and the saturated/dark class), 1: a middle
     frame, 2: the longest (a dark sample takes the longest own frame's fallback).
@@ -1049,7 +1011,12 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
     values); 2: the table's weights times ``weight`` per pixel (``(rows, cols /
     channels)``, ``num_tab`` the weighted values).  With ``use_keep`` the frame is a
     sample's own only where ``keep`` (per pixel or per sample) is at least 1/2.  See
-    :class:`LogMerge`."""
+    :class:`LogMerge`.
+
+    With ``use_var``, the third accumulator of ``LogMerge(variance=True)``: ``var += w^2
+    q`` (``q_tab`` the frame's per-code variance of its value), or with ``use_cert`` ``var
+    += q w`` (``q_tab`` the certainty ``w(z)``, ``w`` an IRLS weight ``w(z) / Var``).
+    ``var`` is set where ``den`` is (the first weighted frame)."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
     top = w_tab.shape[1] - 1  # codes above the table (never valid data) read its last, clipped entry
@@ -1062,60 +1029,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
             for s in range(q, cols, pw):
                 z = min(codes[r, s], top)
                 w, wv = _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z)
-                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, keep, per_keep, use_keep)
-
-
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _finish(num, den, pattern, dark_floor, linear, scale, flag):  # pragma: no cover
-    """(7)'s ratio, the fallbacks and flags, in place over ``num``; ``scale > 0``: return
-    ``exp(log E) * scale`` instead of ``log E``."""
-    rows, cols = num.shape
-    ph, pw = pattern.shape
-    nf = dark_floor.shape[0]
-    for r in numba.prange(rows):
-        prow = pattern[r % ph]
-        for s in range(cols):
-            d = den[r, s]
-            f = 0
-            if d > 0:
-                v = num[r, s] / d
-                if linear:
-                    if v > 0:
-                        if scale > 0:
-                            num[r, s] = v * scale
-                            flag[r, s] = 0
-                            continue
-                        v = np.log(v)
-                    else:
-                        v = dark_floor[min(prow[s % pw], nf - 1)]
-                        f = -1
-            else:
-                v = num[r, s]
-                f = 1 if d < 0 else -1
-                den[r, s] = 0.0
-            num[r, s] = np.exp(v) * scale if scale > 0 else v
-            flag[r, s] = f
-
-
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
-                    num, den, var, keep, use_keep):  # pragma: no cover
-    """:func:`_accumulate` with the third accumulator of ``LogMerge(variance=True)``:
-    ``var += w^2 q`` (``q_tab`` the frame's per-code variance of its value), or with
-    ``use_cert`` ``var += q w`` (``q_tab`` the certainty ``w(z)``, ``w`` an IRLS weight
-    ``w(z) / Var``).  ``var`` is set where ``den`` is (the first weighted frame)."""
-    rows, cols = codes.shape
-    ph, pw = pattern.shape
-    top = w_tab.shape[1] - 1
-    per_keep = cols // keep.shape[1] if use_keep else 1
-    for r in numba.prange(rows):
-        prow = pattern[r % ph]
-        for q in range(min(pw, cols)):
-            c = prow[q]
-            for s in range(q, cols, pw):
-                z = min(codes[r, s], top)
-                w, wv = _weight_value(w_tab, num_tab, weight, use_weight, 1, r, s, c, z)
-                if w > 0:  # var follows den, which _add_sample then sets or adds to
+                if use_var and w > 0:  # var follows den, which _add_sample then sets or adds to
                     wq = w * q_tab[c, z] if use_cert else (w * q_tab[c, z]) * w
                     if mode != 0 and den[r, s] > 0:
                         var[r, s] += wq
@@ -1125,8 +1039,11 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, flag):  # pragma: no cover
-    """:func:`_finish` plus the variance of the result, in place over ``var``: ``q = var /
+def _finish(num, den, var, use_var, pattern, dark_floor, linear, scale, unmeasured, flag):  # pragma: no cover
+    """(7)'s ratio, the fallbacks and flags, in place over ``num``; ``scale > 0``: return
+    ``exp(log E) * scale`` instead of ``log E``.
+
+    With ``use_var`` also the variance of the result, in place over ``var``: ``q = var /
     den^2`` is the variance of the weighted mean ``num / den`` in the sums' domain; ``log
     E`` (log estimator) or ``E`` (``linear``).  Outputs: with ``scale > 0`` the variance of
     ``E scale``: ``q scale^2`` (linear) or ``(E scale)^2 q`` (from ``log E``, the delta
@@ -1145,15 +1062,18 @@ def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, f
             q = unmeasured
             if d > 0:
                 v = num[r, s] / d
-                q = (var[r, s] / d) / d
+                if use_var:
+                    q = (var[r, s] / d) / d
                 if linear:
                     if v > 0:
                         if scale > 0:
                             num[r, s] = v * scale
-                            var[r, s] = min(q * scale * scale, big)
+                            if use_var:
+                                var[r, s] = min(q * scale * scale, big)
                             flag[r, s] = 0
                             continue
-                        q = min((q / v) / v, big)
+                        if use_var:
+                            q = min((q / v) / v, big)
                         v = np.log(v)
                     else:
                         v = dark_floor[min(prow[s % pw], nf - 1)]
@@ -1166,8 +1086,10 @@ def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, f
             if scale > 0:
                 e = np.exp(v) * scale
                 num[r, s] = e
-                var[r, s] = min((e * e) * q, big)
+                if use_var:
+                    var[r, s] = min((e * e) * q, big)
             else:
                 num[r, s] = v
-                var[r, s] = q
+                if use_var:
+                    var[r, s] = q
             flag[r, s] = f

@@ -23,7 +23,7 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.noise import NoiseParams
-from hdrmerge_cli.core.reconstruct import prior_rate_of, weight_tables
+from hdrmerge_cli.core.reconstruct import exposure_tables, prior_rate_of
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.luts import read_luts
@@ -252,7 +252,7 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
     own, frames of several ISOs) and the variance beyond the noise model of a
     camera-processed bracket (``excess``, :mod:`hdrmerge_cli.pipeline.excess`: it picks the
     estimator, and the ML estimator's variance holds it); then the per-frame tables of (7)
-    (:func:`~hdrmerge_cli.core.reconstruct.weight_tables`, one table row per channel unless
+    (:func:`~hdrmerge_cli.core.reconstruct.exposure_tables`, one table row per channel unless
     every frame shares one: ``pattern``, the bracket's
     :func:`~hdrmerge_cli.io.metadata.sample_pattern`, says which row a sample reads),
     from the response's inverse at each frame's codes and the noise per row, and the
@@ -289,8 +289,11 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
                                                          frames[mid].path)
     bounds = parse_bounds(settings.bounds) if settings.bounds else None
     row_noise = None if chan_noise is None else [c[:rows] for c in chan_noise]
-    tables = weight_tables(inverses, exposures, weights, row_noise, variance, prior, settings.k, luts, estimator,
-                           bounds, with_variance and not n_irls, excess if estimator == "ml" else None)
+    tables = [exposure_tables(inv, weights, h, None if row_noise is None else row_noise[j], variance, prior,
+                              tuple(exposures), settings.k, certainty=None if luts is None else luts[j],
+                              estimator=estimator, bounds=bounds, with_variance=with_variance and not n_irls,
+                              excess=excess if estimator == "ml" else None)
+              for j, (inv, h) in enumerate(zip(inverses, exposures))]
     timings["tables"] = time.perf_counter() - t0
     if settings.lut:  # the table's weights are the merge's, whatever --weights says
         if settings.weights != "auto":
