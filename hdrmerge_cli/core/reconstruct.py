@@ -7,11 +7,13 @@ gain ratio ``sqrt(alpha_j)``, see (1)), ``w_ij = w(z_ij)`` a weighting function 
 ``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` at each frame's own estimate
 (:func:`inverse_variance`).  As ``w`` and ``g`` depend on the code and the frame only,
 each frame is reduced to lookup tables over all code values (:func:`exposure_tables`,
-indexed by the *stored* code, one row per channel, the row of a sample given by a small
-periodic pattern), and merging a frame is two gathers and two additions per sample
-(:class:`LogMerge`).  Pixels that no frame measures get a finite, documented value and a
-flag (:meth:`LogMerge.finish`).  On request the noise model's variance of each merged
-value is propagated too (:func:`estimate_variance_table`, :class:`LogMerge` with ``variance``).
+from the response's inverse at the frame's stored codes, one row per channel, the row of
+a sample given by a small periodic pattern), and merging a frame is two gathers and two
+additions per sample (:class:`LogMerge`).  Pixels that no frame measures get a finite,
+documented value and a flag (:meth:`LogMerge.finish`).  On request the noise model's
+variance of each merged value is propagated too (:func:`estimate_variance_table`,
+:class:`LogMerge` with ``variance``).  :func:`merge` runs (7) and the re-weighting passes
+(:func:`reweight`) in one loop over strips of rows.
 """
 from __future__ import annotations
 
