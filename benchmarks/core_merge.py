@@ -3,8 +3,9 @@ benchmarks (accuracy, speed, leave-one-out) and the tests, not a user path.
 
 ``hdrmerge-cli merge`` and the Python API (:func:`hdrmerge_cli.merge`) run the same tables
 and kernels of :mod:`hdrmerge_cli.core.reconstruct` (``exposure_tables``, ``LogMerge``,
-``irls``) through :func:`hdrmerge_cli.pipeline.merge.merge_frames`, which chooses the
-weights, variance factor, noise and re-weighting passes itself; here they are the caller's.
+``reweight``) through :func:`hdrmerge_cli.core.reconstruct.merge`, with the weights,
+variance factor, noise and re-weighting passes the choices stage picked; here they are the
+caller's.
 """
 from __future__ import annotations
 
@@ -14,9 +15,9 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
-from hdrmerge_cli.core.reconstruct import (
-    ExposureTables, LogMerge, exposure_tables, irls, noise_rows, table_size,
-)
+from hdrmerge_cli.core import reconstruct
+from hdrmerge_cli.core.reconstruct import ExposureTables, LogMerge, exposure_tables, noise_rows, reweight
+from hdrmerge_cli.pipeline.choices import table_size
 
 
 def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, weighting: str = "triangle",
@@ -52,7 +53,7 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     if frame_noise is not None and len(frame_noise) != len(exposures):
         raise ValueError(f"frame_noise: {len(frame_noise)} sets for {len(exposures)} frames")
     noise_of = [noise] * len(exposures) if frame_noise is None else list(frame_noise)
-    tables = [exposure_tables(n_codes, black, white, crf, weighting, h, noise_of[j], variance, prior_rate,
+    tables = [exposure_tables(crf.at_codes(n_codes, black, white), weighting, h, noise_of[j], variance, prior_rate,
                               tuple(exposures), k, estimator=estimator,
                               with_variance=streamed_var and variance_tables is None, excess=excess)
               for j, h in enumerate(exposures)]
@@ -71,7 +72,7 @@ def merge_frames(codes: list[np.ndarray], exposures, crf: CRF, black, white, wei
     rows = [noise_rows(noise)] * len(codes) if frame_noise is None else [noise_rows(p) for p in frame_noise]
     it = irls(codes.__getitem__, tables, pattern, log_e, exposures, y_full, rows, estimator == "ml", irls_iterations,
               variance=with_variance, den=den)
-    log_e, flags, den, var = it.log_e, it.flags, it.den, it.variance
+    log_e, flags, den, var = it.result, it.flags, it.den, it.variance
     out = np.exp(log_e, out=log_e)
     out *= np.float32(scale)
     if not with_variance:
@@ -90,3 +91,29 @@ def merge_in_memory(codes, tables: list[ExposureTables], pattern: np.ndarray | N
         acc.add(z, tables[j], last=j == len(codes) - 1)
     out, flags = acc.finish(linear, scale)
     return out, flags, acc.den
+
+
+def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
+         linear: bool, iterations: int, tol: float = reconstruct.IRLS_TOLERANCE, variance: bool = False, adjust=None,
+         den: np.ndarray | None = None) -> reconstruct.Reconstruction:
+    """:func:`~hdrmerge_cli.core.reconstruct.reweight` over strips of
+    :data:`~hdrmerge_cli.core.reconstruct.STRIP_ROWS` rows, each iterated to its own
+    convergence, as the merge runs it (:func:`~hdrmerge_cli.core.reconstruct.merge`): the
+    new estimate and ``den`` written over ``log_e`` and ``den``; ``adjust(k, codes, w, own,
+    rows)`` gets each strip's rows.  Returns a ``Reconstruction`` (the passes and change the
+    most of any strip)."""
+    flags = np.empty(log_e.shape, np.int8)
+    given = den is not None
+    den = den if given else np.empty(log_e.shape, np.float32)
+    var = np.empty(log_e.shape, np.float32) if variance else None
+    passes, change = 0, 0.0
+    for r0 in range(0, log_e.shape[0], reconstruct.STRIP_ROWS):
+        part = slice(r0, min(log_e.shape[0], r0 + reconstruct.STRIP_ROWS))
+        piece = reweight(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures, y_full, rows, linear,
+                         iterations, tol, variance, None if adjust is None else (lambda *a: adjust(*a, part)),
+                         den[part] if given else None)
+        log_e[part], flags[part], den[part] = piece.result, piece.flags, piece.den
+        if variance:
+            var[part] = piece.variance
+        passes, change = max(passes, piece.iterations), max(change, piece.change)
+    return reconstruct.Reconstruction(log_e, flags, den, var, passes, change)

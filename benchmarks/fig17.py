@@ -75,7 +75,7 @@ def mse_monte_carlo(weights: str, gain: float, sigma_o: float, n_e: int = 150, n
     num = np.zeros((n_e, n_s))
     den = np.zeros((n_e, n_s))
     for t in TIMES:
-        tab = exposure_tables(256, [0.0], [Y_MAX], CRF("linear"), weights, t, [p], "model", prior, TIMES)
+        tab = exposure_tables(CRF("linear").at_codes(256, [0.0], [Y_MAX]), weights, t, [p], "model", prior, TIMES)
         mu = gain * t * e[:, None]
         z = np.clip(np.rint(rng.normal(mu, np.sqrt(sigma_o**2 + gain * mu), (n_e, n_s))), 0, 255).astype(int)
         num += tab.weighted_log[z]

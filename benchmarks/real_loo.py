@@ -90,10 +90,11 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
                           (0, 0, 0, 0), 1, 1.0 / 255.0)
         names = frames[0].channel_names
         measured = measure_excess(samples, exposures, crf, dict(zip(names, params)) if params else None, names)
-    from hdrmerge_cli.pipeline.choices import default_variance, prior_rate_of
+    from hdrmerge_cli.core.reconstruct import prior_rate_of
+    from hdrmerge_cli.pipeline.choices import default_variance
 
     k = len(codes) // 2
-    prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf, False) if weights in ("probabilistic", "direct", "optimal") else None
+    prior = prior_rate_of(codes[k], 0.0, 255.0, exposures[k], crf.at_codes(256, np.zeros(3), 255.0)) if weights in ("probabilistic", "direct", "optimal") else None
     e, _, _ = merge_frames(codes, exposures, crf, [0.0] * 3, [255.0] * 3, weights, params,
                            default_variance(params, crf) if variance == "auto" else variance, estimator, prior_rate=prior,
                            pattern=np.arange(3)[None, :], irls_iterations=irls, excess=measured)

@@ -180,7 +180,7 @@ from hdrmerge_cli.cli import cli as main
 from hdrmerge_cli.core.reconstruct import LogMerge, exposure_tables
 from hdrmerge_cli.core.crf import CRF
 import numpy as np
-acc = LogMerge((4, 4)); acc.add(np.zeros((4, 4), np.uint16), exposure_tables(65536, np.zeros(1), np.full(1, 9.0), CRF("linear"), "triangle", 1.0)); acc.finish(scale=1.0)
+acc = LogMerge((4, 4)); acc.add(np.zeros((4, 4), np.uint16), exposure_tables(CRF("linear").at_codes(65536, np.zeros(1), np.full(1, 9.0)), "triangle", 1.0)); acc.finish(scale=1.0)
 import hdrmerge_cli.core.cfa_to_rgb  # the colour kernel (compiled, cached)
 if sys.argv[1] in main.list_commands(None): main.get_command(None, sys.argv[1])  # its imports, before the base RSS
 def rss():

@@ -17,7 +17,7 @@ CLASSICAL = sorted(set(WEIGHTING_FUNCTIONS) - set(NOISE_MODEL_WEIGHTS))
 def _merge(frames, exposures, crf, weights, n_codes=256, black=0.0, white=255.0, pattern=None, rows=1):
     acc = LogMerge(frames[0].shape, pattern)
     for k, (z, h) in enumerate(zip(frames, exposures)):
-        tab = exposure_tables(n_codes, np.full(rows, black), np.full(rows, white), crf, weights, h)
+        tab = exposure_tables(crf.at_codes(n_codes, np.full(rows, black), np.full(rows, white)), weights, h)
         acc.add(z, tab, last=k == len(frames) - 1)
     return acc.finish()
 
@@ -81,7 +81,7 @@ def test_per_channel_tables_use_each_channels_black_level():
     cmap = np.array([[0, 1], [1, 0]])
     z = np.array([[110, 120], [120, 110]], np.uint16)
     acc = LogMerge(z.shape, cmap)
-    tab = exposure_tables(65536, blacks, blacks + 1000.0, CRF("linear"), "uniform", 1.0)
+    tab = exposure_tables(CRF("linear").at_codes(65536, blacks, blacks + 1000.0), "uniform", 1.0)
     acc.add(z, tab, last=True)
     log_e, _ = acc.finish()
     np.testing.assert_allclose(np.exp(log_e), np.full((2, 2), 100 / 1000), rtol=1e-6)
@@ -91,7 +91,8 @@ def test_frames_with_different_black_levels_use_their_own():
     """Two RAW-like frames of one scene whose black levels differ (as some cameras' do per
     shot): each frame's own table must be used."""
     from hdrmerge_cli.io.frames import Frame
-    from hdrmerge_cli.pipeline.choices import build_tables as _tables
+    from hdrmerge_cli.pipeline.choices import choose_models
+    from hdrmerge_cli.pipeline.options import MergeSettings
 
     def frame(black):
         return Frame(path="x", kind="raw", width=2, height=1, exposure_time=1.0, iso=None, aperture=None, make="",
@@ -99,8 +100,11 @@ def test_frames_with_different_black_levels_use_their_own():
                      white=np.full(4, 4095.0), channels=4, cfa_pattern="RGGB")
 
     frames = [frame(100.0), frame(200.0)]
-    tables, pattern, _ = _tables(frames, np.array([1.0, 2.0]), CRF("linear"), "uniform")
-    assert pattern is None
+    settings = MergeSettings(estimator="log", weights="uniform", variance="none")
+    models = choose_models(frames, np.array([1.0, 2.0]), CRF("linear"), settings, pattern=np.array([[0, 1], [1, 2]]),
+                           timings={})
+    tables = models.tables
+    assert models.pattern is None
     acc = LogMerge((1, 2))
     signal = np.array([[500.0, 1000.0]])  # code values above black at exposure 1
     for k, (f, t, h) in enumerate(zip(frames, tables, (1.0, 2.0))):
@@ -163,7 +167,7 @@ def test_fused_kernel_equals_numpy_reference(layout, estimator, irls):
     dtype = np.uint8 if n == 256 else np.uint16
     frames = [rng.choice([0, 1, n - 1, *rng.integers(0, n, 20)], size=shape).astype(dtype) for _ in exposures]
     crf = CRF("linear")
-    tables = [exposure_tables(n, black, white, crf, "probabilistic" if irls else "triangle", h, estimator=estimator,
+    tables = [exposure_tables(crf.at_codes(n, black, white), "probabilistic" if irls else "triangle", h, estimator=estimator,
                               noise=[NoiseParams(4.0, 1.0, 0.0)] * rows_n,
                               prior_rate=1e4, exposures=tuple(exposures)) for h in exposures]
     weights = [rng.random(shape).astype(np.float32) * (rng.random(shape) < 0.7) for _ in exposures] if irls else None
@@ -185,7 +189,7 @@ def test_finish_with_scale_returns_the_linear_image():
     log_e = log_e.copy()
     acc = LogMerge(frames[0].shape)
     for k, (z, h) in enumerate(zip(frames, times)):
-        acc.add(z, exposure_tables(256, np.zeros(1), np.full(1, 255.0), CRF("gamma", 2.2), "triangle", h), last=k == 2)
+        acc.add(z, exposure_tables(CRF("gamma", 2.2).at_codes(256, np.zeros(1), np.full(1, 255.0)), "triangle", h), last=k == 2)
     lin, flag2 = acc.finish(scale=0.5)
     np.testing.assert_array_equal(flag, flag2)
     np.testing.assert_allclose(lin, 0.5 * np.exp(log_e), rtol=1e-5)
@@ -240,7 +244,7 @@ def test_merge_frames_irls_recovers_a_noise_free_irradiance():
 def test_codes_above_the_table_read_as_clipped():
     """A corrupt 12-bit frame holding codes above 4095 (a uint16 container): the fused
     kernel reads them as the table's clipped last entry instead of past its end."""
-    tab = exposure_tables(4096, np.zeros(1), np.full(1, 4095.0), CRF("linear"), "triangle", 1.0)
+    tab = exposure_tables(CRF("linear").at_codes(4096, np.zeros(1), np.full(1, 4095.0)), "triangle", 1.0)
     acc = LogMerge((1, 3))
     acc.add(np.array([[2048, 4095, 60000]], np.uint16), tab, last=True)
     log_e, flag = acc.finish()
@@ -359,7 +363,8 @@ def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layo
     With ``adjust`` (a per-pixel factor by the frame's own row, as the merge's coverage and
     ghost weights), each strip's call gets its rows."""
     from benchmarks.core_merge import merge_in_memory
-    from hdrmerge_cli.core.reconstruct import irls, noise_rows
+    from benchmarks.core_merge import irls
+    from hdrmerge_cli.core.reconstruct import noise_rows
 
     rng = np.random.default_rng(11)
     full, p = 4095, NoiseParams(sigma_o2=30.0, alpha=4.0)
@@ -370,7 +375,7 @@ def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layo
     e = np.exp(rng.uniform(np.log(5.0), np.log(3000.0), shape))
     codes = [np.clip(np.rint(t * e + rng.normal(0, np.sqrt(p.sigma_o2 + 2 * t * e))), 0, full).astype(np.uint16)
              for t in times]
-    tables = [exposure_tables(full + 1, np.zeros(rows), np.full(rows, float(full)), CRF("linear"), "uniform", t,
+    tables = [exposure_tables(CRF("linear").at_codes(full + 1, np.zeros(rows), np.full(rows, float(full))), "uniform", t,
                               [p] * rows, "model", None, tuple(times), estimator=estimator) for t in times]
     linear = estimator == "ml"
     maps = [noise_rows([p] * rows)] * 3
@@ -390,7 +395,7 @@ def test_irls_in_strips_equals_irls_on_whole_frames(monkeypatch, estimator, layo
             out[strip] = irls(codes.__getitem__, tables, pattern, log_e, times, [float(full)] * 3, maps, linear,
                               passes, variance=True, den=den if with_den else None,
                               adjust=adjust if adjusted else None)
-        (a, fa, da, na, va), (b, fb, db, nb, vb) = ((r.log_e, r.flags, r.den, r.passes, r.variance)
+        (a, fa, da, na, va), (b, fb, db, nb, vb) = ((r.result, r.flags, r.den, r.iterations, r.variance)
                                                   for r in (out[8], out[1000]))
         np.testing.assert_array_equal(fa, fb)
         ok = fa == FLAG_OK
@@ -511,7 +516,7 @@ def test_add_irls_equals_add_with_numpy_irls_weights(layout, linear):
     rows_n = pattern.max() + 1
     params = [NoiseParams(float(rng.uniform(1, 20)), float(rng.uniform(0.5, 4)), float(rng.uniform(0, 1e-3)))
               for _ in range(rows_n)]
-    tables = [exposure_tables(n, black, white, CRF("linear"), "probabilistic", h, noise=params,
+    tables = [exposure_tables(CRF("linear").at_codes(n, black, white), "probabilistic", h, noise=params,
                               estimator="ml" if linear else "log", prior_rate=1e4, exposures=tuple(exposures))
               for h in exposures]
     frames = [_codes(rng, shape, n) for _ in exposures]
@@ -545,7 +550,7 @@ def test_a_dark_sample_takes_the_fallback_of_the_longest_frame_that_is_its_own(p
     (resampled RAW, IRLS) and with the variance accumulator."""
     shape = (4, 6, 3)
     exposures = [0.01, 0.04, 0.16]
-    tables = [exposure_tables(256, 0.0, 255.0, CRF("srgb"), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
+    tables = [exposure_tables(CRF("srgb").at_codes(256, 0.0, 255.0), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
                               prior_rate=1e4, exposures=tuple(exposures), with_variance=variance) for h in exposures]
     codes = [np.zeros(shape, np.uint8) for _ in exposures]  # dark in the short frames
     codes[2][:, [0, 1, 5]] = 40  # the long frame measures columns 0, 1 and 5
@@ -578,7 +583,7 @@ def test_add_with_a_per_pixel_factor_equals_add_with_the_weights(layout, varianc
     rng = np.random.default_rng(5)
     exposures = [0.004, 0.02, 0.1]
     shape, n, pattern, black, white = _layout(layout)
-    tables = [exposure_tables(n, black, white, CRF("linear"), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
+    tables = [exposure_tables(CRF("linear").at_codes(n, black, white), "probabilistic", h, noise=[NoiseParams(4.0, 1.0, 0.0)],
                               prior_rate=1e4, exposures=tuple(exposures), with_variance=variance) for h in exposures]
     frames = [_codes(rng, shape, n) for _ in exposures]
     fused, ref = LogMerge(shape, pattern, variance=variance), LogMerge(shape, pattern, variance=variance)
@@ -636,10 +641,10 @@ def test_per_frame_noise_shared_by_every_frame_equals_the_single_noise(irls, est
 
 def test_irls_takes_one_noise_rows_tuple_per_frame():
     codes, h, params, _ = _mixed_iso_bracket(4, [1.0, 4.0], [1, 1], 0.25, 4.0, 30.0, shape=(8, 8))
-    tables = [exposure_tables(4096, [0.0], [4095.0], CRF("linear"), "uniform", x, [params[0]], estimator="ml")
+    tables = [exposure_tables(CRF("linear").at_codes(4096, [0.0], [4095.0]), "uniform", x, [params[0]], estimator="ml")
               for x in h]
     with pytest.raises(ValueError, match="one noise_rows tuple per frame"):
-        reconstruct.irls(codes.__getitem__, tables, None, np.zeros((8, 8), np.float32), h, [4095.0] * 2,
+        reconstruct.reweight(codes.__getitem__, tables, None, np.zeros((8, 8), np.float32), h, [4095.0] * 2,
                          reconstruct.noise_rows([params[0]]), True, 1)
 
 

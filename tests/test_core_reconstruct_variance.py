@@ -23,10 +23,10 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams, clipping_safe_range_exact
 from hdrmerge_cli.core.reconstruct import (
     FLAG_DARK, FLAG_OK, FLAG_SATURATED, UNMEASURED_RELATIVE_VARIANCE, LogMerge,
-    estimate_variance_table, exposure_tables, irls, lookup, noise_rows,
+    estimate_variance_table, exposure_tables, lookup, noise_rows,
 )
 from hdrmerge_cli.core.sensor import SensorModel, expose, quantise_crf, quantise_raw
-from benchmarks.core_merge import merge_frames
+from benchmarks.core_merge import irls, merge_frames
 from references import combined_variance, irls_weights
 
 REPS, LEVELS = 3000, 96
@@ -64,7 +64,7 @@ def test_streamed_variance_equals_direct_sum_w2_var(estimator):
     noise = [NoiseParams(4.0, 0.25), NoiseParams(3.0, 0.2), NoiseParams(5.0, 0.3)]
     times = [0.5, 2.0, 8.0]
     weights = "uniform" if estimator == "ml" else "triangle"
-    tables = [exposure_tables(4096, black, white, CRF("linear"), weights, h, noise, "model", estimator=estimator,
+    tables = [exposure_tables(CRF("linear").at_codes(4096, black, white), weights, h, noise, "model", estimator=estimator,
                               with_variance=True) for h in times]
     frames = [rng.integers(0, 4096, (24, 30)).astype(np.uint16) for _ in times]
     for z in frames:
@@ -107,7 +107,7 @@ def test_per_sample_weights_use_w2_times_the_tables_variance():
     crf = CRF("gamma", 2.2)
     noise = [NoiseParams(0.02, 0.004)]
     times = [0.01, 0.04, 0.16]
-    tables = [exposure_tables(256, [0.0], [255.0], crf, "triangle", h, noise, "model", with_variance=True)
+    tables = [exposure_tables(crf.at_codes(256, [0.0], [255.0]), "triangle", h, noise, "model", with_variance=True)
               for h in times]
     frames = [rng.integers(1, 255, (16, 20, 3)).astype(np.uint8) for _ in times]
     acc = LogMerge(frames[0].shape, None, variance=True)
@@ -133,8 +133,8 @@ def test_variance_table_is_the_noise_model():
     p = NoiseParams(4.0, 0.25)
     y = np.arange(4096.0) - 96.0
     v = 4.0 + 0.5 * y
-    lg = estimate_variance_table(4096, [96.0], [4095.0], CRF("linear"), 2.0, [p], "log")
-    ml = estimate_variance_table(4096, [96.0], [4095.0], CRF("linear"), 2.0, [p], "ml")
+    lg = estimate_variance_table(CRF("linear").at_codes(4096, [96.0], [4095.0]), 2.0, [p], "log")
+    ml = estimate_variance_table(CRF("linear").at_codes(4096, [96.0], [4095.0]), 2.0, [p], "ml")
     pos = y > 0
     np.testing.assert_allclose(lg[pos], (v / y**2)[pos], rtol=1e-6)
     np.testing.assert_allclose(ml[pos], (v / (2.0 * 3999.0) ** 2)[pos], rtol=1e-6)
@@ -143,10 +143,10 @@ def test_variance_table_is_the_noise_model():
     z = np.arange(256.0)
     lin = (z / 255) ** 2.2
     q = np.gradient(lin * 255) ** 2 / 12
-    tab = estimate_variance_table(256, [0.0], [255.0], crf, 1.0, [p], "log", tolerance=0.0)
+    tab = estimate_variance_table(crf.at_codes(256, [0.0], [255.0]), 1.0, [p], "log", tolerance=0.0)
     yy = lin * 255
     np.testing.assert_allclose(tab[1:], ((4.0 + 0.5 * yy + q) / yy**2)[1:], rtol=1e-5)
-    tab = estimate_variance_table(256, [0.0], [255.0], crf, 1.0, None, "log", tolerance=0.01)
+    tab = estimate_variance_table(crf.at_codes(256, [0.0], [255.0]), 1.0, None, "log", tolerance=0.01)
     np.testing.assert_allclose(tab[1:], (q / yy**2 + 1e-4)[1:], rtol=1e-5)
 
 
@@ -160,7 +160,7 @@ def test_irls_variance_is_certainty_weighted_information(linear):
     p = NoiseParams(4.0, 0.25)
     times = [1.0, 4.0]
     weights = "uniform" if linear else "triangle"
-    tables = [exposure_tables(4096, [0.0], [full], CRF("linear"), weights, h, [p], "model",
+    tables = [exposure_tables(CRF("linear").at_codes(4096, [0.0], [full]), weights, h, [p], "model",
                               estimator="ml" if linear else "log") for h in times]
     e = np.geomspace(20.0, 5000.0, 600).reshape(20, 30)  # the long frame clips above ~1000
     frames = [np.clip(np.rint(e * t * 0.5 + rng.normal(0, np.sqrt(4 + 0.25 * e * t), e.shape)), 0, full)
@@ -170,7 +170,7 @@ def test_irls_variance_is_certainty_weighted_information(linear):
     log0 = np.log(log0)
     out = irls(frames.__getitem__, tables, None, log0.copy(), times, [full] * 2, [noise_rows([p])] * 2, linear, 1,
                tol=0.0, variance=True)
-    log_e, flags, den, var = out.log_e, out.flags, out.den, out.variance
+    log_e, flags, den, var = out.result, out.flags, out.den, out.variance
     maps = [m[0] for m in noise_rows([p])]
     cert = [lookup(t.certainty, t.n_codes, z, None).astype(np.float64) for z, t in zip(frames, tables)]
     w = [irls_weights(c, log0, h, full, maps, linear).astype(np.float64) for c, h in zip(cert, times)]
@@ -274,7 +274,7 @@ def test_variance_agrees_with_monte_carlo_8bit_crf():
     e, measured = _ramp(sensor, p12)
     grid = np.broadcast_to(e, (REPS, LEVELS))
     frames = [quantise_crf(expose(grid, t, sensor, rng, np.zeros(grid.shape)), sensor, crf, 8) for t in TIMES]
-    vt = [estimate_variance_table(256, [0.0], [255.0], crf, h, [p8], "log", tolerance=0.0) for h in TIMES]
+    vt = [estimate_variance_table(crf.at_codes(256, [0.0], [255.0]), h, [p8], "log", tolerance=0.0) for h in TIMES]
     out, flag, _, var = merge_frames(frames, TIMES, crf, 0.0, 255.0, "triangle", [p8], "model", "log",
                                      with_variance=True, variance_tables=vt)
     _check(*_compare(e, measured, out, flag, var))

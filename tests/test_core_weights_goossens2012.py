@@ -115,7 +115,7 @@ def test_log_normal_interval_is_cancellation_free():
 
 
 def test_variance_factor_model_and_photon():
-    tabs = {v: exposure_tables(256, [0.0], [255.0], CRF("linear"), "uniform", 1.0, [NoiseParams(4.0, 1.0)], variance=v)
+    tabs = {v: exposure_tables(CRF("linear").at_codes(256, [0.0], [255.0]), "uniform", 1.0, [NoiseParams(4.0, 1.0)], variance=v)
             for v in ("none", "photon", "model")}
     z = np.array([10, 100, 200])
     assert np.all(tabs["none"].weight[z] == 1)
@@ -128,7 +128,7 @@ def test_unclipped_codes_never_get_zero_weight_in_the_merge_tables():
     underflow) must still count where no frame has better, instead of the no-information
     fallback."""
     for weights in ("direct", "probabilistic", "bounded"):
-        tab = exposure_tables(256, [0.0], [255.0], CRF("gamma", 2.5), weights, 0.1, [NoiseParams(64.0, 1.0)], "model",
+        tab = exposure_tables(CRF("gamma", 2.5).at_codes(256, [0.0], [255.0]), weights, 0.1, [NoiseParams(64.0, 1.0)], "model",
                               500.0, (0.1,))
         assert np.all(tab.weight[1:255] > 0) and tab.weight[0] == 0 and tab.weight[255] == 0
         assert np.all(tab.certainty[1:255] > 0) and tab.certainty[0] == 0  # what IRLS re-weights

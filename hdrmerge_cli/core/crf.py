@@ -106,6 +106,15 @@ class CRF:
                                           for c, (b, w) in enumerate(zip(black, white))])
         return self._tables[key]
 
+    def at_codes(self, n_codes: int, black, white) -> CodesInverse:
+        """``gamma^-1`` at one frame's stored codes as the merge's tables read it
+        (:class:`CodesInverse`): :meth:`codes_table` on the grid of ``n_codes`` codes with
+        ``black``, ``white`` per table row, and each row's value half a code above black."""
+        black = np.atleast_1d(np.asarray(black, dtype=np.float64))
+        white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
+        half = np.array([self.inverse(np.array([0.5 / (w - b)]), c)[0] for c, (b, w) in enumerate(zip(black, white))])
+        return CodesInverse(self.codes_table(n_codes, black, white), black, white, half, self.is_linear)
+
     def linear(self, codes: np.ndarray, n_codes: int, black=0.0, white=None) -> np.ndarray:
         """Linear values (full scale 1, float64 ``(..., C)``) of whole codes ``(..., C)``
         (integers below ``n_codes``) through :meth:`codes_table`."""
@@ -119,6 +128,23 @@ class CRF:
             grid = np.linspace(0.0, 1.0, tab.size)
             return np.interp(x, tab, grid)
         return CRF_MODELS[self.name][0](x, self.param)
+
+
+@dataclass(frozen=True)
+class CodesInverse:
+    """The response's inverse at one frame's stored codes (:meth:`CRF.at_codes`), per table row.
+
+    table : (R, N) float64, ``gamma^-1`` at every stored code ``r = 0..N-1`` (:meth:`CRF.codes_table`)
+    black, white : (R,) float64, each row's black and white (clipping) level in stored codes
+    half_code : (R,) float64, ``gamma^-1`` half a code value above black
+    linear : the response is linear (sensor data)
+    """
+
+    table: np.ndarray
+    black: np.ndarray
+    white: np.ndarray
+    half_code: np.ndarray
+    linear: bool
 
 
 def parse_crf(text: str) -> CRF:

@@ -7,24 +7,27 @@ gain ratio ``sqrt(alpha_j)``, see (1)), ``w_ij = w(z_ij)`` a weighting function 
 ``s_ij`` the variance factor ``sigma^-2(E_i, t_j)`` at each frame's own estimate
 (:func:`inverse_variance`).  As ``w`` and ``g`` depend on the code and the frame only,
 each frame is reduced to lookup tables over all code values (:func:`exposure_tables`,
-indexed by the *stored* code, one row per channel, the row of a sample given by a small
-periodic pattern), and merging a frame is two gathers and two additions per sample
-(:class:`LogMerge`).  Pixels that no frame measures get a finite, documented value and a
-flag (:meth:`LogMerge.finish`).  On request the noise model's variance of each merged
-value is propagated too (:func:`estimate_variance_table`, :class:`LogMerge` with ``variance``).
+from the response's inverse at the frame's stored codes, one row per channel, the row of
+a sample given by a small periodic pattern), and merging a frame is two gathers and two
+additions per sample (:class:`LogMerge`).  Pixels that no frame measures get a finite,
+documented value and a flag (:meth:`LogMerge.finish`).  On request the noise model's
+variance of each merged value is propagated too (:func:`estimate_variance_table`,
+:class:`LogMerge` with ``variance``).  :func:`merge` runs (7) and the re-weighting passes
+(:func:`reweight`) in one loop over strips of rows.
 """
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numba
 import numpy as np
 
-from hdrmerge_cli.core.crf import CRF
+from hdrmerge_cli.core.crf import CodesInverse
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
 
@@ -81,27 +84,25 @@ def neutral_bounds(result: np.ndarray, flags: np.ndarray) -> int:
     return int(np.count_nonzero(bound))
 
 
-def table_size(white, n_codes: int) -> int:
-    """Entries of a lookup table: the smallest power of two above every white level (a
-    14-bit RAW in a uint16 container needs 16384, not 65536), at most the container's
-    ``n_codes``.  Stored codes above it are clipped codes and read the table's last
-    (clipped) entry."""
-    return min(int(2 ** np.ceil(np.log2(float(np.max(white)) + 1))), n_codes)
-
-
-def _channels(n_codes: int, black, white, crf: CRF):
+def _channels(inverse: CodesInverse):
     """Per table row ``(c, black, white, v, lin)``: the normalised code values ``v = (r -
     black) / (white - black)`` for ``r = 0..N-1`` and ``gamma^-1`` at every stored code."""
-    black = np.atleast_1d(np.asarray(black, dtype=np.float64))
-    white = np.broadcast_to(np.asarray(white, dtype=np.float64), black.shape)
-    lins = crf.codes_table(n_codes, black, white)
-    for c, (b, wl) in enumerate(zip(black, white)):
-        yield c, b, wl, (np.arange(n_codes, dtype=np.float64) - b) / float(wl - b), lins[c]
+    n_codes = inverse.table.shape[1]
+    for c, (b, wl) in enumerate(zip(inverse.black, inverse.white)):
+        yield c, b, wl, (np.arange(n_codes, dtype=np.float64) - b) / float(wl - b), inverse.table[c]
 
 
 def _row(per_row, c: int):
     """Table row ``c``'s entry of per-row values (the last where there are fewer; None: None)."""
     return None if per_row is None else per_row[min(c, len(per_row) - 1)]
+
+
+def _noise_variance(rows: NoiseRows, c: int, mu: np.ndarray) -> np.ndarray:
+    """The sensor's variance (17) of table row ``c`` (the last where there are fewer) at
+    the mean ``mu`` (code values), float64: ``sigma_o^2 + sqrt(alpha) mu + (beta / alpha)
+    mu^2``, as :func:`~hdrmerge_cli.core.noise.code_variance` and the kernels' :func:`_irls_weight`."""
+    c = min(c, rows.sigma_o2.shape[0] - 1)
+    return rows.sigma_o2[c] + rows.sqrt_alpha[c] * mu + rows.beta_per_alpha[c] * mu * mu
 
 
 #: smallest weight of an unclipped code: noise-model weights of codes far outside the
@@ -143,9 +144,44 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
     weights; without it they use the bounded scheme's conservative upper bounds; ``prior_rate`` is the mean of the exponential irradiance prior in
     code values per second; ``bounds`` the ``(1/alpha, sigma_o^2, beta)`` upper bounds of
     ``bounded`` on the normalised scale (default: the paper's JPEG values)."""
+    return _certainty(crf.at_codes(n_codes, black, white), weighting, exposure, noise, prior_rate, exposures, k,
+                      bounds)
+
+
+def _certainty(inverse: CodesInverse, weighting, exposure, noise, prior_rate, exposures, k, bounds) -> np.ndarray:
+    """:func:`certainty_table` on the response's inverse at the frame's codes."""
     return np.stack([WEIGHTING_FUNCTIONS[weighting](v, lin, _context(weighting, wl - b, exposure, _row(noise, c),
                                                                      prior_rate, exposures, k, bounds))
-                     for c, b, wl, v, lin in _channels(n_codes, black, white, crf)])
+                     for c, b, wl, v, lin in _channels(inverse)])
+
+
+#: samples of the middle frame that estimate the prior's mean
+PRIOR_SAMPLES = 1 << 18
+
+
+def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float, inverse: CodesInverse | None,
+                  name: str = "the middle frame") -> float:
+    """The mean of the exponential irradiance prior of the noise-model weights (the paper
+    assumes it known; code values per second), from one frame's unclipped samples: the
+    mean linear signal per second over an even subsample of at most
+    :data:`PRIOR_SAMPLES` samples.
+
+    codes : (H, W) mosaic (``inverse`` None: linear between ``black`` and ``white``) or
+        (H, W, C) image of the frame of exposure ``exposure`` s, linearised through
+        ``inverse`` (:meth:`~hdrmerge_cli.core.crf.CRF.at_codes` on its codes)
+    """
+    full = white - black
+    step = max(1, codes.shape[0] * codes.shape[1] // PRIOR_SAMPLES)
+    sub = codes.reshape(codes.shape[0] * codes.shape[1], -1)[::step]
+    if inverse is None:
+        lin = np.clip((sub - black) / full, 0, 1)
+    else:
+        lin = np.stack([inverse.table[c][sub[..., c]] for c in range(sub.shape[-1])], axis=-1)
+    ok = (lin > 0) & (lin < 1)
+    if not np.any(ok):
+        what = "black" if np.all(lin <= 0) else "clipped" if np.all(lin >= 1) else "black or clipped"
+        raise HdrMergeError(f"{name}: every sample is {what}; cannot estimate the irradiance prior")
+    return float(np.mean(lin[ok]) * full / exposure)
 
 
 def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
@@ -174,15 +210,15 @@ def code_error_variance(lin: np.ndarray, y_full: float, tolerance: float = MODEL
     return quantisation_variance(lin, y_full) + (tolerance * y) ** 2
 
 
-def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: NoiseParams | None,
+def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: NoiseRows | None, row: int = 0,
                      code_error: np.ndarray | None = None) -> np.ndarray:
     """The factor ``sigma^-2(E, t_j)`` of (7) at each frame's own estimate ``mu = y``:
     ``none`` 1; ``photon`` ``t E`` up to the common gain (the photon-limited case of (22),
     which needs no parameters); ``codes`` ``mu^2 / c(mu)`` with ``code_error`` ``c``
     (:func:`code_error_variance`; 1/12 when None), the inverse variance of ``log y`` of a
     noise-free camera-processed code; ``model`` ``mu^2 / (v(mu) + c(mu))``, the
-    clipping-free variance (21) with the noise parameters plus ``code_error`` if given
-    (clipping is the weights' business)."""
+    clipping-free variance (21) with table row ``row``'s noise parameters plus
+    ``code_error`` if given (clipping is the weights' business)."""
     y = np.clip(lin, 0.0, 1.0) * y_full
     if variance == "none":
         return np.ones_like(y)
@@ -192,7 +228,7 @@ def inverse_variance(variance: str, lin: np.ndarray, y_full: float, noise: Noise
         return y * y / (1.0 / 12.0 if code_error is None else np.maximum(code_error, 1e-300))
     if noise is None:
         raise HdrMergeError("--variance model needs noise parameters (--noise or a profile)")
-    return y * y / (code_variance(y, noise) + (0.0 if code_error is None else code_error))
+    return y * y / (_noise_variance(noise, row, y) + (0.0 if code_error is None else code_error))
 
 
 def _floored(w: np.ndarray, v: np.ndarray, weighting: str) -> np.ndarray:
@@ -200,12 +236,12 @@ def _floored(w: np.ndarray, v: np.ndarray, weighting: str) -> np.ndarray:
     return np.where((v > 0) & (v < 1), np.maximum(w, WEIGHT_FLOOR), 0.0) if weighting in NOISE_MODEL_WEIGHTS else w
 
 
-def _code_error(crf: CRF, excess, v: np.ndarray | None, lin: np.ndarray, y_full: float,
+def _code_error(linear: bool, excess, v: np.ndarray | None, lin: np.ndarray, y_full: float,
                 tolerance: float = MODEL_TOLERANCE) -> np.ndarray | None:
     """(N,) variance (squared code values of ``y``) a camera-processed code adds beyond (17); None for a linear CRF."""
     # camera-processed codes' own error; a linear sensor's measured read noise already
     # holds its quantisation
-    if crf.is_linear:
+    if linear:
         return None
     if excess is not None:
         return quantisation_variance(lin, y_full) + excess.at(v) * (lin * y_full) ** 2
@@ -213,27 +249,24 @@ def _code_error(crf: CRF, excess, v: np.ndarray | None, lin: np.ndarray, y_full:
 
 
 def _weight_and_value(estimator: str, variance: str, cert: np.ndarray, lin: np.ndarray, y_full: float,
-                      exposure: float, noise: NoiseParams | None,
+                      exposure: float, noise: NoiseRows | None, row: int,
                       code_error: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(N,) weights of one channel's codes and (N,) the frame's own estimate there (``log E``, or ``E`` for ml)."""
     if estimator == "ml":
         y = lin * y_full
-        var_y = code_variance(y, noise) if noise is not None else np.maximum(y, 1.0)
+        var_y = _noise_variance(noise, row, y) if noise is not None else np.maximum(y, 1.0)
         if code_error is not None:
             var_y = var_y + code_error
         w = cert * (exposure * y_full) ** 2 / np.maximum(var_y, 1e-12)  # 1 / Var[gamma^-1(z) / h]
         return w, lin / exposure
-    w = cert * inverse_variance(variance, lin, y_full, noise, code_error)
+    w = cert * inverse_variance(variance, lin, y_full, noise, row, code_error)
     with np.errstate(divide="ignore"):
         value = np.where(lin > 0, np.log(lin) - np.log(exposure), 0.0)  # finite wherever it is used
     return w, value
 
 
 def exposure_tables(
-    n_codes: int,
-    black: np.ndarray,
-    white: np.ndarray,
-    crf: CRF,
+    inverse: CodesInverse,
     weighting: str,
     exposure: float,
     noise: list[NoiseParams] | None = None,
@@ -250,11 +283,12 @@ def exposure_tables(
     """Build the per-channel tables of one exposure for (7): the weight ``w(z)`` times the
     variance factor ``sigma^-2`` of :func:`inverse_variance`.
 
-    n_codes : number of stored code values (256 for 8-bit, 65536 for 16-bit containers)
-    black, white : (C,) black and white (clipping) level of each channel, in stored codes
-    crf : the camera response; ``crf.inverse`` gives ``gamma^-1`` per channel
+    inverse : ``gamma^-1`` at the frame's stored codes, with each table row's black and
+        white level (:meth:`~hdrmerge_cli.core.crf.CRF.at_codes`; ``N`` stored code values:
+        256 for 8-bit, 65536 for 16-bit containers)
     weighting : a name in :data:`~hdrmerge_cli.core.weights.WEIGHTING_FUNCTIONS`
     exposure : ``h_j`` in seconds (times the gain ratio where frames differ in ISO)
+    noise : per table row the :class:`~hdrmerge_cli.core.noise.NoiseParams` (code units), or None
     certainty : a precomputed ``(C, N)`` weight table (``merge --lut``) instead of ``weighting``
     estimator : ``log`` for (7); ``ml`` for the linear-domain inverse-variance estimate
         (Granados et al. 2010): value ``gamma^-1(z) / h``, weight ``w(z) h^2 / v(y)`` (the
@@ -268,23 +302,21 @@ def exposure_tables(
         :data:`MODEL_TOLERANCE` of :func:`code_error_variance`
     """
     if certainty is None:
-        certainty = certainty_table(n_codes, black, white, crf, weighting, exposure, noise, prior_rate, exposures, k,
-                                    bounds)
+        certainty = _certainty(inverse, weighting, exposure, noise, prior_rate, exposures, k, bounds)
+    rows = None if noise is None else noise_rows(noise, np.float64)
     log_h = np.log(exposure)
-    rows = []
-    for c, b, wl, v, lin in _channels(n_codes, black, white, crf):
+    parts = []
+    for c, b, wl, v, lin in _channels(inverse):
         cert = _floored(_row(certainty, c), v, weighting)
-        half_code = crf.inverse(np.array([0.5 / (wl - b)]), c)[0]
-        fallback = np.log(np.maximum(lin, max(half_code, np.finfo(np.float64).tiny))) - log_h
-        code_error = _code_error(crf, excess, v, lin, wl - b)
-        w, value = _weight_and_value(estimator, variance, cert, lin, wl - b, exposure, _row(noise, c), code_error)
+        fallback = np.log(np.maximum(lin, max(inverse.half_code[c], np.finfo(np.float64).tiny))) - log_h
+        code_error = _code_error(inverse.linear, excess, v, lin, wl - b)
+        w, value = _weight_and_value(estimator, variance, cert, lin, wl - b, exposure, rows, c, code_error)
         w = _floored(w, v, weighting)
-        rows.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
-    w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*rows))
-    var = (estimate_variance_table(n_codes, black, white, crf, exposure, noise, estimator)
-           if with_variance else None)
+        parts.append((w, w * value, fallback, v > 0.5, value, cert, v >= 1))
+    w, wv, fb, hi, val, cert, sat = (np.concatenate(col) for col in zip(*parts))
+    var = estimate_variance_table(inverse, exposure, noise, estimator) if with_variance else None
     return ExposureTables(
-        w.astype(np.float32), wv.astype(np.float32), fb.astype(np.float32), hi, n_codes,
+        w.astype(np.float32), wv.astype(np.float32), fb.astype(np.float32), hi, inverse.table.shape[1],
         val.astype(np.float32), cert.astype(np.float32), sat, var,
     )
 
@@ -302,43 +334,42 @@ VARIANCE_CAP = 1e30
 UNMEASURED_RELATIVE_VARIANCE = 1.0
 
 
-def estimate_variance_table(n_codes: int, black, white, crf: CRF, exposure: float,
-                            noise: list[NoiseParams] | None = None, estimator: str = "log",
-                            tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
+def estimate_variance_table(inverse: CodesInverse, exposure: float, noise: list[NoiseParams] | None = None,
+                            estimator: str = "log", tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
     """Variance of one frame's own estimate (the ``value`` table of :func:`exposure_tables`)
     at every stored code, in the estimator's domain, flattened ``(C * N,)`` float32:
     ``estimator="log"``: ``V(y) / y^2`` (dimensionless; the clipping-free (21), by the delta
     method); ``estimator="ml"``: ``V(y) / (h y_full)^2`` (in (full scale per second)^2).
     Codes at or below black read :data:`VARIANCE_CAP` (they carry no weight).
 
-    n_codes, black, white, crf, exposure, noise : as :func:`exposure_tables`
+    inverse, exposure, noise : as :func:`exposure_tables`
     tolerance : the code error's relative model tolerance (:data:`MODEL_TOLERANCE`; 0 for
         a camera whose response is known exactly, e.g. a simulation)
 
     Notes: the linearised reading ``y = gamma^-1(z) y_full`` has the variance ``V(y) = v(y)
-    + c(y)``: the sensor's (17) as a function of the mean (:func:`code_variance`) plus, for
+    + c(y)``: the sensor's (17) as a function of the mean (:func:`_noise_variance`) plus, for
     a non-linear response, the code error of :func:`code_error_variance`; both at the
     frame's own reading, as the tables' weights are.  Without ``noise`` only ``c(y)`` remains (``1/12`` for a linear response): the
     ``codes`` variance factor of (7), a lower bound.
     """
-    rows = []
-    for c, b, wl, _, lin in _channels(n_codes, black, white, crf):
+    rows = None if noise is None else noise_rows(noise, np.float64)
+    out = []
+    for c, b, wl, _, lin in _channels(inverse):
         y_full = wl - b
         y = np.clip(lin, 0.0, 1.0) * y_full
-        chan_noise = _row(noise, c)
-        var_y = np.zeros_like(y) if chan_noise is None else code_variance(y, chan_noise)
-        code_error = _code_error(crf, None, None, lin, y_full, tolerance)
+        var_y = np.zeros_like(y) if rows is None else _noise_variance(rows, c, y)
+        code_error = _code_error(inverse.linear, None, None, lin, y_full, tolerance)
         if code_error is not None:
             var_y = var_y + code_error
-        elif chan_noise is None:
+        elif rows is None:
             var_y = var_y + 1.0 / 12.0
         if estimator == "ml":
             var = var_y / (exposure * y_full) ** 2
         else:
             with np.errstate(divide="ignore", invalid="ignore"):
                 var = np.where(y > 0, var_y / np.maximum(y, 1e-300) ** 2, VARIANCE_CAP)
-        rows.append(np.minimum(var, VARIANCE_CAP))
-    return np.concatenate(rows).astype(np.float32)
+        out.append(np.minimum(var, VARIANCE_CAP))
+    return np.concatenate(out).astype(np.float32)
 
 
 def channel_index(shape: tuple[int, ...], pattern: np.ndarray | None) -> np.ndarray | None:
@@ -397,16 +428,17 @@ def _read_only(codes: np.ndarray) -> np.ndarray:
 
 
 class NoiseRows(NamedTuple):
-    """The parameters of (21) per table row, float32 ``(R,)`` each, in the kernels' order."""
+    """The parameters of (21) per table row, ``(R,)`` each, in the kernels' order."""
 
     sigma_o2: np.ndarray
     sqrt_alpha: np.ndarray
     beta_per_alpha: np.ndarray
 
 
-def noise_rows(params: list[NoiseParams]) -> NoiseRows:
-    """:class:`NoiseRows` of ``params``, one :class:`~hdrmerge_cli.core.noise.NoiseParams` per table row."""
-    return NoiseRows(*(np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], np.float32)
+def noise_rows(params: list[NoiseParams], dtype=np.float32) -> NoiseRows:
+    """:class:`NoiseRows` of ``params``, one :class:`~hdrmerge_cli.core.noise.NoiseParams` per
+    table row: float32 for the kernels, float64 for the tables (:func:`_noise_variance`)."""
+    return NoiseRows(*(np.array([[p.sigma_o2, np.sqrt(p.alpha), p.beta / p.alpha][i] for p in params], dtype)
                        for i in range(3)))
 
 
@@ -536,7 +568,7 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
     their distribution) and ignores that the clipped frames saw more than full scale.  A
     reading far above full scale carries no information and gets weight ~0.
 
-    Fused with the choice of the readings the terms apply to (see :func:`irls`): clipped
+    Fused with the choice of the readings the terms apply to (see :func:`reweight`): clipped
     (``saturated`` table) and an estimate under ``log_hi`` (not :data:`CENSORED_SDS` sds
     above full scale); with ``use_den`` also only where the previous pass measured the
     sample (``den > 0``) and not :data:`CENSORED_SDS` combined sds below full scale.  A
@@ -610,7 +642,7 @@ def _largest_change(new, old, flags):  # pragma: no cover
 
 def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h: float, y_full: float, rows,
                     weight, prev_den, factor, cen, variance: bool):
-    """Add one frame's clipped readings to a pass of :func:`irls` as censored terms.
+    """Add one frame's clipped readings to a pass of :func:`reweight` as censored terms.
 
     A clipped reading whose current estimate lies more than :data:`CENSORED_SDS` noise sds
     above full scale carries no information (weight ~ phi(8)) and is skipped; one whose
@@ -645,58 +677,123 @@ def _censored_frame(acc: "LogMerge", codes, tab: ExposureTables, pat, log_e2, h:
     return cen
 
 
-#: rows of a strip of the merge's passes (:func:`irls`, the pipeline's first pass; even: whole CFA periods):
-#: their sums and per-sample weights stay strip-sized
+#: rows of a strip of the merge (:func:`merge`; even: whole CFA periods): its sums and
+#: per-sample weights stay strip-sized
 STRIP_ROWS = 128
 
 
 @dataclass
-class IRLSResult:
-    """What :func:`irls` returns, per sample like ``log_e``.
+class Reconstruction:
+    """What :func:`merge` returns, per sample of the frames (a RAW mosaic ``(H, W)``, an
+    image ``(H, W, C)``).
 
-    log_e : float32, the estimate of ``log E`` (linear: of ``E``'s log) after the last pass
-    flags : int8, 0, ``FLAG_DARK`` or ``FLAG_SATURATED``
-    den : float32, the summed weights of the last pass
-    passes : the passes run (the most of any strip); change : the largest change of the last
-    variance : float32, the variance of ``log_e`` of the last pass, or None (not asked)
+    result : float32, ``E * scale``: scene-linear, 1.0 = the full-scale signal of an
+        exposure of ``scale`` seconds
+    flags : int8, 0, ``FLAG_DARK`` (below every frame's noise floor: an upper bound) or
+        ``FLAG_SATURATED`` (clipped in every frame: a lower bound), after :func:`neutral_bounds`
+    den : float32, the summed weights of the frames that measured each sample (of the last pass)
+    variance : float32 like ``result``, its variance under the noise model, or None
+    iterations : the re-weighting passes run (the most of any strip); change : the largest
+        change of the last
+    peak, median : the largest result and the median of an even subsample of about 100,000
+        results, before :func:`neutral_bounds` (what the output type must hold)
+    irls_seconds : the time the re-weighting passes took
     """
 
-    log_e: np.ndarray
+    result: np.ndarray
     flags: np.ndarray
     den: np.ndarray
-    passes: int
-    change: float
     variance: np.ndarray | None = None
+    iterations: int = 0
+    change: float = 0.0
+    peak: float = 0.0
+    median: float = 0.0
+    irls_seconds: float = 0.0
 
 
-def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
-         linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
-         den: np.ndarray | None = None) -> IRLSResult:
-    """Iteratively re-weighted (7): each pass weights every frame by :func:`_irls_weight`
-    at the previous estimate (one compiled pass per frame, :func:`_irls_weights_rows`),
-    until no measured sample moves more than ``tol`` (in log E) or ``iterations`` passes.
+def merge(codes: list[np.ndarray], tables: list[ExposureTables], pattern, linear: bool, scale: float,
+          weights=None, variance: bool = False, passes: int = 0, noise: list | None = None, exposures=(),
+          y_full=(), adjust=None) -> Reconstruction:
+    """(7) over the frames' codes (in increasing exposure), then ``passes`` re-weighting
+    passes at the merged estimate (:func:`reweight`), in one loop over strips of
+    :data:`STRIP_ROWS` rows of every frame: a sample's weights read only its own estimate,
+    so each strip is merged and re-weighted on its own, at a strip's memory.  Pixels that
+    some channel measures in no frame are given neutral bounds (:func:`neutral_bounds`).
 
-    The image is re-weighted in strips of :data:`STRIP_ROWS` rows, each iterated to
-    its own convergence, the new estimate and ``den`` written over ``log_e`` and ``den`` (a
-    sample's weights depend on its own estimate only, so a strip is the same computation
-    at a strip's memory).
+    codes : per frame ``(H, W)`` or ``(H, W, C)`` stored codes; tables : per frame its
+        :class:`ExposureTables`; pattern : the table row of each sample (see :class:`LogMerge`)
+    linear : the ML estimator's linear sums; scale : the result is ``E * scale``
+    weights : ``(k, codes, rows) -> (weight, factor)`` of frame k's codes in the slice
+        ``rows`` for :meth:`LogMerge.add`, or None (the tables' weights)
+    variance : also propagate the result's variance (:attr:`LogMerge.variance`)
+    noise : per frame the per-row :class:`~hdrmerge_cli.core.noise.NoiseParams` of the
+        passes; exposures, y_full : per frame ``h_j`` and ``white - black``
+    adjust : the passes' ``(k, codes, w, own, rows) -> (w', factor)`` (see :func:`reweight`)
+    """
+    shape, last = codes[0].shape, len(codes) - 1
+    log_e = np.empty(shape, np.float32)
+    flags = np.empty(shape, np.int8)
+    den = np.empty(shape, np.float32)
+    var = np.empty(shape, np.float32) if variance else None
+    rows = None if not passes else [noise_rows(n) for n in noise]
+    done, change, seconds = 0, 0.0, 0.0
+    for r0 in range(0, shape[0], STRIP_ROWS):
+        part = slice(r0, min(shape[0], r0 + STRIP_ROWS))
+        acc = LogMerge(log_e[part].shape, pattern, variance=variance and not passes)
+        for k, z in enumerate(codes):
+            weight, factor = (None, None) if weights is None else weights(k, z[part], part)
+            acc.add(z[part], tables[k], last=k == last, weight=weight, factor=factor)
+        log_e[part], flags[part] = acc.finish(linear, None if passes else scale)
+        den[part] = acc.den
+        if not passes:
+            if variance:
+                var[part] = acc.variance
+            continue
+        t0 = time.perf_counter()
+        piece = reweight(lambda k: codes[k][part], tables, pattern, log_e[part], exposures, y_full, rows, linear,
+                         passes, variance=variance, adjust=None if adjust is None else (lambda *a: adjust(*a, part)),
+                         den=den[part])
+        log_e[part], flags[part], den[part] = piece.result, piece.flags, piece.den
+        if variance:
+            var[part] = piece.variance
+        done, change = max(done, piece.iterations), max(change, piece.change)
+        seconds += time.perf_counter() - t0
+    if passes:  # the passes' estimate is log E: E * scale, Var(E scale) = (E scale)^2 Var(log E) (the delta method)
+        np.exp(log_e, out=log_e)
+        log_e *= np.float32(scale)
+        if variance:
+            var *= log_e * log_e
+    flat = log_e.reshape(-1)
+    peak, median = float(np.max(log_e, initial=0.0)), float(np.median(flat[::max(1, flat.size // 100_000)]))
+    neutral_bounds(log_e, flags)
+    return Reconstruction(log_e, flags, den, var, done, change, peak, median, seconds)
+
+
+def reweight(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
+             linear: bool, iterations: int, tol: float = IRLS_TOLERANCE, variance: bool = False, adjust=None,
+             den: np.ndarray | None = None) -> Reconstruction:
+    """Iteratively re-weighted (7) on rows of every frame: each pass weights every frame
+    by :func:`_irls_weight` at the previous estimate (one compiled pass per frame,
+    :func:`_irls_weights_rows`), until no measured sample moves more than ``tol`` (in log
+    E) or ``iterations`` passes; new arrays, as a :class:`Reconstruction` whose result is
+    the estimate of ``log E`` (linear: of ``E``'s log) after the last pass, with the
+    variance of ``log E`` of the last pass (``variance``) and its summed weights.
 
     codes_of : ``k -> codes`` of frame k, ``(H, W)`` or ``(H, W, C)``
     y_full : per frame, the full-scale code value ``white - black``
     rows : per frame, the :func:`noise_rows` of its noise (P tuples of three ``(R,)``
         float32 arrays, code values of that frame); frames that share one noise pass the
         same tuple (``[noise_rows(params)] * P``)
-    adjust : optional ``(k, codes, w, own, rows) -> (w', factor)``: frame k's weights ``w``
-        (``(rows, cols)``) of its ``codes`` in the slice ``rows`` of its rows, as the merge
-        uses them (e.g. a resampling variance added), and a ghost / coverage ``factor`` in
-        [0, 1] (or None), also applied to the frame's censored terms; ``own``: ``w`` is not
-        read again, so ``w'`` may be written into it
+    adjust : optional ``(k, codes, w, own) -> (w', factor)``: frame k's weights ``w``
+        (``(rows, cols)``) of its ``codes``, as the merge uses them (e.g. a resampling
+        variance added), and a ghost / coverage ``factor`` in [0, 1] (or None), also
+        applied to the frame's censored terms; ``own``: ``w`` is not read again, so ``w'``
+        may be written into it
     den : the summed inverse-variance weights of ``log_e``'s estimate (:class:`LogMerge`'s
-        ``den``; released during the first pass).  With it the first pass drops clipped
-        readings the estimate makes impossible and adds the censored terms straight into
-        the sums; later passes use their predecessor's
+        ``den``).  With it the first pass drops clipped readings the estimate makes
+        impossible and adds the censored terms straight into the sums; later passes use
+        their predecessor's
     variance : also return the variance of ``log E`` of the last pass
-    Returns an :class:`IRLSResult`.
 
     Notes: each frame's weight ``w_j = w(z) I_j`` is its certainty times its Fisher
     information ``I_j = 1 / Var(x_j)`` at the previous estimate, with the clipping-free
@@ -708,28 +805,6 @@ def irls(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exp
     """
     if len(rows) != len(tables):
         raise ValueError(f"irls: {len(rows)} noise rows for {len(tables)} frames (one noise_rows tuple per frame)")
-    height = log_e.shape[0]
-    flags = np.empty(log_e.shape, np.int8)
-    given = den is not None
-    den = den if given else np.empty(log_e.shape, np.float32)
-    var = np.empty(log_e.shape, np.float32) if variance else None
-    passes, change = 0, 0.0
-    for r0 in range(0, height, STRIP_ROWS):
-        part = slice(r0, min(height, r0 + STRIP_ROWS))
-        piece = _irls_piece(lambda k: codes_of(k)[part], tables, pattern, log_e[part], exposures, y_full, rows, linear,
-                            iterations, tol, variance, None if adjust is None else (lambda *a: adjust(*a, part)),
-                            den[part] if given else None)
-        log_e[part], flags[part], den[part] = piece.log_e, piece.flags, piece.den
-        if variance:
-            var[part] = piece.variance
-        passes, change = max(passes, piece.passes), max(change, piece.change)
-    return IRLSResult(log_e, flags, den, passes, change, var)
-
-
-def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarray, exposures, y_full, rows,
-                linear: bool, iterations: int, tol: float, variance: bool, adjust, den: np.ndarray | None):
-    """:func:`irls` on one strip of rows of every frame (``adjust`` bound to its rows):
-    new arrays, as an :class:`IRLSResult`."""
     prev_den = den if linear else None
     pat = _pattern(pattern)
     shape2 = _rows_cols(log_e.shape)
@@ -770,7 +845,7 @@ def _irls_piece(codes_of, tables: list[ExposureTables], pattern, log_e: np.ndarr
         log_e = new
         if change < tol:
             break
-    return IRLSResult(log_e, flags, den, it, change, acc.variance if variance else None)
+    return Reconstruction(log_e, flags, den, acc.variance if variance else None, it, change)
 
 
 class LogMerge:
@@ -853,17 +928,15 @@ class LogMerge:
             num_tab, per_sample, use_weight = tables.weighted_log, keep, 0 if factor is None else 2
         tabs = (tables.weight.reshape(-1, n), num_tab.reshape(-1, n), tables.fallback_log.reshape(-1, n),
                 tables.above_mid.reshape(-1, n))
-        if self.var is None:
-            _accumulate(_read_only(self._2d(codes)), self.pattern, *tabs, per_sample, use_weight, self._mode(last),
-                        self._2d(self.num), self._2d(self.den), keep, factor is not None)
-        else:
-            use_cert = information and weight is not None
+        use_cert, q_tab, var = information and weight is not None, _NO_WEIGHT, _NO_WEIGHT
+        if self.var is not None:  # the third sum's per-code table (:func:`_accumulate`)
             q_tab = tables.certainty if use_cert else tables.variance
             if q_tab is None:
                 raise ValueError("LogMerge(..., variance=True) needs tables built with_variance=True")
-            _accumulate_var(_read_only(self._2d(codes)), self.pattern, *tabs, q_tab.reshape(-1, n), per_sample,
-                            use_weight, use_cert, self._mode(last), self._2d(self.num), self._2d(self.den),
-                            self._2d(self.var), keep, factor is not None)
+            q_tab, var = q_tab.reshape(-1, n), self._2d(self.var)
+        _accumulate(_read_only(self._2d(codes)), self.pattern, *tabs, q_tab, per_sample, use_weight, use_cert,
+                    self._mode(last), self._2d(self.num), self._2d(self.den), var, self.var is not None, keep,
+                    factor is not None)
         self._added(tables)
 
     def add_irls(self, codes: np.ndarray, tables: ExposureTables, last: bool, log_e: np.ndarray, k: float, rows,
@@ -910,13 +983,9 @@ class LogMerge:
         if self.frames == 0:
             raise ValueError("no frame was added")
         flag = np.empty(self.shape, np.int8)
-        if self.var is None:
-            _finish(self._2d(self.num), self._2d(self.den), self.pattern, self._dark_floor, linear,
-                    -1.0 if scale is None else float(scale), self._2d(flag))
-        else:
-            _finish_var(self._2d(self.num), self._2d(self.den), self._2d(self.var), self.pattern, self._dark_floor,
-                        linear, -1.0 if scale is None else float(scale), UNMEASURED_RELATIVE_VARIANCE,
-                        self._2d(flag))
+        _finish(self._2d(self.num), self._2d(self.den), _NO_WEIGHT if self.var is None else self._2d(self.var),
+                self.var is not None, self.pattern, self._dark_floor, linear, -1.0 if scale is None else float(scale),
+                UNMEASURED_RELATIVE_VARIANCE, self._2d(flag))
         self.finished = True
         return self.num, flag
 
@@ -935,8 +1004,8 @@ def _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z):  #
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weight, mode, num, den,
-                keep, use_keep):  # pragma: no cover
+def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
+                num, den, var, use_var, keep, use_keep):  # pragma: no cover
     """One frame of (7) into ``num``/``den`` (2-D views), rows in parallel.  ``mode`` 0:
     the shortest frame (sets the fallback and the saturated/dark class), 1: a middle
     frame, 2: the longest (a dark sample takes the longest own frame's fallback).
@@ -944,7 +1013,12 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
     values); 2: the table's weights times ``weight`` per pixel (``(rows, cols /
     channels)``, ``num_tab`` the weighted values).  With ``use_keep`` the frame is a
     sample's own only where ``keep`` (per pixel or per sample) is at least 1/2.  See
-    :class:`LogMerge`."""
+    :class:`LogMerge`.
+
+    With ``use_var``, the third accumulator of ``LogMerge(variance=True)``: ``var += w^2
+    q`` (``q_tab`` the frame's per-code variance of its value), or with ``use_cert`` ``var
+    += q w`` (``q_tab`` the certainty ``w(z)``, ``w`` an IRLS weight ``w(z) / Var``).
+    ``var`` is set where ``den`` is (the first weighted frame)."""
     rows, cols = codes.shape
     ph, pw = pattern.shape
     top = w_tab.shape[1] - 1  # codes above the table (never valid data) read its last, clipped entry
@@ -957,60 +1031,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, weight, use_weig
             for s in range(q, cols, pw):
                 z = min(codes[r, s], top)
                 w, wv = _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z)
-                _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, keep, per_keep, use_keep)
-
-
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _finish(num, den, pattern, dark_floor, linear, scale, flag):  # pragma: no cover
-    """(7)'s ratio, the fallbacks and flags, in place over ``num``; ``scale > 0``: return
-    ``exp(log E) * scale`` instead of ``log E``."""
-    rows, cols = num.shape
-    ph, pw = pattern.shape
-    nf = dark_floor.shape[0]
-    for r in numba.prange(rows):
-        prow = pattern[r % ph]
-        for s in range(cols):
-            d = den[r, s]
-            f = 0
-            if d > 0:
-                v = num[r, s] / d
-                if linear:
-                    if v > 0:
-                        if scale > 0:
-                            num[r, s] = v * scale
-                            flag[r, s] = 0
-                            continue
-                        v = np.log(v)
-                    else:
-                        v = dark_floor[min(prow[s % pw], nf - 1)]
-                        f = -1
-            else:
-                v = num[r, s]
-                f = 1 if d < 0 else -1
-                den[r, s] = 0.0
-            num[r, s] = np.exp(v) * scale if scale > 0 else v
-            flag[r, s] = f
-
-
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
-                    num, den, var, keep, use_keep):  # pragma: no cover
-    """:func:`_accumulate` with the third accumulator of ``LogMerge(variance=True)``:
-    ``var += w^2 q`` (``q_tab`` the frame's per-code variance of its value), or with
-    ``use_cert`` ``var += q w`` (``q_tab`` the certainty ``w(z)``, ``w`` an IRLS weight
-    ``w(z) / Var``).  ``var`` is set where ``den`` is (the first weighted frame)."""
-    rows, cols = codes.shape
-    ph, pw = pattern.shape
-    top = w_tab.shape[1] - 1
-    per_keep = cols // keep.shape[1] if use_keep else 1
-    for r in numba.prange(rows):
-        prow = pattern[r % ph]
-        for q in range(min(pw, cols)):
-            c = prow[q]
-            for s in range(q, cols, pw):
-                z = min(codes[r, s], top)
-                w, wv = _weight_value(w_tab, num_tab, weight, use_weight, 1, r, s, c, z)
-                if w > 0:  # var follows den, which _add_sample then sets or adds to
+                if use_var and w > 0:  # var follows den, which _add_sample then sets or adds to
                     wq = w * q_tab[c, z] if use_cert else (w * q_tab[c, z]) * w
                     if mode != 0 and den[r, s] > 0:
                         var[r, s] += wq
@@ -1020,8 +1041,11 @@ def _accumulate_var(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weigh
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, flag):  # pragma: no cover
-    """:func:`_finish` plus the variance of the result, in place over ``var``: ``q = var /
+def _finish(num, den, var, use_var, pattern, dark_floor, linear, scale, unmeasured, flag):  # pragma: no cover
+    """(7)'s ratio, the fallbacks and flags, in place over ``num``; ``scale > 0``: return
+    ``exp(log E) * scale`` instead of ``log E``.
+
+    With ``use_var`` also the variance of the result, in place over ``var``: ``q = var /
     den^2`` is the variance of the weighted mean ``num / den`` in the sums' domain; ``log
     E`` (log estimator) or ``E`` (``linear``).  Outputs: with ``scale > 0`` the variance of
     ``E scale``: ``q scale^2`` (linear) or ``(E scale)^2 q`` (from ``log E``, the delta
@@ -1040,15 +1064,18 @@ def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, f
             q = unmeasured
             if d > 0:
                 v = num[r, s] / d
-                q = (var[r, s] / d) / d
+                if use_var:
+                    q = (var[r, s] / d) / d
                 if linear:
                     if v > 0:
                         if scale > 0:
                             num[r, s] = v * scale
-                            var[r, s] = min(q * scale * scale, big)
+                            if use_var:
+                                var[r, s] = min(q * scale * scale, big)
                             flag[r, s] = 0
                             continue
-                        q = min((q / v) / v, big)
+                        if use_var:
+                            q = min((q / v) / v, big)
                         v = np.log(v)
                     else:
                         v = dark_floor[min(prow[s % pw], nf - 1)]
@@ -1061,8 +1088,10 @@ def _finish_var(num, den, var, pattern, dark_floor, linear, scale, unmeasured, f
             if scale > 0:
                 e = np.exp(v) * scale
                 num[r, s] = e
-                var[r, s] = min((e * e) * q, big)
+                if use_var:
+                    var[r, s] = min((e * e) * q, big)
             else:
                 num[r, s] = v
-                var[r, s] = q
+                if use_var:
+                    var[r, s] = q
             flag[r, s] = f

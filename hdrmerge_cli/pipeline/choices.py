@@ -12,19 +12,18 @@ The runner (:mod:`hdrmerge_cli.pipeline.run`) calls each after the stage whose r
 reads; no stage reads an ``auto``."""
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
-from hdrmerge_cli.core.reconstruct import exposure_tables, table_size
+from hdrmerge_cli.core.noise import NoiseParams
+from hdrmerge_cli.core.reconstruct import exposure_tables, prior_rate_of
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.luts import read_luts
@@ -116,8 +115,8 @@ def choose_alignment(found: Alignment, align: str) -> Alignment:
     :data:`AUTO_ALIGN_PX`, and the motion is ``translation`` when no frame's rotation beat
     its translation; a RAW bracket moved by translation only is moved by whole CFA periods
     (``translation``, or ``auto`` where :func:`whole_periods_suffice`; applied then only if
-    some period moves), else resampled colour by colour.  Returns ``found`` with
-    ``mode``, ``motion``, ``resampling``, ``applied`` and its ``decision``."""
+    some period moves), else resampled colour by colour.  Sets on ``found`` its ``mode``,
+    ``motion``, ``resampling``, ``applied`` and ``decision``, and returns it."""
     warps, raw, auto = found.warps, found.frames[0].kind == "raw", align == "auto"
     motion = found.motion
     if auto and not any(abs(w[1, 0]) > 1e-9 for w in warps):
@@ -136,9 +135,9 @@ def choose_alignment(found: Alignment, align: str) -> Alignment:
     else:
         reason = (f"every frame is within {AUTO_ALIGN_PX} px of the reference" if largest <= AUTO_ALIGN_PX
                   else "no frame moves by a whole CFA period")
-    decision = Decision(bool(applied), auto, reason, largest, AUTO_ALIGN_PX if auto else None)
-    return dataclasses.replace(found, mode=align, motion=motion, resampling=resampling, applied=bool(applied),
-                               decision=decision)
+    found.mode, found.motion, found.resampling, found.applied = align, motion, resampling, bool(applied)
+    found.decision = Decision(bool(applied), auto, reason, largest, AUTO_ALIGN_PX if auto else None)
+    return found
 
 
 # ---------------------------------------------------------------- deghosting
@@ -150,14 +149,16 @@ AUTO_DEGHOST_FRACTION = 0.002
 def choose_deghost(found: Ghosts, mode: str) -> Ghosts:
     """``--deghost``: ``on`` applies the masks found; ``auto`` only when some frame has more
     than :data:`AUTO_DEGHOST_FRACTION` of its blocks rejected (fewer are the test's false
-    alarms at its rate).  Returns ``found`` with ``mode``, ``applied`` and its ``decision``."""
+    alarms at its rate).  Sets on ``found`` its ``mode``, ``applied`` and ``decision``, and
+    returns it."""
     largest, auto = found.largest, mode == "auto"
     applied = not auto or largest > AUTO_DEGHOST_FRACTION
     reason = ("--deghost on given" if not auto else
               f"a frame has {100 * largest:.2f} % of its blocks rejected, "
               f"{'more' if applied else 'no more'} than {100 * AUTO_DEGHOST_FRACTION:g} %")
-    decision = Decision(bool(applied), auto, reason, largest, AUTO_DEGHOST_FRACTION if auto else None)
-    return dataclasses.replace(found, mode=mode, applied=bool(applied), decision=decision)
+    found.mode, found.applied = mode, bool(applied)
+    found.decision = Decision(bool(applied), auto, reason, largest, AUTO_DEGHOST_FRACTION if auto else None)
+    return found
 
 
 # ---------------------------------------------------------------- the models
@@ -170,6 +171,8 @@ class Models:
     tables : per frame, the :class:`~hdrmerge_cli.core.reconstruct.ExposureTables` of (7)
     pattern : the periodic table row of each sample (None: one row serves all)
     table_channels : the tables' row names (``R``, ``G``, ``B``, ``G2`` ...)
+    row_noise : per frame (in the order of ``tables``) the noise of each table row, as the
+        tables and the re-weighting passes use it; None without a noise model
     noise : per channel :class:`NoiseParams` in code units, or None; where the frames'
         noise differs (ISOs), that of the reference (first) frame
     frame_noise : per frame (in the order of ``tables``) its own per channel noise, where
@@ -190,6 +193,7 @@ class Models:
     tables: list
     pattern: np.ndarray | None
     table_channels: list[str]
+    row_noise: list[list[NoiseParams]] | None = None
     excess: object = None  # core.excess_variance.ExcessVariance of a camera-processed bracket, or None
     frame_noise: list[dict[str, NoiseParams]] | None = None
     #: the estimator, weights, variance and irls decisions (:func:`model_decisions`)
@@ -248,8 +252,12 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
     own, frames of several ISOs) and the variance beyond the noise model of a
     camera-processed bracket (``excess``, :mod:`hdrmerge_cli.pipeline.excess`: it picks the
     estimator, and the ML estimator's variance holds it); then the per-frame tables of (7)
-    (``load``: the frames' codes, for the prior; ``pattern``: the bracket's
-    :func:`~hdrmerge_cli.io.metadata.sample_pattern`).  The log estimator keeps the fixed
+    (:func:`~hdrmerge_cli.core.reconstruct.exposure_tables`, one table row per channel unless
+    every frame shares one: ``pattern``, the bracket's
+    :func:`~hdrmerge_cli.io.metadata.sample_pattern`, says which row a sample reads),
+    from the response's inverse at each frame's codes and the noise per row, and the
+    irradiance prior of the noise-model weights from the middle frame's codes (``load``).
+    The log estimator keeps the fixed
     :data:`~hdrmerge_cli.core.reconstruct.MODEL_TOLERANCE`: on the real brackets'
     leave-one-out the measured excess in its place did not lower the error
     (benchmarks/results/real_loo.md).  The tables' seconds go to ``timings["tables"]``."""
@@ -261,22 +269,39 @@ def choose_models(frames: list[Frame], exposures: np.ndarray, crf: CRF, settings
     if settings.irls and not noise:
         raise HdrMergeError("--irls needs noise parameters (--noise or --profile)")
     t0 = time.perf_counter()
-    prior = prior_rate(frames, exposures, crf, load) if weights in NOISE_MODEL_WEIGHTS and not settings.lut else None
-    luts = lut_columns(settings.lut, frames) if settings.lut else None
+    first, luts = frames[0], lut_columns(settings.lut, frames) if settings.lut else None
+    sizes = [f.n_codes if luts else table_size(f.white, f.n_codes) for f in frames]
+    mid = len(frames) // 2
+    mid_codes = load(frames[mid]) if weights in NOISE_MODEL_WEIGHTS and not settings.lut else None
+    names = first.channel_names  # the noise per channel, then the table rows (one when every frame shares it)
+    chan_noise = [per_channel(n, names) for n in frame_noise] if frame_noise else (
+        [per_channel(noise, names)] * len(frames) if noise else None)
+    shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
+    shared &= crf.table is None or crf.table.shape[0] == 1
+    shared &= chan_noise is None or all(p == c[0] for c in chan_noise for p in c)
+    shared &= luts is None or luts[0].shape[0] == 1
+    rows = 1 if shared else len(first.black)
+    inverses = [crf.at_codes(n, f.black[:rows], f.white[:rows]) for f, n in zip(frames, sizes)]
+    black, white = float(frames[mid].black[0]), float(frames[mid].white[0])
+    mid_inverse = None if mid_codes is None or first.kind == "raw" else crf.at_codes(
+        int(white) + 1, np.broadcast_to(black, (mid_codes.size // (mid_codes.shape[0] * mid_codes.shape[1]),)), white)
+    prior = None if mid_codes is None else prior_rate_of(mid_codes, black, white, exposures[mid], mid_inverse,
+                                                         frames[mid].path)
     bounds = parse_bounds(settings.bounds) if settings.bounds else None
-    tables, pattern, table_channels = build_tables(frames, exposures, crf, weights, noise, variance, prior, settings.k,
-                                                   estimator, luts, bounds,
-                                                   with_variance=with_variance and not n_irls,
-                                                   excess=excess if estimator == "ml" else None,
-                                                   frame_noise=frame_noise, pattern=pattern)
+    row_noise = None if chan_noise is None else [c[:rows] for c in chan_noise]
+    tables = [exposure_tables(inv, weights, h, None if row_noise is None else row_noise[j], variance, prior,
+                              tuple(exposures), settings.k, certainty=None if luts is None else luts[j],
+                              estimator=estimator, bounds=bounds, with_variance=with_variance and not n_irls,
+                              excess=excess if estimator == "ml" else None)
+              for j, (inv, h) in enumerate(zip(inverses, exposures))]
     timings["tables"] = time.perf_counter() - t0
     if settings.lut:  # the table's weights are the merge's, whatever --weights says
         if settings.weights != "auto":
             log.warning("--weights %s is not used: --lut %s gives the weights", settings.weights, settings.lut)
         weights = f"lut:{Path(settings.lut).name}"
         decisions["weights"] = Decision(weights, False, f"--lut {settings.lut} gives the weights")
-    return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables, pattern,
-                  table_channels, excess, frame_noise, decisions)
+    return Models(estimator, weights, variance, n_irls, noise, estimated, prior, bounds, tables,
+                  None if shared else pattern, names[:rows], row_noise, excess, frame_noise, decisions)
 
 
 def model_decisions(settings: MergeSettings, frame: Frame, crf: CRF, noise, excess) -> dict[str, Decision]:
@@ -364,33 +389,14 @@ def default_irls(estimator: str, noise, lut: bool = False) -> int:
 
 def prior_rate(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes) -> float:
     """Mean of the exponential irradiance prior (code values per second), estimated from
-    the middle frame (the paper assumes it known); see :func:`prior_rate_of`."""
+    the middle frame (the paper assumes it known); see
+    :func:`~hdrmerge_cli.core.reconstruct.prior_rate_of`."""
     k = len(frames) // 2
-    f = frames[k]
-    return prior_rate_of(load(f), float(f.black[0]), float(f.white[0]), exposures[k], crf, f.kind == "raw",
-                         f.path)
-
-
-#: samples of the middle frame that estimate the prior's mean
-PRIOR_SAMPLES = 1 << 18
-
-
-def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float, crf: CRF, raw: bool,
-                  name: str = "the middle frame") -> float:
-    """The prior's mean from one frame's unclipped samples: the mean linear signal (code
-    values) per second over an even subsample of at most :data:`PRIOR_SAMPLES` samples.
-
-    codes : (H, W) mosaic (``raw``) or (H, W, C) image of the frame of exposure ``exposure`` s
-    """
-    full = white - black
-    step = max(1, codes.shape[0] * codes.shape[1] // PRIOR_SAMPLES)
-    sub = codes.reshape(codes.shape[0] * codes.shape[1], -1)[::step]
-    lin = np.clip((sub - black) / full, 0, 1) if raw else crf.linear(sub, int(white) + 1, black, white)
-    ok = (lin > 0) & (lin < 1)
-    if not np.any(ok):
-        what = "black" if np.all(lin <= 0) else "clipped" if np.all(lin >= 1) else "black or clipped"
-        raise HdrMergeError(f"{name}: every sample is {what}; cannot estimate the irradiance prior")
-    return float(np.mean(lin[ok]) * full / exposure)
+    f, codes = frames[k], load(frames[k])
+    black, white = float(f.black[0]), float(f.white[0])
+    inverse = None if f.kind == "raw" else crf.at_codes(
+        int(white) + 1, np.broadcast_to(black, (codes.size // (codes.shape[0] * codes.shape[1]),)), white)
+    return prior_rate_of(codes, black, white, exposures[k], inverse, f.path)
 
 
 #: why a mosaic RAW bracket takes no weight table
@@ -420,38 +426,9 @@ def lut_columns(path: str, frames: list[Frame]) -> list[np.ndarray]:
     return columns
 
 
-class Tables(NamedTuple):
-    """What :func:`build_tables` returns: per frame its
-    :class:`~hdrmerge_cli.core.reconstruct.ExposureTables`, the periodic pattern of table
-    rows (see :class:`LogMerge`; None when one row serves every channel) and the rows'
-    channel names."""
-
-    tables: list
-    pattern: np.ndarray | None
-    channels: list[str]
-
-
-def build_tables(frames, exposures, crf, weights, noise=None, variance="none", prior=None, k=DEFAULT_K, estimator="log",
-                 luts=None, bounds=None, with_variance=False, excess=None, frame_noise=None, pattern=None) -> Tables:
-    """Per-frame lookup tables (each frame with its own black and white levels), as
-    :class:`Tables`.  ``with_variance``: the tables also hold
-    each frame's per-code variance (``--extra-channels variance``, streamed by :class:`LogMerge`).
-    ``frame_noise``: per frame its own {channel: NoiseParams} (frames of several ISOs),
-    instead of ``noise`` for all."""
-    first = frames[0]
-    names = first.channel_names
-    chan_noise = [per_channel(n, names) for n in frame_noise] if frame_noise else (
-        [per_channel(noise, names)] * len(frames) if noise else None)
-    shared = all(np.all(f.black == f.black[0]) and np.all(f.white == f.white[0]) for f in frames)
-    shared &= crf.table is None or crf.table.shape[0] == 1
-    shared &= chan_noise is None or all(p == c[0] for c in chan_noise for p in c)
-    shared &= luts is None or luts[0].shape[0] == 1
-    rows = 1 if shared else len(first.black)
-    names = names[:rows]
-    tables = [exposure_tables(f.n_codes if luts else table_size(f.white, f.n_codes),
-                              f.black[:rows], f.white[:rows], crf, weights, h,
-                              chan_noise[j][:rows] if chan_noise else None, variance, prior,
-                              tuple(exposures), k, certainty=None if luts is None else luts[j], estimator=estimator,
-                              bounds=bounds, with_variance=with_variance, excess=excess)
-              for j, (f, h) in enumerate(zip(frames, exposures))]
-    return Tables(tables, None if shared else pattern, names)
+def table_size(white, n_codes: int) -> int:
+    """Entries of a frame's lookup tables: the smallest power of two above every white
+    level (a 14-bit RAW in a uint16 container needs 16384, not 65536), at most the
+    container's ``n_codes``.  Stored codes above it are clipped codes and read the table's
+    last (clipped) entry."""
+    return min(int(2 ** np.ceil(np.log2(float(np.max(white)) + 1))), n_codes)

@@ -1,6 +1,8 @@
-"""The merge stage: the frames' held codes through (7), strip by strip, then re-weighting
-at the merged estimate (:func:`reconstruct`); and the checks after it (the output type's
-range, samples no frame measured, frames of equal exposure that disagree)."""
+"""The merge stage: the frames' held codes through (7) and re-weighting at the merged
+estimate, strip by strip (:func:`reconstruct`, one call of
+:func:`~hdrmerge_cli.core.reconstruct.merge`); and the checks after it, which read its
+result (the output type's range, samples no frame measured, frames of equal exposure that
+disagree)."""
 from __future__ import annotations
 
 import logging
@@ -14,67 +16,71 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core import resample
-from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, STRIP_ROWS, LogMerge, irls, noise_rows
+from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, Reconstruction, merge
 from hdrmerge_cli.io.frames import Frame
 from hdrmerge_cli.io.metadata import fmt_time
-from hdrmerge_cli.io.noisespec import per_channel
 
 log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.choices import Models
+    from hdrmerge_cli.pipeline.bracket import Bracket
 
 
 @dataclass
-class Reconstruction:
-    """What :func:`reconstruct` returns, per sample of the frames (a RAW mosaic ``(H, W)``,
-    an image ``(H, W, C)``).
+class Merge:
+    """What :func:`reconstruct` returns.
 
-    result : float32, ``E * h_ref``: scene-linear, 1.0 = the full-scale signal of an
-        exposure of ``h_ref`` seconds
-    flags : int8, 0, ``FLAG_DARK`` (below every frame's noise floor: an upper bound) or
-        ``FLAG_SATURATED`` (clipped in every frame: a lower bound)
-    den : float32, the summed weights of the frames that measured each sample
-    variance : float32 like ``result``, its variance under the noise model, or None
-    iterations : the re-weighting passes run
+    reconstruction : the merged samples (:class:`~hdrmerge_cli.core.reconstruct.Reconstruction`)
+    repeats : the comparisons of frames of equal exposure (:func:`check_repeats`), for ``--json``
     """
 
-    result: np.ndarray
-    flags: np.ndarray
-    den: np.ndarray
-    variance: np.ndarray | None = None
-    iterations: int = 0
+    reconstruction: Reconstruction
+    repeats: list[dict]
 
 
-def reconstruct(frames: list[Frame], exposures: np.ndarray, h_ref: float, models: Models, load, weights_of,
-                timings: dict, with_variance: bool = False) -> Reconstruction:
-    """The frames through (7) (:func:`_first_pass`), then ``models.n_irls`` passes of
-    re-weighting at the merged estimate (:func:`~hdrmerge_cli.core.reconstruct.irls`), both
-    reading the frames' held codes (``load``), with the per-sample weights ``weights_of``
-    (:class:`~hdrmerge_cli.pipeline.merge.SampleWeights`, or None); the variance of
-    ``E * h_ref`` with ``with_variance``.  The stages' seconds are added to ``timings``."""
-    ml = models.estimator == "ml"
-    # without IRLS the first pass returns the linear image directly
-    first = _first_pass(frames, models.tables, models.pattern, ml, None if models.n_irls else h_ref, load, weights_of,
-                        with_variance and not models.n_irls, timings)
-    if not models.n_irls:
-        return first
+def reconstruct(b: Bracket, load, validity: list, half: bool, reference: str, with_variance: bool = False) -> Merge:
+    """The merge of the bracket ``b`` with its models (``b.models``): each frame's codes
+    decoded once (``load``: the merge's loader, an
+    :class:`~hdrmerge_cli.pipeline.register.AlignedLoader` when it keeps the resampling's
+    spreads), weighted per sample where frames moved, are transparent or hold ghosts
+    (:func:`sample_weights`; ``validity``:
+    :func:`~hdrmerge_cli.pipeline.register.frame_validity`), through (7) and the models'
+    re-weighting passes in one strip loop (:func:`~hdrmerge_cli.core.reconstruct.merge`),
+    the variance of ``E * h_ref`` with ``with_variance``; then the checks on its result:
+    the output type's range (``half``, ``reference``: :func:`check_range`), samples no
+    frame measured, and frames of equal exposure.  The stages' seconds go to ``b.timings``."""
+    frames, models = b.frames, b.models
+    watching, repeats = watch_repeats(load, frames, b.repeats)
+    weights = sample_weights(models.tables, models.pattern, frames, b.ghosts, b.alignment, load, validity)
     t0 = time.perf_counter()
-    maps = [noise_rows(per_channel(n, models.table_channels))
-            for n in models.frame_noise or [models.noise] * len(frames)]
-    y_full = [float(f.white[0] - f.black[0]) for f in frames]
-    result, den = first.result, first.den  # IRLS makes its own flags; it writes over the estimate and weights
-    del first
-    it = irls(lambda k: load(frames[k]), models.tables, models.pattern, result, exposures, y_full, maps, ml,
-              models.n_irls, variance=with_variance, adjust=None if weights_of is None else weights_of.adjust, den=den)
-    log.info("IRLS: %d passes, largest change of the last %.2e", it.passes, it.change)
-    result = np.exp(it.log_e, out=it.log_e)
-    result *= np.float32(h_ref)
-    variance = it.variance
-    if variance is not None:  # Var(E h_ref) = (E h_ref)^2 Var(log E), the delta method
-        variance *= result * result
-    timings["irls"] = time.perf_counter() - t0
-    return Reconstruction(result, it.flags, it.den, variance, it.passes)
+    codes = _decode(frames, watching)
+    decoded = time.perf_counter() - t0
+    rec = merge(codes, models.tables, models.pattern, models.estimator == "ml", b.h_ref, weights, with_variance,
+                models.n_irls, models.row_noise, b.exposures, [float(f.white[0] - f.black[0]) for f in frames],
+                None if weights is None else weights.adjust)
+    total = time.perf_counter() - t0 - rec.irls_seconds
+    b.timings.update(decode=decoded, merge=total - decoded, decode_and_merge_wall=total)
+    if models.n_irls:
+        b.timings["irls"] = rec.irls_seconds
+        log.info("IRLS: %d passes, largest change of the last %.2e", rec.iterations, rec.change)
+    check_range(rec, half, reference, b.h_ref, b.exposures, b.crf)
+    warn_unmeasured(frames, rec.result, rec.flags)
+    return Merge(rec, check_repeats(repeats, frames, b.crf))
+
+
+def _decode(frames: list[Frame], load) -> list[np.ndarray]:
+    """Every frame's codes (``load``: held, or resampled on first use), two frames at a
+    time; a frame whose decoded size is not its metadata's fails."""
+    shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
+
+    def decode(frame):
+        codes = load(frame)
+        if codes.shape != shape:
+            raise HdrMergeError(f"{frame.path}: decoded size {codes.shape} differs from the metadata {shape}")
+        return codes
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return list(pool.map(decode, frames))
 
 
 # ---------------------------------------------------------------- per-sample weights
@@ -95,7 +101,7 @@ def sample_weights(tables, pattern, frames: list[Frame], ghosts, alignment, load
 class SampleWeights:
     """``(k, codes) -> weights`` of frame ``k`` for the merge (see :meth:`LogMerge.add`):
     its table weight ``w(z) sigma^-2`` through :meth:`adjust`, which also re-weights the
-    IRLS passes (:func:`~hdrmerge_cli.core.reconstruct.irls`)."""
+    re-weighting passes (:func:`~hdrmerge_cli.core.reconstruct.reweight`)."""
 
     def __init__(self, tables, pattern, frames, ghosts, alignment, load, validity=None):
         self.tables, self.pattern, self.frames = tables, pattern, frames
@@ -273,17 +279,15 @@ def check_repeats(repeats: Repeats, frames: list[Frame], crf: CRF) -> list[dict]
 OUTPUT_RANGE = {True: (65504.0, 6.1e-5), False: (3.4e38, 1.2e-38)}
 
 
-def check_range(result: np.ndarray, half: bool, reference: str, h_ref: float, exposures: np.ndarray,
+def check_range(rec: Reconstruction, half: bool, reference: str, h_ref: float, exposures: np.ndarray,
                 crf: CRF) -> None:
     """Refuse a result that the output type cannot hold (instead of writing clamped values
     or a mostly zero image): values above its largest finite value, or a median below its
-    smallest normal value.  The scale is set by ``--reference`` (any of the
+    smallest normal value (``rec.peak``, ``rec.median``).  The scale is set by ``--reference`` (any of the
     ``exposures``), so the error names it where another reference would fit, and the
     response (``crf``) where none would."""
     top, tiny = OUTPUT_RANGE[half]
-    peak = float(np.max(result, initial=0.0))
-    flat = result.reshape(-1)
-    median = float(np.median(flat[::max(1, flat.size // 100_000)]))
+    peak, median = rec.peak, rec.median
     kind = "half" if half else "float"
     drop = " or drop --half" if half else ""
     low, high = float(np.min(exposures)) / h_ref, float(np.max(exposures)) / h_ref  # the rescaling any reference gives
@@ -319,44 +323,3 @@ def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) 
         log.warning("%s: no pixel is measured in any frame (%.1f %% read black in every frame, %.1f %% are clipped in "
                     "every frame); the output holds only bounds, not measurements", where,
                     100 * dark / flags.size, 100 * saturated / flags.size)
-
-
-# ---------------------------------------------------------------- the first pass
-def _first_pass(frames, tables, pattern, linear, scale, load, weights_of, variance, timings: dict) -> Reconstruction:
-    """(7) over the frames' codes (``load``: held, or resampled on first use, two frames at
-    a time), in strips of :data:`~hdrmerge_cli.core.reconstruct.STRIP_ROWS` rows of
-    every frame: the sums, and the per-sample weights of moved or deghosted frames
-    (``weights_of(k, codes, rows)``), are strip-sized.  Returns a :class:`Reconstruction`
-    whose result is ``log E``, or ``E * scale`` when ``scale`` is given (see
-    :meth:`LogMerge.finish`), with ``variance`` its variance (:attr:`LogMerge.variance`);
-    the seconds of decoding and merging go to ``timings``."""
-    shape = (frames[0].height, frames[0].width) + (() if frames[0].kind == "raw" else (frames[0].channels,))
-
-    def decode(frame):
-        codes = load(frame)
-        if codes.shape != shape:
-            raise HdrMergeError(f"{frame.path}: decoded size {codes.shape} differs from the metadata {shape}")
-        return codes
-
-    t_start = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        codes = list(pool.map(decode, frames))
-    decode_time = time.perf_counter() - t_start
-    result = np.empty(shape, np.float32)
-    flags = np.empty(shape, np.int8)
-    den = np.empty(shape, np.float32)
-    var = np.empty(shape, np.float32) if variance else None
-    height, last = shape[0], len(frames) - 1
-    for r0 in range(0, height, STRIP_ROWS):
-        part = slice(r0, min(height, r0 + STRIP_ROWS))
-        acc = LogMerge(result[part].shape, pattern, variance=variance)
-        for k, z in enumerate(codes):
-            weight, factor = (None, None) if weights_of is None else weights_of(k, z[part], part)
-            acc.add(z[part], tables[k], last=k == last, weight=weight, factor=factor)
-        result[part], flags[part] = acc.finish(linear, scale)
-        den[part] = acc.den
-        if variance:
-            var[part] = acc.variance
-    total = time.perf_counter() - t_start
-    timings.update(decode=decode_time, merge=total - decode_time, decode_and_merge_wall=total)
-    return Reconstruction(result, flags, den, var)

@@ -17,7 +17,7 @@ The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Py
    frames (:mod:`~hdrmerge_cli.pipeline.excess`), then the automatic choices and the
    weights' tables (:func:`~hdrmerge_cli.pipeline.choices.choose_models`);
 6. ghosts, and whether they are dropped (:func:`deghost`);
-7. merge: the held codes through (7), then re-weighting in strips
+7. merge: the held codes through (7) and re-weighting, in one strip loop
    (:func:`~hdrmerge_cli.pipeline.merge.reconstruct`), and the checks after it;
 8. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
 """
@@ -33,7 +33,6 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
-from hdrmerge_cli.core.reconstruct import neutral_bounds
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.images import exr_compression
@@ -46,9 +45,7 @@ from hdrmerge_cli.pipeline.choices import (
 from hdrmerge_cli.pipeline.excess import measure_excess
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.ghosts import Ghosts, find_ghosts, require_noise
-from hdrmerge_cli.pipeline.merge import (
-    check_range, check_repeats, reconstruct, sample_weights, warn_unmeasured, watch_repeats,
-)
+from hdrmerge_cli.pipeline.merge import reconstruct
 from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
@@ -213,15 +210,8 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
                            settings.deghost)
         timings["deghost"] = time.perf_counter() - t1
     validity = frame_validity(b.frames, b.alignment, b.codes)
-    load, repeats = watch_repeats(aligned, b.frames, b.repeats)
-    rec = reconstruct(b.frames, b.exposures, b.h_ref, b.models, load,
-                      sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment, aligned,
-                                     validity),
-                      timings, "variance" in outputs.extra_channels)
-    check_range(rec.result, outputs.half, settings.reference, b.h_ref, b.exposures, b.crf)
-    neutral_bounds(rec.result, rec.flags)
-    warn_unmeasured(b.frames, rec.result, rec.flags)
-    return Merged(b, rec, opts, b.h_ref, b.orientation, check_repeats(repeats, b.frames, b.crf),
+    merged = reconstruct(b, aligned, validity, outputs.half, settings.reference, with_variance)
+    return Merged(b, merged.reconstruction, opts, b.h_ref, b.orientation, merged.repeats,
                   output_alpha(b.frames, validity))
 
 
