@@ -259,20 +259,17 @@ def block_size(h: int, w: int) -> int:
     return max(1, int(np.ceil(np.sqrt(h * w / CELL_TARGET))))
 
 
-def _planes(codes: np.ndarray, pattern: np.ndarray) -> list[np.ndarray]:
-    """The 2-D planes of a frame's codes, in the order of ``pattern.ravel()``: an image's
-    ``(H, W, C)`` channels, or the positions of a mosaic's ``(H, W)`` periodic ``pattern``
-    (one plane per position, one sample per period)."""
-    if codes.ndim == 3:
-        return [codes[..., c] for c in range(codes.shape[-1])]
-    ph, pw = pattern.shape
-    return [codes[dy::ph, dx::pw] for dy in range(ph) for dx in range(pw)]
-
-
-def _block_estimates(planes: list[np.ndarray], tables: list[CodeTable], b: int) -> Blocks:
-    """One frame's :class:`Blocks` ``(h, w, C)`` (:func:`block_statistics` of each plane
-    through its table), every block ``steady`` (:func:`_untruncated` narrows that for
+def _block_estimates(codes: np.ndarray, pattern: np.ndarray, tables: list[CodeTable], b: int) -> Blocks:
+    """One frame's :class:`Blocks` ``(h, w, C)``: :func:`block_statistics` of each plane of
+    its codes through its table, the planes in the order of ``pattern.ravel()`` (an image's
+    ``(H, W, C)`` channels, or the positions of a mosaic's ``(H, W)`` periodic ``pattern``,
+    one sample per period); every block ``steady`` (:func:`_untruncated` narrows that for
     linear data)."""
+    if codes.ndim == 3:
+        planes = [codes[..., c] for c in range(codes.shape[-1])]
+    else:
+        ph, pw = pattern.shape
+        planes = [codes[dy::ph, dx::pw] for dy in range(ph) for dx in range(pw)]
     shape = (planes[0].shape[0] // b, planes[0].shape[1] // b, len(planes))
     x, s, bound = (np.empty(shape, np.float32) for _ in range(3))
     ok = np.empty(shape, bool)
@@ -1010,15 +1007,15 @@ def ghost_masks(codes_of: Callable[[int], np.ndarray], lin: list[np.ndarray], bl
     per_px = pattern.shape[0]  # pixels per cell side of the planes
     b = block_size(size[0] // per_px, size[1] // per_px)
     tables = [frame_tables(t, lo, hi, e, noise, params.linear) for t, lo, hi, e in zip(lin, black, white, exposures)]
-    rows = [int(r) for r in pattern.ravel()]  # the table row of each plane (:func:`_planes`)
+    rows = [int(r) for r in pattern.ravel()]  # the table row of each plane (:func:`_block_estimates`)
     one_at_a_time = threading.Lock()  # Numba's workqueue layer runs one parallel kernel at a time
 
     def estimate(k: int) -> Blocks:
-        planes = [tables[k][r] for r in rows]
+        by_plane = [tables[k][r] for r in rows]
         with one_at_a_time:
-            blocks = _block_estimates(_planes(codes_of(k), pattern), planes, b)
+            blocks = _block_estimates(codes_of(k), pattern, by_plane, b)
         if params.linear:
-            blocks = blocks._replace(steady=_untruncated(blocks, planes, b) & blocks.ok)
+            blocks = blocks._replace(steady=_untruncated(blocks, by_plane, b) & blocks.ok)
         return blocks
 
     anchor = build_anchor(estimate, exposures, ref, params, b * per_px, lin_hi)

@@ -150,14 +150,16 @@ AUTO_DEGHOST_FRACTION = 0.002
 def choose_deghost(found: Ghosts, mode: str) -> Ghosts:
     """``--deghost``: ``on`` applies the masks found; ``auto`` only when some frame has more
     than :data:`AUTO_DEGHOST_FRACTION` of its blocks rejected (fewer are the test's false
-    alarms at its rate).  Returns ``found`` with ``mode``, ``applied`` and its ``decision``."""
+    alarms at its rate).  Records ``mode``, ``applied`` and its ``decision`` on ``found``
+    (the stage's result, which nothing else holds yet) and returns it."""
     largest, auto = found.largest, mode == "auto"
     applied = not auto or largest > AUTO_DEGHOST_FRACTION
     reason = ("--deghost on given" if not auto else
               f"a frame has {100 * largest:.2f} % of its blocks rejected, "
               f"{'more' if applied else 'no more'} than {100 * AUTO_DEGHOST_FRACTION:g} %")
     decision = Decision(bool(applied), auto, reason, largest, AUTO_DEGHOST_FRACTION if auto else None)
-    return dataclasses.replace(found, mode=mode, applied=bool(applied), decision=decision)
+    found.mode, found.applied, found.decision = mode, bool(applied), decision
+    return found
 
 
 # ---------------------------------------------------------------- the models
