@@ -207,14 +207,13 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
                              pattern=b.pattern, with_variance=with_variance, timings=timings)
     b.samples = None  # no stage reads the samples after the choices
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
-    aligned = loader(b.alignment, b.codes)
+    aligned, validity = loader(b.alignment, b.codes), frame_validity(b.frames, b.alignment, b.codes)
     if settings.deghost != "off":  # the ghosts found, whether they are applied, and its log line
         t1 = time.perf_counter()
         found = find_ghosts(b.frames, b.exposures, b.pattern, b.crf, b.models.noise, aligned)
         b.ghosts = choose_deghost(found, settings.deghost)
         b.ghosts.report()
         timings["deghost"] = time.perf_counter() - t1
-    validity = frame_validity(b.frames, b.alignment, b.codes)
     load, repeats = watch_repeats(aligned, b.frames, b.repeats)
     rec = reconstruct(b.frames, b.exposures, b.h_ref, b.models, load,
                       sample_weights(b.models.tables, b.models.pattern, b.frames, b.ghosts, b.alignment, aligned,
