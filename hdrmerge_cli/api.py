@@ -600,10 +600,12 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
     >>> masks.shape, float(masks[2, 45, 60]), float(masks[2, 5, 5]), float(masks[0].max())
     ((3, 96, 128), 1.0, 0.0, 0.0)
     """
-    from hdrmerge_cli.pipeline.ghosts import require_noise
+    from hdrmerge_cli.io.metadata import sample_pattern
+    from hdrmerge_cli.pipeline.choices import choose_deghost
+    from hdrmerge_cli.pipeline.ghosts import find_ghosts
     from hdrmerge_cli.pipeline.options import ALIGN_MODES
     from hdrmerge_cli.pipeline.register import loader
-    from hdrmerge_cli.pipeline.run import align as align_frames, deghost
+    from hdrmerge_cli.pipeline.run import align as align_frames
 
     _choice("mode", mode, ("on", "auto"))
     _choice("align", align, ALIGN_MODES)
@@ -616,7 +618,8 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
         params, _ = measure_noise(st.frames, crf, st.load, cache=False)
     alignment = align_frames(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
     load = loader(alignment, st.load)
-    ghosts = deghost(st.frames, st.exposures, crf, require_noise(params, st.frames), load, mode)
+    ghosts = choose_deghost(find_ghosts(st.frames, st.exposures, sample_pattern(st.frames[0]), crf, params, load), mode)
+    ghosts.report()
     h, w = st.frames[0].height, st.frames[0].width
     masks = np.zeros((len(st.frames), h, w), np.float32)
     if ghosts.applied:

@@ -89,11 +89,14 @@ def _gamma_bracket(rng, h=160, w=200, step=2.3, paint=None, curve=None):
 
 def _ghosts_of(frames, codes, times, mode="on", crf=None, params=None):
     from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.pipeline.run import deghost
+    from hdrmerge_cli.io.metadata import sample_pattern
+    from hdrmerge_cli.pipeline.choices import choose_deghost
+    from hdrmerge_cli.pipeline.ghosts import find_ghosts
 
     load = {f.path: c for f, c in zip(frames, codes)}
-    return deghost(frames, np.asarray(times), crf or CRF("gamma", 2.2), None, lambda f: load[f.path], mode,
-                   params=params)
+    found = find_ghosts(frames, np.asarray(times), sample_pattern(frames[0]), crf or CRF("gamma", 2.2), None,
+                        lambda f: load[f.path], params)
+    return choose_deghost(found, mode)
 
 
 # ---------------------------------------------------------------- static JPEG brackets

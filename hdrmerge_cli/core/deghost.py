@@ -24,6 +24,7 @@ linear mosaics, :data:`IMAGE_PARAMS` for processed images.
 """
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
@@ -152,6 +153,21 @@ def ghost_tables(n_codes: int, black: float, white: float, lin: np.ndarray, expo
     return CodeTable(lin / exposure, var / exposure**2, valid)
 
 
+def frame_tables(lin: np.ndarray, black: np.ndarray, white: np.ndarray, exposure: float,
+                 noise: list[NoiseParams] | None, footroom: bool) -> list[CodeTable]:
+    """Per channel of one frame, its :func:`ghost_tables` in float32 (``lin`` ``(C, N)``,
+    ``black``, ``white`` ``(C,)``); without ``noise`` (one parameter set per channel, code
+    units), the quantisation of half a code of an 8-bit range (:func:`level_scale`
+    measures the rest on the frames themselves)."""
+    out = []
+    for c in range(len(black)):
+        nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
+            (0.5 * float(white[c] - black[c]) / 255.0) ** 2, 1e-12, 0.0)
+        x_t, s_t, ok_t = ghost_tables(lin.shape[1], black[c], white[c], lin[c], exposure, nz, footroom=footroom)
+        out.append(CodeTable(x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
+    return out
+
+
 def near_white(x: np.ndarray, valid: np.ndarray, exposure: np.ndarray | float, lin_hi: np.ndarray) -> np.ndarray:
     """Per cell, whether an image's readings ``x`` ``(h, w, C)`` (where ``valid``; from
     frames of ``exposure``, a scalar or per reading) reach ``lin_hi`` (linear, full scale
@@ -241,6 +257,40 @@ def block_size(h: int, w: int) -> int:
     """Side (in cells of the frame's own layout) of the blocks the test runs on: the
     smallest giving at most :data:`CELL_TARGET` blocks (1 for small frames)."""
     return max(1, int(np.ceil(np.sqrt(h * w / CELL_TARGET))))
+
+
+def _block_estimates(codes: np.ndarray, pattern: np.ndarray, tables: list[CodeTable], b: int) -> Blocks:
+    """One frame's :class:`Blocks` ``(h, w, C)``: :func:`block_statistics` of each plane of
+    its codes through its table, the planes in the order of ``pattern.ravel()`` (an image's
+    ``(H, W, C)`` channels, or the positions of a mosaic's ``(H, W)`` periodic ``pattern``,
+    one sample per period); every block ``steady`` (:func:`_untruncated` narrows that for
+    linear data)."""
+    if codes.ndim == 3:
+        planes = [codes[..., c] for c in range(codes.shape[-1])]
+    else:
+        ph, pw = pattern.shape
+        planes = [codes[dy::ph, dx::pw] for dy in range(ph) for dx in range(pw)]
+    shape = (planes[0].shape[0] // b, planes[0].shape[1] // b, len(planes))
+    x, s, bound = (np.empty(shape, np.float32) for _ in range(3))
+    ok = np.empty(shape, bool)
+    for c, (plane, table) in enumerate(zip(planes, tables)):
+        block_statistics(plane, table, b, (x[..., c], s[..., c], ok[..., c], bound[..., c]))
+    return Blocks(x, s, ok, bound, ok)
+
+
+def _untruncated(blocks: Blocks, tables: list[CodeTable], b: int) -> np.ndarray:
+    """Where a frame's block readings ``(h, w, C)`` lie more than 3 sample noise deviations
+    inside its measuring range (per channel, the x of its lowest and highest measuring
+    code): there no reading of a block was lost to black or to clipping, which biases the
+    mean of those kept."""
+    x = blocks.x
+    sd = np.sqrt(blocks.s) * np.float32(3 * b)
+    out = np.empty(x.shape, bool)
+    for c, table in enumerate(tables):
+        lo, hi = table.measuring()
+        lo, hi = (table.x[lo], table.x[hi]) if hi >= 0 else (np.inf, -np.inf)
+        out[..., c] = (x[..., c] - sd[..., c] > lo) & (x[..., c] + sd[..., c] < hi)
+    return out
 
 
 def _level_bins(values: np.ndarray, bins: int) -> np.ndarray:
@@ -928,21 +978,55 @@ def frame_mask(a: Anchor, k: int, blocks: Blocks) -> FrameMask:
     return FrameMask(float(bad.mean()), np.rint(soft * 255).astype(np.uint8))
 
 
-def ghost_masks(estimate: Callable[[int], Blocks], exposures: np.ndarray, ref: int, params: DeghostParams,
-                block_px: float, lin_hi: np.ndarray | None = None, workers: int = 1) -> list[FrameMask]:
-    """Every frame's :func:`frame_mask` against one anchor (:func:`build_anchor`, whose
-    arguments these are), in frame order.  ``estimate(k)`` is called twice per frame (for
-    the anchor, then for the test; once for the anchor's last frame), so that only the
-    anchor's estimates are held; ``workers`` frames are tested at a time."""
-    anchor = build_anchor(estimate, exposures, ref, params, block_px, lin_hi)
+class GhostMasks(NamedTuple):
+    """What :func:`ghost_masks` finds: per frame (in order) its :class:`FrameMask`; the side
+    of a block in cells of the frames' planes (:func:`block_size`) and the pixels per cell
+    side (a mosaic's period, 1 for an image)."""
+
+    frames: list[FrameMask]
+    block: int
+    per_px: int
+
+
+def ghost_masks(codes_of: Callable[[int], np.ndarray], lin: list[np.ndarray], black: list[np.ndarray],
+                white: list[np.ndarray], exposures: np.ndarray, noise: list[NoiseParams] | None, pattern: np.ndarray,
+                size: tuple[int, int], ref: int, params: DeghostParams,
+                lin_hi: np.ndarray | None = None) -> GhostMasks:
+    """Every frame's :func:`frame_mask` against one anchor (:func:`build_anchor`), in frame
+    order.  Per frame ``k``: ``codes_of(k)`` its codes (``(H, W)`` mosaic or ``(H, W, C)``
+    image, ``size = (H, W)``), ``lin[k]`` the response's inverse at each code ``(C, N)``,
+    ``black[k]``, ``white[k]`` ``(C,)`` and ``exposures[k]``, tabulated once
+    (:func:`frame_tables`, ``noise`` per channel or None); ``pattern``: the table row of each
+    sample (a mosaic's CFA cell, an image's channels); ``ref``: the reference frame;
+    ``lin_hi``: per channel the linear value of :attr:`DeghostParams.shoulder_code`
+    (images).  ``codes_of(k)`` is called twice per frame (for the anchor, then for the test;
+    once for the anchor's last frame), so that only the anchor's estimates are held; two
+    frames are tested at a time where blocks are larger than a cell (one's test beside the
+    other's estimates; with blocks of one cell a test's temporaries are as large as the
+    frame's samples)."""
+    per_px = pattern.shape[0]  # pixels per cell side of the planes
+    b = block_size(size[0] // per_px, size[1] // per_px)
+    tables = [frame_tables(t, lo, hi, e, noise, params.linear) for t, lo, hi, e in zip(lin, black, white, exposures)]
+    rows = [int(r) for r in pattern.ravel()]  # the table row of each plane (:func:`_block_estimates`)
+    one_at_a_time = threading.Lock()  # Numba's workqueue layer runs one parallel kernel at a time
+
+    def estimate(k: int) -> Blocks:
+        by_plane = [tables[k][r] for r in rows]
+        with one_at_a_time:
+            blocks = _block_estimates(codes_of(k), pattern, by_plane, b)
+        if params.linear:
+            blocks = blocks._replace(steady=_untruncated(blocks, by_plane, b) & blocks.ok)
+        return blocks
+
+    anchor = build_anchor(estimate, exposures, ref, params, b * per_px, lin_hi)
     last, blocks = anchor.last, anchor.last_blocks
     anchor.last_blocks = None  # handed over: its memory goes with its test
 
     def test(k: int, blocks: Blocks | None = None) -> FrameMask:
         return frame_mask(anchor, k, blocks if blocks is not None else estimate(k))
 
-    with ThreadPoolExecutor(workers) as pool:
+    with ThreadPoolExecutor(2 if b > 1 else 1) as pool:
         jobs = {last: pool.submit(test, last, blocks)}
         del blocks
         jobs.update({k: pool.submit(test, k) for k in range(len(exposures)) if k not in jobs})
-        return [jobs[k].result() for k in range(len(exposures))]
+        return GhostMasks([jobs[k].result() for k in range(len(exposures))], b, per_px)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import threading
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -14,7 +13,8 @@ from hdrmerge_cli.core import deghost
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.noise import NoiseParams
 from hdrmerge_cli.io.frames import Frame
-from hdrmerge_cli.io.metadata import of_frame, reference_index, sample_pattern
+from hdrmerge_cli.io.metadata import of_frame, reference_index
+from hdrmerge_cli.io.noisespec import per_channel
 
 if TYPE_CHECKING:
     from hdrmerge_cli.pipeline.choices import Decision
@@ -22,110 +22,33 @@ if TYPE_CHECKING:
 log = logging.getLogger("hdrmerge_cli")
 
 
-def _rows(frame: Frame, pattern: np.ndarray, channels: int) -> list[int]:
-    """The table row of each channel of :func:`_planes`: an image's own channels, or the
-    colours of a RAW mosaic's four CFA positions."""
-    if frame.kind == "raw":
-        return [int(pattern[dy, dx]) for dy in (0, 1) for dx in (0, 1)]
-    return list(range(channels))
-
-
-def _planes(frame: Frame, codes: np.ndarray, pattern: np.ndarray) -> list[tuple[np.ndarray, int]]:
-    """(2-D plane, table row) per channel: an image's channels, or the four CFA positions
-    of a RAW mosaic (one plane per position, one sample per 2 x 2 period)."""
-    if frame.kind == "raw":
-        planes = [codes[dy::2, dx::2] for dy in (0, 1) for dx in (0, 1)]
-    else:
-        codes = codes if codes.ndim == 3 else codes[..., None]
-        planes = [codes[..., c] for c in range(codes.shape[-1])]
-    return list(zip(planes, _rows(frame, pattern, len(planes))))
-
-
-def _block_estimates(frame: Frame, codes: np.ndarray, pattern: np.ndarray, tables: list[deghost.CodeTable],
-                     b: int) -> deghost.Blocks:
-    """One frame's :class:`~hdrmerge_cli.core.deghost.Blocks` ``(h, w, C)``
-    (:func:`~hdrmerge_cli.core.deghost.block_statistics` per channel), every block
-    ``steady`` (:func:`_untruncated` narrows that for linear data)."""
-    planes = _planes(frame, codes, pattern)
-    shape = (planes[0][0].shape[0] // b, planes[0][0].shape[1] // b, len(planes))
-    x, s, bound = (np.empty(shape, np.float32) for _ in range(3))
-    ok = np.empty(shape, bool)
-    for c, (plane, row) in enumerate(planes):
-        deghost.block_statistics(plane, tables[row], b, (x[..., c], s[..., c], ok[..., c], bound[..., c]))
-    return deghost.Blocks(x, s, ok, bound, ok)
-
-
-def _untruncated(blocks: deghost.Blocks, frame: Frame, pattern: np.ndarray, tables: list[deghost.CodeTable],
-                 b: int) -> np.ndarray:
-    """Where a frame's block readings ``(h, w, C)`` lie more than 3 sample noise deviations
-    inside its measuring range (per channel, the x of its lowest and highest measuring
-    code): there no reading of a block was lost to black or to clipping, which biases the
-    mean of those kept."""
-    x = blocks.x
-    sd = np.sqrt(blocks.s) * np.float32(3 * b)
-    out = np.empty(x.shape, bool)
-    for c, row in enumerate(_rows(frame, pattern, x.shape[-1])):
-        lo, hi = tables[row].measuring()
-        lo, hi = (tables[row].x[lo], tables[row].x[hi]) if hi >= 0 else (np.inf, -np.inf)
-        out[..., c] = (x[..., c] - sd[..., c] > lo) & (x[..., c] + sd[..., c] < hi)
-    return out
-
-
-def _ghost_tables(frame: Frame, exposure: float, crf: CRF, noise: list[NoiseParams] | None,
-                  linear: bool) -> list[deghost.CodeTable]:
-    """Per channel of ``frame``, :func:`~hdrmerge_cli.core.deghost.ghost_tables` (float32
-    ``x`` and ``s``); without ``noise``, the quantisation of half a code of an 8-bit range."""
-    lin = crf.codes_table(frame.n_codes, frame.black, frame.white)
-    out = []
-    for c in range(len(frame.black)):
-        nz = noise[min(c, len(noise) - 1)] if noise else NoiseParams(
-            (0.5 * float(frame.white[c] - frame.black[c]) / 255.0) ** 2, 1e-12, 0.0)
-        x_t, s_t, ok_t = deghost.ghost_tables(frame.n_codes, frame.black[c], frame.white[c], lin[c], exposure, nz,
-                                              footroom=linear)
-        out.append(deghost.CodeTable(x_t.astype(np.float32), s_t.astype(np.float32), ok_t))
-    return out
-
-
-def find_ghosts(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise: list[NoiseParams] | None, load,
-                p_fa: float | None = None, params: deghost.DeghostParams | None = None) -> Ghosts:
-    """Per frame, the blocks inconsistent with the anchor (:func:`~hdrmerge_cli.core.deghost.ghost_masks`),
-    cleaned and feathered.  ``noise``: one parameter set per channel (code units), or None
-    (the codes' quantisation; :func:`~hdrmerge_cli.core.deghost.level_scale` measures the
-    rest); ``params``: :data:`~hdrmerge_cli.core.deghost.RAW_PARAMS` or ``IMAGE_PARAMS`` by
-    the frames' kind unless given, ``p_fa`` overriding its false-alarm rate.  Each frame is
-    read twice (anchor, test).  Returns :class:`Ghosts` as found, not yet applied
-    (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost` decides that)."""
+def find_ghosts(frames: list[Frame], exposures: np.ndarray, pattern: np.ndarray, crf: CRF,
+                noise: dict[str, NoiseParams] | None, load, params: deghost.DeghostParams | None = None) -> Ghosts:
+    """Per frame, the blocks inconsistent with the anchor, cleaned and feathered
+    (:func:`~hdrmerge_cli.core.deghost.ghost_masks`, one call).  ``pattern``: the bracket's
+    table row of each sample (:func:`~hdrmerge_cli.io.metadata.sample_pattern`);
+    ``noise``: the given (or the merge's measured) parameters per channel name, or None:
+    the test then starts from the codes' quantisation and measures what that leaves out on
+    the frames themselves (:func:`~hdrmerge_cli.core.deghost.level_scale`), which costs
+    nothing like a noise calibration of the whole bracket; ``load(frame)``: its codes (read
+    twice, anchor and test); ``params``: :data:`~hdrmerge_cli.core.deghost.RAW_PARAMS` or
+    ``IMAGE_PARAMS`` by the frames' kind unless given.  Returns :class:`Ghosts` as found,
+    not yet applied (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost` decides that)."""
     first = frames[0]
-    raw = first.kind == "raw"
-    params = params or (deghost.RAW_PARAMS if raw else deghost.IMAGE_PARAMS)
-    if p_fa is not None:
-        params = dataclasses.replace(params, p_fa=p_fa)
-    pattern = sample_pattern(first)
-    per_px = 2 if raw else 1  # pixels per cell side of the planes
-    h, w = (first.height // 2, first.width // 2) if raw else (first.height, first.width)
-    b = deghost.block_size(h, w)
-    tables = [_ghost_tables(f, e, crf, noise, params.linear) for f, e in zip(frames, exposures)]
-    one_at_a_time = threading.Lock()  # Numba's workqueue layer runs one parallel kernel at a time
-
-    def estimate(k: int) -> deghost.Blocks:
-        with one_at_a_time:
-            blocks = _block_estimates(frames[k], load(frames[k]), pattern, tables[k], b)
-        if params.linear:
-            blocks = blocks._replace(steady=_untruncated(blocks, frames[k], pattern, tables[k], b) & blocks.ok)
-        return blocks
-
+    params = params or (deghost.RAW_PARAMS if first.kind == "raw" else deghost.IMAGE_PARAMS)
+    lin = [crf.codes_table(f.n_codes, f.black, f.white) for f in frames]
     lin_hi = None
     if params.shoulder_code is not None:  # an image's reading near white bounds the light from below
         lin_hi = np.float32([crf.inverse(np.float64(params.shoulder_code), c) for c in range(len(first.black))])
-    # two frames at a time where blocks are larger than a cell (one's test beside the other's
-    # estimates); with blocks of one cell a test's temporaries are as large as the frame's samples
-    found = deghost.ghost_masks(estimate, np.asarray(exposures), reference_index(frames), params, b * per_px, lin_hi,
-                                workers=2 if b > 1 else 1)
-    hb, wb = found[0].mask.shape
-    fractions = [m.fraction for m in found]
-    return Ghosts(mode=None, applied=False, p_false_alarm=params.p_fa, block=b,
-                  covered=(hb * b * per_px, wb * b * per_px), rejected_fraction=[round(f, 6) for f in fractions],
-                  frames=list(frames), masks=[m.mask for m in found], per_px=per_px, largest=max(fractions))
+    found = deghost.ghost_masks(lambda k: load(frames[k]), lin, [f.black for f in frames], [f.white for f in frames],
+                                np.asarray(exposures), per_channel(noise, first.channel_names) if noise else None,
+                                pattern, (first.height, first.width), reference_index(frames), params, lin_hi)
+    fractions = [m.fraction for m in found.frames]
+    hb, wb = found.frames[0].mask.shape
+    side = found.block * found.per_px
+    return Ghosts(mode=None, applied=False, p_false_alarm=params.p_fa, block=found.block, covered=(hb * side, wb * side),
+                  rejected_fraction=[round(f, 6) for f in fractions], frames=list(frames),
+                  masks=[m.mask for m in found.frames], per_px=found.per_px, largest=max(fractions))
 
 
 @dataclasses.dataclass
@@ -188,15 +111,3 @@ class Ghosts:
         """``merge --json``'s ``deghost``."""
         return {"mode": self.mode, "applied": self.applied, "p_false_alarm": self.p_false_alarm, "block": self.block,
                 "covered": list(self.covered), "rejected_fraction": self.rejected_fraction}
-
-
-def require_noise(noise, frames) -> list[NoiseParams] | None:
-    """Noise parameters for the ghost test: the given (or the merge's measured) ones, else
-    None: the test then starts from the codes' quantisation and measures what that leaves
-    out on the frames themselves (:func:`~hdrmerge_cli.core.deghost.level_scale`), which
-    costs nothing like a noise calibration of the whole bracket."""
-    if noise:
-        from hdrmerge_cli.io.noisespec import per_channel
-
-        return per_channel(noise, frames[0].channel_names)
-    return None

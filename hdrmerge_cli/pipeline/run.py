@@ -16,7 +16,8 @@ The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Py
 5. noise (:mod:`~hdrmerge_cli.pipeline.noise`), the excess variance of camera-processed
    frames (:mod:`~hdrmerge_cli.pipeline.excess`), then the automatic choices and the
    weights' tables (:func:`~hdrmerge_cli.pipeline.choices.choose_models`);
-6. ghosts, and whether they are dropped (:func:`deghost`);
+6. ghosts (:func:`~hdrmerge_cli.pipeline.ghosts.find_ghosts`), and whether they are dropped
+   (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost`);
 7. merge: the held codes through (7) and re-weighting, in one strip loop
    (:func:`~hdrmerge_cli.pipeline.merge.reconstruct`), and the checks after it;
 8. colour and write (:class:`~hdrmerge_cli.pipeline.output.Merged`).
@@ -44,7 +45,7 @@ from hdrmerge_cli.pipeline.choices import (
 )
 from hdrmerge_cli.pipeline.excess import measure_excess
 from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
-from hdrmerge_cli.pipeline.ghosts import Ghosts, find_ghosts, require_noise
+from hdrmerge_cli.pipeline.ghosts import find_ghosts
 from hdrmerge_cli.pipeline.merge import reconstruct
 from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
@@ -203,13 +204,13 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
                              pattern=b.pattern, with_variance=with_variance, timings=timings)
     b.samples = None  # no stage reads the samples after the choices
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
-    aligned = loader(b.alignment, b.codes)
-    if settings.deghost != "off":
+    aligned, validity = loader(b.alignment, b.codes), frame_validity(b.frames, b.alignment, b.codes)
+    if settings.deghost != "off":  # the ghosts found, whether they are applied, and its log line
         t1 = time.perf_counter()
-        b.ghosts = deghost(b.frames, b.exposures, b.crf, require_noise(b.models.noise, b.frames), aligned,
-                           settings.deghost)
+        found = find_ghosts(b.frames, b.exposures, b.pattern, b.crf, b.models.noise, aligned)
+        b.ghosts = choose_deghost(found, settings.deghost)
+        b.ghosts.report()
         timings["deghost"] = time.perf_counter() - t1
-    validity = frame_validity(b.frames, b.alignment, b.codes)
     merged = reconstruct(b, aligned, validity, outputs.half, settings.reference, with_variance)
     return Merged(b, merged.reconstruction, opts, b.h_ref, b.orientation, merged.repeats,
                   output_alpha(b.frames, validity))
@@ -223,17 +224,6 @@ def align(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=
     alignment = choose_alignment(estimate_alignment(frames, exposures, crf, registration_plan(mode), load), mode)
     alignment.report()
     return alignment
-
-
-def deghost(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise, load, mode: str, p_fa: float | None = None,
-            params=None) -> Ghosts:
-    """Deghosting under ``--deghost mode`` (not ``off``): the ghosts found
-    (:func:`~hdrmerge_cli.pipeline.ghosts.find_ghosts`, ``noise`` per channel or None),
-    whether they are applied (:func:`~hdrmerge_cli.pipeline.choices.choose_deghost`), and
-    its log line."""
-    ghosts = choose_deghost(find_ghosts(frames, exposures, crf, noise, load, p_fa, params), mode)
-    ghosts.report()
-    return ghosts
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
