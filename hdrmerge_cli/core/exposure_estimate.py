@@ -11,8 +11,8 @@ to the reference's label.  This is the pairwise method of Hanji & Mantiuk's HDRu
 ``log y_b - log y_a`` with inverse-variance weights ``1 / (1/y_a + 1/y_b)`` and 3-sigma
 outlier rejection, Cerman & Hlavac 2006), made robust here by a median/MAD start.
 
-On the one sample set (:class:`~hdrmerge_cli.core.samples.Samples`): the frames' order
-(:func:`order_test`), the neighbour pairs' ratios through a response (:func:`measure_pairs`,
+On the one sample set (:class:`~hdrmerge_cli.core.samples.Samples`, whose order is checked
+there): the neighbour pairs' ratios through a response (:func:`measure_pairs`,
 :func:`robust_log_ratio`), the exposures chained from them (:func:`estimate`,
 :func:`estimate_exposures`), a quick response fitted on the samples when the one in use is
 only assumed (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`, :func:`estimate_with_response`), and whether the
@@ -44,51 +44,12 @@ from hdrmerge_cli.core.samples import (
 
 #: a label more than this many EV from its estimate is reported (1/3 EV, a camera's step)
 LABEL_TOLERANCE_EV = 1.0 / 3.0
-#: the order check fails when more than this fraction of the pixels that changed got darker
-ORDER_DOWN_FRACTION = 0.75
 #: a pair measured on less than this fraction of the frame (a lamp, a window) leans on
 #: the ends of the response: the labels its ratio decides are not measured
 WEAK_COVERAGE = 0.05
 #: a label is called wrong only when its difference from the estimate exceeds this many
 #: standard errors of the estimate (as well as the tolerance)
 LABEL_SIGMAS = 3.0
-#: ... and at least this many pixels changed by more than the margin
-ORDER_MIN_CHANGED = 100
-
-
-# ---------------------------------------------------------------- order check
-@dataclass
-class OrderTest:
-    """Sign test of a neighbour pair: of the pixels both frames measure, how many got
-    brighter (``up``) and darker (``down``) by more than the noise margin in the frame
-    labelled longer."""
-
-    up: int
-    down: int
-    usable: int
-
-    @property
-    def down_fraction(self) -> float:
-        return self.down / max(1, self.up + self.down)
-
-    @property
-    def disordered(self) -> bool:
-        """The longer-labelled frame is darker on most changed pixels: a monotone response
-        cannot do that, so the labels (or the files) are out of order.  Frames at the noise
-        floor or of equal exposure change both ways about equally and pass."""
-        return self.up + self.down >= ORDER_MIN_CHANGED and self.down_fraction > ORDER_DOWN_FRACTION
-
-
-def order_test(z_short: np.ndarray, z_long: np.ndarray, usable: np.ndarray, margin: float) -> OrderTest:
-    """The sign test of :class:`OrderTest` on code values (any monotone response keeps the
-    sign of a change, so no response is needed; Wilcoxon-style sign test on the pixels that
-    neither frame clips, borders excluded).
-
-    z_short, z_long : codes of the frames labelled shorter and longer (same shape)
-    usable : bool mask of the samples to compare; margin : changes of at most this are noise
-    """
-    d = z_long[usable].astype(np.float32) - z_short[usable].astype(np.float32)
-    return OrderTest(int(np.count_nonzero(d > margin)), int(np.count_nonzero(d < -margin)), int(d.size))
 
 
 # ---------------------------------------------------------------- ratio estimate

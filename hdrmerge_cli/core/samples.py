@@ -2,7 +2,7 @@
 
 :class:`Samples` holds every frame decoded, subsampled (:func:`normalised_samples`) and
 normalised to ``v = (z - black) / (white - black)`` (drawn by the exposures stage,
-:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`), off the constant borders
+:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`), off the constant borders
 (:func:`constant_border`), with each frame's floor; and what the response stage asks of its
 overlap (:func:`thin_overlap`, :func:`pairs_pin_response`).  What is measured on the samples
 (ratios, exposures, motion) is :mod:`hdrmerge_cli.core.exposure_estimate`.
@@ -37,6 +37,10 @@ FLOOR_SIGMAS = 3.0
 TILES = 8
 #: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
 MIN_OVERLAP = 50
+#: the order check fails when more than this fraction of the pixels that changed got darker
+ORDER_DOWN_FRACTION = 0.75
+#: ... and at least this many pixels changed by more than the margin
+ORDER_MIN_CHANGED = 100
 
 
 @dataclass
@@ -284,3 +288,69 @@ def normalised_samples(codes: np.ndarray, black, white, step: int = 1, cell: np.
         c = cell[(ys % 2)[:, None], (xs % 2)[None, :]] if cell is not None else np.zeros((len(ys), len(xs)), np.intp)
         return ((z - black[c]) / (white[c] - black[c]))[..., None]
     return (z - black[: z.shape[-1]]) / (white[: z.shape[-1]] - black[: z.shape[-1]])
+
+
+def sample_set(v: list[np.ndarray], step: int, black, white, n_codes: int, raw: bool, border_tol: float) -> Samples:
+    """The :class:`Samples` of every frame's :func:`normalised_samples` ``v`` (subsampled by
+    ``step``; ``black``, ``white``: the frames' levels per channel), off the
+    :func:`constant_border` lines (spread at most ``border_tol``)."""
+    border = constant_border(v, border_tol)
+    span = float(np.min(white - black))
+    c = v[0].shape[-1]
+    levels = (np.asarray(black, np.float32)[:c], np.asarray(white - black, np.float32)[:c], n_codes)
+    return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0), raw, levels)
+
+
+# ---------------------------------------------------------------- order check
+@dataclass
+class OrderTest:
+    """Sign test of a neighbour pair: of the pixels both frames measure, how many got
+    brighter (``up``) and darker (``down``) by more than the noise margin in the frame
+    labelled longer."""
+
+    up: int
+    down: int
+    usable: int
+
+    @property
+    def down_fraction(self) -> float:
+        return self.down / max(1, self.up + self.down)
+
+    @property
+    def disordered(self) -> bool:
+        """The longer-labelled frame is darker on most changed pixels: a monotone response
+        cannot do that, so the labels (or the files) are out of order.  Frames at the noise
+        floor or of equal exposure change both ways about equally and pass."""
+        return self.up + self.down >= ORDER_MIN_CHANGED and self.down_fraction > ORDER_DOWN_FRACTION
+
+
+def order_test(z_short: np.ndarray, z_long: np.ndarray, usable: np.ndarray, margin: float) -> OrderTest:
+    """The sign test of :class:`OrderTest` on code values (any monotone response keeps the
+    sign of a change, so no response is needed; Wilcoxon-style sign test on the pixels that
+    neither frame clips, borders excluded).
+
+    z_short, z_long : codes of the frames labelled shorter and longer (same shape)
+    usable : bool mask of the samples to compare; margin : changes of at most this are noise
+    """
+    d = z_long[usable].astype(np.float32) - z_short[usable].astype(np.float32)
+    return OrderTest(int(np.count_nonzero(d > margin)), int(np.count_nonzero(d < -margin)), int(d.size))
+
+
+def disordered_pair(s: Samples, exposures: np.ndarray, equal_rtol: float) -> tuple[int, OrderTest] | None:
+    """The first neighbour pair ``(k - 1, k)`` the longer-labelled frame ``k`` of which is
+    darker (:attr:`OrderTest.disordered`), as ``(k, its test)``, or None: per pair the sign
+    test of :func:`order_test` on the pixels both frames read above their floors and its
+    noise (:attr:`Samples.noise_floors`) and neither clips, off the constant borders, with a
+    margin of 1.5 codes.  Pairs whose labels tie (within ``equal_rtol``) are not ordered by
+    them."""
+    margin = max(1.5 * s.codes_step, 0.004)
+    top = s.top
+    for k in range(1, len(s.v)):
+        if exposures[k] <= exposures[k - 1] * (1 + equal_rtol):
+            continue
+        a, b = s.v[k - 1], s.v[k]
+        usable = (a > s.noise_floors[k - 1]) & (b > s.noise_floors[k]) & (a < top) & (b < top) & s.inside[..., None]
+        t = order_test(a, b, usable, margin)
+        if t.disordered:
+            return k, t
+    return None

@@ -17,7 +17,7 @@ from hdrmerge_cli.core.exposure_estimate import estimate
 from hdrmerge_cli.core.samples import MIN_OVERLAP, pairs_pin_response
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 from hdrmerge_cli.io.atomic import check_writable, write_together
-from hdrmerge_cli.io.frames import load_codes
+from hdrmerge_cli.io.frames import cfa_corner, load_codes
 from hdrmerge_cli.io.metadata import equal_exposure_groups, exposure_values, fmt_time
 from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
@@ -118,7 +118,8 @@ def _fit_bracket(frames, method, opts: CRFOptions, smoothing, n_samples) -> _Fit
     by_frame = {id(f): c for f, c in zip(frames, codes)}
     labels = exposure_values(frames)
     check_repeated_exposures(frames, labels, codes)
-    samples = exposure_check.ordered_samples(frames, labels, lambda f: by_frame[id(f)])  # constant borders off
+    samples = exposure_check.ordered_samples(frames, labels, lambda f: by_frame[id(f)],  # constant borders off
+                                             cfa_corner(first) if first.kind == "raw" else None)
     if first.kind == "raw":
         codes = [c[..., None] for c in codes]
     exposure_check.check_overlap(frames, samples)

@@ -38,7 +38,7 @@ def log_fit(fit: ResponseFit, method: str) -> None:
 
 def measure_response(frames: list[Frame], exposures: np.ndarray, samples: Samples, cache: bool = True) -> CRF | None:
     """The response of an image bracket given none, fitted on the samples the merge draws
-    (:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`, constant borders off) by
+    (:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`, constant borders off) by
     estimate-crf's default method, its prior towards sRGB deciding where the frames leave
     the curve open: on the samples' pixel pairs where some neighbour pair shares
     :data:`~hdrmerge_cli.core.samples.MIN_OVERLAP` well-exposed pixels

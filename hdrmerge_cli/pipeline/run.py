@@ -67,7 +67,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     inputs = check_outputs(paths, opts)
     t0 = time.perf_counter()
     start_preparing_kernels()
-    b = read(paths, opts.inputs)
+    b = given_noise(read(paths, opts.inputs), opts.inputs)
     if Path(opts.io.output).suffix.lower() == ".dng" and b.frames[0].kind != "raw":
         raise HdrMergeError(f"{opts.io.output}: a DNG output holds a CFA mosaic, but {b.frames[0].path} is not a "
                             "Bayer RAW frame; name the output *.exr")
@@ -153,6 +153,7 @@ def merge_bracket(paths: list[str], opts: MergeOptions, noise: dict | None = Non
     t0 = time.perf_counter()
     b = read(paths, opts.inputs)
     b.noise = noise
+    given_noise(b, opts.inputs)
     first = b.frames[0]
     if crf is not None and first.kind == "image":
         if crf.table is not None and crf.table.shape[1] != first.n_codes:
@@ -162,20 +163,28 @@ def merge_bracket(paths: list[str], opts: MergeOptions, noise: dict | None = Non
     return merge_frames(b, opts, t_start=t0)
 
 
+def given_noise(b: Bracket, inputs) -> Bracket:
+    """The noise the options give (``--noise``, a profile's, per ISO where the frames' differ:
+    :func:`~hdrmerge_cli.pipeline.noise.resolve_noise_by_iso`) unless ``b`` carries one, read
+    with the bracket, before a pixel is decoded: a bad ``--noise`` fails first."""
+    if b.noise is None:
+        b.noise, b.noise_by_iso = resolve_noise_by_iso(b.frames, inputs.noise, inputs.profile, inputs.crf)
+    return b
+
+
 def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -> Merged:
     """The stages after reading, each called once, in order, on a read bracket ``b``
-    (frames sorted by exposure); each stage's result is kept in ``b``.  Nothing is written."""
+    (frames sorted by exposure, its given noise read: :func:`given_noise`); each stage's
+    result is kept in ``b``.  Nothing is written."""
     t0 = time.perf_counter() if t_start is None else t_start
     settings, inputs, outputs = opts.algorithm, opts.inputs, opts.io
     timings = b.timings
     warn_unused_options(b, opts)
     if len(b.frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", b.frames[0].path)
-    if b.noise is None:  # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
-        b.noise, b.noise_by_iso = resolve_noise_by_iso(b.frames, inputs.noise, inputs.profile, inputs.crf)
     if len(b.frames) > 1 or b.crf.assumed:  # exposures: the frames' order; the response
         t1 = time.perf_counter()
-        b.samples = ordered_samples(b.frames, b.exposures, b.codes)  # a disordered bracket fails first
+        b.samples = ordered_samples(b.frames, b.exposures, b.codes, b.pattern)  # a disordered bracket fails first
         if b.crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
             b.crf = measure_response(b.frames, b.exposures, b.samples, cache=outputs.noise_cache) or b.crf
             timings["response"] = time.perf_counter() - t1
@@ -184,8 +193,7 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
         b.alignment = align(b.frames, b.exposures, b.crf, settings.align, b.codes)
         timings["align"] = time.perf_counter() - t1
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
-    checked = resolve_exposures(b.frames, b.exposures, b.crf, b.codes, inputs.times == ESTIMATE, b.samples,
-                                b.alignment)
+    checked = resolve_exposures(b.frames, b.exposures, b.crf, b.samples, inputs.times == ESTIMATE, b.alignment)
     b.settle_exposures(checked.frames, checked.exposures, settings.reference)
     b.exposure_report, b.samples = checked.report, checked.samples
     timings["exposure_check"] = time.perf_counter() - t1
