@@ -397,9 +397,8 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     >>> round(float(crf.inverse(128 / 255)), 2)   # gamma 2.2: (128/255)**2.2 = 0.22
     0.22
     """
-    from hdrmerge_cli.core.crf_estimate import labelled_fit
+    from hdrmerge_cli.core.crf_estimate import labelled_fit, thin_overlap
     from hdrmerge_cli.pipeline.response import is_flat, log_labelled_fit
-    from hdrmerge_cli.core.samples import thin_overlap
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
     st = _stack(stack, times, None, black, white, bits)

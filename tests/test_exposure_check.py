@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.crf_goossens2012 import pair_comparagram, response_from_comparagrams
-from hdrmerge_cli.core.exposure_estimate import PairRatio, estimate_exposures, robust_log_ratio
+from hdrmerge_cli.core.exposure_estimate import (
+    PairRatio, estimate_exposures, pair_comparagram, response_from_comparagrams, robust_log_ratio,
+)
 from hdrmerge_cli.core.samples import order_test
 from hdrmerge_cli.core.samples import border_mask, constant_border
 from tests.conftest import SHARED, frames_of, needs_shared

@@ -15,7 +15,7 @@ On the one sample set (:class:`~hdrmerge_cli.core.samples.Samples`, whose order 
 there): the neighbour pairs' ratios through a response (:func:`measure_pairs`,
 :func:`robust_log_ratio`), the exposures chained from them (:func:`estimate`,
 :func:`estimate_exposures`), a quick response fitted on the samples when the one in use is
-only assumed (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`, :func:`estimate_with_response`), and whether the
+only assumed (:func:`quick_response`, :func:`estimate_with_response`), and whether the
 response or a label explains a frame's difference from its label (:func:`label_at_fault`,
 :func:`response_fits`).  The response stage, the exposures stage and ``info`` read them.
 
@@ -36,7 +36,6 @@ from typing import NamedTuple
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.registration import Motion, block_mean, moved_pairs, warp_motion
 from hdrmerge_cli.core.samples import (
     MIN_RATIO_PIXELS, RANGE_LINEAR, RANGE_UNVERIFIED, RANGE_VERIFIED, Samples,
@@ -350,21 +349,84 @@ def estimate(exposures: np.ndarray, s: Samples, crf: CRF, value_range: tuple[flo
     return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
 
 
+# ---------------------------------------------------------------- quick response (the samples' comparagrams)
+def pair_comparagram(z_a: np.ndarray, z_b: np.ndarray, levels: int) -> np.ndarray:
+    """Joint histogram ``J[i, j]`` of the knot codes of the same pixels in two frames
+    (Mann 2000's comparagram; the data of the paper's (36)-(37))."""
+    return np.bincount(z_a.astype(np.int64).ravel() * levels + z_b.astype(np.int64).ravel(),
+                       minlength=levels * levels).reshape(levels, levels).astype(np.float64)
+
+
+def response_from_comparagrams(grams: list[np.ndarray], log_ratios: np.ndarray, smoothing: float = 1.0) -> np.ndarray:
+    """``g = log gamma^-1`` on ``L`` knots from the comparagrams of neighbour pairs and their
+    log exposure ratios: weighted least squares of ``g(j) - g(i) = log(h_b / h_a)`` over
+    the cells of each comparagram (weight: the cell's count times the hat weights of both
+    codes, Debevec-Malik's ``w(z)``; clipped codes 0 and L-1 left out), plus
+    ``smoothing`` times the second differences of ``g`` (scaled to the data's total weight)
+    and ``g(L/2) = 0``: the paper's (36) without its monotonicity constraints, solved in
+    closed form through the ``L x L`` normal equations (no per-pixel unknowns, so it costs
+    one histogram per pair).  Not made monotone here.
+
+    grams : comparagrams ``(L, L)`` of the pairs; log_ratios : their ``log(h_b / h_a)``
+    """
+    levels = grams[0].shape[0]
+    hat = np.minimum(np.arange(levels), levels - 1 - np.arange(levels)).astype(np.float64)
+    hat /= max(hat.max(), 1.0)
+    ata = np.zeros((levels, levels))
+    atb = np.zeros(levels)
+    total = 0.0
+    for j_ab, d in zip(grams, log_ratios):
+        w = j_ab * hat[:, None] * hat[None, :]
+        rs, cs = w.sum(axis=1), w.sum(axis=0)
+        ata += np.diag(rs + cs) - w - w.T
+        atb += d * (cs - rs)
+        total += float(w.sum())
+    lam = smoothing * max(total, 1.0) / levels
+    dd = np.zeros((levels - 2, levels))
+    idx = np.arange(levels - 2)
+    dd[idx, idx], dd[idx, idx + 1], dd[idx, idx + 2] = 1.0, -2.0, 1.0
+    ata += lam * dd.T @ dd
+    mid = levels // 2
+    ata[mid, mid] += max(total, 1.0)  # g(mid) = 0
+    return np.linalg.solve(ata, atb)
+
+
+def quick_response(exposures: np.ndarray, s: Samples, skip: frozenset[int] = frozenset()) -> CRF:
+    """An image bracket's inverse response fitted on its samples' knot codes
+    (:attr:`~hdrmerge_cli.core.samples.Samples.knots`, constant borders off) with the given
+    exposures, per channel, from the neighbour pairs' comparagrams
+    (:func:`response_from_comparagrams`), interpolated from the knots to every code as
+    :func:`~hdrmerge_cli.core.crf_goossens2012.from_knots` does: the check's own response
+    when the one in use is an unverified model (sRGB assumed), whose ratios are off by up to
+    a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that moved) are left out
+    while others remain."""
+    from hdrmerge_cli.core.crf import table_crf
+    from hdrmerge_cli.core.crf_estimate import inverse_from_log
+
+    (codes, levels), n = s.knots, s.levels[2]
+    at_codes = np.arange(levels) * ((n - 1) / (levels - 1))  # the knots' codes
+    log_r = np.diff(np.log(exposures))
+    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
+    tables = []
+    for ch in range(codes[0].shape[-1]):
+        grams = [pair_comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
+        g_knots = response_from_comparagrams(grams, log_r[[k - 1 for k in used]])
+        tables.append(inverse_from_log(np.interp(np.arange(n), at_codes, g_knots))[0])
+    return table_crf(np.stack(tables), "fitted on the bracket")
+
+
 def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: int = 1,
                            moved: frozenset[int] = frozenset()) -> tuple[ExposureEstimate, CRF]:
     """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
     otherwise through a response fitted on the bracket
-    (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`), jointly:
+    (:func:`quick_response`), jointly:
     fit with the labels, estimate, refit with the estimates, ``rounds`` times.  Pairs in
     ``moved`` are not used (their labels' ratio is kept)."""
     if crf_verified(crf):
         return estimate(exposures, s, crf, moved=moved), crf
-    from hdrmerge_cli.core.crf_goossens2012 import knot_codes, quick_response  # (numba: only an unverified response)
-
     h = np.asarray(exposures, dtype=np.float64)
-    knots = knot_codes(s)
     for _ in range(rounds):  # fitted with the labels, then with the estimates
-        fitted = quick_response(h, knots, moved)  # its least squares shrink the ratios a little: slope fitted
+        fitted = quick_response(h, s, moved)  # its least squares shrink the ratios a little: slope fitted
         est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
         h = np.exp(est.log_h)
     # a label is called wrong only where the assumed response agrees (same sign; the smaller

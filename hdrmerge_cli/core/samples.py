@@ -3,9 +3,10 @@
 :class:`Samples` holds every frame decoded, subsampled (:func:`normalised_samples`) and
 normalised to ``v = (z - black) / (white - black)`` (drawn by the exposures stage,
 :func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`), off the constant borders
-(:func:`constant_border`), with each frame's floor; and what the response stage asks of its
-overlap (:func:`thin_overlap`, :func:`pairs_pin_response`).  What is measured on the samples
-(ratios, exposures, motion) is :mod:`hdrmerge_cli.core.exposure_estimate`.
+(:func:`constant_border`), with each frame's floor, and their order checked
+(:func:`disordered_pair`).  What is measured on the samples (ratios, exposures, motion) is
+:mod:`hdrmerge_cli.core.exposure_estimate`; what a response fit asks of their overlap,
+:mod:`hdrmerge_cli.core.crf_estimate`.
 
 Everything here is pure array code: no paths, no printing.
 """
@@ -35,8 +36,6 @@ FLOOR_SHARE = 0.1
 FLOOR_SIGMAS = 3.0
 #: tiles per side over which a ratio's standard error is measured (:attr:`Samples.tiles`)
 TILES = 8
-#: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
-MIN_OVERLAP = 50
 #: the order check fails when more than this fraction of the pixels that changed got darker
 ORDER_DOWN_FRACTION = 0.75
 #: ... and at least this many pixels changed by more than the margin
@@ -137,6 +136,18 @@ class Samples:
         black, span, n_codes = self.levels
         return [np.rint(v[self.inside] * span + black).clip(0, n_codes - 1).astype(np.int64) for v in self.v]
 
+    @functools.cached_property
+    def knots(self) -> tuple[list[np.ndarray], int]:
+        """:attr:`codes` on the knots of :func:`~hdrmerge_cli.core.crf_goossens2012.to_knots`
+        (at most :data:`~hdrmerge_cli.core.crf_goossens2012.MAX_LEVELS` levels), and the number
+        of levels: made once for every fit of the quick response on these samples
+        (:func:`~hdrmerge_cli.core.exposure_estimate.quick_response`)."""
+        from hdrmerge_cli.core.crf_goossens2012 import knot_levels, to_knots  # (numba: only an unverified response)
+
+        n = self.levels[2]
+        levels = knot_levels(n)
+        return [to_knots(c, n, levels) for c in self.codes], levels
+
     def read_nothing(self) -> list[int]:
         """The frames with fewer than :data:`MIN_RATIO_PIXELS`
         samples between their floor and its noise (:attr:`noise_floors`) and clipping, off the
@@ -188,38 +199,6 @@ def _from_cell_planes(planes: np.ndarray, like: np.ndarray) -> np.ndarray:
     out = like.copy()
     out[:2 * h2, :2 * w2, 0] = planes.reshape(h2, w2, 2, 2).transpose(0, 2, 1, 3).reshape(2 * h2, 2 * w2)
     return out
-
-
-def thin_overlap(s: Samples) -> tuple[int, int] | None:
-    """The first neighbour pair sharing fewer than :data:`MIN_OVERLAP` pixels that neither
-    frame clips (0 < z < max; constant borders excluded), as ``(k, pixels)`` with ``k`` the
-    pair's longer frame, or None: a response cannot be chained across such a pair."""
-    lo, hi = 0.5 * s.codes_step, s.top
-    for k in range(1, len(s.v)):
-        a, b = s.v[k - 1], s.v[k]
-        both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
-        if both < MIN_OVERLAP:
-            return k, both
-    return None
-
-
-def well_exposed_overlap(s: Samples) -> list[int]:
-    """Per neighbour pair ``(k - 1, k)``, the pixels (off the borders, at full resolution)
-    both frames expose well in every channel: within :data:`RANGE_UNVERIFIED`, where any
-    camera's response has slope, and above each frame's floor (:attr:`Samples.floors`).
-    Pixel pairs pin a response only through such pixels; elsewhere one of the two codes is
-    at a floor or a shoulder, and its noise there biases a fit on pairs (errors in the
-    variables)."""
-    lo, hi = RANGE_UNVERIFIED
-    ok = [((v >= np.maximum(lo, floor)) & (v <= hi)).all(-1) & s.inside for v, floor in zip(s.v, s.floors)]
-    return [int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2 for k in range(1, len(ok))]
-
-
-def pairs_pin_response(s: Samples) -> bool:
-    """Whether some neighbour pair shares :data:`MIN_OVERLAP` well-exposed pixels
-    (:func:`well_exposed_overlap`): else a response is fitted on the frames' histograms
-    (:func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), not on pixel pairs."""
-    return len(s.v) < 2 or max(well_exposed_overlap(s)) >= MIN_OVERLAP
 
 
 # ---------------------------------------------------------------- constant borders

@@ -21,9 +21,8 @@ import numpy as np
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.exposure_estimate import LABEL_TOLERANCE_EV, LabelCheck, Motion, check_exposures
-from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, disordered_pair, normalised_samples, sample_set, thin_overlap,
-)
+from hdrmerge_cli.core.crf_estimate import MIN_OVERLAP, thin_overlap
+from hdrmerge_cli.core.samples import Samples, disordered_pair, normalised_samples, sample_set
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, fmt_time
 
@@ -33,15 +32,6 @@ log = logging.getLogger("hdrmerge_cli")
 MAX_SAMPLES = 1 << 18
 #: spread (in v) of a line constant in every frame: a scan border
 BORDER_TOL = 0.03
-
-
-def _step_and_cell(first: Frame, cell, max_samples: int) -> tuple[int, np.ndarray | None]:
-    step = max(1, int(np.ceil(np.sqrt(first.width * first.height / max_samples))))
-    if first.kind != "raw":
-        return step, None
-    if cell is None:
-        raise ValueError("the samples of a RAW bracket need its 2 x 2 CFA cell")
-    return step, np.asarray(cell, np.intp)
 
 
 def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes, cell=None, also=None,
@@ -58,7 +48,10 @@ def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes,
     merge compares them as repeats, and ``--times estimate`` orders them by their estimates.
     ``also(frame, codes)``, when given, sees each frame's codes too (e.g. info's clip classes)."""
     first = frames[0]
-    step, cell = _step_and_cell(first, cell, max_samples)
+    step = max(1, int(np.ceil(np.sqrt(first.width * first.height / max_samples))))
+    if first.kind == "raw" and cell is None:
+        raise ValueError("the samples of a RAW bracket need its 2 x 2 CFA cell")
+    cell = np.asarray(cell, np.intp) if first.kind == "raw" else None
 
     def one(frame):
         codes = load(frame)

@@ -35,7 +35,7 @@ from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.core.reconstruct import neutral_bounds
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
-from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.metadata import reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
@@ -44,7 +44,7 @@ from hdrmerge_cli.pipeline.choices import (
     choose_alignment, choose_deghost, choose_models, registration_plan, wanted,
 )
 from hdrmerge_cli.pipeline.excess import measure_excess
-from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
+from hdrmerge_cli.pipeline.exposure_check import check_labels, check_overlap, ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.ghosts import Ghosts, find_ghosts, require_noise
 from hdrmerge_cli.pipeline.merge import (
     check_range, check_repeats, reconstruct, sample_weights, warn_unmeasured, watch_repeats,
@@ -53,7 +53,9 @@ from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_n
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 from hdrmerge_cli.pipeline.register import Alignment, estimate_alignment, frame_validity, loader, output_alpha
-from hdrmerge_cli.pipeline.response import measure_response
+from hdrmerge_cli.pipeline.response import (
+    CRFOptions, decoded, finish_crf, fit_bracket, measure_response, start_crf,
+)
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -252,6 +254,28 @@ def deghost(frames: list[Frame], exposures: np.ndarray, crf: CRF, noise, load, m
     ghosts = choose_deghost(find_ghosts(frames, exposures, crf, noise, load, p_fa, params), mode)
     ghosts.report()
     return ghosts
+
+
+def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
+    """``hdrmerge-cli estimate-crf``: its outputs checked and the bracket read
+    (:func:`~hdrmerge_cli.pipeline.response.start_crf`); for images (or linear data under
+    ``--force``) the frames decoded, their one sample set drawn with its order and overlap
+    checked (the exposures stage), the response fitted
+    (:func:`~hdrmerge_cli.pipeline.response.fit_bracket`) and the labels judged through it;
+    then the profile written (:func:`~hdrmerge_cli.pipeline.response.finish_crf`)."""
+    job = start_crf(paths, output, opts)
+    frames, first, fit = job.frames, job.frames[0], None
+    if first.kind not in ("raw", "linear") or opts.force:
+        codes, labels = decoded(frames, opts)
+        by_frame = {id(f): c for f, c in zip(frames, codes)}
+        samples = ordered_samples(frames, labels, lambda f: by_frame[id(f)],  # constant borders off
+                                  cfa_corner(first) if first.kind == "raw" else None)
+        check_overlap(frames, samples)
+        fit = fit_bracket(frames, codes, labels, samples, job.method, opts, job.smoothing, job.n_samples)
+        estimates = opts.times == ESTIMATE
+        fit.exposure_check = check_labels(frames, labels, samples, fit.crf, "" if estimates else
+                                          "; estimate-crf --times estimate fits with the estimates", estimates)
+    return finish_crf(job, fit, opts)
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
