@@ -42,25 +42,19 @@ def thin_overlap(s: Samples) -> tuple[int, int] | None:
     return None
 
 
-def well_exposed_overlap(s: Samples) -> list[int]:
-    """Per neighbour pair ``(k - 1, k)``, the pixels (off the borders, at full resolution)
-    both frames expose well in every channel: within :data:`RANGE_UNVERIFIED`, where any
-    camera's response has slope, and above each frame's floor (:attr:`Samples.floors`).
-    Pixel pairs pin a response only through such pixels; elsewhere one of the two codes is
-    at a floor or a shoulder, and its noise there biases a fit on pairs (errors in the
-    variables)."""
+def pairs_pin_response(s: Samples) -> bool:
+    """Whether some neighbour pair ``(k - 1, k)`` shares :data:`MIN_OVERLAP` pixels (off the
+    borders, at full resolution) both frames expose well in every channel: within
+    :data:`~hdrmerge_cli.core.samples.RANGE_UNVERIFIED`, where any camera's response has
+    slope, and above each frame's floor (:attr:`~hdrmerge_cli.core.samples.Samples.floors`).
+    Pixel pairs pin a response only through such pixels; elsewhere one of the two codes is at
+    a floor or a shoulder, and its noise there biases a fit on pairs (errors in the
+    variables): the response is then fitted on the frames' histograms
+    (:func:`histogram_correspondences`)."""
     lo, hi = RANGE_UNVERIFIED
     ok = [((v >= np.maximum(lo, floor)) & (v <= hi)).all(-1) & s.inside for v, floor in zip(s.v, s.floors)]
-    return [int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2 for k in range(1, len(ok))]
-
-
-def pairs_pin_response(s: Samples) -> bool:
-    """Whether some neighbour pair shares :data:`MIN_OVERLAP` well-exposed pixels
-    (:func:`well_exposed_overlap`): else a response is fitted on the frames' histograms
-    (:func:`histogram_correspondences`), not on pixel pairs."""
-    return len(s.v) < 2 or max(well_exposed_overlap(s)) >= MIN_OVERLAP
-
-
+    return len(s.v) < 2 or max(int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2
+                               for k in range(1, len(ok))) >= MIN_OVERLAP
 
 
 def sample_pixels(middle: np.ndarray, samples: int, rng: np.random.Generator) -> np.ndarray:

@@ -555,19 +555,14 @@ def label_verdicts(est: ExposureEstimate, given: list[bool], tol_ev: float = LAB
 @dataclass
 class LabelCheck:
     """The labels judged once (:func:`check_exposures`) on the exposures ``est`` measured: the
-    pairs' ``motion``, the :func:`label_verdicts`, and per frame the estimate's standard
-    error (EV), share and whether it is measured (:meth:`ExposureEstimate.stderr_ev`,
-    :meth:`~ExposureEstimate.share`, :meth:`~ExposureEstimate.measured`), which the
-    warnings and the ``--json`` record read; ``used``: the response the estimate read, and
+    pairs' ``motion`` and the :func:`label_verdicts`, which the warnings and the ``--json``
+    record read; ``used``: the response the estimate read, and
     ``response`` as the record names it; ``model``: the response in use, named, and
     ``power_ev`` its power error (:func:`model_power_error_ev`)."""
 
     est: ExposureEstimate
     motion: Motion
     verdicts: dict[int, Verdict]
-    stderr_ev: np.ndarray
-    share: np.ndarray
-    measured: np.ndarray
     used: CRF
     response: str
     model: str
@@ -600,5 +595,4 @@ def check_exposures(exposures: np.ndarray, s: Samples, crf: CRF, given: list[boo
         est, used = estimate_with_response(exposures, s, crf, rounds=2, moved=motion.moved)
     verdicts = label_verdicts(est, given, motion=motion)
     name = used.describe() + ("" if crf_verified(used) else " (unverified: mid-range codes, slope fitted)")
-    return LabelCheck(est, motion, verdicts, est.stderr_ev(), est.share(), est.measured(), used, name,
-                      crf.describe(), model_power_error_ev(est))
+    return LabelCheck(est, motion, verdicts, used, name, crf.describe(), model_power_error_ev(est))

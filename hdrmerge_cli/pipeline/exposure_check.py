@@ -139,15 +139,15 @@ def report(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, used:
     (:func:`~hdrmerge_cli.core.registration.moved_pairs`), ``moved_px`` (null: not registered: no
     label in question, or too little texture); which exposures the merge used."""
     est, motion = labels.est, labels.motion
-    est_h = np.exp(est.log_h)
+    est_h, stderr_ev, share, measured = np.exp(est.log_h), est.stderr_ev(), est.share(), est.measured()
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
         verdict, why, _ = labels.verdicts.get(k, (None, None, None))
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
-                     "stderr_ev": round(float(labels.stderr_ev[k]), 4), "share": round(float(labels.share[k]), 4),
-                     "measured": bool(labels.measured[k]),
+                     "stderr_ev": round(float(stderr_ev[k]), 4), "share": round(float(share[k]), 4),
+                     "measured": bool(measured[k]),
                      "mislabelled": verdict in ("pair", "given", "label"), "moved": verdict == "moved",
                      "response_at_fault": why if verdict == "response" else None})
     px = motion.px

@@ -1,7 +1,8 @@
 """merge: the stages of a merge, each called once, in reading order.
 
 The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Python API
-(:mod:`hdrmerge_cli.api`) all go through :func:`merge_frames`:
+(:mod:`hdrmerge_cli.api`) all go through :func:`merge_frames` (``estimate-crf`` runs the
+read, exposures and response stages through :func:`estimate_crf`):
 
 1. read: the frames' metadata, their codes (each file decoded once, held by frame) and the
    response given or assumed (:func:`~hdrmerge_cli.pipeline.bracket.read`, a
