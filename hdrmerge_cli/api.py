@@ -397,9 +397,8 @@ def estimate_response(stack, times, *, black: float = 0.0, white: float | None =
     >>> round(float(crf.inverse(128 / 255)), 2)   # gamma 2.2: (128/255)**2.2 = 0.22
     0.22
     """
-    from hdrmerge_cli.core.crf_estimate import labelled_fit
+    from hdrmerge_cli.core.crf_estimate import labelled_fit, thin_overlap
     from hdrmerge_cli.pipeline.response import is_flat, log_labelled_fit
-    from hdrmerge_cli.core.samples import thin_overlap
     from hdrmerge_cli.pipeline.exposure_check import ordered_samples
 
     st = _stack(stack, times, None, black, white, bits)
@@ -694,12 +693,12 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
     options.setdefault("noise_cache", False)  # no camera to key a cache entry by
     opts = _options(options)
     from hdrmerge_cli.pipeline.bracket import Bracket, choose_crf
-    from hdrmerge_cli.pipeline.run import merge_frames
+    from hdrmerge_cli.pipeline.run import given_noise, merge_frames
 
     # a mosaic is linear whatever is given; an image's text as --crf's (none: merge_frames measures it)
     response = crf if isinstance(crf, CRF) and not st.raw else choose_crf(st.frames, None if st.raw else crf,
                                                                             warn=False)
-    return merge_frames(Bracket(st.frames, response, st.load), opts)
+    return merge_frames(given_noise(Bracket(st.frames, response, st.load), opts.inputs), opts)
 
 
 def _options(options: dict) -> MergeOptions:

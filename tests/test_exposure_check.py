@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.crf_goossens2012 import pair_comparagram, response_from_comparagrams
-from hdrmerge_cli.core.exposure_estimate import PairRatio, estimate_exposures, order_test, robust_log_ratio
+from hdrmerge_cli.core.exposure_estimate import (
+    PairRatio, estimate_exposures, pair_comparagram, response_from_comparagrams, robust_log_ratio,
+)
+from hdrmerge_cli.core.samples import order_test
 from hdrmerge_cli.core.samples import border_mask, constant_border
 from tests.conftest import SHARED, frames_of, needs_shared
 
@@ -207,8 +209,7 @@ def test_no_false_alarm_on_real_brackets(name):
     folder = SHARED / "brackets" / name
     frames = read_bracket(sorted(str(p) for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".png")))
     h = exposure_values(frames)
-    s = ex.sample_frames(frames, max_samples=1 << 17)
-    ex.check_order(frames, h, s)
+    s = ex.ordered_samples(frames, h, max_samples=1 << 17)
     est, _ = estimate_with_response(h, s, CRF("srgb", assumed=True))  # no response given
     assert est.mislabelled() == [], est.difference_ev
 

@@ -553,7 +553,7 @@ def test_a_plot_is_not_left_behind_when_its_profile_cannot_be_written(tmp_path, 
             raise OSError(28, "No space left on device", tmp)
         return write
 
-    for module in ("hdrmerge_cli.pipeline.calibrate", "hdrmerge_cli.pipeline.crf"):
+    for module in ("hdrmerge_cli.pipeline.calibrate", "hdrmerge_cli.pipeline.response"):
         monkeypatch.setattr(f"{module}.profile_writer", fail)
     folder, meta = jpeg_bracket
     args = ["--crf", "srgb"] if command == "calibrate-noise" else []

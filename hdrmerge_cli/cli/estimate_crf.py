@@ -15,7 +15,8 @@ from hdrmerge_cli.core.crf_goossens2012 import (
 )
 from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.pipeline.crf import MAX_SMOOTHING, CRFOptions, estimate_crf
+from hdrmerge_cli.pipeline.response import MAX_SMOOTHING, CRFOptions
+from hdrmerge_cli.pipeline.run import estimate_crf
 
 
 @click.command("estimate-crf")

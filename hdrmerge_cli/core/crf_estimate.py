@@ -4,7 +4,9 @@ The relation is (3): ``g(z_ij) - log t_j = log E_i`` for every pixel i and frame
 Methods are picked by name from :data:`CRF_ESTIMATORS`: the paper's monotone QP
 (:mod:`~hdrmerge_cli.core.crf_goossens2012`) and two baselines, Debevec & Malik (1997) and
 Robertson, Borman & Stevenson (2003).  Every method returns a
-:class:`~hdrmerge_cli.core.crf_goossens2012.CRFFit`.
+:class:`~hdrmerge_cli.core.crf_goossens2012.CRFFit`.  Before a fit, whether the bracket's samples
+can chain a response at all (:func:`thin_overlap`) and whether pixel pairs pin it
+(:func:`pairs_pin_response`), else the frames' histograms do (:func:`histogram_correspondences`).
 """
 from __future__ import annotations
 
@@ -14,14 +16,45 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF, table_crf
 from hdrmerge_cli.core.crf_goossens2012 import (
-    DEFAULT_ANCHOR, DEFAULT_LAMBDA, CRFFit, crf_goossens2012, from_knots, knot_levels, standard_prior, to_knots,
+    DEFAULT_LAMBDA, CRFFit, crf_goossens2012_prior, from_knots, knot_levels, to_knots,
 )
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.samples import Samples
+from hdrmerge_cli.core.samples import RANGE_UNVERIFIED, Samples
 from hdrmerge_cli.core.weights import weights_debevec1997_triangle
 
 #: Debevec & Malik's lambda (their scale: per sampled pixel, unnormalised)
 DEBEVEC_LAMBDA = 30.0
+#: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
+MIN_OVERLAP = 50
+
+
+# ---------------------------------------------------------------- what a fit needs of the samples
+def thin_overlap(s: Samples) -> tuple[int, int] | None:
+    """The first neighbour pair sharing fewer than :data:`MIN_OVERLAP` pixels that neither
+    frame clips (0 < z < max; constant borders excluded), as ``(k, pixels)`` with ``k`` the
+    pair's longer frame, or None: a response cannot be chained across such a pair."""
+    lo, hi = 0.5 * s.codes_step, s.top
+    for k in range(1, len(s.v)):
+        a, b = s.v[k - 1], s.v[k]
+        both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
+        if both < MIN_OVERLAP:
+            return k, both
+    return None
+
+
+def pairs_pin_response(s: Samples) -> bool:
+    """Whether some neighbour pair ``(k - 1, k)`` shares :data:`MIN_OVERLAP` pixels (off the
+    borders, at full resolution) both frames expose well in every channel: within
+    :data:`~hdrmerge_cli.core.samples.RANGE_UNVERIFIED`, where any camera's response has
+    slope, and above each frame's floor (:attr:`~hdrmerge_cli.core.samples.Samples.floors`).
+    Pixel pairs pin a response only through such pixels; elsewhere one of the two codes is at
+    a floor or a shoulder, and its noise there biases a fit on pairs (errors in the
+    variables): the response is then fitted on the frames' histograms
+    (:func:`histogram_correspondences`)."""
+    lo, hi = RANGE_UNVERIFIED
+    ok = [((v >= np.maximum(lo, floor)) & (v <= hi)).all(-1) & s.inside for v, floor in zip(s.v, s.floors)]
+    return len(s.v) < 2 or max(int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2
+                               for k in range(1, len(ok))) >= MIN_OVERLAP
 
 
 def sample_pixels(middle: np.ndarray, samples: int, rng: np.random.Generator) -> np.ndarray:
@@ -176,7 +209,7 @@ class CRFMethod:
 
 #: name -> method; the paper's (37) first
 CRF_ESTIMATORS = {
-    "goossens": CRFMethod(crf_goossens2012, DEFAULT_LAMBDA, None, True, True),
+    "goossens": CRFMethod(crf_goossens2012_prior, DEFAULT_LAMBDA, None, True, True),
     "debevec": CRFMethod(crf_debevec1997, DEBEVEC_LAMBDA, 1000),
     "robertson": CRFMethod(crf_robertson2003, None, None),
 }
@@ -211,8 +244,9 @@ def fit_response(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, metho
                  rng: np.random.Generator | None = None) -> ResponseFit:
     """The inverse response of decoded frames: ``method`` of :data:`CRF_ESTIMATORS`, the
     channels in one coupled solve for a ``joint`` method (goossens: see its ``coupling``;
-    its prior towards the standard curve where the frames leave ``g`` open), one by one
-    for the others.
+    its prior towards the standard curve where the frames leave ``g`` open,
+    :func:`~hdrmerge_cli.core.crf_goossens2012.crf_goossens2012_prior`), one by one for
+    the others.
 
     codes : P arrays (H, W, C) in increasing exposure order; log_h : (P,) ``log h_j``
     smoothing, samples : None for the method's defaults; options : the method's keywords
@@ -222,9 +256,6 @@ def fit_response(codes: list[np.ndarray], log_h: np.ndarray, n_codes: int, metho
     samples = m.samples if samples is None else samples
     samples_of = [_channel_samples(codes, c, samples, method, rng) for c in range(codes[0].shape[-1])]
     options = dict(options or {})
-    if method == "goossens":  # the prior towards the standard curve where the frames leave g open
-        options.setdefault("anchor", DEFAULT_ANCHOR)
-        options.setdefault("prior", standard_prior(n_codes))
     if m.smoothing is not None:
         options["smoothing"] = m.smoothing if smoothing is None else smoothing
     if m.joint:  # one solve of every channel, coupled

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -35,9 +34,6 @@ import numpy as np
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 
-if TYPE_CHECKING:
-    from hdrmerge_cli.core.crf import CRF
-    from hdrmerge_cli.core.samples import Samples
 
 #: largest number of code levels (knots) solved for; finer codes are binned and interpolated
 MAX_LEVELS = 1024
@@ -374,83 +370,10 @@ def crf_goossens2012(
     return CRFFit(g[0] if single else g, it, converged, sum(cg.a.size for cg in cgs))
 
 
-# ---------------------------------------------------------------- quick response (the samples' comparagrams)
-def pair_comparagram(z_a: np.ndarray, z_b: np.ndarray, levels: int) -> np.ndarray:
-    """Joint histogram ``J[i, j]`` of the knot codes of the same pixels in two frames
-    (Mann 2000's comparagram; the data of the paper's (36)-(37))."""
-    return np.bincount(z_a.astype(np.int64).ravel() * levels + z_b.astype(np.int64).ravel(),
-                       minlength=levels * levels).reshape(levels, levels).astype(np.float64)
-
-
-def response_from_comparagrams(grams: list[np.ndarray], log_ratios: np.ndarray, smoothing: float = 1.0) -> np.ndarray:
-    """``g = log gamma^-1`` on ``L`` knots from the comparagrams of neighbour pairs and their
-    log exposure ratios: weighted least squares of ``g(j) - g(i) = log(h_b / h_a)`` over
-    the cells of each comparagram (weight: the cell's count times the hat weights of both
-    codes, Debevec-Malik's ``w(z)``; clipped codes 0 and L-1 left out), plus
-    ``smoothing`` times the second differences of ``g`` (scaled to the data's total weight)
-    and ``g(L/2) = 0``: the paper's (36) without its monotonicity constraints, solved in
-    closed form through the ``L x L`` normal equations (no per-pixel unknowns, so it costs
-    one histogram per pair).  Not made monotone here.
-
-    grams : comparagrams ``(L, L)`` of the pairs; log_ratios : their ``log(h_b / h_a)``
-    """
-    levels = grams[0].shape[0]
-    hat = np.minimum(np.arange(levels), levels - 1 - np.arange(levels)).astype(np.float64)
-    hat /= max(hat.max(), 1.0)
-    ata = np.zeros((levels, levels))
-    atb = np.zeros(levels)
-    total = 0.0
-    for j_ab, d in zip(grams, log_ratios):
-        w = j_ab * hat[:, None] * hat[None, :]
-        rs, cs = w.sum(axis=1), w.sum(axis=0)
-        ata += np.diag(rs + cs) - w - w.T
-        atb += d * (cs - rs)
-        total += float(w.sum())
-    lam = smoothing * max(total, 1.0) / levels
-    dd = np.zeros((levels - 2, levels))
-    idx = np.arange(levels - 2)
-    dd[idx, idx], dd[idx, idx + 1], dd[idx, idx + 2] = 1.0, -2.0, 1.0
-    ata += lam * dd.T @ dd
-    mid = levels // 2
-    ata[mid, mid] += max(total, 1.0)  # g(mid) = 0
-    return np.linalg.solve(ata, atb)
-
-
-@dataclass
-class KnotCodes:
-    """The samples off the constant borders as the knot codes a quick response is fitted on:
-    ``codes`` ``(N, C)`` per frame, on ``levels`` knots of the frames' ``n_codes`` codes."""
-
-    codes: list[np.ndarray]
-    levels: int
-    n_codes: int
-
-
-def knot_codes(s: Samples) -> KnotCodes:
-    """:attr:`~hdrmerge_cli.core.samples.Samples.codes` on the knots of
-    :func:`to_knots`: drawn once for every fit of
-    :func:`quick_response` on the same samples."""
-    n = s.levels[2]
-    levels = knot_levels(n)
-    return KnotCodes([to_knots(c, n, levels) for c in s.codes], levels, n)
-
-
-def quick_response(exposures: np.ndarray, knots: KnotCodes, skip: frozenset[int] = frozenset()) -> CRF:
-    """An image bracket's inverse response fitted on its samples' knot codes
-    (:func:`knot_codes`, constant borders off) with the given exposures, per channel, from
-    the neighbour pairs' comparagrams (:func:`response_from_comparagrams`): the check's own
-    response when the one in use is an unverified model (sRGB assumed), whose ratios are
-    off by up to a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that
-    moved) are left out while others remain."""
-    from hdrmerge_cli.core.crf import table_crf
-    from hdrmerge_cli.core.crf_estimate import inverse_from_log
-
-    codes, levels, n = knots.codes, knots.levels, knots.n_codes
-    log_r = np.diff(np.log(exposures))
-    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
-    tables = []
-    for ch in range(codes[0].shape[-1]):
-        grams = [pair_comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
-        g = from_knots(response_from_comparagrams(grams, log_r[[k - 1 for k in used]]), n)
-        tables.append(inverse_from_log(g)[0])
-    return table_crf(np.stack(tables), "fitted on the bracket")
+def crf_goossens2012_prior(codes, log_exposures: np.ndarray, n_codes: int, smoothing: float = DEFAULT_LAMBDA, *,
+                           anchor: float = DEFAULT_ANCHOR, prior: np.ndarray | None = None, **options) -> CRFFit:
+    """:func:`crf_goossens2012` with its prior towards the standard curve (``prior``, default
+    :func:`standard_prior`; weight ``anchor``) where the frames leave ``g`` open: the method
+    ``goossens`` of estimate-crf and of the merge's response."""
+    prior = standard_prior(n_codes) if prior is None else prior
+    return crf_goossens2012(codes, log_exposures, n_codes, smoothing, anchor=anchor, prior=prior, **options)

@@ -11,11 +11,11 @@ to the reference's label.  This is the pairwise method of Hanji & Mantiuk's HDRu
 ``log y_b - log y_a`` with inverse-variance weights ``1 / (1/y_a + 1/y_b)`` and 3-sigma
 outlier rejection, Cerman & Hlavac 2006), made robust here by a median/MAD start.
 
-On the one sample set (:class:`~hdrmerge_cli.core.samples.Samples`): the frames' order
-(:func:`order_test`), the neighbour pairs' ratios through a response (:func:`measure_pairs`,
+On the one sample set (:class:`~hdrmerge_cli.core.samples.Samples`, whose order is checked
+there): the neighbour pairs' ratios through a response (:func:`measure_pairs`,
 :func:`robust_log_ratio`), the exposures chained from them (:func:`estimate`,
 :func:`estimate_exposures`), a quick response fitted on the samples when the one in use is
-only assumed (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`, :func:`estimate_with_response`), and whether the
+only assumed (:func:`quick_response`, :func:`estimate_with_response`), and whether the
 response or a label explains a frame's difference from its label (:func:`label_at_fault`,
 :func:`response_fits`).  The response stage, the exposures stage and ``info`` read them.
 
@@ -36,7 +36,6 @@ from typing import NamedTuple
 import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
-from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.registration import Motion, block_mean, moved_pairs, warp_motion
 from hdrmerge_cli.core.samples import (
     MIN_RATIO_PIXELS, RANGE_LINEAR, RANGE_UNVERIFIED, RANGE_VERIFIED, Samples,
@@ -44,51 +43,12 @@ from hdrmerge_cli.core.samples import (
 
 #: a label more than this many EV from its estimate is reported (1/3 EV, a camera's step)
 LABEL_TOLERANCE_EV = 1.0 / 3.0
-#: the order check fails when more than this fraction of the pixels that changed got darker
-ORDER_DOWN_FRACTION = 0.75
 #: a pair measured on less than this fraction of the frame (a lamp, a window) leans on
 #: the ends of the response: the labels its ratio decides are not measured
 WEAK_COVERAGE = 0.05
 #: a label is called wrong only when its difference from the estimate exceeds this many
 #: standard errors of the estimate (as well as the tolerance)
 LABEL_SIGMAS = 3.0
-#: ... and at least this many pixels changed by more than the margin
-ORDER_MIN_CHANGED = 100
-
-
-# ---------------------------------------------------------------- order check
-@dataclass
-class OrderTest:
-    """Sign test of a neighbour pair: of the pixels both frames measure, how many got
-    brighter (``up``) and darker (``down``) by more than the noise margin in the frame
-    labelled longer."""
-
-    up: int
-    down: int
-    usable: int
-
-    @property
-    def down_fraction(self) -> float:
-        return self.down / max(1, self.up + self.down)
-
-    @property
-    def disordered(self) -> bool:
-        """The longer-labelled frame is darker on most changed pixels: a monotone response
-        cannot do that, so the labels (or the files) are out of order.  Frames at the noise
-        floor or of equal exposure change both ways about equally and pass."""
-        return self.up + self.down >= ORDER_MIN_CHANGED and self.down_fraction > ORDER_DOWN_FRACTION
-
-
-def order_test(z_short: np.ndarray, z_long: np.ndarray, usable: np.ndarray, margin: float) -> OrderTest:
-    """The sign test of :class:`OrderTest` on code values (any monotone response keeps the
-    sign of a change, so no response is needed; Wilcoxon-style sign test on the pixels that
-    neither frame clips, borders excluded).
-
-    z_short, z_long : codes of the frames labelled shorter and longer (same shape)
-    usable : bool mask of the samples to compare; margin : changes of at most this are noise
-    """
-    d = z_long[usable].astype(np.float32) - z_short[usable].astype(np.float32)
-    return OrderTest(int(np.count_nonzero(d > margin)), int(np.count_nonzero(d < -margin)), int(d.size))
 
 
 # ---------------------------------------------------------------- ratio estimate
@@ -389,21 +349,84 @@ def estimate(exposures: np.ndarray, s: Samples, crf: CRF, value_range: tuple[flo
     return estimate_exposures(np.log(exposures), pairs, free_slope=free_slope or not crf_verified(crf))
 
 
+# ---------------------------------------------------------------- quick response (the samples' comparagrams)
+def pair_comparagram(z_a: np.ndarray, z_b: np.ndarray, levels: int) -> np.ndarray:
+    """Joint histogram ``J[i, j]`` of the knot codes of the same pixels in two frames
+    (Mann 2000's comparagram; the data of the paper's (36)-(37))."""
+    return np.bincount(z_a.astype(np.int64).ravel() * levels + z_b.astype(np.int64).ravel(),
+                       minlength=levels * levels).reshape(levels, levels).astype(np.float64)
+
+
+def response_from_comparagrams(grams: list[np.ndarray], log_ratios: np.ndarray, smoothing: float = 1.0) -> np.ndarray:
+    """``g = log gamma^-1`` on ``L`` knots from the comparagrams of neighbour pairs and their
+    log exposure ratios: weighted least squares of ``g(j) - g(i) = log(h_b / h_a)`` over
+    the cells of each comparagram (weight: the cell's count times the hat weights of both
+    codes, Debevec-Malik's ``w(z)``; clipped codes 0 and L-1 left out), plus
+    ``smoothing`` times the second differences of ``g`` (scaled to the data's total weight)
+    and ``g(L/2) = 0``: the paper's (36) without its monotonicity constraints, solved in
+    closed form through the ``L x L`` normal equations (no per-pixel unknowns, so it costs
+    one histogram per pair).  Not made monotone here.
+
+    grams : comparagrams ``(L, L)`` of the pairs; log_ratios : their ``log(h_b / h_a)``
+    """
+    levels = grams[0].shape[0]
+    hat = np.minimum(np.arange(levels), levels - 1 - np.arange(levels)).astype(np.float64)
+    hat /= max(hat.max(), 1.0)
+    ata = np.zeros((levels, levels))
+    atb = np.zeros(levels)
+    total = 0.0
+    for j_ab, d in zip(grams, log_ratios):
+        w = j_ab * hat[:, None] * hat[None, :]
+        rs, cs = w.sum(axis=1), w.sum(axis=0)
+        ata += np.diag(rs + cs) - w - w.T
+        atb += d * (cs - rs)
+        total += float(w.sum())
+    lam = smoothing * max(total, 1.0) / levels
+    dd = np.zeros((levels - 2, levels))
+    idx = np.arange(levels - 2)
+    dd[idx, idx], dd[idx, idx + 1], dd[idx, idx + 2] = 1.0, -2.0, 1.0
+    ata += lam * dd.T @ dd
+    mid = levels // 2
+    ata[mid, mid] += max(total, 1.0)  # g(mid) = 0
+    return np.linalg.solve(ata, atb)
+
+
+def quick_response(exposures: np.ndarray, s: Samples, skip: frozenset[int] = frozenset()) -> CRF:
+    """An image bracket's inverse response fitted on its samples' knot codes
+    (:attr:`~hdrmerge_cli.core.samples.Samples.knots`, constant borders off) with the given
+    exposures, per channel, from the neighbour pairs' comparagrams
+    (:func:`response_from_comparagrams`), interpolated from the knots to every code as
+    :func:`~hdrmerge_cli.core.crf_goossens2012.from_knots` does: the check's own response
+    when the one in use is an unverified model (sRGB assumed), whose ratios are off by up to
+    a stop on real cameras' tone curves.  Pairs in ``skip`` (frames that moved) are left out
+    while others remain."""
+    from hdrmerge_cli.core.crf import table_crf
+    from hdrmerge_cli.core.crf_estimate import inverse_from_log
+
+    (codes, levels), n = s.knots, s.levels[2]
+    at_codes = np.arange(levels) * ((n - 1) / (levels - 1))  # the knots' codes
+    log_r = np.diff(np.log(exposures))
+    used = [k for k in range(1, len(codes)) if k - 1 not in skip] or list(range(1, len(codes)))
+    tables = []
+    for ch in range(codes[0].shape[-1]):
+        grams = [pair_comparagram(codes[k - 1][:, ch], codes[k][:, ch], levels) for k in used]
+        g_knots = response_from_comparagrams(grams, log_r[[k - 1 for k in used]])
+        tables.append(inverse_from_log(np.interp(np.arange(n), at_codes, g_knots))[0])
+    return table_crf(np.stack(tables), "fitted on the bracket")
+
+
 def estimate_with_response(exposures: np.ndarray, s: Samples, crf: CRF, rounds: int = 1,
                            moved: frozenset[int] = frozenset()) -> tuple[ExposureEstimate, CRF]:
     """:func:`estimate` through ``crf`` when it is trusted (linear, a measured table);
     otherwise through a response fitted on the bracket
-    (:func:`~hdrmerge_cli.core.crf_goossens2012.quick_response`), jointly:
+    (:func:`quick_response`), jointly:
     fit with the labels, estimate, refit with the estimates, ``rounds`` times.  Pairs in
     ``moved`` are not used (their labels' ratio is kept)."""
     if crf_verified(crf):
         return estimate(exposures, s, crf, moved=moved), crf
-    from hdrmerge_cli.core.crf_goossens2012 import knot_codes, quick_response  # (numba: only an unverified response)
-
     h = np.asarray(exposures, dtype=np.float64)
-    knots = knot_codes(s)
     for _ in range(rounds):  # fitted with the labels, then with the estimates
-        fitted = quick_response(h, knots, moved)  # its least squares shrink the ratios a little: slope fitted
+        fitted = quick_response(h, s, moved)  # its least squares shrink the ratios a little: slope fitted
         est = estimate(exposures, s, fitted, free_slope=True, moved=moved)
         h = np.exp(est.log_h)
     # a label is called wrong only where the assumed response agrees (same sign; the smaller
@@ -532,19 +555,14 @@ def label_verdicts(est: ExposureEstimate, given: list[bool], tol_ev: float = LAB
 @dataclass
 class LabelCheck:
     """The labels judged once (:func:`check_exposures`) on the exposures ``est`` measured: the
-    pairs' ``motion``, the :func:`label_verdicts`, and per frame the estimate's standard
-    error (EV), share and whether it is measured (:meth:`ExposureEstimate.stderr_ev`,
-    :meth:`~ExposureEstimate.share`, :meth:`~ExposureEstimate.measured`), which the
-    warnings and the ``--json`` record read; ``used``: the response the estimate read, and
+    pairs' ``motion`` and the :func:`label_verdicts`, which the warnings and the ``--json``
+    record read; ``used``: the response the estimate read, and
     ``response`` as the record names it; ``model``: the response in use, named, and
     ``power_ev`` its power error (:func:`model_power_error_ev`)."""
 
     est: ExposureEstimate
     motion: Motion
     verdicts: dict[int, Verdict]
-    stderr_ev: np.ndarray
-    share: np.ndarray
-    measured: np.ndarray
     used: CRF
     response: str
     model: str
@@ -577,5 +595,4 @@ def check_exposures(exposures: np.ndarray, s: Samples, crf: CRF, given: list[boo
         est, used = estimate_with_response(exposures, s, crf, rounds=2, moved=motion.moved)
     verdicts = label_verdicts(est, given, motion=motion)
     name = used.describe() + ("" if crf_verified(used) else " (unverified: mid-range codes, slope fitted)")
-    return LabelCheck(est, motion, verdicts, est.stderr_ev(), est.share(), est.measured(), used, name,
-                      crf.describe(), model_power_error_ev(est))
+    return LabelCheck(est, motion, verdicts, used, name, crf.describe(), model_power_error_ev(est))

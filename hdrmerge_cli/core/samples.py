@@ -2,10 +2,11 @@
 
 :class:`Samples` holds every frame decoded, subsampled (:func:`normalised_samples`) and
 normalised to ``v = (z - black) / (white - black)`` (drawn by the exposures stage,
-:func:`~hdrmerge_cli.pipeline.exposure_check.sample_frames`), off the constant borders
-(:func:`constant_border`), with each frame's floor; and what the response stage asks of its
-overlap (:func:`thin_overlap`, :func:`pairs_pin_response`).  What is measured on the samples
-(ratios, exposures, motion) is :mod:`hdrmerge_cli.core.exposure_estimate`.
+:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`), off the constant borders
+(:func:`constant_border`), with each frame's floor, and their order checked
+(:func:`disordered_pair`).  What is measured on the samples (ratios, exposures, motion) is
+:mod:`hdrmerge_cli.core.exposure_estimate`; what a response fit asks of their overlap,
+:mod:`hdrmerge_cli.core.crf_estimate`.
 
 Everything here is pure array code: no paths, no printing.
 """
@@ -35,8 +36,10 @@ FLOOR_SHARE = 0.1
 FLOOR_SIGMAS = 3.0
 #: tiles per side over which a ratio's standard error is measured (:attr:`Samples.tiles`)
 TILES = 8
-#: fewest pixels consecutive frames must both expose (neither code clipped) for a CRF fit
-MIN_OVERLAP = 50
+#: the order check fails when more than this fraction of the pixels that changed got darker
+ORDER_DOWN_FRACTION = 0.75
+#: ... and at least this many pixels changed by more than the margin
+ORDER_MIN_CHANGED = 100
 
 
 @dataclass
@@ -133,6 +136,18 @@ class Samples:
         black, span, n_codes = self.levels
         return [np.rint(v[self.inside] * span + black).clip(0, n_codes - 1).astype(np.int64) for v in self.v]
 
+    @functools.cached_property
+    def knots(self) -> tuple[list[np.ndarray], int]:
+        """:attr:`codes` on the knots of :func:`~hdrmerge_cli.core.crf_goossens2012.to_knots`
+        (at most :data:`~hdrmerge_cli.core.crf_goossens2012.MAX_LEVELS` levels), and the number
+        of levels: made once for every fit of the quick response on these samples
+        (:func:`~hdrmerge_cli.core.exposure_estimate.quick_response`)."""
+        from hdrmerge_cli.core.crf_goossens2012 import knot_levels, to_knots  # (numba: only an unverified response)
+
+        n = self.levels[2]
+        levels = knot_levels(n)
+        return [to_knots(c, n, levels) for c in self.codes], levels
+
     def read_nothing(self) -> list[int]:
         """The frames with fewer than :data:`MIN_RATIO_PIXELS`
         samples between their floor and its noise (:attr:`noise_floors`) and clipping, off the
@@ -184,38 +199,6 @@ def _from_cell_planes(planes: np.ndarray, like: np.ndarray) -> np.ndarray:
     out = like.copy()
     out[:2 * h2, :2 * w2, 0] = planes.reshape(h2, w2, 2, 2).transpose(0, 2, 1, 3).reshape(2 * h2, 2 * w2)
     return out
-
-
-def thin_overlap(s: Samples) -> tuple[int, int] | None:
-    """The first neighbour pair sharing fewer than :data:`MIN_OVERLAP` pixels that neither
-    frame clips (0 < z < max; constant borders excluded), as ``(k, pixels)`` with ``k`` the
-    pair's longer frame, or None: a response cannot be chained across such a pair."""
-    lo, hi = 0.5 * s.codes_step, s.top
-    for k in range(1, len(s.v)):
-        a, b = s.v[k - 1], s.v[k]
-        both = int(np.count_nonzero(((a > lo) & (a < hi) & (b > lo) & (b < hi)).all(-1) & s.inside)) * s.step**2
-        if both < MIN_OVERLAP:
-            return k, both
-    return None
-
-
-def well_exposed_overlap(s: Samples) -> list[int]:
-    """Per neighbour pair ``(k - 1, k)``, the pixels (off the borders, at full resolution)
-    both frames expose well in every channel: within :data:`RANGE_UNVERIFIED`, where any
-    camera's response has slope, and above each frame's floor (:attr:`Samples.floors`).
-    Pixel pairs pin a response only through such pixels; elsewhere one of the two codes is
-    at a floor or a shoulder, and its noise there biases a fit on pairs (errors in the
-    variables)."""
-    lo, hi = RANGE_UNVERIFIED
-    ok = [((v >= np.maximum(lo, floor)) & (v <= hi)).all(-1) & s.inside for v, floor in zip(s.v, s.floors)]
-    return [int(np.count_nonzero(ok[k - 1] & ok[k])) * s.step**2 for k in range(1, len(ok))]
-
-
-def pairs_pin_response(s: Samples) -> bool:
-    """Whether some neighbour pair shares :data:`MIN_OVERLAP` well-exposed pixels
-    (:func:`well_exposed_overlap`): else a response is fitted on the frames' histograms
-    (:func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`), not on pixel pairs."""
-    return len(s.v) < 2 or max(well_exposed_overlap(s)) >= MIN_OVERLAP
 
 
 # ---------------------------------------------------------------- constant borders
@@ -284,3 +267,69 @@ def normalised_samples(codes: np.ndarray, black, white, step: int = 1, cell: np.
         c = cell[(ys % 2)[:, None], (xs % 2)[None, :]] if cell is not None else np.zeros((len(ys), len(xs)), np.intp)
         return ((z - black[c]) / (white[c] - black[c]))[..., None]
     return (z - black[: z.shape[-1]]) / (white[: z.shape[-1]] - black[: z.shape[-1]])
+
+
+def sample_set(v: list[np.ndarray], step: int, black, white, n_codes: int, raw: bool, border_tol: float) -> Samples:
+    """The :class:`Samples` of every frame's :func:`normalised_samples` ``v`` (subsampled by
+    ``step``; ``black``, ``white``: the frames' levels per channel), off the
+    :func:`constant_border` lines (spread at most ``border_tol``)."""
+    border = constant_border(v, border_tol)
+    span = float(np.min(white - black))
+    c = v[0].shape[-1]
+    levels = (np.asarray(black, np.float32)[:c], np.asarray(white - black, np.float32)[:c], n_codes)
+    return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0), raw, levels)
+
+
+# ---------------------------------------------------------------- order check
+@dataclass
+class OrderTest:
+    """Sign test of a neighbour pair: of the pixels both frames measure, how many got
+    brighter (``up``) and darker (``down``) by more than the noise margin in the frame
+    labelled longer."""
+
+    up: int
+    down: int
+    usable: int
+
+    @property
+    def down_fraction(self) -> float:
+        return self.down / max(1, self.up + self.down)
+
+    @property
+    def disordered(self) -> bool:
+        """The longer-labelled frame is darker on most changed pixels: a monotone response
+        cannot do that, so the labels (or the files) are out of order.  Frames at the noise
+        floor or of equal exposure change both ways about equally and pass."""
+        return self.up + self.down >= ORDER_MIN_CHANGED and self.down_fraction > ORDER_DOWN_FRACTION
+
+
+def order_test(z_short: np.ndarray, z_long: np.ndarray, usable: np.ndarray, margin: float) -> OrderTest:
+    """The sign test of :class:`OrderTest` on code values (any monotone response keeps the
+    sign of a change, so no response is needed; Wilcoxon-style sign test on the pixels that
+    neither frame clips, borders excluded).
+
+    z_short, z_long : codes of the frames labelled shorter and longer (same shape)
+    usable : bool mask of the samples to compare; margin : changes of at most this are noise
+    """
+    d = z_long[usable].astype(np.float32) - z_short[usable].astype(np.float32)
+    return OrderTest(int(np.count_nonzero(d > margin)), int(np.count_nonzero(d < -margin)), int(d.size))
+
+
+def disordered_pair(s: Samples, exposures: np.ndarray, equal_rtol: float) -> tuple[int, OrderTest] | None:
+    """The first neighbour pair ``(k - 1, k)`` the longer-labelled frame ``k`` of which is
+    darker (:attr:`OrderTest.disordered`), as ``(k, its test)``, or None: per pair the sign
+    test of :func:`order_test` on the pixels both frames read above their floors and its
+    noise (:attr:`Samples.noise_floors`) and neither clips, off the constant borders, with a
+    margin of 1.5 codes.  Pairs whose labels tie (within ``equal_rtol``) are not ordered by
+    them."""
+    margin = max(1.5 * s.codes_step, 0.004)
+    top = s.top
+    for k in range(1, len(s.v)):
+        if exposures[k] <= exposures[k - 1] * (1 + equal_rtol):
+            continue
+        a, b = s.v[k - 1], s.v[k]
+        usable = (a > s.noise_floors[k - 1]) & (b > s.noise_floors[k]) & (a < top) & (b < top) & s.inside[..., None]
+        t = order_test(a, b, usable, margin)
+        if t.disordered:
+            return k, t
+    return None

@@ -20,13 +20,10 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.exposure_estimate import (
-    LABEL_TOLERANCE_EV, LabelCheck, Motion, check_exposures, order_test,
-)
-from hdrmerge_cli.core.samples import (
-    MIN_OVERLAP, Samples, border_mask, constant_border, normalised_samples, thin_overlap,
-)
-from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
+from hdrmerge_cli.core.exposure_estimate import LABEL_TOLERANCE_EV, LabelCheck, Motion, check_exposures
+from hdrmerge_cli.core.crf_estimate import MIN_OVERLAP, thin_overlap
+from hdrmerge_cli.core.samples import Samples, disordered_pair, normalised_samples, sample_set
+from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, fmt_time
 
 log = logging.getLogger("hdrmerge_cli")
@@ -37,83 +34,49 @@ MAX_SAMPLES = 1 << 18
 BORDER_TOL = 0.03
 
 
-def normalise(frame: Frame, codes: np.ndarray, step: int = 1, cell: np.ndarray | None = None) -> np.ndarray:
-    """The frame's :func:`~hdrmerge_cli.core.samples.normalised_samples`."""
-    return normalised_samples(codes, frame.black, frame.white, step, cell)
-
-
-def _step_and_cell(first: Frame, max_samples: int = MAX_SAMPLES) -> tuple[int, np.ndarray | None]:
-    step = max(1, int(np.ceil(np.sqrt(first.width * first.height / max_samples))))
-    cell = cfa_corner(first).astype(np.intp) if first.kind == "raw" else None
-    return step, cell
-
-
-def _samples(frames: list[Frame], v: list[np.ndarray], step: int) -> Samples:
+def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes, cell=None, also=None,
+                    max_samples: int = MAX_SAMPLES) -> Samples:
+    """The exposures stage's one sample set: every frame decoded (two at a time), subsampled
+    to about ``max_samples`` and normalised (:func:`~hdrmerge_cli.core.samples.normalised_samples`;
+    ``cell``: a RAW bracket's 2 x 2 CFA cell, :func:`~hdrmerge_cli.io.frames.cfa_corner`, the
+    bracket's pattern), off the constant borders, then the frames' order checked: frames
+    sorted by their labels must not get darker (:func:`~hdrmerge_cli.core.samples.disordered_pair`;
+    frames that read black, at the floor, and equal exposures pass: they neither confirm nor
+    contradict an order), else a one-line error naming both frames.  Everything after it
+    (the response, registration, the labels) trusts the order.  Frames whose labels tie
+    (:data:`~hdrmerge_cli.io.metadata.EQUAL_EXPOSURE_RTOL`) are not ordered by them: the
+    merge compares them as repeats, and ``--times estimate`` orders them by their estimates.
+    ``also(frame, codes)``, when given, sees each frame's codes too (e.g. info's clip classes)."""
     first = frames[0]
-    border = constant_border(v, BORDER_TOL)
-    if any(border):
-        log.info("constant border (rows top/bottom, columns left/right, subsampled by %d): %s left out of the checks",
-                 step, "/".join(map(str, border)))
-    span = float(np.min(first.white - first.black))
-    c = v[0].shape[-1]
-    levels = (np.asarray(first.black, np.float32)[:c], np.asarray(first.white - first.black, np.float32)[:c],
-              first.n_codes)
-    return Samples(v, border_mask(v[0].shape, border), border, step, 1.0 / max(span, 1.0), first.kind == "raw", levels)
-
-
-def sample_frames(frames: list[Frame], load=load_codes, max_samples: int = MAX_SAMPLES, also=None) -> Samples:
-    """Decode every frame (two at a time) into :class:`Samples`; ``also(frame, codes)``, when
-    given, sees each frame's codes too (e.g. info's clip classes)."""
-    step, cell = _step_and_cell(frames[0], max_samples)
+    step = max(1, int(np.ceil(np.sqrt(first.width * first.height / max_samples))))
+    if first.kind == "raw" and cell is None:
+        raise ValueError("the samples of a RAW bracket need its 2 x 2 CFA cell")
+    cell = np.asarray(cell, np.intp) if first.kind == "raw" else None
 
     def one(frame):
         codes = load(frame)
         if also is not None:
             also(frame, codes)
-        return normalise(frame, codes, step, cell)
+        return normalised_samples(codes, frame.black, frame.white, step, cell)
 
     with ThreadPoolExecutor(2) as pool:
         v = list(pool.map(one, frames))
-    return _samples(frames, v, step)
-
-
-def ordered_samples(frames: list[Frame], exposures: np.ndarray, load=load_codes, also=None) -> Samples:
-    """The exposures stage's one sample set: :func:`sample_frames`, the frames' order then
-    checked (:func:`check_order`): everything after it (the response, registration, the
-    labels) trusts the order."""
-    samples = sample_frames(frames, load, also=also)
-    if len(frames) > 1:
-        check_order(frames, exposures, samples)
-    return samples
+    s = sample_set(v, step, first.black, first.white, first.n_codes, first.kind == "raw", BORDER_TOL)
+    if any(s.border):
+        log.info("constant border (rows top/bottom, columns left/right, subsampled by %d): %s left out of the checks",
+                 step, "/".join(map(str, s.border)))
+    found = disordered_pair(s, exposures, EQUAL_EXPOSURE_RTOL)
+    if found is not None:
+        k, t = found
+        raise HdrMergeError(
+            f"{frames[k].path}: darker than {frames[k - 1].path} on {100 * t.down_fraction:.0f} % of the pixels that "
+            f"changed, though labelled a longer exposure ({fmt_time(frames[k].exposure_time)} vs "
+            f"{fmt_time(frames[k - 1].exposure_time)}); check the exposure times"
+        )
+    return s
 
 
 # ---------------------------------------------------------------- checks
-def check_order(frames: list[Frame], exposures: np.ndarray, s: Samples) -> None:
-    """Frames sorted by their labels must not get darker: per neighbour pair the sign test
-    of :func:`~hdrmerge_cli.core.exposure_estimate.order_test` on the pixels both frames read
-    above their floors and its noise (:attr:`~hdrmerge_cli.core.samples.Samples.noise_floors`)
-    and neither clips, off the constant borders (frames that read black, at the floor, and equal
-    exposures pass: they neither confirm nor contradict an order; only a pair darker on
-    most changed pixels fails), with a one-line error naming both frames.  Frames whose
-    labels tie (:data:`~hdrmerge_cli.io.metadata.EQUAL_EXPOSURE_RTOL`) are not ordered by
-    them: the merge compares them as repeats, and ``--times estimate`` orders them by
-    their estimates."""
-    margin = max(1.5 * s.codes_step, 0.004)
-    top = s.top
-    for k in range(1, len(frames)):
-        if exposures[k] <= exposures[k - 1] * (1 + EQUAL_EXPOSURE_RTOL):
-            continue
-        a, b = s.v[k - 1], s.v[k]
-        usable = (a > s.noise_floors[k - 1]) & (b > s.noise_floors[k]) & (a < top) & (b < top) & s.inside[..., None]
-        t = order_test(a, b, usable, margin)
-        if t.disordered:
-            raise HdrMergeError(
-                f"{frames[k].path}: darker than {frames[k - 1].path} on {100 * t.down_fraction:.0f} % of the pixels that "
-                f"changed, though labelled a longer exposure ({fmt_time(frames[k].exposure_time)} vs "
-                f"{fmt_time(frames[k - 1].exposure_time)}); check the exposure times"
-            )
-
-
 def check_overlap(frames: list[Frame], s: Samples) -> None:
     """Refuse a bracket with a :func:`thin_overlap` pair, in one line naming both frames."""
     thin = thin_overlap(s)
@@ -176,15 +139,15 @@ def report(frames: list[Frame], exposures: np.ndarray, labels: LabelCheck, used:
     (:func:`~hdrmerge_cli.core.registration.moved_pairs`), ``moved_px`` (null: not registered: no
     label in question, or too little texture); which exposures the merge used."""
     est, motion = labels.est, labels.motion
-    est_h = np.exp(est.log_h)
+    est_h, stderr_ev, share, measured = np.exp(est.log_h), est.stderr_ev(), est.share(), est.measured()
     rows = []
     for k, f in enumerate(frames):
         factor = exposures[k] / f.exposure_time
         verdict, why, _ = labels.verdicts.get(k, (None, None, None))
         rows.append({"name": f.name, "label_seconds": f.exposure_time, "estimate_seconds": float(est_h[k] / factor),
                      "difference_ev": round(float(est.difference_ev[k]), 4),
-                     "stderr_ev": round(float(labels.stderr_ev[k]), 4), "share": round(float(labels.share[k]), 4),
-                     "measured": bool(labels.measured[k]),
+                     "stderr_ev": round(float(stderr_ev[k]), 4), "share": round(float(share[k]), 4),
+                     "measured": bool(measured[k]),
                      "mislabelled": verdict in ("pair", "given", "label"), "moved": verdict == "moved",
                      "response_at_fault": why if verdict == "response" else None})
     px = motion.px
@@ -252,16 +215,15 @@ class CheckedExposures:
     samples: Samples | None
 
 
-def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load=load_codes, use_estimates: bool = False,
-                      samples: Samples | None = None, alignment=None) -> CheckedExposures:
+def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, samples: Samples | None,
+                      use_estimates: bool = False, alignment=None) -> CheckedExposures:
     """merge: measure the frames' exposures on ``samples`` (:func:`ordered_samples`, whose
-    order is checked; drawn through ``load`` when not given) and warn about labels more
-    than 1/3 EV off; with ``use_estimates`` (``--times estimate``) merge with the estimates
-    instead (frames re-sorted by them, their ``exposure_time`` set to them).  With the
-    merge's ``alignment``, the samples are brought onto the reference by its warps where it
-    applies them and the pairs' motion is what it measured
-    (:func:`~hdrmerge_cli.core.registration.warp_motion`);
-    without, the pairs in question are registered on the samples
+    order is checked) and warn about labels more than 1/3 EV off; with ``use_estimates``
+    (``--times estimate``) merge with the estimates instead (frames re-sorted by them, their
+    ``exposure_time`` set to them).  With the merge's ``alignment``, the samples are brought
+    onto the reference by its warps where it applies them and the pairs' motion is what it
+    measured (:func:`~hdrmerge_cli.core.registration.warp_motion`); without, the pairs in
+    question are registered on the samples
     (:func:`~hdrmerge_cli.core.exposure_estimate.check_exposures`).
 
     A single frame has nothing to compare: returned as it is, with no report."""
@@ -269,12 +231,12 @@ def resolve_exposures(frames: list[Frame], exposures: np.ndarray, crf: CRF, load
         if use_estimates:
             log.warning("--times estimate: a single frame has nothing to compare; its label is used")
         return CheckedExposures(frames, exposures, None, samples)
-    s = samples if samples is not None else ordered_samples(frames, exposures, load)
+    given = user_times(frames)
     warps = None if alignment is None else [alignment.warp_of(f) for f in frames]
     applied = alignment is not None and alignment.applied
-    s = s.registered(warps) if applied else s
+    s = samples.registered(warps) if applied else samples
     nothing = s.read_nothing()
-    labels = check_exposures(exposures, s, crf, user_times(frames), use_estimates, warps,
+    labels = check_exposures(exposures, s, crf, given, use_estimates, warps,
                              None if alignment is None else [f.path not in alignment.unaligned for f in frames],
                              applied, (frames[0].height, frames[0].width))
     est, motion = labels.est, labels.motion

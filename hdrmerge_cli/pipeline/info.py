@@ -8,7 +8,7 @@ import numpy as np
 
 from hdrmerge_cli.core.coverage import Coverage, clip_classes
 from hdrmerge_cli.core.samples import Samples
-from hdrmerge_cli.io.frames import Frame, load_codes, read_frame
+from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes, read_frame
 from hdrmerge_cli.io.metadata import exposure_values, fmt_time, sample_pattern
 from hdrmerge_cli.io.times import apply_times
 from hdrmerge_cli.pipeline import exposure_check
@@ -55,7 +55,8 @@ def bracket_info(paths, times=None, times_file: str | None = None, crf_spec: str
 
     samples = None
     if comparable and len(frames) > 1:  # the exposures' samples and the classes from one decode
-        samples = exposure_check.sample_frames(frames, also=classes)  # ordered in _estimates, after the rows
+        samples = exposure_check.ordered_samples(frames, exposure_values(frames), load_codes,
+                                                 cfa_corner(frames[0]) if frames[0].kind == "raw" else None, classes)
     else:
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(classes, frames))
@@ -80,9 +81,7 @@ def _estimates(frames: list[Frame], s: Samples, crf_spec: str | None) -> dict:
         crf = resolve_crf(crf_spec)
     else:
         crf = CRF("srgb", assumed=True)  # unverified: the check fits its own response on the bracket
-    exposures = exposure_values(frames)
-    exposure_check.check_order(frames, exposures, s)
-    return exposure_check.check_labels(frames, exposures, s, crf, "; merge with --times estimate to use the estimates")
+    return exposure_check.check_labels(frames, exposure_values(frames), s, crf, "; merge with --times estimate to use the estimates")
 
 
 def _bracket_summary(frames: list[Frame], coverage: Coverage | None, timed: bool) -> dict:

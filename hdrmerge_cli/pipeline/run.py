@@ -1,7 +1,8 @@
 """merge: the stages of a merge, each called once, in reading order.
 
 The CLI (``hdrmerge-cli merge``, ``--batch``), ``plan``'s check merge and the Python API
-(:mod:`hdrmerge_cli.api`) all go through :func:`merge_frames`:
+(:mod:`hdrmerge_cli.api`) all go through :func:`merge_frames` (``estimate-crf`` runs the
+read, exposures and response stages through :func:`estimate_crf`):
 
 1. read: the frames' metadata, their codes (each file decoded once, held by frame) and the
    response given or assumed (:func:`~hdrmerge_cli.pipeline.bracket.read`, a
@@ -35,7 +36,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.output_colorspace import COLORSPACES
 from hdrmerge_cli.io.atomic import check_distinct, check_writable
-from hdrmerge_cli.io.frames import Frame, load_codes
+from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.metadata import reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
@@ -44,14 +45,16 @@ from hdrmerge_cli.pipeline.choices import (
     choose_alignment, choose_deghost, choose_models, registration_plan, wanted,
 )
 from hdrmerge_cli.pipeline.excess import measure_excess
-from hdrmerge_cli.pipeline.exposure_check import ordered_samples, resolve_exposures
+from hdrmerge_cli.pipeline.exposure_check import check_labels, check_overlap, ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.ghosts import find_ghosts
 from hdrmerge_cli.pipeline.merge import reconstruct
 from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 from hdrmerge_cli.pipeline.register import Alignment, estimate_alignment, frame_validity, loader, output_alpha
-from hdrmerge_cli.pipeline.response import measure_response
+from hdrmerge_cli.pipeline.response import (
+    CRFOptions, decoded, finish_crf, fit_bracket, measure_response, start_crf,
+)
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -65,7 +68,7 @@ def merge(paths: list[str], opts: MergeOptions) -> dict:
     inputs = check_outputs(paths, opts)
     t0 = time.perf_counter()
     start_preparing_kernels()
-    b = read(paths, opts.inputs)
+    b = given_noise(read(paths, opts.inputs), opts.inputs)
     if Path(opts.io.output).suffix.lower() == ".dng" and b.frames[0].kind != "raw":
         raise HdrMergeError(f"{opts.io.output}: a DNG output holds a CFA mosaic, but {b.frames[0].path} is not a "
                             "Bayer RAW frame; name the output *.exr")
@@ -151,6 +154,7 @@ def merge_bracket(paths: list[str], opts: MergeOptions, noise: dict | None = Non
     t0 = time.perf_counter()
     b = read(paths, opts.inputs)
     b.noise = noise
+    given_noise(b, opts.inputs)
     first = b.frames[0]
     if crf is not None and first.kind == "image":
         if crf.table is not None and crf.table.shape[1] != first.n_codes:
@@ -160,20 +164,28 @@ def merge_bracket(paths: list[str], opts: MergeOptions, noise: dict | None = Non
     return merge_frames(b, opts, t_start=t0)
 
 
+def given_noise(b: Bracket, inputs) -> Bracket:
+    """The noise the options give (``--noise``, a profile's, per ISO where the frames' differ:
+    :func:`~hdrmerge_cli.pipeline.noise.resolve_noise_by_iso`) unless ``b`` carries one, read
+    with the bracket, before a pixel is decoded: a bad ``--noise`` fails first."""
+    if b.noise is None:
+        b.noise, b.noise_by_iso = resolve_noise_by_iso(b.frames, inputs.noise, inputs.profile, inputs.crf)
+    return b
+
+
 def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -> Merged:
     """The stages after reading, each called once, in order, on a read bracket ``b``
-    (frames sorted by exposure); each stage's result is kept in ``b``.  Nothing is written."""
+    (frames sorted by exposure, its given noise read: :func:`given_noise`); each stage's
+    result is kept in ``b``.  Nothing is written."""
     t0 = time.perf_counter() if t_start is None else t_start
     settings, inputs, outputs = opts.algorithm, opts.inputs, opts.io
     timings = b.timings
     warn_unused_options(b, opts)
     if len(b.frames) == 1:
         log.warning("%s: only one frame; the result has that frame's dynamic range", b.frames[0].path)
-    if b.noise is None:  # per channel NoiseParams, or None; frames of several ISOs and a profile with each: per ISO too
-        b.noise, b.noise_by_iso = resolve_noise_by_iso(b.frames, inputs.noise, inputs.profile, inputs.crf)
     if len(b.frames) > 1 or b.crf.assumed:  # exposures: the frames' order; the response
         t1 = time.perf_counter()
-        b.samples = ordered_samples(b.frames, b.exposures, b.codes)  # a disordered bracket fails first
+        b.samples = ordered_samples(b.frames, b.exposures, b.codes, b.pattern)  # a disordered bracket fails first
         if b.crf.assumed:  # an image bracket given no response: the bracket's own, or sRGB with a warning
             b.crf = measure_response(b.frames, b.exposures, b.samples, cache=outputs.noise_cache) or b.crf
             timings["response"] = time.perf_counter() - t1
@@ -182,8 +194,7 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
         b.alignment = align(b.frames, b.exposures, b.crf, settings.align, b.codes)
         timings["align"] = time.perf_counter() - t1
     t1 = time.perf_counter()  # the labels checked on the registered samples (or replaced: --times estimate)
-    checked = resolve_exposures(b.frames, b.exposures, b.crf, b.codes, inputs.times == ESTIMATE, b.samples,
-                                b.alignment)
+    checked = resolve_exposures(b.frames, b.exposures, b.crf, b.samples, inputs.times == ESTIMATE, b.alignment)
     b.settle_exposures(checked.frames, checked.exposures, settings.reference)
     b.exposure_report, b.samples = checked.report, checked.samples
     timings["exposure_check"] = time.perf_counter() - t1
@@ -224,6 +235,28 @@ def align(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=
     alignment = choose_alignment(estimate_alignment(frames, exposures, crf, registration_plan(mode), load), mode)
     alignment.report()
     return alignment
+
+
+def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
+    """``hdrmerge-cli estimate-crf``: its outputs checked and the bracket read
+    (:func:`~hdrmerge_cli.pipeline.response.start_crf`); for images (or linear data under
+    ``--force``) the frames decoded, their one sample set drawn with its order and overlap
+    checked (the exposures stage), the response fitted
+    (:func:`~hdrmerge_cli.pipeline.response.fit_bracket`) and the labels judged through it;
+    then the profile written (:func:`~hdrmerge_cli.pipeline.response.finish_crf`)."""
+    job = start_crf(paths, output, opts)
+    frames, first, fit = job.frames, job.frames[0], None
+    if first.kind not in ("raw", "linear") or opts.force:
+        codes, labels = decoded(frames, opts)
+        by_frame = {id(f): c for f, c in zip(frames, codes)}
+        samples = ordered_samples(frames, labels, lambda f: by_frame[id(f)],  # constant borders off
+                                  cfa_corner(first) if first.kind == "raw" else None)
+        check_overlap(frames, samples)
+        fit = fit_bracket(frames, codes, labels, samples, job.method, opts, job.smoothing, job.n_samples)
+        estimates = opts.times == ESTIMATE
+        fit.exposure_check = check_labels(frames, labels, samples, fit.crf, "" if estimates else
+                                          "; estimate-crf --times estimate fits with the estimates", estimates)
+    return finish_crf(job, fit, opts)
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
