@@ -44,3 +44,31 @@ def test_histogram_correspondences_match_colour_hdris_grossberg_samples():
     mid = slice(10, 190)
     for k in range(2):
         np.testing.assert_allclose(ours[k][mid], theirs[mid, k, :], atol=1)
+
+
+def test_histogram_rows_at_a_frames_floor_are_no_evidence():
+    """A frame's codes at its floor give no row of the fit (they read code 0, which (36)
+    weights 0), so the response fitted on the histograms of two frames 6 EV apart does not
+    depend on what the short frame reads at its floor (code 3 or code 9 for everything
+    below it), and it follows the true curve where both frames read the light."""
+    from hdrmerge_cli.core.crf_estimate import fit_response, histogram_correspondences
+
+    rng = np.random.default_rng(4)
+    e = np.exp(rng.uniform(np.log(1e-4), 0.0, (20000, 3)))
+    times = np.array([1.0, 64.0])
+    true = CRF("gamma", 2.2)
+
+    def frame(t, floor):
+        return np.maximum(np.rint(255 * np.clip(e * t, 0, 1) ** (1 / 2.2)), floor).astype(np.int64)
+
+    fits = []
+    for floor in (3, 9):
+        frames = [frame(times[0], floor), frame(times[1], 0)]
+        rows = histogram_correspondences(frames, 256, floors=[np.full(3, 9), np.zeros(3, np.int64)])
+        assert np.all(rows[0][rows[0] > 0] > 9) and not np.any((rows[0] > 0) & (rows[0] <= 9))
+        fits.append(fit_response([r[:, None, :] for r in rows], np.log(times), 256).crf)
+    z = np.arange(20, 250) / 255
+    a, b = (np.stack([f.inverse(z, c) for c in range(3)]) for f in fits)
+    np.testing.assert_array_equal(a, b)
+    ref = np.log(true.inverse(z) / true.inverse(z[-1]))
+    assert np.max(np.abs(np.log(a[1] / a[1][-1]) - ref)) < 0.25

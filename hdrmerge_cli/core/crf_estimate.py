@@ -71,7 +71,8 @@ def sample_pixels(middle: np.ndarray, samples: int, rng: np.random.Generator) ->
 HISTOGRAM_ROWS = 1000
 
 
-def histogram_correspondences(codes: list[np.ndarray], n_codes: int, rows: int = HISTOGRAM_ROWS) -> list[np.ndarray]:
+def histogram_correspondences(codes: list[np.ndarray], n_codes: int, rows: int = HISTOGRAM_ROWS,
+                              floors: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """Grossberg & Nayar (2003)'s correspondences: for a monotone response the frames of
     one scene rank its pixels alike, so the code at which each frame's cumulative
     histogram reaches a fraction ``u`` is one scene irradiance seen at each exposure
@@ -79,8 +80,16 @@ def histogram_correspondences(codes: list[np.ndarray], n_codes: int, rows: int =
     misregistration and pixels at the floor of one frame beside those of another do not
     enter it.  ``u`` runs over ``rows`` even steps strictly inside (0, 1).
 
+    A frame's codes at its floor (``floors``) are no evidence: where the response has no
+    slope, one code holds a wide range of quantiles (every irradiance below the floor's),
+    which its rows would pair with as many different codes of the other frames, pulling
+    ``g`` at the floor towards their average.  Those rows read code 0 instead, which every
+    weighting of (36) gives no weight, so the fit reads each frame only above its floor.
+
     codes : P arrays ``(N, C)`` of integer codes (below ``n_codes``), one per frame, the
         same pixels' in each (their order is not used)
+    floors : None, or P arrays ``(C,)``: the code up to which each frame reads its floor
+        (:attr:`~hdrmerge_cli.core.samples.Samples.floor_codes`)
     Returns P arrays ``(rows, C)`` int64: row ``i`` the code of each frame at ``u_i``, per
     channel (monotone in ``i``), as :func:`fit_response`'s samples."""
     u = (np.arange(rows) + 0.5) / rows
@@ -91,6 +100,8 @@ def histogram_correspondences(codes: list[np.ndarray], n_codes: int, rows: int =
             cdf = np.cumsum(np.bincount(z[..., c].ravel(), minlength=n_codes)) / z[..., c].size
             cols.append(np.searchsorted(cdf, u))
         out.append(np.stack(cols, axis=-1).clip(0, n_codes - 1).astype(np.int64))
+    if floors is not None:
+        out = [np.where(z <= np.asarray(f), 0, z) for z, f in zip(out, floors)]
     return out
 
 
@@ -291,7 +302,7 @@ def labelled_fit(s: Samples, exposures: np.ndarray, histograms: bool = False) ->
     from hdrmerge_cli.core.exposure_estimate import estimate, label_at_fault
 
     n_codes = s.levels[2]
-    codes = histogram_correspondences(s.codes, n_codes) if histograms else s.codes
+    codes = histogram_correspondences(s.codes, n_codes, floors=s.floor_codes) if histograms else s.codes
     log_h = np.log(np.asarray(exposures, np.float64))
     replaced: list[int] = []
     rounds: list[ResponseFit] = []

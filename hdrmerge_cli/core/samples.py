@@ -83,6 +83,12 @@ class Samples:
         alone).  Off the borders."""
         return [level + FLOOR_MARGIN for level, _ in self._floor_readings]
 
+    @property
+    def floor_codes(self) -> list[np.ndarray]:
+        """:attr:`floors` as code values: per frame, ``(C,)`` int64 the highest code at its floor."""
+        black, span, _ = self.levels
+        return [np.floor(np.asarray(f, np.float64) * span + black).astype(np.int64) for f in self.floors]
+
     @functools.cached_property
     def noise_floors(self) -> list[np.ndarray]:
         """:attr:`floors` with the margin raised to :data:`FLOOR_SIGMAS` times the noise of

@@ -236,7 +236,7 @@ def fit_bracket(frames, codes: list[np.ndarray], labels: np.ndarray, samples: Sa
         log.info("no two neighbouring frames share %d well-exposed pixels: the response is fitted on the frames' "
                  "histograms", MIN_OVERLAP)
         codes = [h[:, None, :] for h in histogram_correspondences([c.reshape(-1, c.shape[-1]) for c in codes],
-                                                                  first.n_codes)]
+                                                                  first.n_codes, floors=samples.floor_codes)]
     log_h = np.log(labels)
     options = _solver_options(method, opts)
     fit = _fit_checked(codes, log_h, first.n_codes, opts, smoothing, n_samples, options)
