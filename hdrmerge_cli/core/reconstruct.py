@@ -24,7 +24,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, code_variance, quantisation_variance
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
 
@@ -146,19 +146,6 @@ def certainty_table(n_codes, black, white, crf, weighting, exposure, noise=None,
     return np.stack([WEIGHTING_FUNCTIONS[weighting](v, lin, _context(weighting, wl - b, exposure, _row(noise, c),
                                                                      prior_rate, exposures, k, bounds))
                      for c, b, wl, v, lin in _channels(n_codes, black, white, crf)])
-
-
-def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
-    """Variance that the quantisation of the codes adds to the linearised signal
-    ``y = gamma^-1(z) y_full``, beside the sensor variance (17) (the paper's (2) maps codes
-    through ``gamma^-1``; its noise model stops at the ADC): a code step is worth ``dy/dz = y_full d gamma^-1 / dz``, and a
-    uniform rounding error of one step has variance ``(dy/dz)^2 / 12``.
-
-    lin : (N,) ``gamma^-1`` at every stored code value (one channel), in [0, 1]
-    Returns (N,) variances in squared code values of ``y`` (``1/12`` for a linear CRF).
-    """
-    step = np.gradient(np.asarray(lin, dtype=np.float64) * y_full) if lin.size > 1 else np.ones(1)
-    return step * step / 12.0
 
 
 def code_error_variance(lin: np.ndarray, y_full: float, tolerance: float = MODEL_TOLERANCE) -> np.ndarray:
