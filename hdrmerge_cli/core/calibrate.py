@@ -617,25 +617,21 @@ def _soft_l1(d: np.ndarray, y: np.ndarray, w: np.ndarray, start: np.ndarray, f_s
     return c
 
 
-def _robust_wls(design, var, counts, free, fixed):
-    """Non-negative weighted least squares of ``var ~ design @ c`` over the coefficients
-    ``free`` (the others held at ``fixed``), with a soft-L1 loss on the standardised
-    residuals ``sqrt(count / 2) (var - pred) / pred`` (a bin's variance estimate has
-    relative variance ~2 / count; :func:`_soft_l1`); re-weighted three times.  Returns
-    (c, residuals)."""
+def _robust_wls(design, var, counts):
+    """Non-negative weighted least squares of ``var ~ design @ c`` over ``c0, c1`` (``c2``
+    held at 0), with a soft-L1 loss on the standardised residuals ``sqrt(count / 2) (var -
+    pred) / pred`` (a bin's variance estimate has relative variance ~2 / count;
+    :func:`_soft_l1`); re-weighted three times.  Returns (c, residuals)."""
     from scipy.optimize import nnls  # here, not at the top: importing it costs every merge's start-up
 
-    full = np.array(fixed, dtype=np.float64)
-    rest = [k for k in range(3) if k not in free]
-    offset = design[:, rest] @ full[rest]
-    d = design[:, free]
+    full = np.zeros(3)
+    d = design[:, [0, 1]]
     pred = np.maximum(var, 1e-12)
-    for _ in range(3 if free else 0):
+    for _ in range(3):
         w = np.sqrt(counts / 2.0) / np.maximum(pred, 1e-12)
-        start = nnls(d * w[:, None], (var - offset) * w)[0]
-        full[free] = _soft_l1(d, var - offset, w, start, 3.0)
+        start = nnls(d * w[:, None], var * w)[0]
+        full[:2] = _soft_l1(d, var, w, start, 3.0)
         pred = np.maximum(design @ full, 1e-12)
-    pred = np.maximum(design @ full, 1e-12)
     return full, np.sqrt(counts / 2.0) * (var - pred) / pred
 
 
@@ -645,7 +641,7 @@ def fit_noise_model(points: VariancePoints) -> NoiseFit:
     if points.mean.size < 4:
         raise HdrMergeError(f"too few intensity levels ({points.mean.size}) to fit the noise model")
     var, counts, design = points.var, points.count, points.design
-    coef, r = _robust_wls(design, var, counts, [0, 1], [0.0, 0.0, 0.0])
+    coef, r = _robust_wls(design, var, counts)
     if coef[1] <= 0:
         raise HdrMergeError("the noise does not grow with the signal: cannot estimate the gain")
     rel = r / np.sqrt(counts / 2.0)

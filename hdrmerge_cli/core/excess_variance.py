@@ -35,7 +35,8 @@ The term is kept only where the pairs pin it and it matters (:func:`excess_effec
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -186,22 +187,20 @@ def pair_excess(readings: list[np.ndarray], exposures: np.ndarray, tables: list[
     d_all, base_all, la, lb = [], [], [], []
     limit = MAX_MODEL_SD ** 2 * (1.0 + 2.5 * MAX_MODEL_SD ** 2)  # v_log at s = MAX_MODEL_SD
     per_pair = MAX_SAMPLES // max(1, len(terms) * (len(terms) - 1) // 2 * len(tables))
-    for j in range(len(terms)):
-        for m in range(j + 1, len(terms)):
-            (vj, hj, cj), (vm, hm, cm) = terms[j], terms[m]
-            for c in range(vj.shape[1]):
-                gj, bj = cj[c]
-                gm, bm = cm[c]
-                ok = np.flatnonzero(np.isfinite(gj) & np.isfinite(gm) & (bj <= limit) & (bm <= limit))
-                if ok.size < 2:
-                    continue
-                if ok.size > per_pair:
-                    ok = np.sort(rng.choice(ok, per_pair, replace=False))
-                d = (gm[ok] - hm) - (gj[ok] - hj)
-                d_all.append(d - np.median(d))
-                base_all.append(bj[ok] + bm[ok])
-                la.append(level_of(vj[ok, c]))
-                lb.append(level_of(vm[ok, c]))
+    for (vj, hj, cj), (vm, hm, cm) in itertools.combinations(terms, 2):
+        for c in range(vj.shape[1]):
+            gj, bj = cj[c]
+            gm, bm = cm[c]
+            ok = np.flatnonzero(np.isfinite(gj) & np.isfinite(gm) & (bj <= limit) & (bm <= limit))
+            if ok.size < 2:
+                continue
+            if ok.size > per_pair:
+                ok = np.sort(rng.choice(ok, per_pair, replace=False))
+            d = (gm[ok] - hm) - (gj[ok] - hj)
+            d_all.append(d - np.median(d))
+            base_all.append(bj[ok] + bm[ok])
+            la.append(level_of(vj[ok, c]))
+            lb.append(level_of(vm[ok, c]))
     empty = [np.zeros(0)], [np.ones(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     d_all, base_all, la, lb = (x or e for x, e in zip((d_all, base_all, la, lb), empty))
     fit = fit_excess_variance(np.concatenate(d_all), np.concatenate(base_all), np.concatenate(la), np.concatenate(lb))
@@ -240,8 +239,6 @@ def with_effect(fit: ExcessVariance, model_var: np.ndarray, levels_of: np.ndarra
         :func:`excess_effect_db`)
     levels_of : (K, n) int code-level bins of the same readings (:func:`level_of`)
     """
-    from dataclasses import replace
-
     if not fit.kept:
         return fit
     excess = fit.levels[levels_of]

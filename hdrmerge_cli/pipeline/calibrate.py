@@ -20,7 +20,7 @@ from hdrmerge_cli.io.noisespec import iso_key, iso_of_key
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.pipeline.bracket import choose_crf
-from hdrmerge_cli.pipeline.noise import channel_planes, usable_frames
+from hdrmerge_cli.pipeline.noise import channel_planes
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -55,7 +55,11 @@ def _read_group(frames: list[Frame], crf, what: str, load=load_codes) -> list[tu
         return unusable_reason([p[1:] for p in planes], f.width * f.height), planes
 
     with ThreadPoolExecutor(2) as pool:
-        return usable_frames(frames, pool.map(read, frames))
+        results = list(pool.map(read, frames))
+    for f, (reason, _) in zip(frames, results):
+        if reason:
+            log.warning("%s: skipped, %s", f.path, reason)
+    return [(f, planes) for f, (reason, planes) in zip(frames, results) if not reason]
 
 
 def _by_channel(read: list[tuple[Frame, list]]) -> dict[str, list]:

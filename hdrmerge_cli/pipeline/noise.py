@@ -208,19 +208,6 @@ def channel_planes(frame: Frame, codes: np.ndarray, crf: CRF, corner: np.ndarray
         yield name, table[view], lo, hi
 
 
-def usable_frames(frames: list[Frame], results, skipped: str = "skipped",
-                  level: int = logging.WARNING) -> list[tuple[Frame, list]]:
-    """[(frame, planes)] of ``results`` (``(why the frame is unusable or None, its planes)``
-    per frame), each unusable frame left out with a message (``skipped``, at ``level``)."""
-    out = []
-    for f, (reason, planes) in zip(frames, results):
-        if reason:
-            log.log(level, "%s: %s, %s", f.path, skipped, reason)
-        else:
-            out.append((f, planes))
-    return out
-
-
 # ---------------------------------------------------------------- merge's sites
 #: merge's fast path measures the noise on at most this many sites per channel and frame
 #: (on simulated RAW brackets of 3 to 5 frames the standard errors this gives, in the profile
@@ -234,31 +221,25 @@ USABILITY_SITES = 1 << 17
 WHOLE_FRAME = 1 << 62
 
 
-def _grid(h: int, w: int, sites: int, tile: int = NOISE_TILE) -> tuple[int, int] | None:
-    """Rows and columns of :func:`noise_tiles`' grid on a channel (H, W), None: the whole channel."""
+def noise_tiles(codes: np.ndarray, fill: int, sites: int, tile: int = NOISE_TILE) -> tuple[np.ndarray, int]:
+    """At most ``sites`` codes of one channel (H, W), still integer, and their count: tiles of
+    ``tile`` x ``tile`` spread evenly over the frame (a grid of the frame's aspect), laid
+    side by side with a line of ``fill`` (a clipped code) between them, so that no window,
+    residual or neighbour mean of the statistics mixes two tiles (clipping drops what
+    touches the line).  The whole channel when it holds at most ``sites`` or is smaller
+    than 2 x 2 tiles."""
+    h, w = codes.shape
     if h * w <= sites or h < 2 * tile or w < 2 * tile:
-        return None
+        return codes, codes.size
     count = max(sites // tile**2, 1)
     ny = min(max(int(round(np.sqrt(count * h / w))), 1), h // tile)
-    return ny, min(max(count // ny, 1), w // tile)
-
-
-def noise_tiles(codes: np.ndarray, fill: int, grid: tuple[int, int] | None, tile: int = NOISE_TILE) -> np.ndarray:
-    """The codes of one channel (H, W) on ``grid`` (:func:`_grid`), still integer: tiles of
-    ``tile`` x ``tile`` spread evenly over the frame, laid side by side with a line of
-    ``fill`` (a clipped code) between them, so that no window, residual or neighbour mean of
-    the statistics mixes two tiles (clipping drops what touches the line).  The whole
-    channel where ``grid`` is None."""
-    if grid is None:
-        return codes
-    h, w = codes.shape
-    ny, nx = grid
+    nx = min(max(count // ny, 1), w // tile)
     step = tile + 1
     out = np.full((ny * step - 1, nx * step - 1), fill, codes.dtype)
     for i, y in enumerate(np.linspace(0, h - tile, ny).astype(int)):
         for j, x in enumerate(np.linspace(0, w - tile, nx).astype(int)):
             out[i * step:i * step + tile, j * step:j * step + tile] = codes[y:y + tile, x:x + tile]
-    return out
+    return out, ny * nx * tile**2
 
 
 def drawn_channels(frame: Frame, codes: np.ndarray, corner: np.ndarray, sites: int) -> list[DrawnChannel]:
@@ -269,11 +250,8 @@ def drawn_channels(frame: Frame, codes: np.ndarray, corner: np.ndarray, sites: i
 
     out = []
     for name, k, view, white in channel_codes(frame, codes, corner):
-        grid = _grid(*view.shape, sites)
         step = max(1, int(np.ceil(np.sqrt(view.size / USABILITY_SITES))))
-        out.append(DrawnChannel(name, k, noise_tiles(view, white, grid),
-                                view.size if grid is None else grid[0] * grid[1] * NOISE_TILE**2,
-                                view[::step, ::step], view.size))
+        out.append(DrawnChannel(name, k, *noise_tiles(view, white, sites), view[::step, ::step], view.size))
     return out
 
 
