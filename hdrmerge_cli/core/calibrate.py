@@ -18,8 +18,10 @@ Exposure pairs whose differences follow the scene's gradient saw frames that mov
 measure the quadratic term: in local statistics gain FPN and static scene texture both add
 variance in proportion to ``mu^2``, and exposure pairs cancel both, so the fit is the affine
 one (``beta = 0``, not measured); only flat fields measure beta (:mod:`photon_transfer`).
-:func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell.  Method:
-docs/method.md, "Calibrating the noise".
+:func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell;
+:func:`fit_channel` gives a fit with its precision, and :func:`fit_bracket` is merge's
+measurement of a bracket on the sites it drew (the frames' usability, each channel's fit).
+Method: docs/method.md, "Calibrating the noise".
 """
 from __future__ import annotations
 
