@@ -72,14 +72,14 @@ def ours(codes, exposures, frames, crf: str = "goossens", crf_options: dict | No
         from hdrmerge_cli.pipeline.noise import measure_noise
 
         lookup = {id(f): c for f, c in zip(frames, codes)}
-        found, _ = measure_noise(frames, crf, lambda f: lookup[id(f)], cache=False)
+        found, _ = measure_noise(frames, crf, lambda f: lookup[id(f)], None, cache=False)
         params = [found[ch] for ch in frames[0].channel_names] if found else None
     elif noise == "measured":
         from hdrmerge_cli.core.noise import NoiseParams
         from hdrmerge_cli.pipeline.noise import estimate_bracket_noise
 
         lookup = {id(f): c for f, c in zip(frames, codes)}
-        used, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)])
+        used, _, _ = estimate_bracket_noise(frames, crf, lambda f: lookup[id(f)], None)
         params = [NoiseParams(**used[ch]) for ch in frames[0].channel_names]
     measured = None
     if excess:

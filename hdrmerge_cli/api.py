@@ -465,11 +465,12 @@ def estimate_noise(stack, times, *, response=None, cfa: str | None = None, black
     >>> bool(0.2 < p.alpha < 0.3 and 6 < p.sigma_o2 < 13), p.beta
     (True, 0.0)
     """
+    from hdrmerge_cli.io.metadata import sample_pattern
     from hdrmerge_cli.pipeline.noise import estimate_bracket_noise
 
     st = _stack(stack, times, cfa, black, white, bits)
     crf = _response(response, st)
-    used, _ = estimate_bracket_noise(st.frames, crf, st.load)
+    used, _, _ = estimate_bracket_noise(st.frames, crf, st.load, sample_pattern(st.frames[0]))
     return {ch.upper(): NoiseParams(**p) for ch, p in used.items()}
 
 
@@ -614,7 +615,7 @@ def ghost_mask(stack, times, *, response=None, noise=None, mode: str = "on", ali
     if params is None and st.raw:  # as the merge: a mosaic's noise is measured
         from hdrmerge_cli.pipeline.noise import measure_noise
 
-        params, _ = measure_noise(st.frames, crf, st.load, cache=False)
+        params, _ = measure_noise(st.frames, crf, st.load, sample_pattern(st.frames[0]), cache=False)
     alignment = align_frames(st.frames, st.exposures, crf, align, st.load) if align != "off" else None
     load = loader(alignment, st.load)
     ghosts = choose_deghost(find_ghosts(st.frames, st.exposures, sample_pattern(st.frames[0]), crf, params, load), mode)

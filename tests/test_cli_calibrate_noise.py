@@ -255,23 +255,25 @@ def test_merge_fast_path_lies_within_its_standard_errors_of_the_truth(run, tmp_p
     """merge's noise measurement on drawn tiles: within 4 of its reported standard errors of
     the simulation's sigma_o2 and alpha (from the exposure pairs), the standard errors a few
     percent at most and not far above the Cramer-Rao bound of the drawn sites; the
-    codes drawn as the frames are decoded, so the measurement decodes nothing itself."""
-    from hdrmerge_cli.io.frames import load_codes, read_frame
+    sites drawn from the codes held as the frames were decoded, so the measurement decodes
+    nothing itself."""
+    from hdrmerge_cli.io.frames import HeldCodes, load_codes, read_frame
+    from hdrmerge_cli.io.metadata import sample_pattern
     from hdrmerge_cli.pipeline.bracket import choose_crf
     from hdrmerge_cli.pipeline.noise import estimate_bracket_noise
-    from hdrmerge_cli.pipeline.noise_draw import NoiseDraw
 
     meta = simulate(run, tmp_path / "b", "--frames", "5", "--seed", str(seed), "--alpha", "0.5", "--sigma-o2", "16")
     frames = sorted((read_frame(p) for p in frames_of(tmp_path / "b", meta)), key=lambda f: f.exposure_time)
     crf = choose_crf(frames, None, warn=False)
-    draw = NoiseDraw(frames)
+    held = HeldCodes()
     for f in frames:
-        draw(f, load_codes(f))
+        held.hold(f, load_codes(f))
 
     def no_decode(frame):
         raise AssertionError(f"{frame.path} decoded again")
 
-    used, entries = estimate_bracket_noise(frames, crf, no_decode, draw)
+    held.decode = no_decode
+    used, entries, _ = estimate_bracket_noise(frames, crf, held, sample_pattern(frames[0]))
     truth = meta["sensor"]
     for ch in ("R", "G", "B", "G2"):
         se = entries[ch]["stderr"]

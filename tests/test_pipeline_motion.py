@@ -459,7 +459,7 @@ def test_a_dark_object_in_the_reference_where_the_long_frame_clips_is_not_glare(
 def test_a_night_frame_with_sparse_lamps_is_not_black():
     """The 'black' rule counts sites above the noise floor: a frame that is dark but for a
     few lamps (99th percentile near black) has signal; one of pure noise has none."""
-    from hdrmerge_cli.pipeline.noise import has_signal
+    from hdrmerge_cli.core.calibrate import has_signal
 
     rng = np.random.default_rng(0)
     noise = rng.normal(0, 2.0, (600, 800))

@@ -18,12 +18,15 @@ Exposure pairs whose differences follow the scene's gradient saw frames that mov
 measure the quadratic term: in local statistics gain FPN and static scene texture both add
 variance in proportion to ``mu^2``, and exposure pairs cancel both, so the fit is the affine
 one (``beta = 0``, not measured); only flat fields measure beta (:mod:`photon_transfer`).
-:func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell.  Method:
-docs/method.md, "Calibrating the noise".
+:func:`achievable_errors` is the Cramer-Rao bound of what a bracket can tell;
+:func:`fit_channel` gives a fit with its precision, and :func:`fit_bracket` is merge's
+measurement of a bracket on the sites it drew (the frames' usability, each channel's fit).
+Method: docs/method.md, "Calibrating the noise".
 """
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage, special
@@ -616,25 +619,21 @@ def _soft_l1(d: np.ndarray, y: np.ndarray, w: np.ndarray, start: np.ndarray, f_s
     return c
 
 
-def _robust_wls(design, var, counts, free, fixed):
-    """Non-negative weighted least squares of ``var ~ design @ c`` over the coefficients
-    ``free`` (the others held at ``fixed``), with a soft-L1 loss on the standardised
-    residuals ``sqrt(count / 2) (var - pred) / pred`` (a bin's variance estimate has
-    relative variance ~2 / count; :func:`_soft_l1`); re-weighted three times.  Returns
-    (c, residuals)."""
+def _robust_wls(design, var, counts):
+    """Non-negative weighted least squares of ``var ~ design @ c`` over ``c0, c1`` (``c2``
+    held at 0), with a soft-L1 loss on the standardised residuals ``sqrt(count / 2) (var -
+    pred) / pred`` (a bin's variance estimate has relative variance ~2 / count;
+    :func:`_soft_l1`); re-weighted three times.  Returns (c, residuals)."""
     from scipy.optimize import nnls  # here, not at the top: importing it costs every merge's start-up
 
-    full = np.array(fixed, dtype=np.float64)
-    rest = [k for k in range(3) if k not in free]
-    offset = design[:, rest] @ full[rest]
-    d = design[:, free]
+    full = np.zeros(3)
+    d = design[:, [0, 1]]
     pred = np.maximum(var, 1e-12)
-    for _ in range(3 if free else 0):
+    for _ in range(3):
         w = np.sqrt(counts / 2.0) / np.maximum(pred, 1e-12)
-        start = nnls(d * w[:, None], (var - offset) * w)[0]
-        full[free] = _soft_l1(d, var - offset, w, start, 3.0)
+        start = nnls(d * w[:, None], var * w)[0]
+        full[:2] = _soft_l1(d, var, w, start, 3.0)
         pred = np.maximum(design @ full, 1e-12)
-    pred = np.maximum(design @ full, 1e-12)
     return full, np.sqrt(counts / 2.0) * (var - pred) / pred
 
 
@@ -644,7 +643,7 @@ def fit_noise_model(points: VariancePoints) -> NoiseFit:
     if points.mean.size < 4:
         raise HdrMergeError(f"too few intensity levels ({points.mean.size}) to fit the noise model")
     var, counts, design = points.var, points.count, points.design
-    coef, r = _robust_wls(design, var, counts, [0, 1], [0.0, 0.0, 0.0])
+    coef, r = _robust_wls(design, var, counts)
     if coef[1] <= 0:
         raise HdrMergeError("the noise does not grow with the signal: cannot estimate the gain")
     rel = r / np.sqrt(counts / 2.0)
@@ -887,6 +886,159 @@ def estimate_noise(planes: list[np.ndarray], lo: float, hi: float, window: int =
     rel = (data.var - data.design @ fit.coef) / np.maximum(data.design @ fit.coef, 1e-12)
     fit.data, fit.points, fit.residual_rms = data, int(data.mean.size), float(np.sqrt(np.mean(rel**2)))
     return fit, ratios
+
+
+# ---------------------------------------------------------------- a bracket's frames and channels
+#: a frame with less than this fraction of unclipped pixels is skipped
+MIN_UNCLIPPED = 0.01
+#: a frame has signal when at least this many of its sites (and this fraction) lie above the noise floor
+MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION = 64, 1e-4
+#: and, judged on an even subsample, at least this many of the subsample's sites
+MIN_SIGNAL_SAMPLES = 8
+
+
+def unusable_reason(planes, pixels: int, sites: int | None = None) -> str | None:
+    """Why a frame cannot be used (all clipped, or black), or None.  planes: per channel
+    ``(plane, lo, hi)``, its linear values (a value ``<= lo`` or ``>= hi`` is clipped), whole
+    or an even subsample of planes of ``sites`` sites each (see :func:`has_signal`);
+    ``pixels``: the frame's pixel count."""
+    inside = np.mean([np.mean((p > lo) & (p < hi)) for p, lo, hi in planes])
+    if inside < MIN_UNCLIPPED:
+        dark = np.mean([np.mean(p <= lo) for p, lo, hi in planes])
+        bright = 1 - inside - dark
+        parts = [f"{100 * v:.1f} % of its pixels {what}" for v, what in ((dark, "read black"),
+                                                                         (bright, "are clipped at white")) if v > 0]
+        return " and ".join(parts)
+    if not any(has_signal(p, lo, hi, sites) for p, lo, hi in planes):
+        if pixels < MIN_SIGNAL_SITES:
+            return f"it holds {pixels} pixels, too few to measure noise on (at least {MIN_SIGNAL_SITES})"
+        return "it is black (no signal above its noise floor)"
+    return None
+
+
+def has_signal(plane: np.ndarray, lo: float, hi: float, sites: int | None = None) -> bool:
+    """Whether a plane holds signal: enough sites (:data:`MIN_SIGNAL_SITES`, a fraction
+    :data:`MIN_SIGNAL_FRACTION`) above its noise floor, 6 robust standard deviations of
+    the darker half of the sites (1.4826 times their median absolute deviation) above
+    black and at least 0.2 % of the range.  A count, not a percentile: a night frame whose
+    99th percentile is near black but whose lamps and windows are bright has signal.
+
+    ``sites``: the plane is an even subsample of a plane of that many sites, whose count
+    above the floor is estimated from the subsample's fraction (and at least
+    :data:`MIN_SIGNAL_SAMPLES` of the subsample's sites must lie above it)."""
+    sub = (plane[::2, ::2] if plane.size > 1 << 22 else plane).ravel()
+    med = float(np.median(sub))
+    low = sub[sub <= med]
+    sigma = 1.4826 * float(np.median(np.abs(low - np.median(low)))) if low.size else 0.0
+    floor = max(6 * sigma, 0.002 * (hi - max(lo, 0.0)))
+    above = int(np.count_nonzero(sub > floor))
+    if sites is None or sites <= sub.size:
+        return above >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sub.size)
+    return (above >= MIN_SIGNAL_SAMPLES
+            and above * sites / sub.size >= max(MIN_SIGNAL_SITES, MIN_SIGNAL_FRACTION * sites))
+
+
+def rounded(x: float) -> float | None:
+    """``x`` to 4 significant digits, None where it is not finite (a profile's numbers)."""
+    return float(f"{x:.4g}") if np.isfinite(x) else None
+
+
+@dataclass
+class ChannelFit:
+    """One channel's (17) measured on photographs (:func:`fit_channel`): the fit, the
+    exposure ratios of the pairs it used (none: the local statistics alone), its standard
+    errors ``(sigma_o^2, alpha)`` (:func:`fit_standard_errors`) and the Cramer-Rao bound of
+    the frames' exposure contrasts (:func:`achievable_errors`; inf where they hold none)."""
+
+    fit: NoiseFit
+    ratios: list[float]
+    stderr: tuple[float, float]
+    achievable: tuple[float, float]
+
+    def entry(self, window: int, sites: int | None = None) -> dict:
+        """The profile's entry: the fit (:meth:`NoiseFit.as_dict`), what measured each
+        parameter, the ``window``, the exposure ratios, ``subsample_sites`` (``sites``: merge
+        measured on drawn sites), ``stderr`` and ``achievable_stderr`` (None where inf)."""
+        source = "exposure pairs" if self.ratios else "local statistics"
+        (se0, se1), (crb0, crb1) = self.stderr, self.achievable
+        return self.fit.as_dict() | {
+            "method": {"sigma_o2": source, "alpha": source,
+                       "beta": "not measured: in photographs scene texture and gain FPN look alike (--flats "
+                               "measures beta); 0 is used"},
+            "window": window, "exposure_ratios": [round(r, 5) for r in self.ratios],
+        } | ({} if sites is None else {"subsample_sites": sites}) | {
+            "stderr": {"sigma_o2": rounded(se0), "alpha": rounded(se1)},
+            "achievable_stderr": ({"sigma_o2": rounded(crb0), "alpha": rounded(crb1)}
+                                  if np.isfinite(crb0) and np.isfinite(crb1) else None)}
+
+
+def fit_channel(planes: list[np.ndarray], lo: float, hi: float, times: list, window: int = 7, bins: int = 64,
+                pairs: bool = True) -> ChannelFit:
+    """:func:`estimate_noise` of one channel's ``planes`` (sorted by exposure; ``times``
+    their exposure times, whose ratios the Cramer-Rao bound takes) with its precision."""
+    fit, ratios = estimate_noise(planes, lo, hi, window, bins, pairs)
+    nominal = [b / a if a and b and b > a else None for a, b in zip(times[:-1], times[1:])]
+    return ChannelFit(fit, ratios, fit_standard_errors(fit, bool(ratios)),
+                      achievable_errors(planes, lo, hi, nominal, fit.coef))
+
+
+class DrawnChannel(NamedTuple):
+    """The codes of one channel of one frame that merge measures a bracket's noise on."""
+
+    name: str
+    index: int  #: the channel's index (CFA colour or image channel)
+    tiles: np.ndarray  #: the sites drawn for the fit
+    drawn: int  #: sites in ``tiles`` (what separates the tiles not counted)
+    stride: np.ndarray  #: an even stride of the channel, for the usability test
+    sites: int  #: sites of the whole channel
+
+
+@dataclass
+class BracketNoise:
+    """A bracket's noise as merge measures it (:func:`fit_bracket`).
+
+    used : the frames measured on (their indices); skipped : ``(frame, why)`` of the others
+    channels : the channels' names; fits : per channel measured, its :class:`ChannelFit`
+    failed : per channel not measured, why
+    """
+
+    used: list[int]
+    skipped: list[tuple[int, str]]
+    channels: list[str]
+    fits: dict[str, ChannelFit]
+    failed: dict[str, str]
+
+
+def fit_bracket(frames: list[list[DrawnChannel]], scales: list[list[tuple[np.ndarray, float, float]]],
+                pixels: list[int], times: list, pairs: bool = True, mapper=map) -> BracketNoise:
+    """(17) per channel of a bracket from the codes merge drew of each frame (sorted by
+    exposure; ``pixels`` and ``times`` each frame's pixel count and exposure time), each
+    channel's linear values (code values above black) ``table[codes]`` by its ``(table, lo,
+    hi)`` of ``scales`` (a value ``<= lo`` or ``>= hi`` is clipped): each frame's usability
+    (:func:`unusable_reason`) judged on its strides, then :func:`fit_channel` of each
+    channel on the usable frames' tiles (``pairs``: with the exposure pairs).  ``mapper``
+    runs the frames' tests and the channels' fits (a pool's map)."""
+    def reason(j):
+        planes = [(scales[j][c.index][0][c.stride], *scales[j][c.index][1:]) for c in frames[j]]
+        return unusable_reason(planes, pixels[j], min(c.sites for c in frames[j]))
+
+    reasons = list(mapper(reason, range(len(frames))))
+    used = [j for j, why in enumerate(reasons) if not why]
+    names = [c.name for c in frames[used[0]]] if used else []
+
+    def fit(k):
+        chans = [(frames[j][k], scales[j][frames[j][k].index]) for j in used]
+        _, lo, hi = chans[0][1]
+        try:
+            return fit_channel([table[c.tiles] for c, (table, _, _) in chans], lo, hi, [times[j] for j in used],
+                               pairs=pairs)
+        except HdrMergeError as exc:
+            return str(exc)
+
+    fits = dict(zip(names, mapper(fit, range(len(names)))))
+    return BracketNoise(used, [(j, why) for j, why in enumerate(reasons) if why], names,
+                        {n: f for n, f in fits.items() if not isinstance(f, str)},
+                        {n: f for n, f in fits.items() if isinstance(f, str)})
 
 
 @dataclass

@@ -4,7 +4,8 @@ Two frames ``j`` and ``l`` of a still bracket see the same irradiance, so their 
 (7), ``x = g(z) - log h`` with ``g = log gamma^-1``, differ at a pixel by
 ``d = x_l - x_j``, whose variance under the model is ``V_j + V_l``: ``V`` the variance of
 ``g(z)`` from (17) carried through the response (the delta method: ``v(y) / y^2``) plus
-the quantisation of the codes (:func:`hdrmerge_cli.core.reconstruct.quantisation_variance`).
+the quantisation of the codes (:func:`hdrmerge_cli.core.noise.quantisation_variance`), both as
+:func:`hdrmerge_cli.core.noise.log_tables` gives them per code value.
 What a camera's processing adds on top (tone curves that differ between frames, local tone
 mapping, noise reduction, sharpening, compression) shows as ``d^2`` above that sum.  It is
 modelled as a variance of ``log E`` per code level, shared by the frames,
@@ -34,7 +35,8 @@ The term is kept only where the pairs pin it and it matters (:func:`excess_effec
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -53,6 +55,14 @@ SOFT_L1_SCALE = 3.0
 #: Fisher-consistency factor of that loss for chi-square(1) residuals (module docstring;
 #: a test checks it by numerical integration)
 KAPPA = 0.90344
+#: largest model standard deviation of ``log E`` of a reading the pairs use: the moments of
+#: ``g(z)`` are expanded to second order in the relative deviation ``s`` (variance
+#: ``s^2 + 2.5 s^4``, bias ``-s^2 / 2``); at 15 % the terms left out are below 1 % of the
+#: variance
+MAX_MODEL_SD = 0.15
+#: pair samples in all (a seeded draw shared evenly by the frame pairs and channels): the
+#: term's few levels need no more
+MAX_SAMPLES = 1 << 17
 
 
 @dataclass(frozen=True)
@@ -153,6 +163,53 @@ def fit_excess_variance(d: np.ndarray, base: np.ndarray, level_a: np.ndarray, le
     return ExcessVariance(levels, True, chi_model, chi_fit, statistic, n, chi_stderr)
 
 
+def pair_excess(readings: list[np.ndarray], exposures: np.ndarray, tables: list[tuple[np.ndarray, np.ndarray]],
+                seed: int = 0) -> ExcessVariance:
+    """The excess term fitted on every pair of frames of a still bracket, kept where it is
+    pinned and changes the predicted error of the merge materially (:func:`with_effect`,
+    over every reading).
+
+    readings : per frame ``(n, C)`` normalised codes of the same ``n`` pixels (registered
+        onto the reference where the bracket was aligned), the frames sorted by exposure
+    exposures : ``(K,)`` the frames' exposures
+    tables : per channel ``(g, v_log)`` per code value
+        (:func:`~hdrmerge_cli.core.noise.log_tables`)
+
+    Each pair's channels use the readings where both frames' ``g`` is defined and the
+    model's sd of ``log E`` is at most :data:`MAX_MODEL_SD` (at most :data:`MAX_SAMPLES`
+    pair samples in all, a draw seeded by ``seed``), each pair's median difference removed.
+    """
+    rng = np.random.default_rng(seed)
+    terms = []
+    for flat, h in zip(readings, exposures):
+        z = np.rint(np.clip(flat, 0.0, 1.0) * (tables[0][0].size - 1)).astype(np.int64)
+        terms.append((flat, np.log(h), [(g[z[:, c]], var[z[:, c]]) for c, (g, var) in enumerate(tables)]))
+    d_all, base_all, la, lb = [], [], [], []
+    limit = MAX_MODEL_SD ** 2 * (1.0 + 2.5 * MAX_MODEL_SD ** 2)  # v_log at s = MAX_MODEL_SD
+    per_pair = MAX_SAMPLES // max(1, len(terms) * (len(terms) - 1) // 2 * len(tables))
+    for (vj, hj, cj), (vm, hm, cm) in itertools.combinations(terms, 2):
+        for c in range(vj.shape[1]):
+            gj, bj = cj[c]
+            gm, bm = cm[c]
+            ok = np.flatnonzero(np.isfinite(gj) & np.isfinite(gm) & (bj <= limit) & (bm <= limit))
+            if ok.size < 2:
+                continue
+            if ok.size > per_pair:
+                ok = np.sort(rng.choice(ok, per_pair, replace=False))
+            d = (gm[ok] - hm) - (gj[ok] - hj)
+            d_all.append(d - np.median(d))
+            base_all.append(bj[ok] + bm[ok])
+            la.append(level_of(vj[ok, c]))
+            lb.append(level_of(vm[ok, c]))
+    empty = [np.zeros(0)], [np.ones(0)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    d_all, base_all, la, lb = (x or e for x, e in zip((d_all, base_all, la, lb), empty))
+    fit = fit_excess_variance(np.concatenate(d_all), np.concatenate(base_all), np.concatenate(la), np.concatenate(lb))
+    # every sample's readings (K, n x channels): the model's variance of log E and the level
+    model_var = np.stack([np.concatenate([var for _, var in chans]) for _, _, chans in terms])
+    levels = np.stack([level_of(flat.T.ravel()) for flat, _, _ in terms])
+    return with_effect(fit, model_var, levels)
+
+
 def excess_effect_db(model_var: np.ndarray, excess_var: np.ndarray) -> float:
     """How much an excess raises the predicted error of a merge (dB).
 
@@ -182,8 +239,6 @@ def with_effect(fit: ExcessVariance, model_var: np.ndarray, levels_of: np.ndarra
         :func:`excess_effect_db`)
     levels_of : (K, n) int code-level bins of the same readings (:func:`level_of`)
     """
-    from dataclasses import replace
-
     if not fit.kept:
         return fit
     excess = fit.levels[levels_of]

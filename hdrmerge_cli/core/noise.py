@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hdrmerge_cli.core.errors import HdrMergeError
+
 
 @functools.cache
 def _gauss_legendre() -> tuple[np.ndarray, np.ndarray]:
@@ -61,6 +63,59 @@ def code_variance(mu, p: NoiseParams):
     ``sigma_o^2 + sqrt(alpha) mu + (beta / alpha) mu^2``, (17) rewritten."""
     mu = np.asarray(mu, dtype=np.float64)
     return p.sigma_o2 + np.sqrt(p.alpha) * mu + (p.beta / p.alpha) * mu * mu
+
+
+def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
+    """Variance that the quantisation of the codes adds to the linearised signal
+    ``y = gamma^-1(z) y_full``, beside the sensor variance (17) (the paper's (2) maps codes
+    through ``gamma^-1``; its noise model stops at the ADC): a code step is worth ``dy/dz = y_full d gamma^-1 / dz``, and a
+    uniform rounding error of one step has variance ``(dy/dz)^2 / 12``.
+
+    lin : (N,) ``gamma^-1`` at every stored code value (one channel), in [0, 1]
+    Returns (N,) variances in squared code values of ``y`` (``1/12`` for a linear CRF).
+    """
+    step = np.gradient(np.asarray(lin, dtype=np.float64) * y_full) if lin.size > 1 else np.ones(1)
+    return step * step / 12.0
+
+
+def per_channel(noise: dict[str, NoiseParams], names: list[str]) -> list[NoiseParams]:
+    """Order the parameters by table channel ``names`` (``G2`` falls back to ``G``, any
+    channel to ``*``)."""
+    out = []
+    for name in names:
+        for key in (name.upper(), name.upper().rstrip("2"), "*"):
+            if key in noise:
+                out.append(noise[key])
+                break
+        else:
+            raise HdrMergeError(f"no noise parameters for channel {name} (give {name}:sigma_o2=...,alpha=...)")
+    return out
+
+
+def log_tables(lin: np.ndarray, noise: dict[str, NoiseParams] | None, names: list[str],
+               k: float = DEFAULT_K) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per channel ``c`` of ``lin`` (``(C, N)``, :meth:`~hdrmerge_cli.core.crf.CRF.codes_table`
+    on the codes' grid), per code value ``(g, v_log)``, each ``(N,)``: ``g(z) = log
+    gamma^-1(z)`` less its bias and the model's variance of it, from the relative variance
+    ``s^2 = v(y) / y^2`` of the noise (17) (``noise`` by channel ``names``, None:
+    quantisation alone) and of the quantisation through the response
+    (:func:`quantisation_variance`), to second order (bias ``-s^2 / 2``, variance ``s^2 +
+    2.5 s^4``); NaN where ``g`` is undefined or the reading lies outside the clipping-safe
+    range of (47) (``k`` standard deviations from black and full scale: a truncated
+    reading, whose log the model misjudges)."""
+    params = per_channel(noise, names) if noise else [None] * len(names)
+    out = []
+    for c, row in enumerate(lin):
+        p = params[min(c, len(params) - 1)]
+        y_full = row.size - 1.0
+        y = row * y_full
+        var = quantisation_variance(row, y_full) + (code_variance(y, p) if p is not None else 0.0)
+        sd = k * np.sqrt(var)
+        ok = (row > 0) & (y - sd > 0) & (y + sd < y_full)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s2 = np.where(ok, var / np.where(ok, y, 1.0) ** 2, np.nan)
+            out.append((np.where(ok, np.log(np.where(ok, row, 1.0)) + s2 / 2.0, np.nan), s2 + 2.5 * s2 * s2))
+    return out
 
 
 def log_moments_exact(x, p: NoiseParams, y_min: float = 0.5, y_max: float = 255.0):

@@ -27,7 +27,7 @@ import numpy as np
 
 from hdrmerge_cli.core.crf import CodesInverse
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams
+from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, quantisation_variance
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
 
@@ -182,19 +182,6 @@ def prior_rate_of(codes: np.ndarray, black: float, white: float, exposure: float
         what = "black" if np.all(lin <= 0) else "clipped" if np.all(lin >= 1) else "black or clipped"
         raise HdrMergeError(f"{name}: every sample is {what}; cannot estimate the irradiance prior")
     return float(np.mean(lin[ok]) * full / exposure)
-
-
-def quantisation_variance(lin: np.ndarray, y_full: float) -> np.ndarray:
-    """Variance that the quantisation of the codes adds to the linearised signal
-    ``y = gamma^-1(z) y_full``, beside the sensor variance (17) (the paper's (2) maps codes
-    through ``gamma^-1``; its noise model stops at the ADC): a code step is worth ``dy/dz = y_full d gamma^-1 / dz``, and a
-    uniform rounding error of one step has variance ``(dy/dz)^2 / 12``.
-
-    lin : (N,) ``gamma^-1`` at every stored code value (one channel), in [0, 1]
-    Returns (N,) variances in squared code values of ``y`` (``1/12`` for a linear CRF).
-    """
-    step = np.gradient(np.asarray(lin, dtype=np.float64) * y_full) if lin.size > 1 else np.ones(1)
-    return step * step / 12.0
 
 
 def code_error_variance(lin: np.ndarray, y_full: float, tolerance: float = MODEL_TOLERANCE) -> np.ndarray:

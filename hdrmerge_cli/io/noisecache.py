@@ -25,6 +25,7 @@ where a bracket cannot pin its own (a single frame, frames too far apart).
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import os
@@ -143,15 +144,9 @@ def _store(path: Path, key: str | None, entry: dict, inputs: list[str]) -> Path 
             os.replace(tmps[0], path)
         except BaseException:
             for tmp in tmps:
-                _unlink_quietly(tmp)
+                with contextlib.suppress(OSError):
+                    os.unlink(tmp)
             raise
     except OSError:
         return None
     return path
-
-
-def _unlink_quietly(path: str) -> None:
-    try:
-        os.unlink(path)
-    except OSError:
-        pass

@@ -6,7 +6,7 @@ import math
 import re
 
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.core.noise import NoiseParams
+from hdrmerge_cli.core.noise import NoiseParams, per_channel  # noqa: F401  (per_channel re-exported)
 from hdrmerge_cli.io.times import parse_number
 
 KEYS = ("sigma_o2", "alpha", "beta")
@@ -105,20 +105,6 @@ def noise_from_profile(profile: dict, iso: float | None, path: str) -> dict[str,
             raise HdrMergeError(f"{path}: noise entry {key[:20]!r}, channel {ch[:20]!r}: must be an object with "
                                 "sigma_o2, alpha, beta")
         out[ch.upper()] = noise_params(v, f"{path}: noise entry {key[:20]!r}, channel {ch[:20]!r}")
-    return out
-
-
-def per_channel(noise: dict[str, NoiseParams], names: list[str]) -> list[NoiseParams]:
-    """Order the parameters by table channel ``names`` (``G2`` falls back to ``G``, any
-    channel to ``*``)."""
-    out = []
-    for name in names:
-        for key in (name.upper(), name.upper().rstrip("2"), "*"):
-            if key in noise:
-                out.append(noise[key])
-                break
-        else:
-            raise HdrMergeError(f"no noise parameters for channel {name} (give {name}:sigma_o2=...,alpha=...)")
     return out
 
 

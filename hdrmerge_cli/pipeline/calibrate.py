@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrmerge_cli.core.calibrate import NoiseFit, estimate_noise, fit_standard_errors, read_noise_split
+from hdrmerge_cli.core.calibrate import ChannelFit, fit_channel, read_noise_split, rounded, unusable_reason
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core.photon_transfer import PTCResult, photon_transfer
 from hdrmerge_cli.io.atomic import check_writable, write_together
@@ -20,9 +20,7 @@ from hdrmerge_cli.io.noisespec import iso_key, iso_of_key
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_from_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.pipeline.bracket import choose_crf
-from hdrmerge_cli.pipeline.noise import (
-    achievable, channel_planes, fit_entry, precision_entry, rounded, unusable_reason, usable_frames,
-)
+from hdrmerge_cli.pipeline.noise import channel_planes
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -52,10 +50,16 @@ def _read_group(frames: list[Frame], crf, what: str, load=load_codes) -> list[tu
 
     def read(f):
         planes = list(channel_planes(f, load(f), crf, corner))
-        return unusable_reason(f, planes) if what == "images" else None, planes
+        if what != "images":
+            return None, planes
+        return unusable_reason([p[1:] for p in planes], f.width * f.height), planes
 
     with ThreadPoolExecutor(2) as pool:
-        return usable_frames(frames, pool.map(read, frames))
+        results = list(pool.map(read, frames))
+    for f, (reason, _) in zip(frames, results):
+        if reason:
+            log.warning("%s: skipped, %s", f.path, reason)
+    return [(f, planes) for f, (reason, planes) in zip(frames, results) if not reason]
 
 
 def _by_channel(read: list[tuple[Frame, list]]) -> dict[str, list]:
@@ -68,12 +72,13 @@ def _by_channel(read: list[tuple[Frame, list]]) -> dict[str, list]:
 
 
 def _fit_channels(read: list[tuple[Frame, list]], iso: str, window: int = 7,
-                  bins: int = 64) -> dict[str, tuple[NoiseFit, list[float]]]:
-    """:func:`estimate_noise` per channel of the frames (sorted by exposure).  Errors name
+                  bins: int = 64) -> dict[str, ChannelFit]:
+    """:func:`~hdrmerge_cli.core.calibrate.fit_channel` per channel of the frames (sorted by exposure).  Errors name
     the first frame, the ISO and the channel."""
     def fit(name, items):
         try:
-            return name, estimate_noise([p for p, *_ in items], items[0][1], items[0][2], window, bins)
+            return name, fit_channel([p for p, *_ in items], items[0][1], items[0][2],
+                                     [f.exposure_time for *_, f in items], window, bins)
         except HdrMergeError as exc:
             raise HdrMergeError(f"{items[0][3].path} ({iso}, channel {name}): {exc}") from None
 
@@ -224,11 +229,9 @@ def _photograph_fits(read: list[tuple[Frame, list]], iso: str, opts: CalibrateOp
                      plot_data: dict[str, dict]) -> dict[str, dict]:
     """{channel: profile entry} fitted from the photographs at one ISO (each fit also noted in ``plot_data``)."""
     fits: dict[str, dict] = {}
-    for name, (fit, ratios) in _fit_channels(read, iso, opts.window, opts.bins).items():
-        k = [c for c, *_ in read[0][1]].index(name)
-        fits[name] = fit_entry(fit, ratios, opts.window) | precision_entry(
-            fit_standard_errors(fit, bool(ratios)), achievable(read, k, fit))
-        plot_data.setdefault(iso, {})[name] = {"fit": fit}
+    for name, fit in _fit_channels(read, iso, opts.window, opts.bins).items():
+        fits[name] = fit.entry(opts.window)
+        plot_data.setdefault(iso, {})[name] = {"fit": fit.fit}
     return fits
 
 

@@ -48,7 +48,7 @@ from hdrmerge_cli.pipeline.excess import measure_excess
 from hdrmerge_cli.pipeline.exposure_check import check_labels, check_overlap, ordered_samples, resolve_exposures
 from hdrmerge_cli.pipeline.ghosts import find_ghosts
 from hdrmerge_cli.pipeline.merge import reconstruct
-from hdrmerge_cli.pipeline.noise import bracket_noise, frame_noise_of, resolve_noise_by_iso
+from hdrmerge_cli.pipeline.noise import bracket_noise, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
 from hdrmerge_cli.pipeline.register import Alignment, estimate_alignment, frame_validity, loader, output_alpha
@@ -201,18 +201,16 @@ def merge_frames(b: Bracket, opts: MergeOptions, t_start: float | None = None) -
     # the noise stage (given, cached or measured, where the options need it), the excess variance
     # of a camera-processed bracket (which picks its estimator), then the choices on what they measured
     with_variance = "variance" in outputs.extra_channels
-    want, estimated, excess = wanted(b.frames, b.crf, settings, b.samples, with_variance), None, None
-    noise, frame_noise = frame_noise_of(b.frames, b.noise, b.noise_by_iso)
+    want, excess = wanted(b.frames, b.crf, settings, b.samples, with_variance), None
     # the noise is measured on the frames as decoded: resampling smooths it, and frames that
     # moved fail the exposure pairs' check (core.calibrate._pairs_moved) either way
-    if noise is None and (want.noise or want.excess) and not settings.lut:
-        noise, estimated = bracket_noise(b.frames, b.crf, b.codes, want.noise, outputs.noise_cache, timings)
+    noise = bracket_noise(b, want.noise, (want.noise or want.excess) and not settings.lut, outputs.noise_cache)
     if want.excess:
         t1 = time.perf_counter()
-        excess = measure_excess(b.samples, b.exposures, b.crf, noise, b.frames[0].channel_names)
+        excess = measure_excess(b.samples, b.exposures, b.crf, noise.noise, b.frames[0].channel_names)
         timings["excess_variance"] = time.perf_counter() - t1
-    b.models = choose_models(b.frames, b.exposures, b.crf, settings, b.codes, noise, estimated, excess, frame_noise,
-                             pattern=b.pattern, with_variance=with_variance, timings=timings)
+    b.models = choose_models(b.frames, b.exposures, b.crf, settings, b.codes, noise.noise, noise.estimated, excess,
+                             noise.frame_noise, pattern=b.pattern, with_variance=with_variance, timings=timings)
     b.samples = None  # no stage reads the samples after the choices
     timings["read_metadata"] = time.perf_counter() - t0 - sum(timings.values())  # the stages timed so far aside
     aligned, validity = loader(b.alignment, b.codes), frame_validity(b.frames, b.alignment, b.codes)
