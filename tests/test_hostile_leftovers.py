@@ -209,3 +209,35 @@ def test_estimate_crf_takes_repeated_exposures_as_more_data(tmp_path, jpeg_brack
     bad = run("estimate-crf", *frames, "-o", tmp_path / "b.json", "--times", "0.01,0.01,0.02")
     assert bad.exit_code == 1 and "labelled the same exposure" in bad.stderr
     assert "check the exposure times" in bad.stderr and not (tmp_path / "b.json").exists()
+
+
+def test_a_bracket_transparent_everywhere_is_refused_as_transparent(run, tmp_path):
+    """Three RGBA PNGs with alpha 0 everywhere: no frame measures any light, so nothing is
+    written and the one line says transparent (not 'reads black', not a bound the EXR would
+    not hold); frames transparent only in part still merge."""
+    import numpy as np
+    import OpenImageIO as oiio
+
+    rng = np.random.default_rng(0)
+    paths = {"all": [], "part": []}
+    for k in range(3):
+        rgb = rng.integers(20, 230, (48, 64, 3), dtype=np.uint8)
+        for name, opaque in (("all", 0), ("part", 32)):
+            alpha = np.zeros((48, 64, 1), np.uint8)
+            alpha[:, opaque:] = 255 if opaque else 0
+            spec = oiio.ImageSpec(64, 48, 4, oiio.UINT8)
+            spec.alpha_channel = 3
+            path = str(tmp_path / f"{name}{k}.png")
+            out = oiio.ImageOutput.create(path)
+            assert out.open(path, spec) and out.write_image(np.ascontiguousarray(np.concatenate([rgb, alpha], -1)))
+            out.close()
+            paths[name].append(path)
+    args = ("--crf", "srgb", "--times", "0.01,0.04,0.16", "--align", "off")
+    proc = run("merge", *paths["all"], *args, "-o", tmp_path / "all.exr", check=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"hdrmerge-cli: error: {paths['all'][0]} ... all2.png: every pixel is transparent (alpha 0) in every frame, so "
+        "no frame measures any light and there is nothing to merge"]
+    assert not (tmp_path / "all.exr").exists() and not (tmp_path / "all.profile.json").exists()
+    run("merge", *paths["part"], *args, "-o", tmp_path / "part.exr")
+    assert (tmp_path / "part.exr").exists()

@@ -428,9 +428,15 @@ def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = 
 
 def frame_validity(frames: list[Frame], alignment: Alignment | None, codes: HeldCodes) -> list:
     """Per frame, :func:`valid_pixels` of its alpha (``codes.validity``) in the reference's
-    coordinates (by the alignment where it is applied)."""
+    coordinates (by the alignment where it is applied).  A bracket transparent everywhere in
+    every frame measures nothing: refused (HdrMergeError)."""
     alignment = alignment if alignment is not None and alignment.applied else None
-    return [valid_pixels(f, codes.validity(f), alignment.warp_of(f) if alignment else None) for f in frames]
+    validity = [valid_pixels(f, codes.validity(f), alignment.warp_of(f) if alignment else None) for f in frames]
+    if all(v is not None and not v.any() for v in validity):
+        where = f"{frames[0].path} ... {frames[-1].name}" if len(frames) > 1 else frames[0].path
+        raise HdrMergeError(f"{where}: every pixel is transparent (alpha 0) in every frame, so no frame measures "
+                            "any light and there is nothing to merge")
+    return validity
 
 
 def valid_pixels(frame: Frame, valid: np.ndarray | None, warp: np.ndarray | None) -> np.ndarray | None:
