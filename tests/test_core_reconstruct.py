@@ -701,3 +701,26 @@ def test_neutral_bounds_give_a_bound_no_colour():
     np.testing.assert_array_equal(flags[0, 2], [FLAG_DARK, FLAG_OK, FLAG_OK])
     mosaic = np.ones((2, 2), np.float32)
     assert neutral_bounds(mosaic, np.full((2, 2), FLAG_SATURATED, np.int8)) == 0
+
+
+def test_a_sample_the_shortest_frame_does_not_cover_is_bounded_by_the_shortest_that_does():
+    """A border strip the shortest frame does not cover (``factor`` 0 there, as after
+    alignment) and the longer frames clip: its bound is the clipping level of the shortest
+    frame that covers it, ``log(gamma^-1(z_max) / h_1)``, flagged saturated: a true lower
+    bound.  (Not the uncovered frame's reading, which never saw the light there; nor a
+    dark flag.)  Where the shortest frame covers, it still sets the class."""
+    crf = CRF("gamma", 2.2)
+    exposures = [0.01, 0.04, 0.16]
+    tabs = [exposure_tables(crf.at_codes(256, np.zeros(1), np.full(1, 255.0)), "triangle", h) for h in exposures]
+    # column 0: the shortest frame does not cover it (its codes there are filler: 0) and the others clip;
+    # column 1: every frame covers it and clips
+    codes = [np.array([[[0, 0, 0], [255, 255, 255]]], np.uint8), np.full((1, 2, 3), 255, np.uint8),
+             np.full((1, 2, 3), 255, np.uint8)]
+    cover = [np.array([[0.0, 1.0]], np.float32), np.ones((1, 2), np.float32), np.ones((1, 2), np.float32)]
+    acc = LogMerge((1, 2, 3))
+    for k, (z, t, f) in enumerate(zip(codes, tabs, cover)):
+        acc.add(z, t, last=k == 2, factor=f)
+    log_e, flag = acc.finish()
+    assert np.all(flag == FLAG_SATURATED)
+    np.testing.assert_allclose(log_e[0, 0], np.log(1.0 / exposures[1]), rtol=1e-6)
+    np.testing.assert_allclose(log_e[0, 1], np.log(1.0 / exposures[0]), rtol=1e-6)

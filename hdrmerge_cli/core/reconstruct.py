@@ -450,6 +450,10 @@ def _irls_weight(c, le, k, so, sq, ba, linear, floor):  # pragma: no cover
 _NO_WEIGHT = np.zeros((1, 1), np.float32)
 
 
+#: ``den`` of a sample no own frame has classed yet (:func:`_add_sample`): saturated if none ever does
+_UNOWNED = -2.0
+
+
 @numba.njit(inline="always")
 def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_keep, use_keep):  # pragma: no cover
     """One frame's sample ``(i, j)`` (table row ``r``, code ``z``, weight ``w``, weighted
@@ -457,14 +461,18 @@ def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_kee
     shortest frame sets the fallback and class; 2: the longest fills the dark fallback;
     with ``use_keep`` every later frame fills it where it is the sample's own, ``keep[i,
     j // per_keep] >= 1/2``, so the longest own one's stays, not that of a frame rejected
-    or not covering there; ``keep`` is read on that branch only, off the hot path)."""
+    or not covering there; ``keep`` is read on that branch only, off the hot path).  The
+    saturated class and its bound come from the shortest own frame: where the shortest
+    frame is not the sample's own (it does not cover it, or it is a ghost there), ``den``
+    holds :data:`_UNOWNED` until the first frame that is sets them, so a strip that only
+    longer frames cover is bounded by their clipping level, not by a frame that never saw it."""
     if mode == 0:
         if w > 0:
             num[i, j] = wv
             den[i, j] = w
         else:
             num[i, j] = fb_tab[r, z]
-            den[i, j] = -1.0 if hi_tab[r, z] else 0.0
+            den[i, j] = _UNOWNED if use_keep and keep[i, j // per_keep] < 0.5 else (-1.0 if hi_tab[r, z] else 0.0)
     elif w > 0:
         if den[i, j] > 0:
             num[i, j] += wv
@@ -472,6 +480,10 @@ def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_kee
         else:
             num[i, j] = wv
             den[i, j] = w
+    elif use_keep and den[i, j] == _UNOWNED:
+        if keep[i, j // per_keep] >= 0.5:  # the first own frame: the class and its fallback
+            num[i, j] = fb_tab[r, z]
+            den[i, j] = -1.0 if hi_tab[r, z] else 0.0
     elif (keep[i, j // per_keep] >= 0.5 if use_keep else mode == 2) and den[i, j] == 0:
         num[i, j] = fb_tab[r, z]
 
