@@ -207,14 +207,38 @@ def _groups(folder: Path, tmp: str) -> list[list[str]]:
     return [e["frames"] for e in json.loads(p.stdout)["brackets"]]
 
 
+def _left_out_errors(frames, keep: list[int], k: int, times: bool, codes, h, step: int, mask, names) -> dict:
+    """Frame ``k`` predicted from a plain merge of frames ``keep`` (``times``: their times
+    given on the command line) and from each peer of ``names`` on the same frames' decimated
+    ``codes``: RMSE in code values over ``mask``, keyed "merge (no option)" and by peer."""
+    from benchmarks import peers
+    from benchmarks.real_loo import predict_ours, rmse
+    from hdrmerge_cli.io.images import read_exr
+    from hdrmerge_cli.io.profile import crf_from_json
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, HDRMERGE_CLI_CACHE_DIR=f"{tmp}/cache")
+        args = [frames[j].path for j in keep]
+        if times:
+            args += ["--times", ",".join(repr(frames[j].exposure_time) for j in keep)]
+        _cli("merge", *args, "-o", f"{tmp}/p.exr", "-q", "--align", "off", env=env).check_returncode()
+        pixels, header = read_exr(f"{tmp}/p.exr")
+        crf = crf_from_json(json.loads(Path(tmp, "p.profile.json").read_text())["crf"])
+        e = pixels[::step, ::step, :3].astype(np.float64) / float(header["hdrmerge:referenceExposure"])
+        out["merge (no option)"] = rmse(predict_ours(e, crf, h[k]), codes[k].astype(np.float64), mask)
+        for peer in names:
+            res = peers.run_peer(peer, [codes[j] for j in keep], list(h[keep]), Path(tmp, peer))
+            out[peer] = rmse(peers.predict_codes(res, h[k]), codes[k].astype(np.float64), mask)
+    return out
+
+
 def loo_rows(quick: bool) -> list[dict]:
     """The middle frame left out, plain merge against the peers (benchmarks.peers)."""
     from benchmarks import peers
-    from benchmarks.real_loo import LOW, HIGH, predict_ours, rmse
+    from benchmarks.real_loo import LOW, HIGH
     from hdrmerge_cli.io.frames import load_codes
-    from hdrmerge_cli.io.images import read_exr
     from hdrmerge_cli.io.metadata import exposure_values
-    from hdrmerge_cli.io.profile import crf_from_json
     from hdrmerge_cli.pipeline.bracket import read_bracket
 
     available = peers.available()
@@ -233,19 +257,7 @@ def loo_rows(quick: bool) -> list[dict]:
         mask = np.all((codes[k] >= LOW) & (codes[k] <= HIGH), axis=-1)
         keep = [j for j in range(len(frames)) if j != k]
         row = {"bracket": name, "left_out": frames[k].name}
-        with tempfile.TemporaryDirectory() as tmp:
-            env = dict(os.environ, HDRMERGE_CLI_CACHE_DIR=f"{tmp}/cache")
-            args = [frames[j].path for j in keep]
-            if extra:
-                args += ["--times", ",".join(repr(frames[j].exposure_time) for j in keep)]
-            _cli("merge", *args, "-o", f"{tmp}/p.exr", "-q", "--align", "off", env=env).check_returncode()
-            pixels, header = read_exr(f"{tmp}/p.exr")
-            crf = crf_from_json(json.loads(Path(tmp, "p.profile.json").read_text())["crf"])
-            e = pixels[::step, ::step, :3].astype(np.float64) / float(header["hdrmerge:referenceExposure"])
-            row["merge (no option)"] = rmse(predict_ours(e, crf, h[k]), codes[k].astype(np.float64), mask)
-            for peer in names:
-                res = peers.run_peer(peer, [codes[j] for j in keep], list(h[keep]), Path(tmp, peer))
-                row[peer] = rmse(peers.predict_codes(res, h[k]), codes[k].astype(np.float64), mask)
+        row |= _left_out_errors(frames, keep, k, bool(extra), codes, h, step, mask, names)
         rows.append(row)
     return rows, names, available
 
@@ -258,11 +270,9 @@ def pair_rows(quick: bool) -> list[dict]:
     two frames.  None of these pairs was tuned on (the rule they test, histogram rows read
     above each frame's floor only, was chosen on fro and checked here)."""
     from benchmarks import peers
-    from benchmarks.real_loo import LOW, HIGH, predict_ours, rmse
+    from benchmarks.real_loo import LOW, HIGH
     from hdrmerge_cli.io.frames import load_codes
-    from hdrmerge_cli.io.images import read_exr
     from hdrmerge_cli.io.metadata import exposure_values
-    from hdrmerge_cli.io.profile import crf_from_json
     from hdrmerge_cli.pipeline.bracket import read_bracket
 
     names = [n for n in ("colour-hdri", "opencv-debevec") if peers.available()[n] is None]
@@ -286,19 +296,7 @@ def pair_rows(quick: bool) -> list[dict]:
         mask = np.all((codes[m] >= LOW) & (codes[m] <= HIGH), axis=-1)
         row = {"bracket": name, "pair": f"{frames[i].name}, {frames[j].name} ({ev[j] - ev[i]:.1f} EV)",
                "left_out": frames[m].name}
-        with tempfile.TemporaryDirectory() as tmp:
-            env = dict(os.environ, HDRMERGE_CLI_CACHE_DIR=f"{tmp}/cache")
-            args = [frames[i].path, frames[j].path]
-            if extra:
-                args += ["--times", f"{frames[i].exposure_time!r},{frames[j].exposure_time!r}"]
-            _cli("merge", *args, "-o", f"{tmp}/p.exr", "-q", "--align", "off", env=env).check_returncode()
-            pixels, header = read_exr(f"{tmp}/p.exr")
-            crf = crf_from_json(json.loads(Path(tmp, "p.profile.json").read_text())["crf"])
-            e = pixels[::step, ::step, :3].astype(np.float64) / float(header["hdrmerge:referenceExposure"])
-            row["merge (no option)"] = rmse(predict_ours(e, crf, h[m]), codes[m].astype(np.float64), mask)
-            for peer in names:
-                res = peers.run_peer(peer, [codes[i], codes[j]], [h[i], h[j]], Path(tmp, peer))
-                row[peer] = rmse(peers.predict_codes(res, h[m]), codes[m].astype(np.float64), mask)
+        row |= _left_out_errors(frames, [i, j], m, bool(extra), codes, h, step, mask, names)
         rows.append(row)
     return rows, names
 
