@@ -301,6 +301,16 @@ def pair_rows(quick: bool) -> list[dict]:
     return rows, names
 
 
+def _error_table(title: str, keys: list[str], heads: list[str], rows: list[dict], names: list[str]) -> list[str]:
+    """A Markdown section of left-out errors: the ``keys`` columns (headed ``heads``), ours, then each peer."""
+    cols = heads + ["merge (no option)"] + names
+    lines = ["", f"## {title} (RMSE, code values)", "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        lines.append("| " + " | ".join([str(r[k]) for k in keys] + [f"{r[n]:.2f}" for n in ["merge (no option)"] + names])
+                     + " |")
+    return lines
+
+
 def main(quick: bool = False) -> str:
     if not SHARED.is_dir():
         return f"decisions: skipped (no shared data at {SHARED})"
@@ -343,19 +353,11 @@ def main(quick: bool = False) -> str:
     lines += [f"| {r['folder']} | {r['groups']} | {r['expected']} | {r['whole']} | {r['joined']} |"
               for r in grouping_rows()]
     rows, names, available = loo_rows(quick)
-    lines += ["", "## Leave-one-out, the middle frame (RMSE, code values)", "",
-              "| bracket | left out | merge (no option) | " + " | ".join(names) + " |",
-              "|---|---|---|" + "---|" * len(names)]
-    for r in rows:
-        lines.append(f"| {r['bracket']} | {r['left_out']} | {r['merge (no option)']:.2f} | "
-                     + " | ".join(f"{r[n]:.2f}" for n in names) + " |")
+    lines += _error_table("Leave-one-out, the middle frame", ["bracket", "left_out"], ["bracket", "left out"],
+                          rows, names)
     pairs, pair_names = pair_rows(quick)
-    lines += ["", "## Two frames about 6 EV apart, the frame between them predicted (RMSE, code values)", "",
-              "| bracket | the two frames | left out | merge (no option) | " + " | ".join(pair_names) + " |",
-              "|---|---|---|---|" + "---|" * len(pair_names)]
-    for r in pairs:
-        lines.append(f"| {r['bracket']} | {r['pair']} | {r['left_out']} | {r['merge (no option)']:.2f} | "
-                     + " | ".join(f"{r[n]:.2f}" for n in pair_names) + " |")
+    lines += _error_table("Two frames about 6 EV apart, the frame between them predicted", ["bracket", "pair", "left_out"],
+                          ["bracket", "the two frames", "left out"], pairs, pair_names)
     best = sum(r["merge (no option)"] <= min(r[n] for n in pair_names) for r in pairs)
     lines.append(f"\nmerge at or below every peer on {best} of {len(pairs)}; mean {np.mean([r['merge (no option)'] for r in pairs]):.2f}"
                  + "".join(f", {n} {np.mean([r[n] for r in pairs]):.2f}" for n in pair_names) + ".")
