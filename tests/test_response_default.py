@@ -181,8 +181,8 @@ def test_two_frames_6_ev_apart_predict_the_frame_between_them_as_well_as_colour_
     well-exposed pixel, so the response is fitted on their histograms, each frame read
     above its floor only.  The middle frame's codes predicted through plain ``merge``'s
     result and response (RMSE over its pixels within LOW..HIGH) at or below colour-hdri's
-    (Debevec-Malik on Grossberg-Nayar samples, the same two frames): 5.3 against 6.6
-    codes when written (7.0 with the floors read as evidence)."""
+    (Debevec-Malik on Grossberg-Nayar samples, the same two frames): about 5.3 against 6.6
+    codes; with the floors read as evidence, 7.0."""
     import warnings
 
     from benchmarks import peers

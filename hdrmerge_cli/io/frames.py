@@ -193,6 +193,11 @@ NOT_FRAMES = {".exr": "an OpenEXR image (floating point)", ".hdr": "a Radiance H
               ".md": "a Markdown file"}
 
 
+def bracket_label(frames: list[Frame]) -> str:
+    """How a message names a bracket: ``first/path ... last_name`` (one frame: its path)."""
+    return f"{frames[0].path} ... {frames[-1].name}" if len(frames) > 1 else frames[0].path
+
+
 def list_frames(folder: str | os.PathLike) -> list[str]:
     """The frames in ``folder``: every regular, non-hidden file that is not a sidecar or
     an output (:data:`NOT_FRAMES`), sorted by name."""

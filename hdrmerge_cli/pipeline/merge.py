@@ -17,7 +17,7 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.core import resample
 from hdrmerge_cli.core.reconstruct import FLAG_DARK, FLAG_SATURATED, Reconstruction, merge
-from hdrmerge_cli.io.frames import Frame
+from hdrmerge_cli.io.frames import Frame, bracket_label
 from hdrmerge_cli.io.metadata import fmt_time
 
 log = logging.getLogger("hdrmerge_cli")
@@ -312,7 +312,7 @@ def warn_unmeasured(frames: list[Frame], result: np.ndarray, flags: np.ndarray) 
     saturated = np.count_nonzero(flags == FLAG_SATURATED)
     if dark + saturated < flags.size:
         return
-    where = f"{frames[0].path} ... {frames[-1].name}" if len(frames) > 1 else frames[0].path
+    where = bracket_label(frames)
     if saturated == 0:
         log.warning("%s: every pixel reads black in every frame; the output holds only an upper bound (%.3g, half a "
                     "code in the longest exposure), not a measurement", where, float(np.max(result)))

@@ -16,7 +16,7 @@ import numpy as np
 from hdrmerge_cli.core import registration, resample
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
-from hdrmerge_cli.io.frames import Frame, HeldCodes, load_codes
+from hdrmerge_cli.io.frames import Frame, HeldCodes, bracket_label, load_codes
 from hdrmerge_cli.io.metadata import of_frame, reference_index, sample_pattern
 
 if TYPE_CHECKING:
@@ -433,7 +433,7 @@ def frame_validity(frames: list[Frame], alignment: Alignment | None, codes: Held
     alignment = alignment if alignment is not None and alignment.applied else None
     validity = [valid_pixels(f, codes.validity(f), alignment.warp_of(f) if alignment else None) for f in frames]
     if all(v is not None and not v.any() for v in validity):
-        where = f"{frames[0].path} ... {frames[-1].name}" if len(frames) > 1 else frames[0].path
+        where = bracket_label(frames)
         raise HdrMergeError(f"{where}: every pixel is transparent (alpha 0) in every frame, so no frame measures "
                             "any light and there is nothing to merge")
     return validity
