@@ -256,7 +256,7 @@ def _merge_stack(stack, times, settings: MergeSettings, response, noise, cfa, bl
                  return_variance: bool):
     """:func:`merge` once its settings are checked: the radiance, float32 ``(H, W, 3)`` or
     ``(H, W)``, and with ``return_variance`` the pair (radiance, variance)."""
-    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.records import Bracket
     from hdrmerge_cli.pipeline.run import check_options, merge_frames
 
     st = _stack(stack, times, cfa, black, white, bits)
@@ -693,7 +693,8 @@ def merge_arrays(codes: Sequence[np.ndarray], exposure_times: Sequence[float], *
     st = _stack(codes, exposure_times, cfa_pattern, black, white, bits)
     options.setdefault("noise_cache", False)  # no camera to key a cache entry by
     opts = _options(options)
-    from hdrmerge_cli.pipeline.bracket import Bracket, choose_crf
+    from hdrmerge_cli.pipeline.bracket import choose_crf
+    from hdrmerge_cli.pipeline.records import Bracket
     from hdrmerge_cli.pipeline.run import given_noise, merge_frames
 
     # a mosaic is linear whatever is given; an image's text as --crf's (none: merge_frames measures it)

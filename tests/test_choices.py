@@ -9,7 +9,8 @@ import pytest
 
 from conftest import frames_of
 from hdrmerge_cli.pipeline import choices
-from hdrmerge_cli.pipeline.choices import AUTO_ALIGN_PX, AUTO_DEGHOST_FRACTION, Decision
+from hdrmerge_cli.pipeline.choices import AUTO_ALIGN_PX, AUTO_DEGHOST_FRACTION
+from hdrmerge_cli.pipeline.records import Decision
 
 PACKAGE = Path(choices.__file__).parents[1]
 
@@ -29,7 +30,7 @@ def _alignment(shifts, raw=False, rotation=0.0, mode="auto"):
     """An Alignment as the registration stage hands it over under ``--align mode`` (not yet
     applied): frames of 40 x 60 with the given (dx, dy) and rotation (radians) against the
     reference (the first)."""
-    from hdrmerge_cli.pipeline.register import Alignment
+    from hdrmerge_cli.pipeline.records import Alignment
 
     class F:
         kind = "raw" if raw else "image"
@@ -71,7 +72,7 @@ def test_raw_alignment_moves_whole_cfa_periods_where_they_suffice():
 @pytest.mark.parametrize("mode, largest, applied", [("auto", 0.001, False), ("auto", 0.01, True),
                                                     ("on", 0.0, True)])
 def test_deghosting_applies_the_masks_on_or_past_the_false_alarms(mode, largest, applied):
-    from hdrmerge_cli.pipeline.ghosts import Ghosts
+    from hdrmerge_cli.pipeline.records import Ghosts
 
     found = Ghosts(None, False, 1e-3, 4, (40, 60), [largest], [], [], largest=largest)
     out = choices.choose_deghost(found, mode)

@@ -347,7 +347,7 @@ def test_samples_shifted_in_from_outside_get_no_weight():
     """An aligned frame covers the reference only partly: ``covered`` marks the rest (RAW:
     whole CFA periods; images: every channel of a pixel alike)."""
     from hdrmerge_cli.io.frames import Frame
-    from hdrmerge_cli.pipeline.register import covered
+    from hdrmerge_cli.pipeline.records import covered
 
     def frame(kind, channels):
         return Frame(path="x", kind=kind, width=10, height=6, exposure_time=1.0, iso=None, aperture=None, make="",

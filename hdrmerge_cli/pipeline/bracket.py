@@ -1,5 +1,5 @@
-"""Read and check a bracket: the frames' metadata, their exposures, the response; and
-:class:`Bracket`, the one object the merge's stages share.
+"""Read and check a bracket: the frames' metadata, their exposures, the response, as a
+:class:`~hdrmerge_cli.pipeline.records.Bracket`, the one object the merge's stages share.
 
 The first stage of every command that reads a bracket (merge, estimate-crf,
 calibrate-noise, info); it decodes no pixels itself (a RAW frame's codes come from the
@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -17,88 +16,15 @@ from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.crfspec import resolve_crf
 from hdrmerge_cli.io.frames import Frame, HeldCodes, check_distinct_frames, read_frame
-from hdrmerge_cli.io.metadata import (
-    EQUAL_EXPOSURE_RTOL, equal_exposure_groups, exposure_values, fmt_time, output_orientation, reference_exposure,
-    sample_pattern,
-)
+from hdrmerge_cli.io.metadata import EQUAL_EXPOSURE_RTOL, exposure_values, fmt_time
 from hdrmerge_cli.io.profile import crf_from_json, load_profile
 from hdrmerge_cli.io.times import apply_times
+from hdrmerge_cli.pipeline.records import Bracket
 
 log = logging.getLogger("hdrmerge_cli")
 
-if TYPE_CHECKING:  # the stages' results, as the bracket carries them
-    from hdrmerge_cli.core.noise import NoiseParams
-    from hdrmerge_cli.core.samples import Samples
-    from hdrmerge_cli.pipeline.choices import Models
-    from hdrmerge_cli.pipeline.register import Alignment
-    from hdrmerge_cli.pipeline.ghosts import Ghosts
+if TYPE_CHECKING:
     from hdrmerge_cli.pipeline.options import InputOptions
-
-
-@dataclass
-class Bracket:
-    """A bracket as the merge's stages share it: what was read, and what each stage derived
-    from it, set by the runner (:func:`hdrmerge_cli.pipeline.run.merge_frames`) as each stage
-    returns, in reading order.  A stage reads the fields it needs; none calls another.
-
-    frames : sorted by exposure (re-sorted once, by the exposures stage, under ``--times estimate``)
-    crf : the response: linear (RAW), given, or sRGB assumed until the response stage measures it
-    codes : every frame's codes, decoded once and held (:class:`~hdrmerge_cli.io.frames.HeldCodes`)
-    noise : the given noise (``--noise``, a profile), per channel; measured when None and needed
-    noise_by_iso : per ``ISO100``-style key, each ISO's noise where the frames' ISOs differ
-    exposures : ``(P,)`` float64, each frame's ``h_j`` (:func:`~hdrmerge_cli.io.metadata.exposure_values`)
-    pattern : the table row each sample reads (:func:`~hdrmerge_cli.io.metadata.sample_pattern`)
-    h_ref, repeats, orientation : the reference exposure, the runs of equal exposures
-        (:func:`~hdrmerge_cli.io.metadata.equal_exposure_groups`) and the output's EXIF
-        orientation (:func:`~hdrmerge_cli.io.metadata.output_orientation`), set with the
-        exposures the merge uses (:meth:`settle_exposures`)
-    samples : the one sample set every check reads (:class:`~hdrmerge_cli.core.samples.Samples`),
-        drawn by the exposures stage; brought onto the reference once the frames are aligned
-    alignment, exposure_report, models, ghosts : the stages' results (None: not run)
-    timings : seconds per stage, for ``--json``
-    """
-
-    frames: list[Frame]
-    crf: CRF
-    codes: HeldCodes
-    noise: dict[str, NoiseParams] | None = None
-    noise_by_iso: dict[str, dict[str, NoiseParams]] | None = None
-    exposures: np.ndarray | None = None
-    samples: Samples | None = None
-    alignment: Alignment | None = None
-    exposure_report: dict | None = None
-    models: Models | None = None
-    ghosts: Ghosts | None = None
-    timings: dict[str, float] = field(default_factory=dict)
-    pattern: np.ndarray | None = field(init=False, default=None)
-    orientation: int | None = field(init=False, default=None)
-    h_ref: float | None = field(init=False, default=None)
-    repeats: list[list[int]] | None = field(init=False, default=None)
-
-    def __post_init__(self):
-        if self.exposures is None:
-            self.exposures = exposure_values(self.frames)
-        self.pattern = sample_pattern(self.frames[0])  # the frames share their kind and CFA (read_bracket)
-
-    def settle_exposures(self, frames: list[Frame], exposures: np.ndarray, reference: str | float) -> None:
-        """The frames and exposures the merge uses (as the exposures stage returns them), and
-        what follows from them alone: the reference exposure (``--reference``,
-        :func:`~hdrmerge_cli.io.metadata.reference_exposure`), the runs of equal exposures and
-        the output's orientation (the first frame's, of the frames in their final order)."""
-        self.frames, self.exposures = frames, exposures
-        self.orientation = output_orientation(frames)
-        self.h_ref = reference_exposure(reference, exposures)
-        self.repeats = equal_exposure_groups(exposures)
-
-    def decisions(self) -> dict[str, dict]:
-        """Every choice made on the bracket by name, as ``merge --json`` and the profile give
-        them (:class:`~hdrmerge_cli.pipeline.choices.Decision`): the models', the alignment's
-        and the deghosting's."""
-        made = dict(self.models.decisions) if self.models else {}
-        for name, result in (("align", self.alignment), ("deghost", self.ghosts)):
-            if result is not None and result.decision is not None:
-                made[name] = result.decision
-        return {name: d.summary() for name, d in made.items()}
 
 
 def read(paths: list[str], inputs: InputOptions) -> Bracket:

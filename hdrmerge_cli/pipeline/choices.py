@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,45 +26,12 @@ from hdrmerge_cli.core.reconstruct import exposure_tables, prior_rate_of
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 from hdrmerge_cli.io.frames import Frame, load_codes
 from hdrmerge_cli.io.luts import read_luts
-from hdrmerge_cli.io.noisespec import iso_key, parse_bounds, per_channel
+from hdrmerge_cli.io.noisespec import parse_bounds, per_channel
 from hdrmerge_cli.pipeline.options import MergeSettings
+from hdrmerge_cli.pipeline.records import Alignment, Decision, Ghosts, Models, RegistrationPlan
 
-if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.ghosts import Ghosts
-    from hdrmerge_cli.pipeline.register import Alignment
 
 log = logging.getLogger("hdrmerge_cli")
-
-
-@dataclass(frozen=True)
-class Decision:
-    """One choice of a merge, as it was made.
-
-    value : what was chosen
-    measured : whether a measurement of the bracket decided it (False: the option was
-        given, or the choice follows from the bracket's kind and the other choices)
-    reason : why, in one line
-    statistic, threshold : the measured number and the value it was held against (one unit)
-    uncertainty : the statistic's standard error, where measured
-    effect_db : the choice's effect on the merge's predicted error (dB), where measured
-    """
-
-    value: object
-    measured: bool
-    reason: str
-    statistic: float | None = None
-    threshold: float | None = None
-    uncertainty: float | None = None
-    effect_db: float | None = None
-
-    def summary(self) -> dict:
-        """``merge --json``'s record: the fields that are set (numbers rounded to 6 digits)."""
-        out = {"value": self.value, "measured": self.measured, "reason": self.reason}
-        for name in ("statistic", "threshold", "uncertainty", "effect_db"):
-            v = getattr(self, name)
-            if v is not None and np.isfinite(v):
-                out[name] = round(float(v), 6)
-        return out
 
 
 def given(name: str, value) -> Decision:
@@ -78,27 +44,11 @@ def given(name: str, value) -> Decision:
 AUTO_ALIGN_PX = 0.25
 
 
-@dataclass(frozen=True)
-class RegistrationPlan:
-    """What the registration stage measures (:func:`registration_plan`).
-
-    motion : the model fitted, ``translation`` or ``similarity``
-    screen : each pair is tested before its step is kept: a pair found still at coarse
-        resolution (within ``tolerance_px`` shared by the steps to the reference) is not
-        registered in full, and a registered step is kept only where the pair pins it
-    tolerance_px : the displacement below which a frame counts as still (pixels)
-    """
-
-    motion: str
-    screen: bool
-    tolerance_px: float = AUTO_ALIGN_PX
-
-
 def registration_plan(align: str) -> RegistrationPlan:
     """``--align``: ``auto`` fits a similarity (a rotation is kept only where it beats
     translation, :func:`choose_alignment`) and screens each pair; a named model is fitted
     to every pair."""
-    return RegistrationPlan("similarity" if align == "auto" else align, align == "auto")
+    return RegistrationPlan("similarity" if align == "auto" else align, align == "auto", AUTO_ALIGN_PX)
 
 
 def whole_periods_suffice(warps) -> bool:
@@ -162,58 +112,6 @@ def choose_deghost(found: Ghosts, mode: str) -> Ghosts:
 
 
 # ---------------------------------------------------------------- the models
-
-
-@dataclass
-class Models:
-    """What a merge reconstructs with (the choices stage, :func:`choose_models`).
-
-    tables : per frame, the :class:`~hdrmerge_cli.core.reconstruct.ExposureTables` of (7)
-    pattern : the periodic table row of each sample (None: one row serves all)
-    table_channels : the tables' row names (``R``, ``G``, ``B``, ``G2`` ...)
-    row_noise : per frame (in the order of ``tables``) the noise of each table row, as the
-        tables and the re-weighting passes use it; None without a noise model
-    noise : per channel :class:`NoiseParams` in code units, or None; where the frames'
-        noise differs (ISOs), that of the reference (first) frame
-    frame_noise : per frame (in the order of ``tables``) its own per channel noise, where
-        the frames' noise differs (a bracket of several ISOs and a profile with each); None
-        when every frame has ``noise``
-    estimated : how the noise was measured (bracket or cache), for the profile
-    excess : the variance beyond the noise model measured on an image bracket, or None
-    """
-
-    estimator: str
-    weights: str
-    variance: str
-    n_irls: int
-    noise: dict[str, NoiseParams] | None
-    estimated: dict | None
-    prior: float | None
-    bounds: tuple | None
-    tables: list
-    pattern: np.ndarray | None
-    table_channels: list[str]
-    row_noise: list[list[NoiseParams]] | None = None
-    excess: object = None  # core.excess_variance.ExcessVariance of a camera-processed bracket, or None
-    frame_noise: list[dict[str, NoiseParams]] | None = None
-    #: the estimator, weights, variance and irls decisions (:func:`model_decisions`)
-    decisions: dict[str, Decision] = field(default_factory=dict)
-
-    def noise_used(self, frame: Frame, noise: dict[str, NoiseParams] | None = None) -> dict | None:
-        """The noise parameters per channel name, as the profile and ``--json`` give them
-        (``noise``, default :attr:`noise`)."""
-        noise = self.noise if noise is None else noise
-        if not noise:
-            return None
-        return {ch: vars(p) for ch, p in zip(frame.channel_names, per_channel(noise, frame.channel_names))}
-
-    def noise_per_iso(self, frames: list[Frame]) -> dict | None:
-        """Where the frames' noise differs: ``{"ISO100": {channel: {sigma_o2, alpha,
-        beta}}, ...}``, the noise each ISO of ``frames`` (the merged frames, in the order of
-        :attr:`frame_noise`) was merged with; else None."""
-        if not self.frame_noise:
-            return None
-        return {iso_key(f.iso): self.noise_used(f, n) for f, n in zip(frames, self.frame_noise)}
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from hdrmerge_cli.io.metadata import fmt_time
 log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.records import Bracket
 
 
 @dataclass

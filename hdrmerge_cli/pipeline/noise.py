@@ -27,7 +27,7 @@ log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
     from hdrmerge_cli.core.calibrate import DrawnChannel
-    from hdrmerge_cli.pipeline.bracket import Bracket
+    from hdrmerge_cli.pipeline.records import Bracket
 
 
 @dataclass

@@ -26,8 +26,8 @@ from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 log = logging.getLogger("hdrmerge_cli")
 
 if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.bracket import Bracket
-    from hdrmerge_cli.pipeline.merge import Reconstruction
+    from hdrmerge_cli.pipeline.records import Bracket
+    from hdrmerge_cli.core.reconstruct import Reconstruction
 
 #: file types ``--preview`` writes (by suffix)
 PREVIEW_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")

@@ -5,11 +5,10 @@ the frames' codes brought there once (:class:`AlignedLoader`, on
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,106 +16,11 @@ from hdrmerge_cli.core import registration, resample
 from hdrmerge_cli.core.crf import CRF
 from hdrmerge_cli.core.errors import HdrMergeError
 from hdrmerge_cli.io.frames import Frame, HeldCodes, bracket_label, load_codes
-from hdrmerge_cli.io.metadata import of_frame, reference_index, sample_pattern
+from hdrmerge_cli.io.metadata import reference_index, sample_pattern
+from hdrmerge_cli.pipeline.records import Alignment, RegistrationPlan
 
-if TYPE_CHECKING:
-    from hdrmerge_cli.pipeline.choices import Decision, RegistrationPlan
 
 log = logging.getLogger("hdrmerge_cli")
-
-
-@dataclasses.dataclass
-class Alignment:
-    """What :func:`estimate_alignment` found: per frame (the lists in the order of
-    ``frames``) its warp onto the reference, ``(2, 3)`` float64 in the frame's own sample
-    coordinates; :meth:`warp_of` finds a frame's by identity, whatever order the frames are
-    in later (``--times estimate`` may re-sort them).  ``mode``, ``motion``, ``resampling``,
-    ``applied`` and ``decision`` are set by the choice made on it
-    (:func:`~hdrmerge_cli.pipeline.choices.choose_alignment`; as found: the model fitted,
-    nothing applied).
-
-    mode : the ``--align`` mode; motion : ``translation`` or ``similarity``
-    resampling : RAW ``cfa-periods`` or ``per-colour``; images ``none``
-    reference : the reference frame's path; applied : whether the merge moves the frames
-    confidence : each registration's correlation to its neighbour (1 for the reference)
-    unaligned, still : paths of the frames left unaligned, and found still at coarse resolution
-    left : by frame index, why a frame is left unaligned
-    """
-
-    mode: str
-    motion: str
-    resampling: str
-    reference: str
-    applied: bool
-    frames: list[Frame]
-    warps: list[np.ndarray]
-    confidence: list[float]
-    unaligned: list[str]
-    still: list[str]
-    left: dict[int, str] = dataclasses.field(default_factory=dict)
-    decision: Decision | None = None
-
-    def report(self) -> None:
-        """The log lines of a chosen alignment: each frame left unaligned (a warning when
-        alignment was asked for or the others moved, a hand-held bracket; only logged under
-        ``auto`` on a bracket where nothing registered moved: a tripod, or frames too far apart
-        in exposure to share tones), the largest displacement, and the share of the image
-        outside some moved frame."""
-        say = log.warning if self.applied else log.info
-        for j, why in self.left.items():
-            say("%s: %s; left unaligned", self.frames[j].path, why)
-        log.info("alignment (%s): largest displacement %.2f px; %s", self.motion, max(self.sizes),
-                 "applied" if self.applied else "not needed")
-        if self.applied:
-            share = self.covered_by_every_frame()
-            if share < 1:
-                log.info("alignment: %.1f %% of the image lies outside some moved frame and is measured by fewer "
-                         "frames (its borders)", 100 * (1 - share))
-
-    def warp_of(self, frame: Frame) -> np.ndarray:
-        return of_frame(frame, self.frames, self.warps)
-
-    @property
-    def sizes(self) -> list[float]:
-        """Each frame's largest displacement at a corner (pixels)."""
-        return [registration.warp_size(w, f.height, f.width) for w, f in zip(self.warps, self.frames)]
-
-    @functools.cached_property
-    def every_frame_mask(self) -> np.ndarray | None:
-        """``(H, W)`` bool: the reference's pixels that every aligned frame covers; None when
-        the alignment is not applied (all of them).  Made once (the log, ``--json`` and
-        ``--crop`` read it)."""
-        if not self.applied:
-            return None
-        every = None
-        for f in self.frames:
-            inside = self.coverage(f)
-            every = inside if every is None else every & inside
-        return every
-
-    def coverage(self, frame: Frame, rows: slice | None = None) -> np.ndarray:
-        """Which pixels of the aligned ``frame`` come from inside it (:func:`covered`),
-        ``(H, W)`` bool (``rows``: those rows only)."""
-        return covered(frame, self.warp_of(frame), self.resampling == "cfa-periods", rows)
-
-    def covered_by_every_frame(self) -> float:
-        """The share of the reference's pixels that every aligned frame covers (1 when the
-        alignment is not applied); the rest is measured by fewer frames."""
-        every = self.every_frame_mask
-        return 1.0 if every is None else round(float(np.mean(every)), 6)
-
-    def summary(self) -> dict:
-        """``merge --json``'s ``alignment``."""
-        out = {"mode": self.mode, "motion": self.motion, "resampling": self.resampling, "reference": self.reference,
-               "frames": [f.path for f in self.frames], "applied": self.applied,
-               "shift_px": [[round(float(w[0, 2]), 3), round(float(w[1, 2]), 3)] for w in self.warps],
-               "largest_displacement_px": [round(s, 3) for s in self.sizes], "confidence": self.confidence,
-               "unaligned": self.unaligned, "still": self.still,
-               "covered_by_every_frame": self.covered_by_every_frame()}
-        if self.motion == "similarity":
-            out["rotation_deg"] = [round(float(np.degrees(np.arctan2(w[1, 0], w[0, 0]))), 4) for w in self.warps]
-            out["scale"] = [round(float(np.hypot(w[0, 0], w[1, 0])), 6) for w in self.warps]
-        return out | {"warps": [np.round(w, 6).tolist() for w in self.warps]}
 
 
 def _linear(frame: Frame, codes: np.ndarray, crf: CRF) -> np.ndarray:
@@ -410,20 +314,6 @@ class AlignedLoader:
 def is_identity(warp: np.ndarray) -> bool:
     """Whether a warp moves nothing (the reference's; no resampling)."""
     return bool(np.allclose(warp, np.eye(2, 3), rtol=0.0, atol=1e-9))
-
-
-def covered(frame: Frame, warp: np.ndarray, periods: bool, rows: slice | None = None) -> np.ndarray:
-    """Which pixels of the aligned frame come from inside it, ``(H, W)`` bool (``rows``:
-    those rows only; a pixel's channels share its value); the others are stand-ins (the
-    edge repeated) and get no weight in the merge.  ``periods``: a RAW frame moved by whole
-    CFA periods."""
-    h, w = frame.height, frame.width
-    if frame.kind == "raw" and periods:  # whole CFA periods
-        tx, ty = resample.period_shift(warp)
-        inside = ((np.arange(h) + ty >= 0) & (np.arange(h) + ty <= h - 1))[rows or slice(None)]
-        cols = (np.arange(w) + tx >= 0) & (np.arange(w) + tx <= w - 1)
-        return inside[:, None] & cols[None, :]
-    return registration.covered_mask(warp, h, w, rows)
 
 
 def frame_validity(frames: list[Frame], alignment: Alignment | None, codes: HeldCodes) -> list:

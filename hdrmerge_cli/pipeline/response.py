@@ -31,7 +31,6 @@ from hdrmerge_cli.io.noisespec import parse_bounds
 from hdrmerge_cli.io.plots import check_figure_path, figure_writer, pyplot
 from hdrmerge_cli.io.profile import crf_to_json, load_profile, new_profile, profile_writer
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.pipeline.bracket import read_bracket
 
 log = logging.getLogger("hdrmerge_cli")
 
@@ -289,20 +288,19 @@ def _profile_of(base: dict | None, frames, crf: CRF, details: dict, method_name:
 class CRFJob:
     """An estimate-crf run once its options and outputs are checked (:func:`start_crf`): the
     method, where the profile goes (``updating``: in place), the ``--profile`` it updates,
-    the frames read, and the smoothing and samples in use."""
+    and the smoothing and samples in use."""
 
     method: object
     output: Path
     updating: bool
     base: dict | None
-    frames: list
     smoothing: float | None
     n_samples: int | None
     t0: float
 
 
-def start_crf(paths, output: Path | None, opts: CRFOptions) -> CRFJob:
-    """estimate-crf's outputs checked (before any decoding) and the bracket read."""
+def start_crf(output: Path | None, opts: CRFOptions) -> CRFJob:
+    """estimate-crf's outputs checked (before any frame is read)."""
     t0 = time.perf_counter()
     method = CRF_ESTIMATORS[opts.method]
     if output is None:
@@ -314,16 +312,15 @@ def start_crf(paths, output: Path | None, opts: CRFOptions) -> CRFJob:
     if opts.plot is not None:
         check_figure_path(opts.plot, opts.overwrite)
     base = load_profile(opts.profile) if opts.profile else None
-    frames = read_bracket(list(paths), opts.times, opts.times_file, equal_ok=True)
     smoothing = method.smoothing if opts.smoothing is None else opts.smoothing
     n_samples = method.samples if opts.samples is None else opts.samples
-    return CRFJob(method, Path(output), updating, base, frames, smoothing, n_samples, t0)
+    return CRFJob(method, Path(output), updating, base, smoothing, n_samples, t0)
 
 
-def finish_crf(job: CRFJob, fit: BracketFit | None, opts: CRFOptions) -> dict:
+def finish_crf(job: CRFJob, frames: list[Frame], fit: BracketFit | None, opts: CRFOptions) -> dict:
     """The profile of the fit (an identity CRF for linear data, ``fit`` None) written with
     --plot's figure; the report."""
-    frames, first = job.frames, job.frames[0]
+    first = frames[0]
     if fit is None:
         log.info("RAW data is linear: no CRF to estimate; writing an identity (linear) CRF (use --force to fit one)")
         fit = BracketFit(CRF("linear"))

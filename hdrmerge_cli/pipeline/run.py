@@ -6,7 +6,7 @@ read, exposures and response stages through :func:`estimate_crf`):
 
 1. read: the frames' metadata, their codes (each file decoded once, held by frame) and the
    response given or assumed (:func:`~hdrmerge_cli.pipeline.bracket.read`, a
-   :class:`~hdrmerge_cli.pipeline.bracket.Bracket`);
+   :class:`~hdrmerge_cli.pipeline.records.Bracket`);
 2. exposures: one sample set of every frame, its order checked
    (:func:`~hdrmerge_cli.pipeline.exposure_check.ordered_samples`);
 3. response: measured on those samples when none was given
@@ -40,7 +40,7 @@ from hdrmerge_cli.io.frames import Frame, cfa_corner, load_codes
 from hdrmerge_cli.io.images import exr_compression
 from hdrmerge_cli.io.metadata import reference_exposure
 from hdrmerge_cli.io.times import ESTIMATE
-from hdrmerge_cli.pipeline.bracket import Bracket, read
+from hdrmerge_cli.pipeline.bracket import read, read_bracket
 from hdrmerge_cli.pipeline.choices import (
     choose_alignment, choose_deghost, choose_models, registration_plan, wanted,
 )
@@ -51,7 +51,8 @@ from hdrmerge_cli.pipeline.merge import reconstruct
 from hdrmerge_cli.pipeline.noise import bracket_noise, resolve_noise_by_iso
 from hdrmerge_cli.pipeline.options import EXTRA_CHANNELS, MergeOptions
 from hdrmerge_cli.pipeline.output import PREVIEW_SUFFIXES, Merged, default_profile_path
-from hdrmerge_cli.pipeline.register import Alignment, estimate_alignment, frame_validity, loader, output_alpha
+from hdrmerge_cli.pipeline.records import Alignment, Bracket
+from hdrmerge_cli.pipeline.register import estimate_alignment, frame_validity, loader, output_alpha
 from hdrmerge_cli.pipeline.response import (
     CRFOptions, decoded, finish_crf, fit_bracket, measure_response, start_crf,
 )
@@ -236,14 +237,15 @@ def align(frames: list[Frame], exposures: np.ndarray, crf: CRF, mode: str, load=
 
 
 def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
-    """``hdrmerge-cli estimate-crf``: its outputs checked and the bracket read
-    (:func:`~hdrmerge_cli.pipeline.response.start_crf`); for images (or linear data under
+    """``hdrmerge-cli estimate-crf``: its outputs checked
+    (:func:`~hdrmerge_cli.pipeline.response.start_crf`) and the bracket read; for images (or linear data under
     ``--force``) the frames decoded, their one sample set drawn with its order and overlap
     checked (the exposures stage), the response fitted
     (:func:`~hdrmerge_cli.pipeline.response.fit_bracket`) and the labels judged through it;
     then the profile written (:func:`~hdrmerge_cli.pipeline.response.finish_crf`)."""
-    job = start_crf(paths, output, opts)
-    frames, first, fit = job.frames, job.frames[0], None
+    job = start_crf(output, opts)
+    frames = read_bracket(list(paths), opts.times, opts.times_file, equal_ok=True)
+    first, fit = frames[0], None
     if first.kind not in ("raw", "linear") or opts.force:
         codes, labels = decoded(frames, opts)
         by_frame = {id(f): c for f, c in zip(frames, codes)}
@@ -254,7 +256,7 @@ def estimate_crf(paths, output: Path | None, opts: CRFOptions) -> dict:
         estimates = opts.times == ESTIMATE
         fit.exposure_check = check_labels(frames, labels, samples, fit.crf, "" if estimates else
                                           "; estimate-crf --times estimate fits with the estimates", estimates)
-    return finish_crf(job, fit, opts)
+    return finish_crf(job, frames, fit, opts)
 
 
 def warn_unused_options(b: Bracket, opts: MergeOptions) -> None:
