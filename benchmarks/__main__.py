@@ -7,7 +7,8 @@ against OpenCV, colour-hdri and the Cramer-Rao bound, with speed/error plots), s
 (merge core, end-to-end CLI, peak memory, estimate-crf, calibrate-noise), CRF estimation
 on the DoRF curves, noise calibration, alignment and deghosting, and what each program does
 with each kind of frame (input_kinds), capture plans against conventional brackets (plan), and every
-automatic choice on the real photographs against their stated answers (decisions).  Those that need
+automatic choice on the real photographs against their stated answers (decisions), and where a left-out
+real frame is lost, the response or the merge (loss_parts).  Those that need
 ../shared/data skip with a note without it; peers that are not installed are skipped with a note.
 """
 from __future__ import annotations
@@ -17,7 +18,7 @@ import importlib
 import time
 
 BENCHMARKS = ("real_loo", "align_loo", "cli_defaults", "accuracy", "speed", "crf_dorf", "noise_calibration", "motion",
-              "input_kinds", "plan", "decisions")
+              "input_kinds", "plan", "decisions", "loss_parts")
 
 
 def main() -> None:

@@ -31,6 +31,7 @@ START, END = "<!-- headline:start -->", "<!-- headline:end -->"
 SECTIONS = (
     ("real_loo", "Real JPEG brackets: responses and merges by leave-one-out, against the peers"),
     ("decisions", "Automatic choices on the real photographs, against their stated answers"),
+    ("loss_parts", "Where a left-out real frame is lost: the response or the merge"),
     ("align_loo", "Alignment on the real brackets by leave-one-out, against Hugin and OpenCV"),
     ("motion", "Alignment and ghost removal on randomised moving brackets"),
     ("cli_defaults", "The command line's defaults on simulated brackets, against the Cramer-Rao bound and the peers"),

@@ -39,3 +39,35 @@ def test_accuracy_against_the_cramer_rao_bound(case):
     if case == "jpeg":
         assert below["triangle/log"] - below["probabilistic/log"] > 3.0
     assert below["OpenCV MergeDebevec"] - below["probabilistic/log"] > 3.0
+
+
+def test_loss_parts_hat_merge_is_colour_hdris_weighted_mean():
+    """benchmarks.loss_parts.hat_merge against colour-hdri's image_stack_to_HDRI on the same
+    frames and a linear response (an independent implementation of the same mean): equal
+    up to colour-hdri's constant of units, within 1e-6, where some frame is unclipped; and
+    the verdict of where_lost."""
+    import warnings
+
+    import colour_hdri
+
+    from benchmarks.loss_parts import hat_merge, where_lost
+    from hdrmerge_cli.core.crf import CRF
+
+    rng = np.random.default_rng(7)
+    scene = rng.uniform(0.01, 3.0, (30, 40, 3))
+    times = np.array([0.25, 1.0])
+    codes = [np.rint(255 * np.clip(scene * t, 0, 1)).astype(np.uint8) for t in times]
+    ours = hat_merge(codes, times, CRF("linear"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stack = colour_hdri.ImageStack()
+        for z, t in zip(codes, times):
+            stack.append(colour_hdri.Image(data=z / 255.0, metadata=colour_hdri.Metadata(1.0, t, 100.0)))
+        theirs = colour_hdri.image_stack_to_HDRI(stack)
+    ok = np.any([(z > 0) & (z < 255) for z in codes], axis=0)
+    ratio = ours[ok] / theirs[ok]  # colour-hdri's units: one constant (its exposure-value normalisation)
+    np.testing.assert_allclose(ratio, np.median(ratio), rtol=1e-6)
+    row = {"ours": 5.0, "ours, hat mean": 4.0, "QP on rows": 6.0, "D-M on rows": 6.0, "colour-hdri response": 6.0,
+           "colour-hdri": 4.5}
+    assert where_lost(row) == "merge" and where_lost(dict(row, ours=4.0)) == ""
+    assert where_lost(dict(row, **{"D-M on rows": 4.5})) == "response"
