@@ -70,8 +70,9 @@ def hat_merge(codes: list[np.ndarray], exposures: np.ndarray, crf) -> np.ndarray
     return num / np.maximum(den, 1e-12)
 
 
-def responses(codes, exposures) -> dict:
-    """Each response of :data:`COLUMNS` fitted on ``codes``, and colour-hdri's own merge."""
+def responses(codes, exposures) -> tuple[dict, object]:
+    """Each response of :data:`COLUMNS` by name, fitted on ``codes``, and colour-hdri's own
+    result (:class:`benchmarks.peers.PeerResult`)."""
     from benchmarks import peers
     from hdrmerge_cli.core.crf import table_crf
     from hdrmerge_cli.core.crf_estimate import fit_response, histogram_correspondences
