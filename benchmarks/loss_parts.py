@@ -2,7 +2,7 @@
 
 Every interior frame of every shared real bracket (``../shared/data/brackets``) left out
 as in :mod:`benchmarks.real_loo` (frames decimated the same way, RMSE in code values over
-the left-out frame's pixels within [10, 245]), predicted by crossing two responses with
+the left-out frame's pixels within [10, 245]), predicted by crossing four responses with
 two merges on the same frames:
 
 - responses: ours (``estimate-crf`` defaults: the goossens QP on pixel pairs), the
@@ -10,8 +10,8 @@ two merges on the same frames:
   (:func:`~hdrmerge_cli.core.crf_estimate.histogram_correspondences`, floors read), and
   colour-hdri's (Debevec-Malik on Grossberg-Nayar samples);
 - merges: ours (the merge core's defaults for an image bracket: triangle weights, the log
-  estimator (7), the ``codes`` variance) and colour-hdri's (the hat weight, a weighted mean
-  in linear units), the latter written here in a few lines.
+  estimator (7), the ``codes`` variance) and colour-hdri's (its hat weight, a weighted mean
+  in linear units), reproduced by :func:`hat_merge`.
 
 Colour-hdri's response through its merge is colour-hdri itself.  A row's best response
 under our merge, against ours, says how much of the loss is the response; our response
@@ -29,10 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import write_result
+from benchmarks.decisions import TUNED  # the brackets the merge's choices were tuned on
 
 RESULTS = Path(__file__).parent / "results"
-#: brackets whose numbers the merge's choices were tuned on (as benchmarks.decisions)
-TUNED = {"memorial_film_scan_png", "eos350d_lamps_night_jpg"}
 #: column -> (response, merge)
 COLUMNS = {
     "ours": ("ours", "ours"),
