@@ -84,8 +84,8 @@ def responses(codes, exposures) -> tuple[dict, object]:
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")
         colour = peers.run_peer("colour-hdri", codes, list(exposures), Path(tmp))
-    table = np.maximum.accumulate(np.maximum(colour.response, 0), axis=1) + 1e-9 * np.arange(256)
-    out["colour"] = table_crf(table)
+    # run_peer made it non-decreasing and positive; the ramp makes it strictly increasing (invertible)
+    out["colour"] = table_crf(colour.response + 1e-9 * np.arange(256))
     return out, colour
 
 
