@@ -14,14 +14,14 @@ color images", ICASSP 2004.
 """
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from hdrmerge_cli.core.cfa import BAYER_PATTERNS
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.jit import njit
 
 
-@numba.njit(inline="always")
+@njit(inline="always")
 def _reflect(i, n):  # pragma: no cover - compiled
     """scipy.ndimage ``mode="reflect"`` (d c b a | a b c d | d c b a)."""
     while i < 0 or i >= n:
@@ -32,7 +32,7 @@ def _reflect(i, n):  # pragma: no cover - compiled
     return i
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
+@njit(nogil=True, cache=True, error_model="numpy")
 def _malvar_rows(mosaic, cell, wb, matrix, y0, y1, out):  # pragma: no cover - compiled
     """Rows ``y0:y1`` of ``mosaic`` (H, W) -> ``out`` (y1 - y0, W, 3) float32.
 

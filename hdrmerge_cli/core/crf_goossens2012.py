@@ -28,10 +28,10 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.jit import njit, num_threads, prange
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS
 
 
@@ -132,7 +132,7 @@ def comparagram(knots: np.ndarray, levels: int) -> Comparagram:
     parts = []
     for j in range(n_frames):
         for jp in range(j + 1, n_frames):
-            counts = _pair_counts(knots, levels, j, jp, numba.get_num_threads())
+            counts = _pair_counts(knots, levels, j, jp, num_threads())
             occupied = np.flatnonzero(counts)
             parts.append((occupied // levels, occupied % levels, np.full(occupied.size, j), np.full(occupied.size, jp),
                           counts[occupied]))
@@ -140,14 +140,14 @@ def comparagram(knots: np.ndarray, levels: int) -> Comparagram:
     return Comparagram(a, b, j, jp, count.astype(np.float64), levels)
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _pair_counts(knots, levels, j, jp, chunks):  # pragma: no cover
     """Counts of ``(knots[:, j], knots[:, jp])``, flattened ``(levels * levels,)``; one
     histogram per chunk of pixels, summed at the end."""
     n = knots.shape[0]
     step = (n + chunks - 1) // chunks
     hist = np.zeros((chunks, levels * levels), np.int64)
-    for t in numba.prange(chunks):
+    for t in prange(chunks):
         for i in range(t * step, min(n, (t + 1) * step)):
             hist[t, np.intp(knots[i, j]) * levels + np.intp(knots[i, jp])] += 1
     return hist.sum(axis=0)

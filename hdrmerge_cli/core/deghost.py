@@ -29,9 +29,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
-import numba
 import numpy as np
 
+from hdrmerge_cli.core.jit import njit, prange
 from hdrmerge_cli.core.noise import NoiseParams, code_variance
 
 
@@ -225,13 +225,13 @@ def block_statistics(plane: np.ndarray, table: CodeTable, b: int, out: tuple) ->
                       np.ascontiguousarray(table.ok, np.bool_), lo, hi, b, *out)
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _block_statistics(plane, x_t, s_t, ok_t, lo, hi, b, xs, ss, ok, bound):  # pragma: no cover - compiled
     last = x_t.size - 1
     inv = 1.0 / (b * b)
     dark_x = x_t[min(max(lo, 0), last)]
     clip_x = x_t[min(max(hi, 0), last)]
-    for i in numba.prange(xs.shape[0]):
+    for i in prange(xs.shape[0]):
         for j in range(xs.shape[1]):
             sx = 0.0
             sv = 0.0

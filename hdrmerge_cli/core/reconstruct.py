@@ -22,11 +22,11 @@ import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numba
 import numpy as np
 
 from hdrmerge_cli.core.crf import CodesInverse
 from hdrmerge_cli.core.errors import HdrMergeError
+from hdrmerge_cli.core.jit import njit, prange
 from hdrmerge_cli.core.noise import DEFAULT_K, NoiseParams, quantisation_variance
 from hdrmerge_cli.core.weights import NOISE_MODEL_WEIGHTS, WEIGHTING_FUNCTIONS
 from hdrmerge_cli.core.weights_goossens2012 import WeightContext, bounded_noise
@@ -429,7 +429,7 @@ def noise_rows(params: list[NoiseParams], dtype=np.float32) -> NoiseRows:
                        for i in range(3)))
 
 
-@numba.njit(inline="always")
+@njit(inline="always")
 def _irls_weight(c, le, k, so, sq, ba, linear, floor):  # pragma: no cover
     """One sample's weight on an IRLS pass (iteratively re-weighted (7)) at the current
     estimate ``le`` = log E: ``w(z) sigma^-2(E, t_j)`` with ``mu = E h y_full`` and the
@@ -454,7 +454,7 @@ _NO_WEIGHT = np.zeros((1, 1), np.float32)
 _UNOWNED = -2.0
 
 
-@numba.njit(inline="always")
+@njit(inline="always")
 def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_keep, use_keep):  # pragma: no cover
     """One frame's sample ``(i, j)`` (table row ``r``, code ``z``, weight ``w``, weighted
     value ``wv``) into (7)'s sums, as :class:`LogMerge` keeps them (``mode`` 0: the
@@ -488,7 +488,7 @@ def _add_sample(num, den, i, j, w, wv, fb_tab, hi_tab, r, z, mode, keep, per_kee
         num[i, j] = fb_tab[r, z]
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, linear, out):  # pragma: no cover
     """:func:`_irls_weight` fused with the table lookup, per 2-D sample: the row of a
     sample from ``pattern`` tiled, its noise parameters from the per-row arrays."""
@@ -496,7 +496,7 @@ def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, l
     ph, pw = pattern.shape
     n = certainty.shape[1]
     floor = np.float32(WEIGHT_FLOOR)
-    for i in numba.prange(rows):
+    for i in prange(rows):
         prow = pattern[i % ph]
         for q in range(min(pw, cols)):  # one table row at a time: no per-sample modulo
             r = prow[q]
@@ -506,7 +506,7 @@ def _irls_weights_rows(codes, pattern, certainty, log_e, k, s_o2, sqrt_a, b_a, l
                                          floor)
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, k, s_o2, sqrt_a, b_a, linear, mode,
                      num, den):  # pragma: no cover
     """:func:`_irls_weights_rows` fused with :func:`_accumulate`: each sample's IRLS weight
@@ -516,7 +516,7 @@ def _accumulate_irls(codes, pattern, certainty, num_tab, fb_tab, hi_tab, log_e, 
     ph, pw = pattern.shape
     top = certainty.shape[1] - 1
     floor = np.float32(WEIGHT_FLOOR)
-    for i in numba.prange(rows):
+    for i in prange(rows):
         prow = pattern[i % ph]
         for q in range(min(pw, cols)):
             r = prow[q]
@@ -534,7 +534,7 @@ IRLS_TOLERANCE = 1e-3
 CENSORED_SDS = 8.0
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _inverse_mills(a):  # pragma: no cover
     """``lam = phi(a) / Phi(-a)`` of :func:`_censored_rows` in float64: directly below
     a = 30 (erfc keeps its relative accuracy there), above it by the asymptotic series of
@@ -546,7 +546,7 @@ def _inverse_mills(a):  # pragma: no cover
     return a / (1.0 - q * (1.0 - q * (3.0 - q * (15.0 - 105.0 * q))))
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd_full2, log_hi, s_o2, sqrt_a, b_a,
                    factor, use_factor, num_t, den_t, var_t, use_var):  # pragma: no cover
     """One frame's censored terms added to ``num_t`` (weight times value), ``den_t``
@@ -577,7 +577,7 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
     ph, pw = pattern.shape
     n = saturated.shape[1]
     top = y_full - 0.5
-    for i in numba.prange(rows):
+    for i in prange(rows):
         prow = pattern[i % ph]
         for q in range(min(pw, cols)):  # one table row at a time: no per-sample modulo
             r = prow[q]
@@ -612,11 +612,11 @@ def _censored_rows(codes, pattern, saturated, log_e, den, use_den, k, y_full, sd
                         var_t[i, j] = w
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _add_censored(num, den, var, cen_num, cen_den, use_var):  # pragma: no cover
     """``num += cen_num``, ``den += cen_den`` (and ``var += cen_den``) where ``den > 0``
     (2-D, in place)."""
-    for i in numba.prange(num.shape[0]):
+    for i in prange(num.shape[0]):
         for j in range(num.shape[1]):
             if den[i, j] > 0:
                 num[i, j] += cen_num[i, j]
@@ -625,12 +625,12 @@ def _add_censored(num, den, var, cen_num, cen_den, use_var):  # pragma: no cover
                     var[i, j] += cen_den[i, j]
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _largest_change(new, old, flags):  # pragma: no cover
     """``max |new - old|`` over the samples whose flag is 0 (0.0 when none), 2-D."""
     rows = new.shape[0]
     best = np.zeros(rows, np.float32)
-    for i in numba.prange(rows):
+    for i in prange(rows):
         m = np.float32(0.0)
         for j in range(new.shape[1]):
             if flags[i, j] == 0:
@@ -989,7 +989,7 @@ class LogMerge:
         return self.num, flag
 
 
-@numba.njit(inline="always")
+@njit(inline="always")
 def _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z):  # pragma: no cover
     """Sample ``(r, s)``'s weight and weighted value (table row ``c``, code ``z``) as
     :func:`_accumulate`'s ``use_weight`` says."""
@@ -1002,7 +1002,7 @@ def _weight_value(w_tab, num_tab, weight, use_weight, per_pixel, r, s, c, z):  #
     return w_tab[c, z], num_tab[c, z]
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, use_weight, use_cert, mode,
                 num, den, var, use_var, keep, use_keep):  # pragma: no cover
     """One frame of (7) into ``num``/``den`` (2-D views), rows in parallel.  ``mode`` 0:
@@ -1023,7 +1023,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, u
     top = w_tab.shape[1] - 1  # codes above the table (never valid data) read its last, clipped entry
     per_pixel = cols // weight.shape[1] if use_weight == 2 else 1
     per_keep = cols // keep.shape[1] if use_keep else 1
-    for r in numba.prange(rows):
+    for r in prange(rows):
         prow = pattern[r % ph]
         for q in range(min(pw, cols)):
             c = prow[q]
@@ -1039,7 +1039,7 @@ def _accumulate(codes, pattern, w_tab, num_tab, fb_tab, hi_tab, q_tab, weight, u
                 _add_sample(num, den, r, s, w, wv, fb_tab, hi_tab, c, z, mode, keep, per_keep, use_keep)
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _finish(num, den, var, use_var, pattern, dark_floor, linear, scale, unmeasured, flag):  # pragma: no cover
     """(7)'s ratio, the fallbacks and flags, in place over ``num``; ``scale > 0``: return
     ``exp(log E) * scale`` instead of ``log E``.
@@ -1055,7 +1055,7 @@ def _finish(num, den, var, use_var, pattern, dark_floor, linear, scale, unmeasur
     ph, pw = pattern.shape
     nf = dark_floor.shape[0]
     big = np.float32(3.4e38)
-    for r in numba.prange(rows):
+    for r in prange(rows):
         prow = pattern[r % ph]
         for s in range(cols):
             d = den[r, s]

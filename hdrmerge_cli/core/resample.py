@@ -12,8 +12,9 @@ from __future__ import annotations
 import functools
 from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
+
+from hdrmerge_cli.core.jit import njit, prange
 
 
 def _cv2():
@@ -311,9 +312,9 @@ def spread_code(u: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _spread_code_rows(u, out, inv_floor, steps):  # pragma: no cover - compiled
-    for r in numba.prange(u.shape[0]):
+    for r in prange(u.shape[0]):
         for c in range(u.shape[1]):
             v = np.log2(np.float32(1.0) + max(u[r, c], np.float32(0.0)) * inv_floor) * steps + np.float32(0.5)
             out[r, c] = min(int(v), 65535)
@@ -325,7 +326,7 @@ def _spread_table() -> np.ndarray:
     return (SPREAD_FLOOR * (np.exp2(np.arange(65536) / SPREAD_STEPS) - 1.0)).astype(np.float32)
 
 
-@numba.njit(inline="always")
+@njit(inline="always")
 def _filled_green_noise(fx, fy, on_green):  # pragma: no cover - compiled
     """``(e, s)`` of bilinear taps 1 px apart on the filled green image, in units of a
     green reading's noise variance: ``e = w' C w`` the interpolated value's, ``s = sum
@@ -344,13 +345,13 @@ def _filled_green_noise(fx, fy, on_green):  # pragma: no cover - compiled
     return e, s
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def _resampled_weight_rows(w, weight, table, codes, rows, slope, certainty, n_codes, spread, spread_of, sites, warp,
                            green, row0, out):  # pragma: no cover - compiled
     h, width = codes.shape
     ph, pw = rows.shape
     zero = np.float32(0.0)
-    for r in numba.prange(h):
+    for r in prange(h):
         ra = r + row0  # the mosaic's row
         dy, v = ra & 1, ra >> 1
         for col in range(width):
