@@ -89,6 +89,35 @@ def test_merge_help_imports_no_numba_scipy_or_the_merge(tmp_path):
                      "hdrmerge_cli.core.reconstruct"}
 
 
+def test_kernels_import_numba_on_first_call(tmp_path, dng_frames):
+    """core.jit: importing every stage of a merge imports neither Numba nor SciPy, a merge
+    refused before any work (an existing output) never imports them, and a kernel's first
+    call binds, in its module, the dispatcher ``numba.njit`` makes of the same function
+    (its result equal to that of a dispatcher made independently)."""
+    code = ("import sys, json; import hdrmerge_cli.pipeline.run, hdrmerge_cli.pipeline.batch, hdrmerge_cli.api; "
+            "print(json.dumps(sorted(sys.modules)))")
+    mods = set(json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                         check=True).stdout))
+    assert not mods & {"numba", "scipy"}, sorted(mods & {"numba", "scipy"})
+    (tmp_path / "out.exr").write_bytes(b"keep")
+    code, mods = _modules_after(["merge", *dng_frames, "-o", str(tmp_path / "out.exr")], tmp_path)
+    assert code == 1 and (tmp_path / "out.exr").read_bytes() == b"keep"
+    assert not mods & {"numba", "scipy"}, sorted(mods & {"numba", "scipy"})
+
+    import numba
+
+    from hdrmerge_cli.core import resample
+
+    u = np.linspace(-0.5, 40.0, 64, dtype=np.float32).reshape(8, 8)
+    got = resample.spread_code(u)
+    assert isinstance(resample._spread_code_rows, numba.core.registry.CPUDispatcher)
+    assert resample.prange is numba.prange
+    independent = numba.njit(parallel=True, nogil=True)(resample._spread_code_rows.py_func)
+    want = np.empty(u.shape, np.uint16)
+    independent(u, want, np.float32(1.0 / resample.SPREAD_FLOOR), np.float32(resample.SPREAD_STEPS))
+    np.testing.assert_array_equal(got, want)
+
+
 def test_choice_vocabularies_match_their_implementations():
     from hdrmerge_cli.core.choices import WEIGHTINGS
     from hdrmerge_cli.core.weights import WEIGHTING_FUNCTIONS
