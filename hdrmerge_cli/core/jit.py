@@ -1,14 +1,13 @@
 """Numba kernels that import Numba on their first call, not when their module is imported.
 
 Importing Numba costs about 0.3 s and setting up its code generator as much again; a command
-that runs no kernel (``--help``, ``info``, a refused input) should pay neither, and a merge
-should pay them on the second core while it reads its frames (``pipeline.run`` starts that).
-A module writes ``@njit(...)`` and ``prange`` from here where it would write
-``@numba.njit(...)`` and ``numba.prange``.  The first call of any of its kernels replaces,
-in that module (and in every module that imported them), each :class:`Kernel` by
-``numba.njit(**options)(function)`` and ``prange`` by ``numba.prange``: the very dispatchers
-the decorator would have made at import, so kernels, their cache files and their results are
-unchanged.  Kernels may call each other across modules.
+that runs no kernel (``--help``, ``info``, a refused input) pays neither (a merge sets the
+generator up on ``pipeline.run``'s prepare-kernels thread).  A module writes ``@njit(...)``
+and ``prange`` from here where it would write ``@numba.njit(...)`` and ``numba.prange``.
+The first call of any of its kernels binds in that module's namespace ``numba.prange`` and,
+for each :class:`Kernel`, ``numba.njit(**options)(function)``: the very dispatchers the
+decorator would have made at import, so kernels, their cache files and their results are
+unchanged.  A kernel calls only kernels of its own module.
 """
 from __future__ import annotations
 
@@ -50,19 +49,18 @@ def num_threads() -> int:
 
 
 def compile_module(name: str) -> None:
-    """Make the dispatchers of module ``name``'s kernels and bind them (and ``numba.prange``)
-    in its namespace, first doing the same for the modules whose kernels it imported."""
+    """Bind ``numba.prange`` and the dispatcher of each of module ``name``'s kernels in its
+    namespace; each :class:`Kernel` then hands its calls to its dispatcher."""
     import numba
 
     with _lock:
         namespace = vars(sys.modules[name])
+        kernels = [(key, value) for key, value in namespace.items()
+                   if isinstance(value, Kernel) and value.function.__module__ == name and value.dispatcher is None]
         if namespace.get("prange") is prange:
             namespace["prange"] = numba.prange
-        kernels = [(key, value) for key, value in namespace.items() if isinstance(value, Kernel)]
-        for key, kernel in kernels:  # its own first, so that a module importing these back finds them made
-            if kernel.function.__module__ == name and kernel.dispatcher is None:
-                kernel.dispatcher = numba.njit(**kernel.options)(kernel.function)
-        for key, kernel in kernels:
-            if kernel.dispatcher is None:
-                compile_module(kernel.function.__module__)
-            namespace[key] = kernel.dispatcher
+        made = [(kernel, numba.njit(**kernel.options)(kernel.function)) for _, kernel in kernels]
+        for (key, _), (_, dispatcher) in zip(kernels, made):
+            namespace[key] = dispatcher
+        for kernel, dispatcher in made:  # last: a kernel called on another thread finds its module's bound
+            kernel.dispatcher = dispatcher
